@@ -1,0 +1,411 @@
+"""What every trajectory data set shares: on-disk cache, splits, normalisation, loaders.
+
+A DataModule of this project serves dictionaries::
+
+    {"index": LongTensor[B], "y": FloatTensor[B, T, *obs_shape], ...optional "y_clean", "state"}
+
+``index`` is the trajectory's position in its split. For the training split it selects the
+trajectory's shooting nodes in the model's ``nn.Embedding``. ``y`` is the noisy measurement,
+``y_clean`` the noiseless one where the generator knows it, ``state`` the true state (for plots).
+Images are channel-first, ``obs_shape = (C, H, W)``; vectors have ``obs_shape = (D,)``.
+
+Subclasses that generate arrays implement :meth:`generator_params` (everything the data depend
+on: the cache key), :meth:`generate` (one split as numpy arrays) and
+:attr:`num_train_trajectories` (known before any data exist, so that the model can size its
+node table at construction). Data sets that are not arrays (Moving MNIST is generated on the fly)
+override :meth:`prepare_data` and :meth:`load_split` instead.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset, Sampler
+
+ARRAY_KEYS = ("y", "y_clean", "state")
+
+
+class Normalizer:
+    """Per-channel affine normalisation ``(y - mean) / std`` over the first observation axis.
+
+    ``mean`` and ``std`` have shape ``[C]`` (images, normalised per channel) or ``[D]`` (vectors,
+    per component); they broadcast over the remaining observation axes.
+    """
+
+    def __init__(self, mean: torch.Tensor, std: torch.Tensor, obs_ndim: int):
+        self.mean = torch.as_tensor(mean, dtype=torch.float32)
+        self.std = torch.as_tensor(std, dtype=torch.float32)
+        self.obs_ndim = obs_ndim
+        if (self.std <= 0).any() or not torch.isfinite(self.std).all():
+            raise ValueError(
+                f"normalisation std must be positive and finite, got {self.std.tolist()}: a channel of the "
+                "training data is constant; turn normalisation off (data.normalize: false) or drop that channel"
+            )
+
+    @classmethod
+    def identity(cls, channels: int, obs_ndim: int) -> Normalizer:
+        return cls(torch.zeros(channels), torch.ones(channels), obs_ndim)
+
+    @property
+    def is_identity(self) -> bool:
+        return bool((self.mean == 0).all() and (self.std == 1).all())
+
+    def _view(self, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        return t.to(like.device, like.dtype).view(-1, *([1] * (self.obs_ndim - 1)))
+
+    def normalize(self, y: torch.Tensor) -> torch.Tensor:
+        """``y``: ``[..., *obs_shape]`` in original units -> normalised units."""
+        return (y - self._view(self.mean, y)) / self._view(self.std, y)
+
+    def denormalize(self, y: torch.Tensor) -> torch.Tensor:
+        """``y``: ``[..., *obs_shape]`` in normalised units -> original units."""
+        return y * self._view(self.std, y) + self._view(self.mean, y)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"mean": self.mean.clone(), "std": self.std.clone(), "obs_ndim": self.obs_ndim}
+
+    @classmethod
+    def from_state_dict(cls, state: Mapping[str, Any]) -> Normalizer:
+        return cls(state["mean"], state["std"], int(state["obs_ndim"]))
+
+
+def to_float(a: np.ndarray) -> torch.Tensor:
+    """Array -> float32 tensor; ``uint8`` arrays are images stored as 0..255 and map to [0, 1]."""
+    t = torch.from_numpy(np.ascontiguousarray(a))
+    if t.dtype == torch.uint8:
+        return t.to(torch.float32).mul_(1.0 / 255.0)
+    return t.to(torch.float32)
+
+
+class TrajectoryDataset(Dataset):
+    """Trajectories held as arrays ``[N, T, ...]`` (possibly memory-mapped), served as dicts.
+
+    ``y`` and ``y_clean`` are converted to float and normalised per item; ``state`` is served as is.
+    ``indices`` restricts the data set to some trajectories while keeping their original index
+    (the validation subset of the training set uses this).
+    """
+
+    def __init__(
+        self,
+        arrays: Mapping[str, np.ndarray],
+        normalizer: Normalizer | None = None,
+        indices: Sequence[int] | None = None,
+    ):
+        if "y" not in arrays:
+            raise ValueError(f"a trajectory data set needs a 'y' array, got keys {sorted(arrays)}")
+        n = len(arrays["y"])
+        for key, a in arrays.items():
+            if len(a) != n:
+                raise ValueError(f"array '{key}' holds {len(a)} trajectories but 'y' holds {n}")
+        self.arrays = dict(arrays)
+        self.normalizer = normalizer
+        self.indices = np.arange(n) if indices is None else np.asarray(indices, dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    @property
+    def seq_len(self) -> int:
+        return int(self.arrays["y"].shape[1])
+
+    @property
+    def obs_shape(self) -> tuple[int, ...]:
+        return tuple(int(s) for s in self.arrays["y"].shape[2:])
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        j = int(self.indices[i])
+        item: dict[str, Any] = {"index": torch.tensor(j, dtype=torch.long)}
+        for key, a in self.arrays.items():
+            t = to_float(a[j])
+            if key in ("y", "y_clean") and self.normalizer is not None:
+                t = self.normalizer.normalize(t)
+            item[key] = t
+        return item
+
+
+class EpochSeededSampler(Sampler[int]):
+    """A shuffling sampler whose order is a pure function of ``(seed, epoch)``.
+
+    Lightning calls ``set_epoch`` at the start of every epoch, so a run resumed from a checkpoint
+    sees the same batches as an uninterrupted one.
+    """
+
+    def __init__(self, n: int, seed: int = 0, shuffle: bool = True):
+        self.n, self.seed, self.shuffle, self.epoch = n, seed, shuffle, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __iter__(self):
+        if not self.shuffle:
+            return iter(range(self.n))
+        g = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
+        return iter(torch.randperm(self.n, generator=g).tolist())
+
+
+def params_digest(params: Mapping[str, Any]) -> str:
+    """A short stable hash of generator parameters (the cache key)."""
+    text = json.dumps(params, sort_keys=True, default=str)
+    return hashlib.sha1(text.encode()).hexdigest()[:10]
+
+
+def check_finite(name: str, a: np.ndarray, chunk: int = 1 << 22) -> None:
+    """Raise if a float array holds NaN or inf (checked in chunks: arrays may be memory-mapped)."""
+    if not np.issubdtype(a.dtype, np.floating):
+        return
+    flat = a.reshape(-1)
+    for start in range(0, flat.size, chunk):
+        block = np.asarray(flat[start : start + chunk])
+        if not np.isfinite(block).all():
+            bad = start + int(np.flatnonzero(~np.isfinite(block))[0])
+            where = np.unravel_index(bad, a.shape)
+            raise ValueError(
+                f"{name} holds a non-finite value ({block[bad - start]}) at index {tuple(int(w) for w in where)} "
+                "(trajectory, time, ...): remove or interpolate missing samples before training"
+            )
+
+
+class TrajectoryDataModule(pl.LightningDataModule):
+    """Base class: generation into a cache, splits, validation subset, normalisation, loaders.
+
+    Args:
+        data_dir: where generated data sets are cached (one sub-folder per parameter set).
+        batch_size: trajectories per training batch.
+        eval_batch_size: trajectories per validation / test batch (default: ``batch_size``).
+        num_workers: DataLoader worker processes.
+        val_trajectories: size of the fixed, evenly spaced subset of *training* trajectories on
+            which validation measures the full-length rollout error (0 disables validation).
+        normalize: normalise measurements to zero mean and unit std per channel, with statistics
+            of the training set (they are saved in checkpoints with the DataModule's state).
+        shuffle: shuffle the training set every epoch (order fixed by ``seed`` and the epoch).
+        seed: seed of the generator and of the shuffling.
+    """
+
+    name = "trajectories"
+    splits: tuple[str, ...] = ("train", "test")
+
+    def __init__(
+        self,
+        data_dir: str = "data",
+        batch_size: int = 40,
+        eval_batch_size: int | None = None,
+        num_workers: int = 0,
+        val_trajectories: int = 16,
+        normalize: bool = False,
+        shuffle: bool = True,
+        seed: int = 0,
+    ):
+        super().__init__()
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        self.data_dir = Path(data_dir)
+        self.batch_size = batch_size
+        self.eval_batch_size = eval_batch_size or batch_size
+        self.num_workers = num_workers
+        self.val_trajectories = val_trajectories
+        self.normalize = normalize
+        self.shuffle = shuffle
+        self.seed = seed
+        self.datasets: dict[str, Dataset] = {}
+        self.normalizer: Normalizer | None = None
+        self._loaded_normalizer: Normalizer | None = None
+
+    # ------------------------------------------------------------------ to implement
+    @property
+    def num_train_trajectories(self) -> int:
+        """Number of training trajectories; must be known before the data exist."""
+        raise NotImplementedError
+
+    def generator_params(self) -> dict[str, Any]:
+        """Everything the generated arrays depend on (the cache key). Not batch size etc."""
+        raise NotImplementedError
+
+    def generate(self, split: str) -> dict[str, np.ndarray]:
+        """Generate one split: ``{"y": [N, T, *obs], optional "y_clean", "state"}``."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ cache
+    @property
+    def cache_dir(self) -> Path:
+        return self.data_dir / f"{self.name}-{params_digest(self.generator_params())}"
+
+    def _split_files(self, split: str) -> list[Path]:
+        return sorted(self.cache_dir.glob(f"{split}_*.npy"))
+
+    def is_cached(self, split: str) -> bool:
+        return (self.cache_dir / f"{split}.done").exists()
+
+    def prepare_data(self) -> None:
+        """Generate every split that is not cached yet (a second run reuses the cache)."""
+        for split in self.splits:
+            if self.is_cached(split):
+                continue
+            arrays = self.generate(split)
+            self.save_split(split, arrays)
+
+    def save_split(self, split: str, arrays: Mapping[str, np.ndarray]) -> None:
+        """Write a split atomically: a crash mid-write never leaves a half cache behind."""
+        self.cache_dir.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{split}-", dir=self.cache_dir))
+        try:
+            for key, a in arrays.items():
+                np.save(tmp / f"{split}_{key}.npy", a)
+            for f in tmp.iterdir():
+                os.replace(f, self.cache_dir / f.name)
+            with open(self.cache_dir / "params.json", "w") as fh:
+                json.dump(self.generator_params(), fh, indent=2, sort_keys=True, default=str)
+            (self.cache_dir / f"{split}.done").touch()
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    def load_arrays(self, split: str) -> dict[str, np.ndarray]:
+        if not self.is_cached(split):
+            raise FileNotFoundError(
+                f"the {split} split of {self.name} is not in {self.cache_dir}: call prepare_data() first "
+                "(the Trainer does) or check data_dir"
+            )
+        return {
+            f.stem[len(split) + 1 :]: np.load(f, mmap_mode="r")
+            for f in self._split_files(split)
+        }
+
+    def load_split(self, split: str) -> Dataset:
+        """Build the data set of a split (arrays from the cache, checked for NaN / inf)."""
+        arrays = self.load_arrays(split)
+        for key in ("y", "y_clean"):
+            if key in arrays:
+                check_finite(f"{self.name} {split} '{key}'", arrays[key])
+        return TrajectoryDataset(arrays)
+
+    # ------------------------------------------------------------------ setup
+    def setup(self, stage: str | None = None) -> None:
+        if "train" not in self.datasets:
+            self.datasets["train"] = self.load_split("train")
+            self.normalizer = self._make_normalizer(self.datasets["train"])
+            self._set_normalizer(self.datasets["train"])
+            n = len(self.datasets["train"])
+            if n != self.num_train_trajectories:
+                raise RuntimeError(
+                    f"{self.name}: the training split holds {n} trajectories but num_train_trajectories "
+                    f"says {self.num_train_trajectories}"
+                )
+        for split in self.splits:
+            if split != "train" and split not in self.datasets and stage in (None, "test", "predict", split):
+                self.datasets[split] = self.load_split(split)
+                self._set_normalizer(self.datasets[split])
+
+    def _set_normalizer(self, ds: Dataset) -> None:
+        if isinstance(ds, TrajectoryDataset):
+            ds.normalizer = None if self.normalizer is None or self.normalizer.is_identity else self.normalizer
+
+    def _make_normalizer(self, train: Dataset) -> Normalizer:
+        obs_shape = self.obs_shape
+        if self._loaded_normalizer is not None:  # from a checkpoint: the statistics the model was trained with
+            return self._loaded_normalizer
+        if not self.normalize:
+            return Normalizer.identity(obs_shape[0], len(obs_shape))
+        mean, std = self.compute_statistics(train)
+        return Normalizer(mean, std, len(obs_shape))
+
+    def compute_statistics(self, train: Dataset) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-channel mean and std of the training measurements (float64 accumulation)."""
+        y = train.arrays["y"] if isinstance(train, TrajectoryDataset) else None
+        if y is None:
+            raise NotImplementedError(f"{type(self).__name__} must implement compute_statistics")
+        c = y.shape[2]
+        axes = tuple(i for i in range(y.ndim) if i != 2)
+        s = np.zeros(c)
+        s2 = np.zeros(c)
+        count = 0
+        for start in range(0, len(y), 256):
+            block = to_float(np.asarray(y[start : start + 256])).double().numpy()
+            s += block.sum(axis=axes)
+            s2 += (block**2).sum(axis=axes)
+            count += block.size // c
+        mean = s / count
+        std = np.sqrt(np.maximum(s2 / count - mean**2, 0.0))
+        return torch.tensor(mean, dtype=torch.float32), torch.tensor(std, dtype=torch.float32)
+
+    # ------------------------------------------------------------------ properties
+    def _train(self) -> Dataset:
+        if "train" not in self.datasets:
+            raise RuntimeError(f"{type(self).__name__}.setup() has not run yet")
+        return self.datasets["train"]
+
+    @property
+    def seq_len(self) -> int:
+        return self._train().seq_len
+
+    @property
+    def obs_shape(self) -> tuple[int, ...]:
+        return self._train().obs_shape
+
+    def val_indices(self) -> np.ndarray:
+        n = len(self._train())
+        k = min(self.val_trajectories, n)
+        return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64)) if k > 0 else np.zeros(0, np.int64)
+
+    # ------------------------------------------------------------------ loaders
+    def _loader(self, ds: Dataset, batch_size: int, sampler: Sampler | None = None) -> DataLoader:
+        return DataLoader(
+            ds,
+            batch_size=batch_size,
+            sampler=sampler,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        ds = self._train()
+        return self._loader(ds, self.batch_size, EpochSeededSampler(len(ds), self.seed, self.shuffle))
+
+    def val_dataloader(self) -> DataLoader | list:
+        idx = self.val_indices()
+        if len(idx) == 0:
+            return []
+        return self._loader(self.subset(self._train(), idx), self.eval_batch_size)
+
+    def subset(self, ds: Dataset, indices: np.ndarray) -> Dataset:
+        """The trajectories ``indices`` of ``ds``, keeping their index (override for non-array data)."""
+        assert isinstance(ds, TrajectoryDataset)
+        return TrajectoryDataset(ds.arrays, ds.normalizer, ds.indices[indices])
+
+    def test_dataloader(self) -> DataLoader:
+        if "test" not in self.datasets:
+            self.setup("test")
+        return self._loader(self.datasets["test"], self.eval_batch_size)
+
+    # ------------------------------------------------------------------ checkpoint
+    def state_dict(self) -> dict[str, Any]:
+        """Saved in every checkpoint: normalisation statistics and what the data were."""
+        state: dict[str, Any] = {"name": self.name, "generator_params": self._safe_generator_params()}
+        if self.normalizer is not None:
+            state["normalizer"] = self.normalizer.state_dict()
+        return state
+
+    def _safe_generator_params(self) -> dict[str, Any] | None:
+        try:
+            return json.loads(json.dumps(self.generator_params(), default=str))
+        except NotImplementedError:
+            return None
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        if "normalizer" in state_dict:
+            self._loaded_normalizer = Normalizer.from_state_dict(state_dict["normalizer"])
+            if self.normalizer is not None:
+                self.normalizer = self._loaded_normalizer
+                for ds in self.datasets.values():
+                    self._set_normalizer(ds)

@@ -1,0 +1,1 @@
+"""ssm-ms: neural state-space models learned by multiple shooting."""

@@ -1,0 +1,5 @@
+"""Networks: residual transitions ``f``, observation models ``g``, state encoders."""
+
+from ssm_ms.nets.transition import FullyConnectedTransition, LocallyLinearTransition
+
+__all__ = ["FullyConnectedTransition", "LocallyLinearTransition"]
