@@ -30,7 +30,7 @@ from typing import Any
 import lightning.pytorch as pl
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
 
 ARRAY_KEYS = ("y", "y_clean", "state")
 
@@ -80,8 +80,8 @@ class Normalizer:
 
 
 def to_float(a: np.ndarray) -> torch.Tensor:
-    """Array -> float32 tensor; ``uint8`` arrays are images stored as 0..255 and map to [0, 1]."""
-    t = torch.from_numpy(np.ascontiguousarray(a))
+    """Array -> float32 tensor (a copy); ``uint8`` arrays are images stored as 0..255 and map to [0, 1]."""
+    t = torch.from_numpy(np.array(a))  # copies: `a` may be a read-only memory map
     if t.dtype == torch.uint8:
         return t.to(torch.float32).mul_(1.0 / 255.0)
     return t.to(torch.float32)
@@ -122,15 +122,34 @@ class TrajectoryDataset(Dataset):
     def obs_shape(self) -> tuple[int, ...]:
         return tuple(int(s) for s in self.arrays["y"].shape[2:])
 
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        j = int(self.indices[i])
-        item: dict[str, Any] = {"index": torch.tensor(j, dtype=torch.long)}
+    def _fetch(self, j: np.ndarray | int) -> dict[str, torch.Tensor]:
+        item: dict[str, Any] = {"index": torch.as_tensor(j, dtype=torch.long)}
         for key, a in self.arrays.items():
             t = to_float(a[j])
             if key in ("y", "y_clean") and self.normalizer is not None:
                 t = self.normalizer.normalize(t)
             item[key] = t
         return item
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return self._fetch(int(self.indices[i]))
+
+    def __getitems__(self, items: list[int]) -> dict[str, torch.Tensor]:
+        """A whole batch with one (sorted) fancy-indexed read per array, already collated.
+
+        The DataLoader calls this instead of ``__getitem__`` once per item: with a million short
+        trajectories (Lorenz cut into pieces of 10) per-item fetching would dominate an epoch.
+        """
+        j = self.indices[np.asarray(items, dtype=np.int64)]
+        order = np.argsort(j, kind="stable")
+        batch = self._fetch(j[order])
+        inverse = torch.from_numpy(np.argsort(order, kind="stable"))
+        return {key: value[inverse] for key, value in batch.items()}
+
+
+def collate(batch: Any) -> Any:
+    """Collate items, or pass through a batch that ``__getitems__`` already assembled."""
+    return batch if isinstance(batch, dict) else default_collate(batch)
 
 
 class EpochSeededSampler(Sampler[int]):
@@ -358,12 +377,26 @@ class TrajectoryDataModule(pl.LightningDataModule):
         k = min(self.val_trajectories, n)
         return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64)) if k > 0 else np.zeros(0, np.int64)
 
+    def node_measurements(self, n_nodes: int) -> torch.Tensor:
+        """Training measurements at the shooting nodes' times: ``[N, n_nodes, *obs_shape]`` (normalised).
+
+        Used to start nodes at measured values (``MultipleShootingModule(node_init_map=...)``).
+        """
+        train = self._train()
+        if not isinstance(train, TrajectoryDataset):
+            raise NotImplementedError(f"{type(self).__name__} does not support starting nodes at measurements")
+        y = train.arrays["y"]
+        n = y.shape[1] // n_nodes
+        out = to_float(np.asarray(y[:, ::n][:, :n_nodes]))
+        return out if train.normalizer is None else train.normalizer.normalize(out)
+
     # ------------------------------------------------------------------ loaders
     def _loader(self, ds: Dataset, batch_size: int, sampler: Sampler | None = None) -> DataLoader:
         return DataLoader(
             ds,
             batch_size=batch_size,
             sampler=sampler,
+            collate_fn=collate,
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
         )

@@ -1,5 +1,6 @@
 """Networks: residual transitions ``f``, observation models ``g``, state encoders."""
 
+from ssm_ms.nets.observation import ConvDecoder, Projection
 from ssm_ms.nets.transition import FullyConnectedTransition, LocallyLinearTransition
 
-__all__ = ["FullyConnectedTransition", "LocallyLinearTransition"]
+__all__ = ["ConvDecoder", "FullyConnectedTransition", "LocallyLinearTransition", "Projection"]

@@ -1,0 +1,361 @@
+"""A user's own recorded trajectories, from ``.npy`` / ``.npz`` files.
+
+Accepted layouts (``N`` trajectories of ``T`` samples each):
+
+- ``[N, T, D]`` vectors, served with ``obs_shape = (D,)``;
+- ``[N, T, H, W]`` grey images, served as ``(1, H, W)``;
+- ``[N, T, C, H, W]`` images, served as ``(C, H, W)``.
+
+``uint8`` arrays are images stored as 0..255 and are served in [0, 1]; other numeric arrays are
+served as float32. Several files of one split are concatenated along ``N``. The array headers are
+read at construction (nothing else), so the number of training trajectories is known before any
+data are loaded; the data are read in :meth:`setup`, memory-mapped where the file allows it (``.npy``
+and uncompressed ``.npz``, i.e. ``numpy.save`` / ``numpy.savez``; ``numpy.savez_compressed`` files
+are read into memory). Several files of one split are concatenated in memory (as float32 when their
+dtypes differ, uint8 parts mapped to [0, 1]); a single file stays memory-mapped.
+"""
+
+from __future__ import annotations
+
+import struct
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from torch.utils.data import DataLoader, Dataset
+
+from datamodules.base import TrajectoryDataModule, TrajectoryDataset, check_finite
+
+LAYOUTS = "[N, T, D] vectors, [N, T, H, W] grey images or [N, T, C, H, W] images"
+
+
+@dataclass(frozen=True)
+class ArrayHeader:
+    """Where one array lives and what its header says (no data read)."""
+
+    path: Path
+    key: str | None  # member of an .npz (None for .npy)
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    fortran_order: bool
+    data_offset: int | None = None  # byte offset of the data in an uncompressed .npz (memory-mappable)
+
+    @property
+    def label(self) -> str:
+        return f"{self.path}" + (f" (array '{self.key}')" if self.key is not None else "")
+
+
+def _read_npy_header(fp, where: str) -> tuple[tuple[int, ...], bool, np.dtype]:
+    try:
+        version = np.lib.format.read_magic(fp)
+    except ValueError as err:
+        raise ValueError(f"{where} is not a NumPy .npy array ({err}); write arrays with numpy.save / numpy.savez") from err
+    if version == (1, 0):
+        return np.lib.format.read_array_header_1_0(fp)
+    return np.lib.format.read_array_header_2_0(fp)
+
+
+def read_header(path: str | Path, key: str, what: str) -> ArrayHeader:
+    """Read the header of a ``.npy`` file or of the member ``key`` of an ``.npz`` file.
+
+    ``what`` names the argument the path came from, for error messages.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{what}: {path} does not exist (or is not a file); expected a .npy or .npz file holding "
+            f"trajectories as {LAYOUTS}"
+        )
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        with open(path, "rb") as fp:
+            shape, fortran, dtype = _read_npy_header(fp, str(path))
+        return ArrayHeader(path, None, tuple(shape), dtype, fortran)
+    if suffix != ".npz":
+        raise ValueError(f"{what}: {path} is neither .npy nor .npz; save your trajectories with numpy.save or numpy.savez")
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"{what}: {path} is not a valid .npz (zip) archive; write it with numpy.savez")
+    with zipfile.ZipFile(path) as zf:
+        member = f"{key}.npy"
+        names = [n[:-4] for n in zf.namelist() if n.endswith(".npy")]
+        if member not in zf.namelist():
+            raise ValueError(f"{what}: {path} holds no array '{key}' (it holds {names}); set the key argument to one of them")
+        info = zf.getinfo(member)
+        with zf.open(member) as fp:
+            shape, fortran, dtype = _read_npy_header(fp, f"{path}['{key}']")
+            header_len = fp.tell()
+    offset = None
+    if info.compress_type == zipfile.ZIP_STORED:
+        with open(path, "rb") as fh:  # local file header: 30 bytes, then name and extra field
+            fh.seek(info.header_offset)
+            local = fh.read(30)
+        if local[:4] == b"PK\x03\x04":
+            name_len, extra_len = struct.unpack("<HH", local[26:30])
+            offset = info.header_offset + 30 + name_len + extra_len + header_len
+    return ArrayHeader(path, key, tuple(shape), dtype, fortran, offset)
+
+
+def open_array(h: ArrayHeader) -> np.ndarray:
+    """The array of a header: memory-mapped where possible, else read into memory."""
+    if h.key is None:
+        return np.load(h.path, mmap_mode="r")
+    if h.data_offset is not None and not h.dtype.hasobject:
+        return np.memmap(h.path, dtype=h.dtype, mode="r", offset=h.data_offset, shape=h.shape,
+                         order="F" if h.fortran_order else "C")
+    with np.load(h.path) as npz:
+        return npz[h.key]
+
+
+def _as_list(paths: str | list[str] | None) -> list[str]:
+    if paths is None:
+        return []
+    return [paths] if isinstance(paths, (str, Path)) else [str(p) for p in paths]
+
+
+def _check_header(h: ArrayHeader, what: str) -> None:
+    if h.dtype.hasobject:
+        raise ValueError(
+            f"{what}: {h.label} is an object array (ragged trajectories or a pickled list): all trajectories "
+            "must have the same length T; pad or cut them and save one numeric array "
+            f"({LAYOUTS})"
+        )
+    if h.dtype.kind not in "biuf":
+        raise ValueError(f"{what}: {h.label} has dtype {h.dtype}; expected a real numeric (float, int or uint8) array")
+    if len(h.shape) not in (3, 4, 5):
+        hint = " (scalar measurements [N, T]: add a trailing axis, y[..., None])" if len(h.shape) == 2 else ""
+        raise ValueError(f"{what}: {h.label} has shape {h.shape} (rank {len(h.shape)}); accepted layouts: {LAYOUTS}{hint}")
+    if 0 in h.shape:
+        raise ValueError(
+            f"{what}: {h.label} is empty (shape {h.shape}, layout [N, T, ...]): it needs at least one trajectory "
+            "of at least one sample"
+        )
+
+
+def _served_shape(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """``[N, T, H, W]`` files are served channel-first as ``[N, T, 1, H, W]``."""
+    return (shape[0], shape[1], 1, *shape[2:]) if len(shape) == 4 else tuple(shape)
+
+
+class FileDataModule(TrajectoryDataModule):
+    """Trajectories recorded by the user, from ``.npy`` / ``.npz`` files.
+
+    Args:
+        train_path: a file or a list of files (concatenated along N) of training trajectories.
+        val_path: optional validation files. Lightning's validation loop keeps using the subset of
+            *training* trajectories (the model validates rollouts from their shooting nodes); the val
+            files are loaded, checked and normalised as ``datasets["val"]``, served by
+            :meth:`split_dataloader`.
+        test_path: optional test files (trajectories may have another length T than training).
+        key: array name inside ``.npz`` files.
+        clean_key: optional name of the noiseless targets (``y_clean``) inside the same ``.npz`` files.
+        train_clean_path, val_clean_path, test_clean_path: noiseless targets in separate files (same
+            shape as the measurements once concatenated; ``.npz`` read at ``clean_key`` or else ``key``).
+        test_fraction: hold out the last ``round(test_fraction * N)`` training trajectories as the test
+            split (only without ``test_path``).
+        data_dir, batch_size, eval_batch_size, num_workers, val_trajectories, normalize, shuffle, seed:
+            see :class:`~datamodules.base.TrajectoryDataModule` (``data_dir`` is unused: no cache).
+    """
+
+    name = "files"
+
+    def __init__(
+        self,
+        train_path: str | list[str],
+        val_path: str | list[str] | None = None,
+        test_path: str | list[str] | None = None,
+        key: str = "y",
+        clean_key: str | None = None,
+        train_clean_path: str | list[str] | None = None,
+        val_clean_path: str | list[str] | None = None,
+        test_clean_path: str | list[str] | None = None,
+        test_fraction: float = 0.0,
+        data_dir: str = "data",
+        batch_size: int = 40,
+        eval_batch_size: int | None = None,
+        num_workers: int = 0,
+        val_trajectories: int = 16,
+        normalize: bool = False,
+        shuffle: bool = True,
+        seed: int = 0,
+    ):
+        super().__init__(
+            data_dir=data_dir,
+            batch_size=batch_size,
+            eval_batch_size=eval_batch_size,
+            num_workers=num_workers,
+            val_trajectories=val_trajectories,
+            normalize=normalize,
+            shuffle=shuffle,
+            seed=seed,
+        )
+        self.paths = {"train": _as_list(train_path), "val": _as_list(val_path), "test": _as_list(test_path)}
+        self.clean_paths = {
+            "train": _as_list(train_clean_path), "val": _as_list(val_clean_path), "test": _as_list(test_clean_path)
+        }
+        self.key, self.clean_key = key, clean_key
+        if not self.paths["train"]:
+            raise ValueError("train_path is required: a .npy / .npz file or a list of them")
+        if not 0.0 <= test_fraction < 1.0:
+            raise ValueError(f"test_fraction must be in [0, 1), got {test_fraction}")
+        if test_fraction > 0 and self.paths["test"]:
+            raise ValueError("give either test_path or test_fraction > 0, not both")
+        for split in ("val", "test"):
+            if self.clean_paths[split] and not self.paths[split]:
+                raise ValueError(f"{split}_clean_path is given but {split}_path is not")
+        self.test_fraction = float(test_fraction)
+
+        # Headers only: shapes, dtypes, clean targets; every check that needs no data happens here.
+        self.headers: dict[str, list[ArrayHeader]] = {}
+        self.clean_headers: dict[str, list[ArrayHeader]] = {}
+        self.shapes: dict[str, tuple[int, ...]] = {}  # served shape of each split, [N, T, *obs_shape]
+        for split, files in self.paths.items():
+            if files:
+                self._read_split_headers(split)
+        self.splits = tuple(s for s in ("train", "val", "test") if s in self.shapes or (s == "test" and test_fraction > 0))
+        n = self.shapes["train"][0]
+        self.n_holdout = max(1, int(round(n * test_fraction))) if test_fraction > 0 else 0
+        if self.n_holdout >= n:
+            raise ValueError(
+                f"test_fraction={test_fraction} holds out {self.n_holdout} of the {n} training trajectories and "
+                "leaves none to train on; lower it"
+            )
+        self._arrays: dict[str, dict[str, np.ndarray]] = {}
+
+    # ------------------------------------------------------------------ headers
+    def _read_split_headers(self, split: str) -> None:
+        what = f"{split}_path"
+        heads = [read_header(p, self.key, what) for p in self.paths[split]]
+        for h in heads:
+            _check_header(h, what)
+        shape = self._concat_shape(heads, what)
+        if split != "train":
+            obs, train_obs = shape[2:], self.shapes["train"][2:]
+            if obs != train_obs:
+                raise ValueError(
+                    f"{what}: observations of shape {obs} do not match the training observations {train_obs} "
+                    f"(served layout [N, T, *obs]); every split must hold the same kind of measurement"
+                )
+        if self.clean_paths[split]:
+            what_clean = f"{split}_clean_path"
+            clean = [read_header(p, self.clean_key or self.key, what_clean) for p in self.clean_paths[split]]
+        elif self.clean_key is not None:
+            what_clean = f"clean_key '{self.clean_key}' of {what}"
+            clean = []
+            for h in heads:
+                if h.key is None:
+                    raise ValueError(
+                        f"clean_key applies to .npz files, but {h.path} is a .npy file: pass the noiseless targets "
+                        f"as {split}_clean_path instead"
+                    )
+                clean.append(read_header(h.path, self.clean_key, f"clean_key of {what}"))
+        else:
+            clean = []
+        if clean:
+            for h in clean:
+                _check_header(h, what_clean)
+            clean_shape = self._concat_shape(clean, what_clean)
+            if clean_shape != shape:
+                raise ValueError(
+                    f"{what_clean}: the clean targets have shape {clean_shape} but the measurements have shape "
+                    f"{shape}: clean targets must have exactly the measurements' shape"
+                )
+        self.headers[split], self.clean_headers[split], self.shapes[split] = heads, clean, shape
+
+    @staticmethod
+    def _concat_shape(heads: list[ArrayHeader], what: str) -> tuple[int, ...]:
+        first = _served_shape(heads[0].shape)
+        for h in heads[1:]:
+            other = _served_shape(h.shape)
+            if other[1:] != first[1:]:
+                raise ValueError(
+                    f"{what}: {h.label} holds trajectories of shape {other[1:]} but {heads[0].label} holds "
+                    f"{first[1:]} ([T, *obs]); files of one split are concatenated along N and must agree"
+                )
+        return (sum(h.shape[0] for h in heads), *first[1:])
+
+    # ------------------------------------------------------------------ sizes known before loading
+    @property
+    def num_train_trajectories(self) -> int:
+        return self.shapes["train"][0] - self.n_holdout
+
+    @property
+    def obs_shape(self) -> tuple[int, ...]:
+        return tuple(self.shapes["train"][2:])
+
+    @property
+    def seq_len(self) -> int:
+        return int(self.shapes["train"][1])
+
+    def generator_params(self) -> dict[str, Any]:
+        """Where the data came from (stored in checkpoints with the DataModule's state)."""
+        return {
+            "paths": self.paths,
+            "clean_paths": self.clean_paths,
+            "key": self.key,
+            "clean_key": self.clean_key,
+            "test_fraction": self.test_fraction,
+        }
+
+    # ------------------------------------------------------------------ loading
+    def prepare_data(self) -> None:
+        """Nothing to generate or cache: the files are read in :meth:`setup`."""
+
+    @staticmethod
+    def _load_files(heads: list[ArrayHeader]) -> np.ndarray:
+        arrays = []
+        for h in heads:
+            a = open_array(h)
+            check_finite(h.label, a)
+            arrays.append(a.reshape(_served_shape(a.shape)) if a.ndim == 4 else a)
+        if len(arrays) == 1:
+            return arrays[0]
+        if len({a.dtype for a in arrays}) > 1:  # e.g. uint8 with float files: bring all to float32 in [0, 1]
+            arrays = [a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32) for a in arrays]
+        elif arrays[0].dtype.kind == "f" and arrays[0].dtype != np.float32:
+            arrays = [a.astype(np.float32) for a in arrays]
+        return np.concatenate(arrays)
+
+    def _split_arrays(self, split: str) -> dict[str, np.ndarray]:
+        if split in self._arrays:
+            return self._arrays[split]
+        if split in ("train", "test") and self.n_holdout:
+            full = {"y": self._load_files(self.headers["train"])}
+            if self.clean_headers["train"]:
+                full["y_clean"] = self._load_files(self.clean_headers["train"])
+            cut = len(full["y"]) - self.n_holdout
+            self._arrays["train"] = {k: a[:cut] for k, a in full.items()}
+            self._arrays["test"] = {k: a[cut:] for k, a in full.items()}
+        else:
+            arrays = {"y": self._load_files(self.headers[split])}
+            if self.clean_headers[split]:
+                arrays["y_clean"] = self._load_files(self.clean_headers[split])
+            self._arrays[split] = arrays
+        return self._arrays[split]
+
+    def load_split(self, split: str) -> TrajectoryDataset:
+        if split not in self.splits:
+            raise ValueError(f"no {split} split: this FileDataModule has {list(self.splits)} (pass {split}_path)")
+        return TrajectoryDataset(self._split_arrays(split))
+
+    def setup(self, stage: str | None = None) -> None:
+        super().setup(stage)
+        if "val" in self.splits and "val" not in self.datasets and stage in ("fit", "validate"):
+            self.datasets["val"] = self.load_split("val")
+            self._set_normalizer(self.datasets["val"])
+
+    # ------------------------------------------------------------------ loaders
+    def split_dataloader(self, split: str) -> DataLoader:
+        """A non-shuffled loader over any split (e.g. the val files), with the evaluation batch size."""
+        if split not in self.splits:
+            raise ValueError(f"no {split} split: this FileDataModule has {list(self.splits)} (pass {split}_path)")
+        if split not in self.datasets:
+            self.setup(None)
+        ds: Dataset = self.datasets[split]
+        return self._loader(ds, self.eval_batch_size)
+
+    def test_dataloader(self) -> DataLoader:
+        if "test" not in self.splits:
+            raise ValueError("this FileDataModule has no test split: pass test_path, or test_fraction > 0")
+        return super().test_dataloader()

@@ -1,0 +1,452 @@
+"""The n-link planar pendulum of the paper, simulated with Pinocchio and rendered to noisy images.
+
+The system: ``n_links`` unit-length, massless links joined by revolute joints, a unit point mass at
+the end of every link, gravity ``g = 9.81``. Joint ``k``'s angle is relative to link ``k - 1``
+(Pinocchio's chain of revolute joints), so the absolute angle of link ``k`` is the cumulative sum
+``phi_k = theta_1 + ... + theta_k``; all angles zero is the chain hanging straight down. Optional
+viscous joint damping applies the torque ``tau = -damping * theta_dot``. The forward dynamics are
+Pinocchio's ``pin.aba``, integrated with classical RK4 at a fixed step ``dt``.
+
+Choice of ``dt`` (default ``5e-3``): the largest step, among those that divide the frame period,
+that keeps both paper systems comfortably accurate. Measured maximum energy error over 10 s
+(undamped, 40 random initial states drawn like the paper's, relative to the potential-energy scale
+``g * sum of mass heights`` = ``g`` for one link, ``10 g`` for four), on this project's machine::
+
+    dt       1 link    4 links (angles ~ U[-pi, pi], at rest)
+    2e-2     5e-7      1.2e-1
+    1e-2     2e-8      2.8e-3
+    5e-3     1e-9      2.5e-4   (median 1e-5)
+    2.5e-3   5e-11     9e-6
+
+(semi-implicit Euler at ``dt = 1e-3``, the reference implementation's scheme, loses ~40 % of the
+energy of a simple pendulum in 10 s). ``benchmarks/bench_pendulum_data.py`` re-measures the drift.
+
+Images: the chain is drawn from the image centre as anti-aliased thick lines with round caps;
+a pixel's intensity is ``clip(line_width / 2 + 0.5 - distance, 0, 1)`` where ``distance`` is from
+the pixel centre to the nearest link segment (an analytic coverage estimate, max over segments).
+The whole chain spans ``image_size / 2 - line_width / 2 - 1`` pixels, so that the tip, its cap and
+its anti-aliasing ramp stay inside the image; every link has the same length in pixels. Image
+right is the direction of positive angles (``theta = pi / 2`` with one link points right), image
+down is gravity. Noise: ``y = clip(clean + N(0, noise_std^2), 0, 1)``, drawn on the float clean
+image, then both ``y`` and ``y_clean`` are quantised to ``uint8`` (step ``1/255``; its error std
+``1/(255 sqrt 12) ~ 1.1e-3`` is negligible next to ``noise_std = 0.2``).
+
+Generation is deterministic given ``seed``: trajectory ``i`` of split ``s`` draws its initial state
+and its noise from ``np.random.default_rng([seed, s, i])`` (``s = 0`` train, ``1`` test), and the
+simulation of a trajectory involves only element-wise arithmetic and its own ``pin.aba`` calls,
+so the arrays do not depend on ``workers`` or on how trajectories are grouped.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+from typing import Any
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from datamodules.base import TrajectoryDataModule
+
+GRAVITY = 9.81
+SPLIT_IDS = {"train": 0, "test": 1}
+CHUNK_SIZE = 32  # trajectories per worker task (simulated together to amortise Python overhead)
+GENERATOR_VERSION = 1  # bump when the generated arrays change for the same parameters
+
+
+# ---------------------------------------------------------------------------------------- model
+def pendulum_model(n_links: int):
+    """Pinocchio model of the chain: revolute joints about x, unit links along -z, unit point masses.
+
+    The mass of link ``k`` sits at ``(0, sum sin phi_j, -sum cos phi_j)`` (``phi`` the cumulative
+    angles): world ``+y`` is image right, world ``-z`` image down. Gravity is Pinocchio's default,
+    ``(0, 0, -9.81)``.
+    """
+    import pinocchio as pin
+
+    if n_links < 1:
+        raise ValueError(f"n_links must be >= 1, got {n_links}")
+    model = pin.Model()
+    model.gravity.linear = np.array([0.0, 0.0, -GRAVITY])
+    parent = 0
+    for k in range(n_links):
+        offset = np.array([0.0, 0.0, 0.0 if k == 0 else -1.0])  # joint k sits at the mass of link k-1
+        joint = model.addJoint(parent, pin.JointModelRX(), pin.SE3(np.eye(3), offset), f"joint{k + 1}")
+        mass = pin.Inertia(1.0, np.array([0.0, 0.0, -1.0]), np.zeros((3, 3)))  # point mass at the link end
+        model.appendBodyToJoint(joint, mass, pin.SE3.Identity())
+        parent = joint
+    return model
+
+
+# ------------------------------------------------------------------------------------ dynamics
+def simulate(
+    model,
+    data,
+    q0: np.ndarray,
+    v0: np.ndarray,
+    n_frames: int,
+    steps_per_frame: int,
+    dt: float,
+    damping: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """RK4-integrate a batch of trajectories; returns angles and velocities at every frame.
+
+    Args:
+        model, data: a Pinocchio model (see :func:`pendulum_model`) and its data.
+        q0, v0: initial joint angles and velocities ``[B, n]``.
+        n_frames: frames to record; frame 0 is the initial state.
+        steps_per_frame: RK4 steps between frames (frame period ``steps_per_frame * dt``).
+        dt: RK4 step.
+        damping: viscous joint damping, ``tau = -damping * v``.
+
+    Returns:
+        ``q, v`` of shape ``[B, n_frames, n]`` (float64; angles are not wrapped).
+
+    The batch dimension only amortises NumPy's per-call overhead: every operation on the batch is
+    element-wise and ``pin.aba`` runs per trajectory, so each trajectory's result is bit-identical
+    to simulating it alone.
+    """
+    import pinocchio as pin
+
+    aba = pin.aba
+    q = np.array(q0, dtype=np.float64, ndmin=2)
+    v = np.array(v0, dtype=np.float64, ndmin=2)
+    if q.shape != v.shape or q.shape[1] != model.nq:
+        raise ValueError(f"q0 and v0 must both be [B, {model.nq}], got {q.shape} and {v.shape}")
+    batch, n = q.shape
+    out_q = np.empty((batch, n_frames, n))
+    out_v = np.empty((batch, n_frames, n))
+    # stage inputs are written in place into these buffers, so the per-trajectory rows are fixed views
+    qs, vs, tau = np.empty((batch, n)), np.empty((batch, n)), np.zeros((batch, n))
+    rows = list(zip(qs, vs, tau))
+    neg_damping, damped = -float(damping), damping != 0.0
+    h2, h6 = 0.5 * dt, dt / 6.0
+
+    def accel() -> np.ndarray:
+        if damped:
+            np.multiply(vs, neg_damping, out=tau)
+        return np.array([aba(model, data, qr, vr, tr) for qr, vr, tr in rows])
+
+    for frame in range(n_frames):
+        out_q[:, frame] = q
+        out_v[:, frame] = v
+        if frame == n_frames - 1:
+            break
+        for _ in range(steps_per_frame):
+            qs[:] = q
+            vs[:] = v
+            a1 = accel()
+            np.add(q, h2 * v, out=qs)
+            np.add(v, h2 * a1, out=vs)
+            v2 = vs.copy()
+            a2 = accel()
+            np.add(q, h2 * v2, out=qs)
+            np.add(v, h2 * a2, out=vs)
+            v3 = vs.copy()
+            a3 = accel()
+            np.add(q, dt * v3, out=qs)
+            np.add(v, dt * a3, out=vs)
+            v4 = vs.copy()
+            a4 = accel()
+            q = q + h6 * (v + 2.0 * v2 + 2.0 * v3 + v4)
+            v = v + h6 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+    return out_q, out_v
+
+
+# ----------------------------------------------------------------------------------- rendering
+def chain_length_pixels(image_size: int, line_width: float) -> float:
+    """Length of the whole chain in pixels: half the image minus room for the tip's cap and ramp."""
+    return image_size / 2.0 - line_width / 2.0 - 1.0
+
+
+def joint_positions(angles: np.ndarray, image_size: int, line_width: float) -> np.ndarray:
+    """Pixel coordinates ``[..., n + 1, 2]`` (x right, y down; pixel ``(i, j)`` spans
+    ``[j, j + 1] x [i, i + 1]``) of the pivot (the image centre) and the end of every link."""
+    n = angles.shape[-1]
+    link = chain_length_pixels(image_size, line_width) / n
+    phi = np.cumsum(angles, axis=-1)
+    steps = np.stack([np.sin(phi), np.cos(phi)], axis=-1) * link  # down is +y in the image
+    pts = np.concatenate([np.zeros((*angles.shape[:-1], 1, 2)), np.cumsum(steps, axis=-2)], axis=-2)
+    return pts + image_size / 2.0
+
+
+def render(angles: np.ndarray, image_size: int, line_width: float = 2.0) -> np.ndarray:
+    """Render chains to anti-aliased images.
+
+    Args:
+        angles: joint angles ``[T, n]`` (relative, as in :func:`pendulum_model`).
+        image_size: image height and width in pixels.
+        line_width: line thickness in pixels.
+
+    Returns:
+        float32 ``[T, 1, H, W]`` in [0, 1]: ``clip(line_width / 2 + 0.5 - distance, 0, 1)``, with
+        ``distance`` from the pixel centre to the nearest link segment.
+
+    Each segment is evaluated only on a ``K x K`` window around it (``K`` = link length + line
+    width + 3 pixels), which holds every pixel it can light; the windows are merged with ``max``.
+    """
+    angles = np.asarray(angles, dtype=np.float64)
+    if angles.ndim != 2:
+        raise ValueError(f"angles must be [T, n_links], got shape {angles.shape}")
+    frames, n = angles.shape
+    reach = line_width / 2.0 + 0.5  # farthest a lit pixel centre can be from a segment
+    link = chain_length_pixels(image_size, line_width) / n
+    k = min(int(math.ceil(link + 2.0 * reach)) + 2, image_size)
+    pts = joint_positions(angles, image_size, line_width).astype(np.float32)
+    a, b = pts[:, :-1], pts[:, 1:]  # segment ends [T, n, 2]
+    # window origins: the first pixel whose centre may lie within `reach` of the segment
+    origin = np.floor(np.minimum(a, b) - np.float32(reach + 0.5)).astype(np.int64)
+    np.clip(origin, 0, image_size - k, out=origin)
+    idx = origin[..., None] + np.arange(k)  # pixel indices [T, n, 2, K]
+    centres = idx.astype(np.float32) + np.float32(0.5)
+    d = b - a
+    inv_len2 = (1.0 / (d**2).sum(-1))[..., None, None]
+    rx = centres[:, :, 0, None, :] - a[..., 0, None, None]  # [T, n, 1, K]
+    ry = centres[:, :, 1, :, None] - a[..., 1, None, None]  # [T, n, K, 1]
+    dx, dy = d[..., 0, None, None], d[..., 1, None, None]
+    t = rx * (dx * inv_len2) + ry * (dy * inv_len2)  # projection on the segment [T, n, K, K]
+    np.clip(t, 0.0, 1.0, out=t)
+    ex = rx - t * dx
+    ey = ry - t * dy
+    val = np.float32(reach) - np.sqrt(ex * ex + ey * ey)
+    np.clip(val, 0.0, 1.0, out=val)
+    img = np.zeros((frames, image_size, image_size), np.float32)
+    rows = np.arange(frames)[:, None, None]
+    for s in range(n):  # windows of one segment lie in different frames: no clash within an assignment
+        where = (rows, idx[:, s, 1, :, None], idx[:, s, 0, None, :])
+        img[where] = np.maximum(img[where], val[:, s])
+    return img[:, None]
+
+
+def quantize(img: np.ndarray) -> np.ndarray:
+    """[0, 1] floats -> uint8 0..255 (rounded)."""
+    return np.rint(img * 255.0).astype(np.uint8)
+
+
+# ---------------------------------------------------------------------------------- generation
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(n_links: int) -> None:
+    """Pool initializer: every worker builds its own Pinocchio model (nothing is pickled)."""
+    model = pendulum_model(n_links)
+    _WORKER.update(n_links=n_links, model=model, data=model.createData())
+
+
+def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int) -> dict[str, np.ndarray]:
+    """Trajectories ``start..stop-1`` of a split: ``{"y", "y_clean", "state"}`` (see the module doc).
+
+    ``params`` is :meth:`PendulumDataModule.generator_params`. Runs in a pool worker (or in the
+    main process after :func:`_init_worker`).
+    """
+    if _WORKER.get("n_links") != params["n_links"]:
+        _init_worker(params["n_links"])
+    n, size = params["n_links"], params["image_size"]
+    n_frames = int(round(params["duration"] / params["frame_dt"]))
+    steps = int(round(params["frame_dt"] / params["dt"]))
+    rngs = [np.random.default_rng([params["seed"], split_id, i]) for i in range(start, stop)]
+    q0 = np.stack([r.uniform(-params["max_angle"], params["max_angle"], n) for r in rngs])
+    v0 = np.stack([r.uniform(-params["max_velocity"], params["max_velocity"], n) for r in rngs])
+    q, v = simulate(_WORKER["model"], _WORKER["data"], q0, v0, n_frames, steps, params["dt"], params["damping"])
+    count = stop - start
+    y = np.empty((count, n_frames, 1, size, size), np.uint8)
+    y_clean = np.empty_like(y)
+    for j, r in enumerate(rngs):
+        clean = render(q[j], size, params["line_width"])
+        noise = r.standard_normal(clean.shape, dtype=np.float32)
+        noise *= np.float32(params["noise_std"])
+        noise += clean
+        np.clip(noise, 0.0, 1.0, out=noise)
+        y[j] = quantize(noise)
+        y_clean[j] = quantize(clean)
+    state = np.concatenate([q, v], axis=-1).astype(np.float32)
+    return {"y": y, "y_clean": y_clean, "state": state}
+
+
+def _run_chunk(task: tuple[dict[str, Any], int, int, int]) -> tuple[int, dict[str, np.ndarray]]:
+    params, split_id, start, stop = task
+    return start, generate_chunk(params, split_id, start, stop)
+
+
+def available_cores() -> int:
+    """Cores this process may run on (affinity-aware where the platform tells)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+# ---------------------------------------------------------------------------------- DataModule
+class PendulumDataModule(TrajectoryDataModule):
+    """Noisy images of an n-link pendulum (defaults: the paper's simple pendulum).
+
+    Batches: ``"y"`` and ``"y_clean"`` float ``[B, 100, 1, H, W]`` in [0, 1] (stored as uint8),
+    ``"state"`` float32 ``[B, 100, 2 * n_links]``: joint angles (relative, not wrapped) then joint
+    velocities at every frame. The quadruple pendulum of the paper is ``n_links=4, image_size=48,
+    n_train=2000, n_test=2000, damping=0.1, max_velocity=0.0``.
+
+    Args:
+        n_links: number of links (>= 1).
+        image_size: image height and width in pixels.
+        n_train, n_test: trajectories per split.
+        damping: viscous joint damping (``tau = -damping * theta_dot``).
+        max_angle: initial joint angles ~ U[-max_angle, max_angle] (each joint).
+        max_velocity: initial joint velocities ~ U[-max_velocity, max_velocity].
+        duration: simulated time per trajectory (s); frames at ``0, frame_dt, ..., duration - frame_dt``.
+        frame_dt: time between frames (s); a multiple of ``dt``.
+        noise_std: std of the Gaussian pixel noise (added, then clipped to [0, 1]).
+        dt: RK4 integrator step (s); see the module docstring for its accuracy.
+        line_width: thickness of the drawn links, in pixels.
+        seed: seed of the generator (and of the training-set shuffling).
+        workers: processes generating trajectories in parallel (default: the available cores).
+        data_dir, batch_size, eval_batch_size, num_workers, val_trajectories, normalize, shuffle:
+            see :class:`~datamodules.base.TrajectoryDataModule`.
+    """
+
+    name = "pendulum"
+
+    def __init__(
+        self,
+        n_links: int = 1,
+        image_size: int = 24,
+        n_train: int = 1000,
+        n_test: int = 1000,
+        damping: float = 0.0,
+        max_angle: float = math.pi,
+        max_velocity: float = 1.0,
+        duration: float = 10.0,
+        frame_dt: float = 0.1,
+        noise_std: float = 0.2,
+        dt: float = 5e-3,
+        line_width: float = 2.0,
+        seed: int = 0,
+        workers: int | None = None,
+        data_dir: str = "data",
+        batch_size: int = 40,
+        eval_batch_size: int | None = None,
+        num_workers: int = 0,
+        val_trajectories: int = 16,
+        normalize: bool = False,
+        shuffle: bool = True,
+    ):
+        super().__init__(
+            data_dir=data_dir,
+            batch_size=batch_size,
+            eval_batch_size=eval_batch_size,
+            num_workers=num_workers,
+            val_trajectories=val_trajectories,
+            normalize=normalize,
+            shuffle=shuffle,
+            seed=seed,
+        )
+        self.n_links = int(n_links)
+        self.image_size = int(image_size)
+        self.n_train, self.n_test = int(n_train), int(n_test)
+        self.damping = float(damping)
+        self.max_angle, self.max_velocity = float(max_angle), float(max_velocity)
+        self.duration, self.frame_dt, self.dt = float(duration), float(frame_dt), float(dt)
+        self.noise_std = float(noise_std)
+        self.line_width = float(line_width)
+        self.workers = available_cores() if workers is None else int(workers)
+        self._validate()
+
+    def _validate(self) -> None:
+        def need(ok: bool, message: str) -> None:
+            if not ok:
+                raise ValueError(message)
+
+        need(self.n_links >= 1, f"n_links must be >= 1, got {self.n_links}")
+        need(self.n_train >= 1 and self.n_test >= 1, f"n_train and n_test must be >= 1, got {self.n_train}, {self.n_test}")
+        need(self.line_width > 0, f"line_width must be > 0 pixels, got {self.line_width}")
+        need(self.image_size >= 1, f"image_size must be a positive number of pixels, got {self.image_size}")
+        link = chain_length_pixels(self.image_size, self.line_width) / self.n_links
+        need(
+            link >= 1.0,
+            f"image_size {self.image_size} is too small for {self.n_links} links of width {self.line_width}: each "
+            f"link would be {link:.2f} pixels long (needs >= 1); use image_size >= "
+            f"{math.ceil(2 * (self.n_links + self.line_width / 2 + 1))} or a thinner line_width",
+        )
+        need(self.damping >= 0, f"damping must be >= 0 (tau = -damping * velocity), got {self.damping}")
+        need(self.max_angle >= 0 and self.max_velocity >= 0,
+             f"max_angle and max_velocity are half-widths of uniform ranges and must be >= 0, got "
+             f"{self.max_angle}, {self.max_velocity}")
+        need(self.noise_std >= 0, f"noise_std must be >= 0, got {self.noise_std}")
+        need(self.dt > 0 and self.frame_dt > 0 and self.duration > 0,
+             f"dt, frame_dt and duration must be > 0, got {self.dt}, {self.frame_dt}, {self.duration}")
+        steps = self.frame_dt / self.dt
+        need(
+            abs(steps - round(steps)) < 1e-6 * max(1.0, steps),
+            f"frame_dt ({self.frame_dt}) must be a whole multiple of the integrator step dt ({self.dt}): "
+            f"use dt = frame_dt / k for an integer k, e.g. {self.frame_dt / max(1, math.ceil(steps))}",
+        )
+        frames = self.duration / self.frame_dt
+        need(
+            abs(frames - round(frames)) < 1e-6 * max(1.0, frames) and round(frames) >= 2,
+            f"duration ({self.duration}) must be a whole multiple (>= 2) of frame_dt ({self.frame_dt}): "
+            f"the trajectory has duration / frame_dt frames",
+        )
+        need(self.workers >= 1, f"workers must be >= 1 (or null for all available cores), got {self.workers}")
+        need(self.seed >= 0, f"seed must be >= 0 (it seeds numpy's SeedSequence), got {self.seed}")
+
+    # ------------------------------------------------------------------ TrajectoryDataModule
+    @property
+    def num_train_trajectories(self) -> int:
+        return self.n_train
+
+    @property
+    def n_frames(self) -> int:
+        return int(round(self.duration / self.frame_dt))
+
+    def generator_params(self) -> dict[str, Any]:
+        return {
+            "version": GENERATOR_VERSION,
+            "n_links": self.n_links,
+            "image_size": self.image_size,
+            "n_train": self.n_train,
+            "n_test": self.n_test,
+            "damping": self.damping,
+            "max_angle": self.max_angle,
+            "max_velocity": self.max_velocity,
+            "duration": self.duration,
+            "frame_dt": self.frame_dt,
+            "noise_std": self.noise_std,
+            "dt": self.dt,
+            "line_width": self.line_width,
+            "gravity": GRAVITY,
+            "seed": self.seed,
+        }
+
+    def generate(self, split: str) -> dict[str, np.ndarray]:
+        if split not in SPLIT_IDS:
+            raise ValueError(f"unknown split {split!r}: the pendulum data set has splits {sorted(SPLIT_IDS)}")
+        params = self.generator_params()
+        count = self.n_train if split == "train" else self.n_test
+        n, size, frames = self.n_links, self.image_size, self.n_frames
+        out = {
+            "y": np.empty((count, frames, 1, size, size), np.uint8),
+            "y_clean": np.empty((count, frames, 1, size, size), np.uint8),
+            "state": np.empty((count, frames, 2 * n), np.float32),
+        }
+        tasks = [(params, SPLIT_IDS[split], s, min(s + CHUNK_SIZE, count)) for s in range(0, count, CHUNK_SIZE)]
+        workers = min(self.workers, len(tasks))
+        bar = tqdm(total=count, desc=f"pendulum {split} ({n} link{'s' * (n > 1)}, {workers} workers)", unit="traj")
+        pool = None
+        try:
+            if workers > 1:
+                # fork: workers start instantly (no re-import of torch); spawn elsewhere
+                ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else None)
+                pool = ctx.Pool(workers, initializer=_init_worker, initargs=(n,))
+                results = pool.imap_unordered(_run_chunk, tasks)
+            else:
+                results = map(_run_chunk, tasks)
+            for start, arrays in results:
+                for key, a in arrays.items():
+                    out[key][start : start + len(a)] = a
+                bar.update(len(arrays["y"]))
+        finally:
+            bar.close()
+            if pool is not None:
+                pool.terminate()
+                pool.join()
+        return out

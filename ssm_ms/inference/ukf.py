@@ -1,0 +1,411 @@
+"""Batched unscented Kalman filter (additive noise) over a learned SSM ``x[t+1] = f(x[t])``, ``y[t] = g(x[t])``.
+
+The filter infers the states of unseen trajectories from their measurements with the learned ``f`` and
+``g`` and nothing else (no training). It is vectorised over trajectories and sigma points: each step
+calls ``g`` once on ``[B * (2d+1), d]`` and ``f`` once on ``[B * (2d+1), d]``. It runs on the device and
+dtype of ``y`` and is differentiable (gradients reach ``f``, ``g``, ``y``, ``x0`` and ``P0``).
+
+Convention::
+
+    prior N(x0, P0) for time 0
+    for t in 0..T-1:  update with y[t]  -> posterior (means[:, t], covs[:, t])
+                      predict through f -> prior for t+1   (skipped after the last step)
+
+The one-step prior for time T (the first forecast with its covariance) is
+``ukf.predict(means[:, -1], covs[:, -1])``; a point forecast iterates ``f`` from ``means[:, -1]``.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Callable, Sequence
+from typing import NamedTuple, Optional, Union
+
+import torch
+from torch import Tensor
+
+Variance = Union[float, Sequence[float], Sequence[Sequence[float]], Tensor]
+
+
+class CovarianceJitterWarning(UserWarning):
+    """A covariance was not numerically positive definite and got jitter on its diagonal."""
+
+
+class UKFResult(NamedTuple):
+    """Filtered (posterior) estimates: ``means [B, T, d]``, ``covs [B, T, d, d]``."""
+
+    means: Tensor
+    covs: Tensor
+
+
+def _check_variance(value: Variance, name: str, allow_zero: bool) -> Tensor:
+    """Validate a variance given as scalar, per-dimension vector or full matrix; return it as float64."""
+    try:
+        t = torch.as_tensor(value, dtype=torch.float64).detach().cpu()
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{name} must be a number, a list of numbers or a square matrix, got {value!r}") from err
+    what = "non-negative" if allow_zero else "positive"
+    if not torch.isfinite(t).all():
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    if t.ndim in (0, 1):
+        bad = (t < 0) if allow_zero else (t <= 0)
+        if t.numel() == 0 or bad.any():
+            raise ValueError(f"{name} must be {what} (a variance, not a std), got {t.tolist()}")
+    elif t.ndim == 2:
+        if t.shape[0] != t.shape[1]:
+            raise ValueError(f"{name} as a matrix must be square, got shape {list(t.shape)}")
+        if not torch.allclose(t, t.T, rtol=1e-6, atol=1e-12):
+            raise ValueError(f"{name} must be a symmetric matrix; symmetrise it, e.g. (A + A.T) / 2")
+        eig_min = torch.linalg.eigvalsh(t).min().item()
+        tol = 1e-12 * max(1.0, t.abs().max().item())
+        if eig_min < -tol or (not allow_zero and eig_min <= tol):
+            raise ValueError(
+                f"{name} must be positive {'semi-' if allow_zero else ''}definite, its smallest eigenvalue is "
+                f"{eig_min:.3g}: use a scalar or per-dimension variance, or add a multiple of the identity"
+            )
+    else:
+        raise ValueError(f"{name} must be a scalar, a vector or a matrix, got {t.ndim} dimensions")
+    return t
+
+
+def _variance_dim(t: Tensor) -> Optional[int]:
+    return None if t.ndim == 0 else t.shape[0]
+
+
+def _as_matrix(t: Tensor, dim: int, name: str, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """Scalar / vector / matrix variance -> ``[dim, dim]`` matrix on ``device``."""
+    if t.ndim >= 1 and t.shape[0] != dim:
+        raise ValueError(f"{name} has {t.shape[0]} entries per side but the dimension is {dim}")
+    t = t.to(dtype=dtype, device=device)
+    if t.ndim == 0:
+        return t * torch.eye(dim, dtype=dtype, device=device)
+    if t.ndim == 1:
+        return torch.diag(t)
+    return t
+
+
+class UnscentedKalmanFilter:
+    """Batched unscented Kalman filter with additive Gaussian process and measurement noise.
+
+    Args:
+        f: transition, ``[N, d] -> [N, d]`` (any callable / ``nn.Module``).
+        g: observation model, ``[N, d] -> [N, *obs_shape]``.
+        process_var: variance ``Q`` of the additive process noise: scalar, per-dimension list or
+            ``d x d`` matrix (positive semi-definite; 0 means a deterministic ``f``).
+        measurement_var: variance ``R`` of the measurement noise: scalar, per-component list over the
+            flattened observation, or matrix (positive definite).
+        init_var: default prior covariance ``P0`` at time 0 when ``filter`` gets none.
+        alpha, beta, kappa: unscented transform; ``lambda = alpha^2 (d + kappa) - d``, sigma points
+            ``m +- sqrt(d + lambda) * columns of chol(P)``. The defaults (1, 2, 0) give non-negative
+            weights, so every covariance is a sum of outer products (PSD by construction) and float32
+            is safe; a small alpha (e.g. 1e-3) gives a large negative central weight.
+        jitter: first diagonal jitter, relative to the mean diagonal (and at least the dtype's eps),
+            tried when a Cholesky fails; it is multiplied by 10 up to ``max_jitter_tries`` times, and only
+            the failing trajectories get it.
+        max_jitter_tries: attempts before falling back to the diagonal (with a warning).
+        state_dim: ``d``; if omitted, taken from ``f.state_dim``, a non-scalar variance, or ``x0``.
+        innovation: ``"dense"``: Cholesky of the innovation covariance ``S`` (``p x p``, ``p`` the
+            flattened observation size), cost ``O(p^3)`` per trajectory and step: about 64 MFLOP for a
+            24x24 image. ``"low_rank"``: the same update written in the ``2d+1`` sigma-point space
+            (``S = R + U U^T`` with ``U`` of rank ``2d+1``, Woodbury), cost ``O(p (2d+1)^2 + p^2 (2d+1))``
+            with a full ``R`` and ``O(p (2d+1)^2)`` with a diagonal one; needs non-negative weights.
+            ``"auto"`` (default) picks ``low_rank`` when the weights allow it and ``p > 2d+1``.
+
+    The paper's settings for Lorenz in normalised units are the defaults: ``P0 = 0.1 I``,
+    measurement variance 0.5, process variance 1e-6.
+    """
+
+    def __init__(
+        self,
+        f: Callable[[Tensor], Tensor],
+        g: Callable[[Tensor], Tensor],
+        process_var: Variance = 1e-6,
+        measurement_var: Variance = 0.5,
+        init_var: Variance = 0.1,
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: float = 0.0,
+        jitter: float = 1e-9,
+        max_jitter_tries: int = 6,
+        state_dim: Optional[int] = None,
+        innovation: str = "auto",
+    ):
+        self.f, self.g = f, g
+        self.process_var = _check_variance(process_var, "process_var", allow_zero=True)
+        self.measurement_var = _check_variance(measurement_var, "measurement_var", allow_zero=False)
+        self.init_var = _check_variance(init_var, "init_var", allow_zero=False)
+        if alpha <= 0:
+            raise ValueError(f"alpha must be > 0, got {alpha}")
+        if jitter <= 0 or max_jitter_tries < 1:
+            raise ValueError(f"jitter must be > 0 and max_jitter_tries >= 1, got {jitter}, {max_jitter_tries}")
+        if innovation not in ("auto", "dense", "low_rank"):
+            raise ValueError(f"innovation must be 'auto', 'dense' or 'low_rank', got {innovation!r}")
+        self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
+        self.jitter, self.max_jitter_tries = float(jitter), int(max_jitter_tries)
+        self.innovation = innovation
+        dims = {
+            n: _variance_dim(v) for n, v in (("process_var", self.process_var), ("init_var", self.init_var))
+        }
+        dims = {n: v for n, v in dims.items() if v is not None}
+        if state_dim is None:
+            state_dim = getattr(f, "state_dim", None)
+            if not isinstance(state_dim, int) and dims:
+                state_dim = next(iter(dims.values()))
+        if state_dim is not None:
+            if not isinstance(state_dim, int) or state_dim < 1:
+                raise ValueError(f"state_dim must be a positive int, got {state_dim!r}")
+            for n, v in dims.items():
+                if v != state_dim:
+                    raise ValueError(f"{n} has {v} entries per side but state_dim is {state_dim}")
+        self.state_dim: Optional[int] = state_dim
+        self._events: list[tuple[int, str, float, int]] = []
+
+    # ----------------------------------------------------------------------------------------------
+    # unscented transform pieces
+    def weights(self, d: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, float]:
+        """Mean weights ``[2d+1]``, covariance weights ``[2d+1]`` and the sigma-point scale ``sqrt(d+lambda)``."""
+        lam = self.alpha**2 * (d + self.kappa) - d
+        if d + lam <= 0:
+            raise ValueError(
+                f"alpha^2 (d + kappa) = {d + lam:.3g} must be > 0 (d = {d}): raise alpha or kappa"
+            )
+        wm = torch.full((2 * d + 1,), 0.5 / (d + lam), dtype=torch.float64)
+        wc = wm.clone()
+        wm[0] = lam / (d + lam)
+        wc[0] = lam / (d + lam) + 1.0 - self.alpha**2 + self.beta
+        return wm.to(dtype=dtype, device=device), wc.to(dtype=dtype, device=device), math.sqrt(d + lam)
+
+    def _cholesky(self, a: Tensor, what: str, step: int) -> Tensor:
+        """Lower Cholesky factor of the symmetrised batch ``a [B, n, n]``, with jitter on failing members."""
+        a = 0.5 * (a + a.transpose(-1, -2))
+        chol, info = torch.linalg.cholesky_ex(a)
+        if not bool((info != 0).any()):
+            return chol
+        fail = info != 0
+        n = a.shape[-1]
+        eye = torch.eye(n, dtype=a.dtype, device=a.device)
+        diag = a.diagonal(dim1=-2, dim2=-1)
+        scale = diag.detach().abs().mean(-1).clamp_min(torch.finfo(a.dtype).tiny)
+        level = torch.zeros_like(scale)  # jitter per trajectory, relative to its mean diagonal
+        jit = max(self.jitter, float(torch.finfo(a.dtype).eps))  # below eps a jitter changes nothing
+        for _ in range(self.max_jitter_tries):
+            level = torch.where(fail, torch.full_like(level, jit), level)
+            chol, info = torch.linalg.cholesky_ex(a + (level * scale)[:, None, None] * eye)
+            fail = info != 0
+            if not bool(fail.any()):
+                self._events.append((step, what, float(level.max()), int((level > 0).sum())))
+                return chol
+            jit *= 10.0
+        warnings.warn(
+            f"UKF step {step}: the {what} covariance of {int(fail.sum())} trajectories is not positive "
+            f"definite even with jitter {float(level.max()):.1e} x mean diagonal; using its diagonal for them. "
+            "Check f and g for NaN/inf or exploding states, or raise process_var / measurement_var.",
+            CovarianceJitterWarning,
+            stacklevel=3,
+        )
+        fallback = torch.diag_embed(diag.clamp_min(torch.finfo(a.dtype).tiny))
+        a_fix = torch.where(fail[:, None, None], fallback, a + (level * scale)[:, None, None] * eye)
+        return torch.linalg.cholesky_ex(a_fix)[0]
+
+    def _sigma_points(self, mean: Tensor, cov: Tensor, scale: float, what: str, step: int) -> Tensor:
+        """``[B, 2d+1, d]``: the mean, then mean +- scale * columns of chol(cov)."""
+        delta = scale * self._cholesky(cov, what, step).transpose(-1, -2)  # rows = scaled columns of L
+        return mean.unsqueeze(-2) + torch.cat([torch.zeros_like(delta[:, :1]), delta, -delta], dim=-2)
+
+    # ----------------------------------------------------------------------------------------------
+    def predict(self, mean: Tensor, cov: Tensor, step: int = -1) -> tuple[Tensor, Tensor]:
+        """One prediction through ``f``: posterior ``(mean [B, d], cov [B, d, d])`` at t -> prior at t+1."""
+        d = mean.shape[-1]
+        wm, wc, scale = self.weights(d, mean.dtype, mean.device)
+        q = _as_matrix(self.process_var, d, "process_var", mean.dtype, mean.device)
+        return self._predict(mean, cov, wm, wc, scale, q, step)
+
+    def _predict(self, mean, cov, wm, wc, scale, q, step):
+        b, d = mean.shape
+        sigma = self._sigma_points(mean, cov, scale, "posterior", step)
+        fx = self.f(sigma.reshape(-1, d)).reshape(b, -1, d)
+        mean_pred = torch.einsum("s,bsd->bd", wm, fx)
+        dev = fx - mean_pred.unsqueeze(-2)
+        cov_pred = (dev.transpose(-1, -2) * wc) @ dev + q
+        return mean_pred, 0.5 * (cov_pred + cov_pred.transpose(-1, -2))
+
+    def update(self, mean: Tensor, cov: Tensor, y_t: Tensor, step: int = -1) -> tuple[Tensor, Tensor]:
+        """One measurement update: prior ``(mean [B, d], cov [B, d, d])`` and ``y_t [B, *obs_shape]`` -> posterior."""
+        d = mean.shape[-1]
+        wm, wc, scale = self.weights(d, mean.dtype, mean.device)
+        y_flat = y_t.reshape(y_t.shape[0], -1)
+        ctx = self._measurement_context(y_flat.shape[-1], d, wc, mean.dtype, mean.device)
+        return self._update(mean, cov, y_flat, wm, wc, scale, ctx, step)
+
+    def _measurement_context(self, p: int, d: int, wc: Tensor, dtype, device) -> dict:
+        r = self.measurement_var
+        if r.ndim >= 1 and r.shape[0] != p:
+            raise ValueError(
+                f"measurement_var has {r.shape[0]} entries per side but a measurement has {p} components "
+                "(flattened): give a scalar or one variance per component"
+            )
+        mode = self.innovation
+        if mode == "auto":
+            mode = "low_rank" if bool((wc >= 0).all()) and p > 2 * d + 1 else "dense"
+        if mode == "low_rank" and not bool((wc >= 0).all()):
+            raise ValueError(
+                "innovation='low_rank' needs non-negative covariance weights: use alpha=1, kappa>=0, or "
+                "innovation='dense'"
+            )
+        ctx: dict = {"mode": mode}
+        if mode == "dense":
+            ctx["r"] = _as_matrix(r, p, "measurement_var", dtype, device)
+        elif r.ndim <= 1:  # diagonal R: whitening is a division by the std
+            ctx["r_std"] = r.to(dtype=dtype, device=device).sqrt().expand(p)
+        else:
+            ctx["r_chol"] = torch.linalg.cholesky(r.to(dtype=dtype, device=device))
+        ctx["sqrt_wc"] = wc.clamp_min(0).sqrt()
+        return ctx
+
+    def _update(self, mean, cov, y_flat, wm, wc, scale, ctx, step):
+        b, d = mean.shape
+        sigma = self._sigma_points(mean, cov, scale, "prior", step)
+        gy = self.g(sigma.reshape(-1, d))
+        gy = gy.reshape(b, sigma.shape[1], -1)
+        y_pred = torch.einsum("s,bsp->bp", wm, gy)
+        innov = y_flat - y_pred  # [B, p]
+        x_dev = sigma - mean.unsqueeze(-2)  # [B, n, d]
+        y_dev = gy - y_pred.unsqueeze(-2)  # [B, n, p]
+        if ctx["mode"] == "dense":
+            s = (y_dev.transpose(-1, -2) * wc) @ y_dev + ctx["r"]  # [B, p, p]
+            c = (x_dev.transpose(-1, -2) * wc) @ y_dev  # [B, d, p]
+            chol_s = self._cholesky(s, "innovation", step)
+            # W = L_S^{-1} [C^T, innov]: P+ = P - W_C^T W_C, m+ = m + W_C^T W_e
+            rhs = torch.cat([c.transpose(-1, -2), innov.unsqueeze(-1)], dim=-1)
+            w = torch.linalg.solve_triangular(chol_s, rhs, upper=False)
+            w_c, w_e = w[..., :d], w[..., d:]
+            mean_post = mean + (w_c.transpose(-1, -2) @ w_e).squeeze(-1)
+            cov_post = cov - w_c.transpose(-1, -2) @ w_c
+        else:
+            # S = R + U U^T with U = Y_dev^T sqrt(Wc); C = X_s^T U^T with X_s = sqrt(Wc) X_dev.
+            # With G = U^T R^-1 U and A = I + G (Woodbury):
+            #   C S^-1 e = X_s^T A^-1 U^T R^-1 e,   P+ = P - C S^-1 C^T = X_s^T A^-1 X_s.
+            sw = ctx["sqrt_wc"]
+            u = y_dev * sw[:, None]  # [B, n, p] (= U^T)
+            x_s = x_dev * sw[:, None]  # [B, n, d]
+            if "r_std" in ctx:
+                u_w, e_w = u / ctx["r_std"], innov / ctx["r_std"]
+            else:
+                rc = ctx["r_chol"]
+                u_w = torch.linalg.solve_triangular(rc, u.transpose(-1, -2), upper=False).transpose(-1, -2)
+                e_w = torch.linalg.solve_triangular(rc, innov.unsqueeze(-1), upper=False).squeeze(-1)
+            n = u.shape[1]
+            a = u_w @ u_w.transpose(-1, -2) + torch.eye(n, dtype=u.dtype, device=u.device)
+            chol_a = self._cholesky(a, "innovation (sigma-point space)", step)
+            rhs = torch.cat([x_s, (u_w @ e_w.unsqueeze(-1))], dim=-1)  # [B, n, d+1]
+            z = torch.linalg.solve_triangular(chol_a, rhs, upper=False)
+            z_x, z_e = z[..., :d], z[..., d:]
+            mean_post = mean + (z_x.transpose(-1, -2) @ z_e).squeeze(-1)
+            cov_post = z_x.transpose(-1, -2) @ z_x
+        return mean_post, 0.5 * (cov_post + cov_post.transpose(-1, -2))
+
+    # ----------------------------------------------------------------------------------------------
+    def filter(self, y: Tensor, x0: Optional[Tensor] = None, P0: Optional[Tensor] = None) -> UKFResult:
+        """Filtered means ``[B, T, d]`` and covariances ``[B, T, d, d]`` of ``y [B, T, *obs_shape]``.
+
+        ``x0``: prior mean at time 0, ``[d]`` or ``[B, d]`` (default zeros). ``P0``: prior covariance,
+        ``[d, d]`` or ``[B, d, d]`` (default ``init_var``), symmetric positive definite.
+        """
+        if not isinstance(y, Tensor) or y.ndim < 3:
+            shape = list(y.shape) if isinstance(y, Tensor) else type(y).__name__
+            raise ValueError(f"y must be a tensor [B, T, *obs_shape] (batch, time, observation), got {shape}")
+        if not y.is_floating_point():
+            raise ValueError(f"y must be floating point, got {y.dtype}: convert images with base.to_float")
+        bsz, steps = y.shape[:2]
+        if bsz == 0 or steps == 0:
+            raise ValueError(f"y must hold at least one trajectory and one step, got shape {list(y.shape)}")
+        dtype, device = y.dtype, y.device
+        d = self._resolve_state_dim(x0, P0)
+        mean = self._initial_mean(x0, bsz, d, dtype, device)
+        cov = self._initial_cov(P0, bsz, d, dtype, device)
+
+        # Check g against y once, on the initial mean.
+        probe = self.g(mean[:1])
+        if not isinstance(probe, Tensor) or probe.ndim < 1 or probe.shape[0] != 1:
+            raise ValueError("g must map [N, d] states to a tensor [N, *obs_shape]")
+        if tuple(probe.shape[1:]) != tuple(y.shape[2:]):
+            raise ValueError(
+                f"g maps a state to observations of shape {list(probe.shape[1:])} but y has measurements of "
+                f"shape {list(y.shape[2:])} (y is {list(y.shape)} = [B, T, *obs_shape]): make g match the data"
+            )
+        y_flat = y.reshape(bsz, steps, -1)
+        wm, wc, scale = self.weights(d, dtype, device)
+        q = _as_matrix(self.process_var, d, "process_var", dtype, device)
+        ctx = self._measurement_context(y_flat.shape[-1], d, wc, dtype, device)
+
+        self._events = []
+        means, covs = [], []
+        for t in range(steps):
+            mean, cov = self._update(mean, cov, y_flat[:, t], wm, wc, scale, ctx, t)
+            means.append(mean)
+            covs.append(cov)
+            if t + 1 < steps:
+                mean, cov = self._predict(mean, cov, wm, wc, scale, q, t)
+        if self._events:
+            first = self._events[0]
+            worst = max(e[2] for e in self._events)
+            warnings.warn(
+                f"UKF: jitter was added to non-positive-definite covariances at {len(self._events)} Cholesky "
+                f"factorisations, first at step {first[0]} ({first[1]}, {first[3]} trajectories), largest "
+                f"jitter {worst:.1e} x mean diagonal. A near-singular covariance usually means too little "
+                "process noise for f (raise process_var) or float32 round-off.",
+                CovarianceJitterWarning,
+                stacklevel=2,
+            )
+        return UKFResult(torch.stack(means, dim=1), torch.stack(covs, dim=1))
+
+    # ----------------------------------------------------------------------------------------------
+    def _resolve_state_dim(self, x0: Optional[Tensor], P0: Optional[Tensor]) -> int:
+        cands = []
+        if x0 is not None:
+            cands.append(("x0", torch.as_tensor(x0).shape[-1] if torch.as_tensor(x0).ndim else None))
+        if P0 is not None:
+            cands.append(("P0", torch.as_tensor(P0).shape[-1] if torch.as_tensor(P0).ndim else None))
+        d = self.state_dim
+        for name, v in cands:
+            if v is None:
+                raise ValueError(f"{name} must be a tensor with a state dimension, got a scalar")
+            if d is None:
+                d = v
+            elif v != d:
+                raise ValueError(f"{name} has state dimension {v} but the filter's state_dim is {d}")
+        if d is None:
+            raise ValueError(
+                "the state dimension is unknown: pass state_dim=..., an f with a state_dim attribute, or x0"
+            )
+        return d
+
+    @staticmethod
+    def _initial_mean(x0, bsz, d, dtype, device) -> Tensor:
+        if x0 is None:
+            return torch.zeros(bsz, d, dtype=dtype, device=device)
+        x0 = torch.as_tensor(x0).to(dtype=dtype, device=device)
+        if x0.ndim == 1:
+            return x0.expand(bsz, d)
+        if x0.ndim == 2 and x0.shape[0] == bsz:
+            return x0
+        raise ValueError(f"x0 must be [d] = [{d}] or [B, d] = [{bsz}, {d}], got {list(x0.shape)}")
+
+    def _initial_cov(self, P0, bsz, d, dtype, device) -> Tensor:
+        if P0 is None:
+            return _as_matrix(self.init_var, d, "init_var", dtype, device).expand(bsz, d, d)
+        P0 = torch.as_tensor(P0).to(dtype=dtype, device=device)
+        if P0.ndim == 2:
+            P0 = P0.expand(bsz, d, d)
+        if P0.ndim != 3 or P0.shape != (bsz, d, d):
+            raise ValueError(f"P0 must be [d, d] or [B, d, d] with B={bsz}, d={d}, got {list(P0.shape)}")
+        sym = P0.detach()
+        if not torch.allclose(sym, sym.transpose(-1, -2), rtol=1e-5, atol=1e-8):
+            raise ValueError("P0 must be symmetric; symmetrise it, e.g. (P0 + P0.transpose(-1, -2)) / 2")
+        if bool((torch.linalg.cholesky_ex(sym)[1] != 0).any()):
+            raise ValueError(
+                "P0 must be positive definite (its Cholesky failed for some trajectories): add a multiple of "
+                "the identity or use the default init_var * I"
+            )
+        return P0

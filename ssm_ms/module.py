@@ -1,0 +1,262 @@
+"""``MultipleShootingModule``: f, g and the shooting nodes, trained by multiple shooting."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import lightning.pytorch as pl
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from ssm_ms.shooting import decode, loss_function, multiple_shooting_loss, rollout
+
+# Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
+STRUCTURAL_HPARAMS = ("state_dim", "num_trajectories", "n_nodes", "f", "g")
+
+
+class NonFiniteLossError(FloatingPointError):
+    """Training produced a NaN or inf loss."""
+
+
+def _structure(value: Any) -> Any:
+    """What of a hyperparameter must match between a checkpoint and a run (a network: its class)."""
+    if isinstance(value, Mapping):
+        return value.get("class_path", value.get("_class_path", dict(value)))
+    return value
+
+
+def _given_by_cli() -> bool:
+    """Whether this module is being built by LightningCLI (which records f and g as their config)."""
+    try:
+        from lightning.pytorch.core.mixins.hparams_mixin import _given_hyperparameters
+    except ImportError:  # pragma: no cover - private API moved
+        return False
+    return _given_hyperparameters.get() is not None
+
+
+class MultipleShootingModule(pl.LightningModule):
+    """A discrete SSM ``x[t+1] = f(x[t])``, ``y[t] = g(x[t])`` learned by multiple shooting.
+
+    The loss of a batch is ``fit + alpha * gap`` (see :func:`ssm_ms.shooting.multiple_shooting_loss`).
+    The shooting nodes of training trajectory ``j`` are row ``j`` of ``self.nodes``, an
+    ``nn.Embedding(num_trajectories, n_nodes * state_dim)`` indexed by the batch's ``"index"``.
+    ``alpha`` is a buffer, stepped by :class:`ssm_ms.schedule.ShootingSchedule`.
+
+    Args:
+        f: transition model ``[N, state_dim] -> [N, state_dim]`` (e.g. ``LocallyLinearTransition``).
+        g: observation model ``[N, state_dim] -> [N, *obs_shape]`` (e.g. ``ConvDecoder``, ``Projection``).
+        state_dim: dimension of the latent state.
+        num_trajectories: number of training trajectories (rows of the node table). ``None``: taken
+            from the DataModule's ``num_train_trajectories`` when fitting starts.
+        n_nodes: shooting nodes per trajectory ``m``; the trajectory length must be a multiple of it.
+        loss: ``"mse"`` or ``"bce"`` (then ``g`` must output values in [0, 1]).
+        lr: Adam learning rate (the schedule lowers it at its milestones).
+        alpha: initial weight of the continuity gap (the schedule raises it).
+        node_init_map: ``None`` to start all nodes at zero, or ``{state_index: measurement_index}`` to
+            start those state components at the (flattened) measurement at each node's time, the
+            others at zero (Lorenz: ``{0: 0}``).
+        decode_chunk: decode at most this many states per call of ``g`` (``None``: all at once).
+    """
+
+    def __init__(
+        self,
+        f: nn.Module,
+        g: nn.Module,
+        state_dim: int,
+        num_trajectories: int | None = None,
+        n_nodes: int = 4,
+        loss: str = "mse",
+        lr: float = 1e-3,
+        alpha: float = 1.0,
+        node_init_map: dict[int, int] | None = None,
+        decode_chunk: int | None = None,
+    ):
+        super().__init__()
+        # Built by LightningCLI, f and g are recorded as their config (class_path + init_args), so
+        # `load_from_checkpoint` can rebuild them; built in Python, pass f= and g= when loading.
+        self.save_hyperparameters(ignore=[] if _given_by_cli() else ["f", "g"])
+        loss_function(loss)  # unknown loss name: fail now, not at the first step
+        if state_dim < 1 or n_nodes < 1:
+            raise ValueError(f"state_dim and n_nodes must be >= 1, got {state_dim} and {n_nodes}")
+        if num_trajectories is not None and num_trajectories < 1:
+            raise ValueError(f"num_trajectories must be >= 1, got {num_trajectories}")
+        if node_init_map is not None:
+            bad = [k for k in node_init_map if not 0 <= int(k) < state_dim]
+            if bad:
+                raise ValueError(f"node_init_map names state components {bad} outside 0..{state_dim - 1}")
+        self.f, self.g = f, g
+        self.state_dim, self.n_nodes = state_dim, n_nodes
+        self.register_buffer("alpha", torch.tensor(float(alpha)))
+        self._check_transition()
+        self.nodes: nn.Embedding | None = None
+        if num_trajectories is not None:
+            self._make_nodes(num_trajectories)
+
+    # ------------------------------------------------------------------ construction
+    def _check_transition(self) -> None:
+        with torch.no_grad():
+            x = torch.zeros(2, self.state_dim)
+            try:
+                out = self.f(x)
+            except Exception as e:
+                raise ValueError(
+                    f"f fails on a state batch of shape [2, {self.state_dim}] ({e}); check that f's state_dim "
+                    f"equals model.state_dim={self.state_dim}"
+                ) from e
+        if tuple(out.shape) != (2, self.state_dim):
+            raise ValueError(
+                f"f maps states [2, {self.state_dim}] to shape {tuple(out.shape)}: a transition must return "
+                f"[N, state_dim]; check that f's state_dim equals model.state_dim={self.state_dim}"
+            )
+
+    def _make_nodes(self, num_trajectories: int) -> None:
+        self.nodes = nn.Embedding(num_trajectories, self.n_nodes * self.state_dim)
+        nn.init.zeros_(self.nodes.weight)
+        self.hparams["num_trajectories"] = num_trajectories
+
+    def obs_shape(self) -> tuple[int, ...]:
+        """The shape of one measurement produced by g."""
+        with torch.no_grad():
+            try:
+                out = self.g(torch.zeros(1, self.state_dim, device=self.alpha.device))
+            except Exception as e:
+                raise ValueError(
+                    f"g fails on a state batch of shape [1, {self.state_dim}] ({e}); check that g's state_dim "
+                    f"equals model.state_dim={self.state_dim}"
+                ) from e
+        return tuple(out.shape[1:])
+
+    def setup(self, stage: str) -> None:
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if self.nodes is None:
+            n = getattr(dm, "num_train_trajectories", None)
+            if n is None:
+                raise ValueError(
+                    "model.num_trajectories is not set and the data have no num_train_trajectories: "
+                    "set model.num_trajectories to the number of training trajectories"
+                )
+            self._make_nodes(int(n))
+        if dm is not None and hasattr(dm, "seq_len"):
+            self.check_data(dm.seq_len, dm.obs_shape, getattr(dm, "num_train_trajectories", None))
+            if stage == "fit" and self.hparams.get("node_init_map"):
+                self.init_nodes_from_measurements(dm.node_measurements(self.n_nodes))
+
+    def check_data(self, seq_len: int, obs_shape: tuple[int, ...], num_train: int | None = None) -> None:
+        """Fail before training when the data and the model disagree (shapes, T, trajectory count)."""
+        if seq_len % self.n_nodes != 0:
+            divisors = [k for k in range(1, seq_len + 1) if seq_len % k == 0]
+            raise ValueError(
+                f"trajectory length T={seq_len} is not divisible by model.n_nodes={self.n_nodes}: "
+                f"choose n_nodes among {divisors}"
+            )
+        out = self.obs_shape()
+        if tuple(out) != tuple(obs_shape):
+            raise ValueError(
+                f"the observation model g outputs measurements of shape {out} but the data have shape "
+                f"{tuple(obs_shape)}: adapt g (e.g. the ConvDecoder preset to the image size, or the "
+                "Projection indices to the measured components)"
+            )
+        if num_train is not None and self.nodes is not None and self.nodes.num_embeddings != num_train:
+            raise ValueError(
+                f"the model holds shooting nodes for {self.nodes.num_embeddings} trajectories but the training "
+                f"set has {num_train}: set model.num_trajectories to {num_train} (or leave it unset)"
+            )
+
+    @torch.no_grad()
+    def init_nodes_from_measurements(self, y_nodes: torch.Tensor) -> None:
+        """Start nodes at measurements: ``y_nodes [N, m, *obs]`` is y at each node's time."""
+        mapping = {int(k): int(v) for k, v in self.hparams["node_init_map"].items()}
+        flat = y_nodes.reshape(y_nodes.shape[0], self.n_nodes, -1)
+        bad = [v for v in mapping.values() if not 0 <= v < flat.shape[-1]]
+        if bad:
+            raise ValueError(f"node_init_map reads measurement components {bad} outside 0..{flat.shape[-1] - 1}")
+        nodes = torch.zeros(flat.shape[0], self.n_nodes, self.state_dim)
+        for state_i, obs_i in mapping.items():
+            nodes[:, :, state_i] = flat[:, :, obs_i]
+        self.nodes.weight.copy_(nodes.view(flat.shape[0], -1).to(self.nodes.weight))
+
+    # ------------------------------------------------------------------ model
+    def forward(self, x0: torch.Tensor, steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Roll ``f`` out ``steps`` states from ``x0 [B, d]`` and decode: ``(states [B, steps, d], y [B, steps, ...])``."""
+        states = rollout(self.f, x0, steps)
+        return states, decode(self.g, states, self.hparams.decode_chunk)
+
+    def node_states(self, index: torch.Tensor) -> torch.Tensor:
+        """Shooting nodes ``[B, m, d]`` of the training trajectories ``index``."""
+        if self.nodes is None:
+            raise RuntimeError("the node table does not exist yet: set num_trajectories or call trainer.fit")
+        return self.nodes(index).view(len(index), self.n_nodes, self.state_dim)
+
+    def shooting_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        return multiple_shooting_loss(
+            self.f, self.g, self.node_states(batch["index"]), batch["y"], self.hparams.loss, self.hparams.decode_chunk
+        )
+
+    # ------------------------------------------------------------------ training
+    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        fit, gap = self.shooting_loss(batch)
+        loss = fit + self.alpha * gap
+        if not torch.isfinite(loss):
+            raise NonFiniteLossError(self._nan_message(fit, gap))
+        bs = len(batch["index"])
+        self.log_dict({"train/fit": fit, "train/gap": gap, "train/loss": loss}, batch_size=bs, prog_bar=True)
+        self.log("alpha", self.alpha, batch_size=bs)
+        self.log("lr", self.optimizers().param_groups[0]["lr"], batch_size=bs)
+        return loss
+
+    def _nan_message(self, fit: torch.Tensor, gap: torch.Tensor) -> str:
+        ckpt = getattr(self.trainer.checkpoint_callback, "last_model_path", "") if self._trainer else ""
+        return (
+            f"the training loss is not finite at epoch {self.current_epoch}, step {self.global_step} "
+            f"(fit={fit.item():.4g}, gap={gap.item():.4g}, alpha={self.alpha.item():.4g}). Training stopped; "
+            + (f"the last good checkpoint is {ckpt}. " if ckpt else "no checkpoint was written yet. ")
+            + "Lower the learning rate or alpha (or raise alpha later), check the data for outliers, "
+            "and resume with --ckpt_path."
+        )
+
+    def validation_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
+        """Roll training trajectories out from their first node over their whole length."""
+        y = batch["y"]
+        x0 = self.node_states(batch["index"])[:, 0]
+        _, y_hat = self(x0, y.shape[1])
+        bs = len(y)
+        self.log("val/rollout_mse", F.mse_loss(y_hat, y), batch_size=bs, prog_bar=True)
+        out = {"index": batch["index"], "y": y, "y_hat": y_hat}
+        if "y_clean" in batch:
+            self.log("val/rollout_mse_clean", F.mse_loss(y_hat, batch["y_clean"]), batch_size=bs)
+            out["y_clean"] = batch["y_clean"]
+        return out
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Refuse a checkpoint of another configuration with a message that says what differs."""
+        state = checkpoint.get("state_dict", {})
+        if self.nodes is None and "nodes.weight" in state:
+            self._make_nodes(int(state["nodes.weight"].shape[0]))
+        own = self.state_dict()
+        problems = []
+        saved = checkpoint.get("hyper_parameters", {})
+        for key in STRUCTURAL_HPARAMS:
+            if key in saved and key in self.hparams and _structure(saved[key]) != _structure(self.hparams[key]):
+                problems.append(f"{key}: checkpoint {_structure(saved[key])!r}, this run {_structure(self.hparams[key])!r}")
+        for key, value in state.items():
+            if key in own and tuple(own[key].shape) != tuple(value.shape):
+                problems.append(f"{key}: checkpoint shape {tuple(value.shape)}, this model {tuple(own[key].shape)}")
+        missing = sorted(set(own) - set(state))
+        unexpected = sorted(set(state) - set(own))
+        if missing:
+            problems.append(f"missing from the checkpoint: {missing[:8]}")
+        if unexpected:
+            problems.append(f"not in this model: {unexpected[:8]}")
+        if problems:
+            raise ValueError(
+                "the checkpoint was trained with another configuration:\n  - "
+                + "\n  - ".join(problems)
+                + "\nResume with the config saved beside the checkpoint (config.yaml in its run folder), "
+                "or start a fresh run without --ckpt_path."
+            )

@@ -1,0 +1,111 @@
+"""The multiple-shooting objective as pure tensor functions (no Lightning).
+
+A batch of ``B`` trajectories ``y`` of length ``T`` is cut into ``m`` sub-trajectories of length
+``n = T / m``. Sub-trajectory ``i`` of trajectory ``b`` starts at the shooting node ``s[b, i]``;
+the model predicts its measurements ``g(f^k(s[b, i]))``, ``k = 0..n-1``, and the continuity gap
+``s[b, i+1] - f^n(s[b, i])`` measures how far the sub-trajectories are from forming one.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+
+LOSSES: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {
+    "mse": F.mse_loss,
+    "bce": F.binary_cross_entropy,
+}
+
+
+def loss_function(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """The elementwise-mean loss called ``name`` (``"mse"`` or ``"bce"``)."""
+    if name not in LOSSES:
+        raise ValueError(f"unknown loss {name!r}: choose one of {sorted(LOSSES)}")
+    return LOSSES[name]
+
+
+def rollout(f: Callable[[torch.Tensor], torch.Tensor], x0: torch.Tensor, steps: int) -> torch.Tensor:
+    """States ``x0, f(x0), ..., f^{steps-1}(x0)``: ``[N, d] -> [N, steps, d]``."""
+    xs = [x0]
+    for _ in range(steps - 1):
+        xs.append(f(xs[-1]))
+    return torch.stack(xs, dim=1)
+
+
+def decode(g: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
+    """``g`` on states ``[..., d]`` -> ``[..., *obs_shape]``, in one call or in chunks of ``chunk`` states."""
+    lead, d = x.shape[:-1], x.shape[-1]
+    flat = x.reshape(-1, d)
+    if chunk is None or chunk >= len(flat):
+        out = g(flat)
+    else:
+        out = torch.cat([g(part) for part in flat.split(chunk)])
+    return out.view(*lead, *out.shape[1:])
+
+
+def check_shapes(nodes: torch.Tensor, y: torch.Tensor) -> int:
+    """Validate ``nodes [B, m, d]`` against ``y [B, T, ...]`` and return ``n = T / m``."""
+    if nodes.dim() != 3:
+        raise ValueError(f"nodes must be [batch, n_nodes, state_dim], got shape {tuple(nodes.shape)}")
+    if y.dim() < 3:
+        raise ValueError(f"y must be [batch, T, *obs_shape] with at least one observation axis, got {tuple(y.shape)}")
+    b, m, _ = nodes.shape
+    if y.shape[0] != b:
+        raise ValueError(f"nodes hold {b} trajectories but y holds {y.shape[0]}")
+    t = y.shape[1]
+    if t % m != 0:
+        divisors = [k for k in range(1, t + 1) if t % k == 0]
+        raise ValueError(
+            f"trajectory length T={t} is not divisible by the number of shooting nodes m={m}: "
+            f"choose n_nodes among {divisors}, or cut the trajectories to a multiple of {m}"
+        )
+    return t // m
+
+
+def multiple_shooting_loss(
+    f: Callable[[torch.Tensor], torch.Tensor],
+    g: Callable[[torch.Tensor], torch.Tensor],
+    nodes: torch.Tensor,
+    y: torch.Tensor,
+    loss: str = "mse",
+    decode_chunk: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two terms of the multiple-shooting objective.
+
+    Args:
+        f: transition, ``[N, d] -> [N, d]``.
+        g: observation model, ``[N, d] -> [N, *obs_shape]``.
+        nodes: shooting nodes ``[B, m, d]``.
+        y: measurements ``[B, T, *obs_shape]`` with ``T = m * n``.
+        loss: ``"mse"`` or ``"bce"`` (then ``g`` must output values in [0, 1]).
+        decode_chunk: decode at most this many states per call of ``g`` (``None``: all at once).
+
+    Returns:
+        ``(fit, gap)``: ``fit`` is the mean over all elements of ``loss(g(f^k(s_i)), y[(i-1)n + k])``;
+        ``gap`` is the mean over all elements of ``(s_{i+1} - f^n(s_i))^2``, ``i = 1..m-1``, and exactly
+        zero when ``m = 1`` (the initial value problem).
+    """
+    n = check_shapes(nodes, y)
+    loss_fn = loss_function(loss)
+    b, m, d = nodes.shape
+    x = nodes.reshape(b * m, d)
+    states = [x]
+    for _ in range(n):  # n + 1 states: f^0 .. f^{n-1} are decoded, f^n closes the gap
+        x = f(x)
+        states.append(x)
+    traj = torch.stack(states[:n], dim=1)  # [B*m, n, d]
+    y_hat = decode(g, traj, decode_chunk)  # [B*m, n, *obs]
+    if y_hat.shape[2:] != y.shape[2:]:
+        raise ValueError(
+            f"the observation model outputs measurements of shape {tuple(y_hat.shape[2:])} but the data "
+            f"have shape {tuple(y.shape[2:])}: make g's output match the data (e.g. decoder preset / image size)"
+        )
+    fit = loss_fn(y_hat.reshape(y.shape), y)
+    if m == 1:
+        gap = fit.new_zeros(())
+    else:
+        end = states[n].view(b, m, d)
+        gap = (nodes[:, 1:] - end[:, :-1]).pow(2).mean()
+    return fit, gap

@@ -1,0 +1,72 @@
+"""Shared fixtures: a tiny rotation system as a DataModule, and trainer settings for fast CPU runs."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import lightning.pytorch as pl
+import numpy as np
+import pytest
+import torch
+
+from datamodules.base import TrajectoryDataModule
+from ssm_ms.module import MultipleShootingModule
+from ssm_ms.nets import LocallyLinearTransition, Projection
+
+torch.set_num_threads(2)
+warnings.filterwarnings("ignore", ".*does not have many workers.*")
+warnings.filterwarnings("ignore", ".*GPU available but not used.*")
+warnings.filterwarnings("ignore", ".*LeafSpec.*")
+
+
+class RotationDataModule(TrajectoryDataModule):
+    """A 2-D rotation ``x[t+1] = R(omega) x[t]`` measured through its first component plus noise."""
+
+    name = "rotation"
+
+    def __init__(self, n_train: int = 8, n_test: int = 4, seq_len: int = 12, omega: float = 0.3,
+                 noise_std: float = 0.05, nan_at: tuple[int, int] | None = None, **kwargs):
+        super().__init__(**kwargs)
+        self.n_train, self.n_test, self.length = n_train, n_test, seq_len
+        self.omega, self.noise_std, self.nan_at = omega, noise_std, nan_at
+
+    @property
+    def num_train_trajectories(self) -> int:
+        return self.n_train
+
+    def generator_params(self) -> dict:
+        return {"n_train": self.n_train, "n_test": self.n_test, "seq_len": self.length, "omega": self.omega,
+                "noise_std": self.noise_std, "nan_at": self.nan_at, "seed": self.seed}
+
+    def generate(self, split: str) -> dict[str, np.ndarray]:
+        rng = np.random.default_rng([self.seed, 0 if split == "train" else 1])
+        n = self.n_train if split == "train" else self.n_test
+        phase = rng.uniform(0, 2 * math.pi, size=(n, 1)) + self.omega * np.arange(self.length)
+        state = np.stack([np.cos(phase), np.sin(phase)], axis=-1).astype(np.float32)
+        y_clean = state[..., :1].copy()
+        y = y_clean + self.noise_std * rng.standard_normal(y_clean.shape).astype(np.float32)
+        if self.nan_at is not None and split == "train":
+            y[self.nan_at] = np.nan
+        return {"y": y, "y_clean": y_clean, "state": state}
+
+
+def rotation_model(**kwargs) -> MultipleShootingModule:
+    torch.manual_seed(0)
+    args = dict(state_dim=2, n_nodes=3, lr=1e-2)
+    args.update(kwargs)
+    d = args["state_dim"]
+    return MultipleShootingModule(LocallyLinearTransition(d, n_matrices=4, hidden=16), Projection([0]), **args)
+
+
+def fast_trainer(tmp_path, max_epochs: int, callbacks=(), **kwargs) -> pl.Trainer:
+    args = dict(max_epochs=max_epochs, accelerator="cpu", logger=False, enable_progress_bar=False,
+                enable_model_summary=False, default_root_dir=str(tmp_path), callbacks=list(callbacks),
+                num_sanity_val_steps=0, deterministic=True)
+    args.update(kwargs)
+    return pl.Trainer(**args)
+
+
+@pytest.fixture
+def rotation_dm(tmp_path):
+    return RotationDataModule(data_dir=str(tmp_path / "data"), batch_size=4, val_trajectories=2)

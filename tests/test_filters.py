@@ -1,0 +1,402 @@
+"""UKF and particle filter against closed forms: the exact Kalman filter, quadrature, true Lorenz."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+from torch import nn
+
+from ssm_ms.inference.particle import ParticleFilter, systematic_resample
+from ssm_ms.inference.ukf import CovarianceJitterWarning, UnscentedKalmanFilter
+
+F64 = torch.float64
+
+
+# ------------------------------------------------------------------------------------------------
+# reference: the exact Kalman filter, one trajectory at a time, plain loop
+def kalman_filter(y, A, H, Q, R, x0, P0):
+    """Posterior means [B, T, d] and covariances [B, T, d, d] of x[t+1] = A x[t] + w, y[t] = H x[t] + v."""
+    means, covs = [], []
+    for b in range(y.shape[0]):
+        m, P = x0.clone(), P0.clone()
+        mb, cb = [], []
+        for t in range(y.shape[1]):
+            S = H @ P @ H.T + R
+            K = torch.linalg.solve(S, H @ P).T  # P H^T S^-1 (S, P symmetric)
+            m = m + K @ (y[b, t] - H @ m)
+            P = (torch.eye(len(m), dtype=F64) - K @ H) @ P
+            mb.append(m)
+            cb.append(P)
+            m, P = A @ m, A @ P @ A.T + Q
+        means.append(torch.stack(mb))
+        covs.append(torch.stack(cb))
+    return torch.stack(means), torch.stack(covs)
+
+
+def linear_system(d, p, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    A = torch.randn(d, d, generator=gen, dtype=F64)
+    A = 0.97 * A / torch.linalg.eigvals(A).abs().max()  # stable
+    H = torch.randn(p, d, generator=gen, dtype=F64)
+    f = nn.Linear(d, d, bias=False).double()
+    g = nn.Linear(d, p, bias=False).double()
+    with torch.no_grad():
+        f.weight.copy_(A)
+        g.weight.copy_(H)
+    return A, H, f, g
+
+
+def simulate(A, H, Q, R, x0, P0, B, T, seed=1):
+    gen = torch.Generator().manual_seed(seed)
+    d, p = A.shape[0], H.shape[0]
+    lq, lr, lp = (torch.linalg.cholesky(M) for M in (Q, R, P0))
+    x = x0 + torch.randn(B, d, generator=gen, dtype=F64) @ lp.T
+    ys = []
+    for _ in range(T):
+        ys.append(x @ H.T + torch.randn(B, p, generator=gen, dtype=F64) @ lr.T)
+        x = x @ A.T + torch.randn(B, d, generator=gen, dtype=F64) @ lq.T
+    return torch.stack(ys, 1)
+
+
+@pytest.mark.parametrize(
+    "d, p, innovation, full_r",
+    [(4, 2, "auto", False), (4, 2, "low_rank", True), (2, 7, "auto", True), (2, 7, "dense", False), (3, 9, "auto", False)],
+)
+def test_ukf_equals_kalman_filter_on_linear_gaussian_system(d, p, innovation, full_r):
+    A, H, f, g = linear_system(d, p)
+    q_diag = [0.01 * (i + 1) for i in range(d)]
+    Q = torch.diag(torch.tensor(q_diag, dtype=F64))
+    if full_r:
+        M = torch.randn(p, p, generator=torch.Generator().manual_seed(3), dtype=F64)
+        R = 0.2 * M @ M.T / p + 0.3 * torch.eye(p, dtype=F64)
+        r_arg = R.tolist()
+    else:
+        R = 0.4 * torch.eye(p, dtype=F64)
+        r_arg = 0.4
+    x0 = torch.linspace(-1, 1, d, dtype=F64)
+    P0 = 0.1 * torch.eye(d, dtype=F64)
+    y = simulate(A, H, Q, R, x0, P0, B=3, T=25)
+    ukf = UnscentedKalmanFilter(f, g, process_var=q_diag, measurement_var=r_arg, init_var=0.1, innovation=innovation)
+    means, covs = ukf.filter(y, x0=x0)
+    ref_m, ref_c = kalman_filter(y, A, H, Q, R, x0, P0)
+    assert means.shape == (3, 25, d) and covs.shape == (3, 25, d, d)
+    torch.testing.assert_close(means, ref_m, rtol=0, atol=1e-9)
+    torch.testing.assert_close(covs, ref_c, rtol=0, atol=1e-9)
+    # the documented one-step prior for time T is the Kalman prediction
+    m_next, c_next = ukf.predict(means[:, -1], covs[:, -1])
+    torch.testing.assert_close(m_next, ref_m[:, -1] @ A.T, rtol=0, atol=1e-9)
+    torch.testing.assert_close(c_next, A @ ref_c[:, -1] @ A.T + Q, rtol=0, atol=1e-9)
+
+
+def test_ukf_image_shaped_measurement_and_float32():
+    """obs_shape (1, 3, 3) is flattened inside; float32 agrees with the float64 Kalman filter."""
+    d, p = 3, 9
+    A, H, f, g_flat = linear_system(d, p, seed=5)
+    g = nn.Sequential(g_flat, nn.Unflatten(1, (1, 3, 3)))
+    Q, R = 1e-3 * torch.eye(d, dtype=F64), 0.5 * torch.eye(p, dtype=F64)
+    P0 = 0.1 * torch.eye(d, dtype=F64)
+    y = simulate(A, H, Q, R, torch.zeros(d, dtype=F64), P0, B=2, T=20)
+    ref_m, ref_c = kalman_filter(y, A, H, Q, R, torch.zeros(d, dtype=F64), P0)
+    ukf = UnscentedKalmanFilter(f.float(), g.float(), process_var=1e-3, measurement_var=0.5, state_dim=d)
+    means, covs = ukf.filter(y.float().reshape(2, 20, 1, 3, 3))
+    assert means.dtype == torch.float32
+    torch.testing.assert_close(means.double(), ref_m, rtol=0, atol=1e-4)
+    torch.testing.assert_close(covs.double(), ref_c, rtol=0, atol=1e-5)
+
+
+def test_ukf_batch_equals_each_trajectory_alone():
+    torch.manual_seed(0)
+    f = nn.Sequential(nn.Linear(3, 16), nn.Tanh(), nn.Linear(16, 3)).double()
+    g = nn.Sequential(nn.Linear(3, 2), nn.Sigmoid()).double()
+    y = torch.rand(4, 12, 2, dtype=F64)
+    x0 = torch.randn(4, 3, dtype=F64)
+    ukf = UnscentedKalmanFilter(f, g, process_var=1e-2, measurement_var=0.1, state_dim=3)
+    means, covs = ukf.filter(y, x0=x0)
+    for b in range(4):
+        m, c = ukf.filter(y[b : b + 1], x0=x0[b : b + 1])
+        torch.testing.assert_close(means[b : b + 1], m, rtol=0, atol=1e-12)
+        torch.testing.assert_close(covs[b : b + 1], c, rtol=0, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------------
+# Lorenz: the true dynamics as f, x-component measured with the paper's noise
+LORENZ_MEAN = torch.tensor([0.0, 0.0, 23.5], dtype=F64)
+LORENZ_STD = torch.tensor([7.9, 9.0, 8.6], dtype=F64)
+
+
+def lorenz_rk4(x, dt=0.005, sigma=10.0, rho=28.0, beta=8.0 / 3.0):
+    def vf(s):
+        a, b, c = s.unbind(-1)
+        return torch.stack([sigma * (b - a), a * (rho - c) - b, a * b - beta * c], -1)
+
+    k1 = vf(x)
+    k2 = vf(x + 0.5 * dt * k1)
+    k3 = vf(x + 0.5 * dt * k2)
+    k4 = vf(x + dt * k3)
+    return x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def normalised_lorenz(z):
+    return (lorenz_rk4(z * LORENZ_STD + LORENZ_MEAN) - LORENZ_MEAN) / LORENZ_STD
+
+
+def lorenz_data(B, T, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    x = LORENZ_MEAN + LORENZ_STD * torch.randn(B, 3, generator=gen, dtype=F64)
+    for _ in range(1000):  # onto the attractor
+        x = lorenz_rk4(x)
+    xs = []
+    for _ in range(T):
+        xs.append(x)
+        x = lorenz_rk4(x)
+    z = (torch.stack(xs, 1) - LORENZ_MEAN) / LORENZ_STD
+    y = z[..., :1] + math.sqrt(0.5) * torch.randn(B, T, 1, generator=gen, dtype=F64)
+    return z, y
+
+
+def test_ukf_tracks_unobserved_lorenz_components():
+    z, y = lorenz_data(B=4, T=2000)
+    ukf = UnscentedKalmanFilter(normalised_lorenz, lambda s: s[:, :1], state_dim=3)  # paper's defaults
+    means, covs = ukf.filter(y)
+    burn = 500
+    rmse = (means[:, burn:] - z[:, burn:]).pow(2).mean(dim=(0, 1)).sqrt()
+    spread = z[:, burn:].std(dim=(0, 1))  # RMSE of the trivial estimator (the mean)
+    assert (rmse[1:] < 0.2 * spread[1:]).all(), f"y, z RMSE {rmse[1:].tolist()} vs std {spread[1:].tolist()}"
+    assert rmse[0] < 0.2 * spread[0]
+    check_covariances(covs)
+
+
+def check_covariances(covs):
+    torch.testing.assert_close(covs, covs.transpose(-1, -2), rtol=0, atol=0)
+    assert torch.isfinite(covs).all()
+    assert (torch.linalg.eigvalsh(covs) > 0).all()
+
+
+def test_covariances_symmetric_positive_definite_nonlinear_float32():
+    torch.manual_seed(1)
+    f = nn.Sequential(nn.Linear(4, 32), nn.Tanh(), nn.Linear(32, 4))
+    g = nn.Sequential(nn.Linear(4, 16), nn.Sigmoid(), nn.Unflatten(1, (1, 4, 4)))
+    y = torch.rand(3, 30, 1, 4, 4)
+    with torch.no_grad():
+        _, covs = UnscentedKalmanFilter(f, g, state_dim=4).filter(y)
+    check_covariances(covs.double())
+
+
+# ------------------------------------------------------------------------------------------------
+def test_gradients_reach_f_parameters_gradcheck():
+    torch.manual_seed(0)
+    y = torch.randn(2, 4, 1, dtype=F64)
+    x0 = torch.randn(2, 2, dtype=F64)
+
+    def run(weight, y, x0):
+        f = lambda x: x + 0.1 * torch.tanh(x @ weight.T)  # noqa: E731
+        ukf = UnscentedKalmanFilter(f, lambda x: x[:, :1] ** 2 + x[:, 1:], process_var=0.05, measurement_var=0.3, state_dim=2)
+        means, covs = ukf.filter(y, x0=x0)
+        return means, covs
+
+    weight = torch.randn(2, 2, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(run, (weight, y.requires_grad_(), x0.requires_grad_()), eps=1e-6, atol=1e-6)
+
+
+def test_gradients_flow_to_module_parameters():
+    from ssm_ms.nets.transition import LocallyLinearTransition
+
+    torch.manual_seed(0)
+    f = LocallyLinearTransition(3, n_matrices=4, hidden=8)
+    means, covs = UnscentedKalmanFilter(f, lambda x: x[:, :1]).filter(torch.randn(2, 6, 1))
+    (means.square().sum() + covs.diagonal(dim1=-2, dim2=-1).sum()).backward()
+    for name, prm in f.named_parameters():
+        assert prm.grad is not None and torch.isfinite(prm.grad).all() and prm.grad.abs().sum() > 0, name
+
+
+# ------------------------------------------------------------------------------------------------
+def test_jitter_path_on_near_singular_covariance_warns():
+    # f collapses the state onto a line and there is no process noise: the predicted covariance is
+    # rank one, its Cholesky fails and the filter must add jitter, warn, and stay symmetric PSD.
+    f = lambda x: x[:, :1].expand(-1, 3).clone()  # noqa: E731
+    ukf = UnscentedKalmanFilter(f, lambda x: x[:, :1], process_var=0.0, measurement_var=0.5, state_dim=3)
+    y = torch.randn(2, 5, 1, dtype=F64)
+    with pytest.warns(CovarianceJitterWarning, match=r"first at step 1 \(prior, 2 trajectories\), largest jitter"):
+        means, covs = ukf.filter(y)
+    assert torch.isfinite(means).all()
+    torch.testing.assert_close(covs, covs.transpose(-1, -2), rtol=0, atol=0)
+    assert (torch.linalg.eigvalsh(covs) > -1e-12).all()
+
+
+def test_jitter_goes_only_to_failing_trajectories():
+    ukf = UnscentedKalmanFilter(lambda x: x, lambda x: x, state_dim=2)
+    good = torch.tensor([[2.0, 0.5], [0.5, 1.0]], dtype=F64)
+    singular = torch.tensor([[1.0, 1.0], [1.0, 1.0]], dtype=F64)
+    chol = ukf._cholesky(torch.stack([good, singular, good]), "test", step=7)
+    torch.testing.assert_close(chol[0], torch.linalg.cholesky(good), rtol=0, atol=0)
+    torch.testing.assert_close(chol[2], torch.linalg.cholesky(good), rtol=0, atol=0)
+    torch.testing.assert_close(chol[1] @ chol[1].T, singular, rtol=0, atol=1e-6)
+    assert ukf._events and ukf._events[0][0] == 7 and ukf._events[0][3] == 1
+
+
+def test_unrecoverable_covariance_warns_with_step():
+    ukf = UnscentedKalmanFilter(lambda x: x, lambda x: x, state_dim=2, max_jitter_tries=2)
+    nan = torch.full((1, 2, 2), float("nan"), dtype=F64)
+    with pytest.warns(CovarianceJitterWarning, match=r"UKF step 3: .* jitter"):
+        ukf._cholesky(nan, "posterior", step=3)
+
+
+# ------------------------------------------------------------------------------------------------
+def test_ukf_bad_inputs_raise_clear_errors():
+    f = lambda x: x  # noqa: E731
+    g = lambda x: x[:, :2]  # noqa: E731
+    ukf = UnscentedKalmanFilter(f, g, state_dim=3)
+    with pytest.raises(ValueError, match=r"shape \[2\].*shape \[3\]"):
+        ukf.filter(torch.randn(2, 5, 3))
+    with pytest.raises(ValueError, match=r"\[B, T, \*obs_shape\]"):
+        ukf.filter(torch.randn(5, 2))
+    with pytest.raises(ValueError, match="positive definite"):
+        ukf.filter(torch.randn(2, 5, 2), P0=torch.diag(torch.tensor([1.0, -1.0, 1.0])))
+    with pytest.raises(ValueError, match="symmetric"):
+        ukf.filter(torch.randn(2, 5, 2), P0=torch.tensor([[1.0, 0.5, 0], [0, 1, 0], [0, 0, 1]]))
+    with pytest.raises(ValueError, match="P0 must be"):
+        ukf.filter(torch.randn(2, 5, 2), P0=torch.eye(3)[None].expand(3, 3, 3))
+    with pytest.raises(ValueError, match="x0 must be"):
+        ukf.filter(torch.randn(2, 5, 2), x0=torch.zeros(4, 3))
+    with pytest.raises(ValueError, match="x0 has state dimension 4"):
+        ukf.filter(torch.randn(2, 5, 2), x0=torch.zeros(4))
+    with pytest.raises(ValueError, match="floating point"):
+        ukf.filter(torch.zeros(2, 5, 2, dtype=torch.uint8))
+    with pytest.raises(ValueError, match="measurement_var has 3 entries.*2 components"):
+        UnscentedKalmanFilter(f, g, measurement_var=[1.0, 1.0, 1.0], state_dim=3).filter(torch.randn(2, 5, 2))
+    with pytest.raises(ValueError, match="measurement_var must be positive"):
+        UnscentedKalmanFilter(f, g, measurement_var=0.0, state_dim=3)
+    with pytest.raises(ValueError, match="process_var must be non-negative"):
+        UnscentedKalmanFilter(f, g, process_var=[-1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        UnscentedKalmanFilter(f, g, process_var=[[1.0, 2.0], [2.0, 1.0]])
+    with pytest.raises(ValueError, match="init_var has 2 entries per side but state_dim is 3"):
+        UnscentedKalmanFilter(f, g, init_var=[1.0, 1.0], state_dim=3)
+    with pytest.raises(ValueError, match="state dimension is unknown"):
+        UnscentedKalmanFilter(f, g).filter(torch.randn(2, 5, 2))
+    with pytest.raises(ValueError, match="non-negative covariance weights"):
+        UnscentedKalmanFilter(f, g, state_dim=3, alpha=1e-3, innovation="low_rank").filter(torch.randn(2, 5, 2))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_ukf_on_cuda_matches_cpu():
+    torch.manual_seed(0)
+    f = nn.Sequential(nn.Linear(3, 16), nn.Tanh(), nn.Linear(16, 3)).double()
+    g = nn.Sequential(nn.Linear(3, 20), nn.Sigmoid()).double()
+    y = torch.rand(5, 10, 20, dtype=F64)
+    ukf = UnscentedKalmanFilter(f, g, process_var=1e-3, state_dim=3)
+    m_cpu, c_cpu = ukf.filter(y)
+    f.cuda(), g.cuda()
+    m_gpu, c_gpu = ukf.filter(y.cuda())
+    assert m_gpu.is_cuda
+    torch.testing.assert_close(m_gpu.cpu(), m_cpu, rtol=0, atol=1e-9)
+    torch.testing.assert_close(c_gpu.cpu(), c_cpu, rtol=0, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------------------------
+# particle filter
+def test_systematic_resampling_counts_within_floor_and_ceil():
+    gen = torch.Generator().manual_seed(0)
+    n = 1000
+    w = torch.rand(6, n, generator=gen, dtype=F64) ** 4
+    w[0, :] = 0.0
+    w[0, 17] = 1.0  # all mass on one particle
+    w[1, ::2] = 0.0  # zero weights are never picked
+    w = w / w.sum(-1, keepdim=True)
+    idx = systematic_resample(w, gen)
+    assert idx.shape == (6, n)
+    counts = torch.stack([torch.bincount(row, minlength=n) for row in idx]).to(F64)
+    expected = n * w
+    assert (counts >= torch.floor(expected - 1e-9)).all() and (counts <= torch.ceil(expected + 1e-9)).all()
+    assert (counts[1, ::2] == 0).all() and counts[0, 17] == n
+
+
+def test_systematic_resampling_is_unbiased_over_offsets():
+    w = torch.tensor([[0.05, 0.15, 0.3, 0.5]], dtype=F64).expand(4000, 4).contiguous()
+    idx = systematic_resample(w, torch.Generator().manual_seed(1))
+    freq = torch.bincount(idx.flatten(), minlength=4).to(F64) / idx.numel()
+    torch.testing.assert_close(freq, w[0], rtol=0, atol=0.01)
+
+
+def test_particle_filter_matches_kalman_filter():
+    d, p, B, T = 2, 1, 3, 12
+    A, H, f, g = linear_system(d, p, seed=2)
+    q, r = 0.05, 0.3
+    Q, R = q * torch.eye(d, dtype=F64), r * torch.eye(p, dtype=F64)
+    P0 = 0.1 * torch.eye(d, dtype=F64)
+    y = simulate(A, H, Q, R, torch.zeros(d, dtype=F64), P0, B, T)
+    ref_m, ref_c = kalman_filter(y, A, H, Q, R, torch.zeros(d, dtype=F64), P0)
+    n = 20000
+    pf = ParticleFilter(f, g, n_particles=n, state_dim=d, process_std=q**0.5, measurement_std=r**0.5, init_std=0.1**0.5, seed=0)
+    res = pf.filter(y, return_particles=True)
+    assert res.means.shape == (B, T, d) and res.ess.shape == (B, T)
+    # Monte Carlo error of a weighted mean ~ posterior std / sqrt(ESS); resampling adds a little more.
+    std = ref_c.diagonal(dim1=-2, dim2=-1).sqrt()
+    z = (res.means - ref_m).abs() / (std / res.ess.unsqueeze(-1).sqrt())
+    assert z.max() < 6.0, f"largest deviation {z.max():.2f} Monte Carlo standard errors"
+    assert (res.ess > 0.1 * n).all(), "too few effective particles for the tolerance above to be tight"
+    assert (res.means - ref_m).abs().max() < 0.05
+    # the returned last-step particles and weights carry the last posterior
+    torch.testing.assert_close(torch.einsum("bp,bpd->bd", res.weights, res.particles), res.means[:, -1])
+
+
+def test_particle_filter_bernoulli_likelihood_matches_quadrature():
+    # one step, 1-D state, 16-pixel "image" decoder: posterior mean by quadrature on a grid
+    w = torch.linspace(-2, 2, 16, dtype=F64)
+    b = torch.linspace(0.5, -0.5, 16, dtype=F64)
+    g = lambda x: torch.sigmoid(x * w + b).reshape(-1, 1, 4, 4)  # noqa: E731
+    x_true = torch.tensor([[0.6], [-0.3]], dtype=F64)
+    y = g(x_true).reshape(2, 1, 1, 4, 4)  # soft targets in [0, 1]
+    grid = torch.linspace(-4, 4, 20001, dtype=F64)
+    prob = g(grid[:, None]).reshape(-1, 16)
+    expected = []
+    for k in range(2):
+        yk = y[k, 0].reshape(16)
+        logp = (yk * prob.log() + (1 - yk) * (1 - prob).log()).sum(-1) - 0.5 * grid**2 / 0.1
+        post = torch.softmax(logp, 0)
+        expected.append((post * grid).sum())
+    pf = ParticleFilter(lambda x: x, g, n_particles=20000, likelihood="bernoulli", state_dim=1, seed=0)
+    res = pf.filter(y, return_particles=True)
+    post_std = 0.1**0.5
+    tol = 5 * post_std / res.ess[:, 0].sqrt()
+    assert ((res.means[:, 0, 0] - torch.stack(expected)).abs() < tol).all()
+
+
+def test_particle_filter_reproducible_with_generator_and_seed():
+    A, H, f, g = linear_system(2, 1)
+    y = torch.randn(2, 6, 1, dtype=F64)
+    pf = ParticleFilter(f, g, n_particles=200, state_dim=2, resample_threshold=1.0)
+    a = pf.filter(y, generator=torch.Generator().manual_seed(3))
+    b = pf.filter(y, generator=torch.Generator().manual_seed(3))
+    c = pf.filter(y, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    seeded = ParticleFilter(f, g, n_particles=200, state_dim=2, seed=9)
+    assert torch.equal(seeded.filter(y), seeded.filter(y))
+
+
+def test_particle_filter_bad_inputs():
+    g = lambda x: x[:, :1]  # noqa: E731
+    pf = ParticleFilter(lambda x: x, g, n_particles=10, state_dim=2)
+    with pytest.raises(ValueError, match=r"shape \[1\].*shape \[3\]"):
+        pf.filter(torch.randn(2, 4, 3))
+    with pytest.raises(ValueError, match=r"\[B, T, \*obs_shape\]"):
+        pf.filter(torch.randn(4, 1))
+    with pytest.raises(ValueError, match="x0 must be"):
+        pf.filter(torch.randn(2, 4, 1), x0=torch.zeros(3, 2))
+    with pytest.raises(ValueError, match=r"measurements in \[0, 1\]"):
+        ParticleFilter(lambda x: x, torch.sigmoid, likelihood="bernoulli", state_dim=1).filter(torch.randn(1, 3, 1))
+    with pytest.raises(ValueError, match="probabilities"):
+        ParticleFilter(lambda x: x, lambda x: x * 10, likelihood="bernoulli", state_dim=1, seed=0).filter(
+            torch.rand(1, 3, 1)
+        )
+    with pytest.raises(ValueError, match="likelihood must be"):
+        ParticleFilter(lambda x: x, g, likelihood="poisson")
+    with pytest.raises(ValueError, match="measurement_std must be a positive"):
+        ParticleFilter(lambda x: x, g, measurement_std=-1.0)
+    with pytest.raises(ValueError, match="resample_threshold"):
+        ParticleFilter(lambda x: x, g, resample_threshold=2.0)
+    with pytest.raises(ValueError, match=r"systematic|weights must be \[B, P\]"):
+        systematic_resample(torch.ones(5))

@@ -1,0 +1,162 @@
+"""MultipleShootingModule: node lookup, node initialisation, checks before training, NaN handling."""
+
+import lightning.pytorch as pl
+import pytest
+import torch
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint
+
+from ssm_ms.module import MultipleShootingModule, NonFiniteLossError
+from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, Projection
+from tests.conftest import RotationDataModule, fast_trainer, rotation_model
+
+
+def test_nodes_are_looked_up_by_trajectory_index():
+    model = rotation_model(num_trajectories=5, n_nodes=3, state_dim=2)
+    with torch.no_grad():
+        model.nodes.weight.copy_(torch.arange(30.0).view(5, 6))
+    got = model.node_states(torch.tensor([3, 0, 3]))
+    assert got.shape == (3, 3, 2)
+    # row j holds trajectory j's nodes in order: node i of trajectory j = weight[j, 2i:2i+2]
+    for b, j in enumerate([3, 0, 3]):
+        for i in range(3):
+            assert got[b, i].tolist() == [6.0 * j + 2 * i, 6.0 * j + 2 * i + 1]
+
+
+def test_training_step_uses_the_batch_trajectories_nodes(rotation_dm):
+    """The loss of a batch depends on the nodes of its trajectories only."""
+    model = rotation_model(num_trajectories=8)
+    rotation_dm.prepare_data()
+    rotation_dm.setup("fit")
+    batch = next(iter(rotation_dm.train_dataloader()))
+    fit, gap = model.shooting_loss(batch)
+    (fit + gap).backward()
+    touched = model.nodes.weight.grad.abs().sum(1) > 0
+    assert set(torch.nonzero(touched).flatten().tolist()) <= set(batch["index"].tolist())
+
+
+def test_nodes_start_at_measurements(rotation_dm):
+    model = rotation_model(n_nodes=3, node_init_map={1: 0})
+    trainer = fast_trainer(rotation_dm.data_dir, max_epochs=0)
+    trainer.fit(model, rotation_dm)
+    y = torch.from_numpy(rotation_dm.load_arrays("train")["y"].copy())  # [8, 12, 1]
+    nodes = model.node_states(torch.arange(8))
+    torch.testing.assert_close(nodes[:, :, 1], y[:, ::4, 0])  # n = 12 / 3 = 4
+    assert (nodes[:, :, 0] == 0).all()
+
+
+def test_num_trajectories_comes_from_the_data(rotation_dm):
+    model = rotation_model()
+    assert model.nodes is None
+    fast_trainer(rotation_dm.data_dir, max_epochs=1).fit(model, rotation_dm)
+    assert model.nodes.num_embeddings == 8 and model.hparams.num_trajectories == 8
+
+
+def test_training_reduces_the_loss(tmp_path):
+    dm = RotationDataModule(data_dir=str(tmp_path), batch_size=8, val_trajectories=0, noise_std=0.0)
+    model = rotation_model(lr=3e-2)
+    dm.prepare_data()
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    model._make_nodes(8)
+    before = sum(model.shooting_loss(batch)).item()
+    fast_trainer(tmp_path, max_epochs=60).fit(model, dm)
+    after = sum(model.shooting_loss(batch)).item()
+    assert after < 0.2 * before
+
+
+@pytest.mark.parametrize(
+    "model_kwargs, dm_kwargs, match",
+    [
+        ({"n_nodes": 5}, {}, r"T=12 is not divisible by model.n_nodes=5"),
+        ({"num_trajectories": 6}, {}, r"nodes for 6 trajectories but the training set has 8"),
+        ({}, {"nan_at": (3, 7)}, r"non-finite value .* index \(3, 7, 0\)"),
+    ],
+)
+def test_bad_configurations_stop_before_training(tmp_path, model_kwargs, dm_kwargs, match):
+    dm = RotationDataModule(data_dir=str(tmp_path), **dm_kwargs)
+    model = rotation_model(**model_kwargs)
+    trainer = fast_trainer(tmp_path, max_epochs=1)
+    with pytest.raises(ValueError, match=match):
+        trainer.fit(model, dm)
+    assert trainer.global_step == 0
+
+
+def test_observation_shape_mismatch_stops_before_training(tmp_path):
+    dm = RotationDataModule(data_dir=str(tmp_path))
+    model = MultipleShootingModule(LocallyLinearTransition(2, 4, 8), ConvDecoder(2, "pendulum"), state_dim=2, n_nodes=3)
+    trainer = fast_trainer(tmp_path, max_epochs=1)
+    with pytest.raises(ValueError, match=r"outputs measurements of shape \(1, 24, 24\) but the data have shape \(1,\)"):
+        trainer.fit(model, dm)
+    assert trainer.global_step == 0
+
+
+def test_constructor_rejects_impossible_settings():
+    with pytest.raises(ValueError, match="unknown loss 'mae'"):
+        rotation_model(loss="mae")
+    with pytest.raises(ValueError, match=r"f fails on a state batch of shape \[2, 2\] .* check that f's state_dim"):
+        MultipleShootingModule(LocallyLinearTransition(3), Projection([0]), state_dim=2)
+    with pytest.raises(ValueError, match=r"f maps states \[2, 2\] to shape \(2, 3\)"):
+        MultipleShootingModule(torch.nn.Linear(2, 3), Projection([0]), state_dim=2)
+    with pytest.raises(ValueError, match="node_init_map names state components"):
+        rotation_model(node_init_map={5: 0})
+
+
+def test_any_module_works_as_f_and_g(tmp_path):
+    class Rotation(torch.nn.Module):  # a user's own transition, with a learnable angle
+        def __init__(self):
+            super().__init__()
+            self.omega = torch.nn.Parameter(torch.tensor(0.1))
+
+        def forward(self, x):
+            c, s = torch.cos(self.omega), torch.sin(self.omega)
+            return torch.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1]], dim=1)
+
+    dm = RotationDataModule(data_dir=str(tmp_path), noise_std=0.0, batch_size=8, val_trajectories=0)
+    model = MultipleShootingModule(Rotation(), Projection([0]), state_dim=2, n_nodes=2, lr=0.05)
+    fast_trainer(tmp_path, max_epochs=150).fit(model, dm)
+    assert abs(model.f.omega.item()) == pytest.approx(0.3, abs=0.02)  # the data's rotation per step
+
+
+class PoisonAt(Callback):
+    """Make f's parameters NaN at the start of an epoch (a diverging run)."""
+
+    def __init__(self, epoch):
+        self.epoch = epoch
+
+    def on_train_epoch_start(self, trainer, pl_module):
+        if trainer.current_epoch == self.epoch:
+            with torch.no_grad():
+                for p in pl_module.f.parameters():
+                    p.fill_(float("nan"))
+
+
+def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path, rotation_dm):
+    ckpt = ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True)
+    trainer = fast_trainer(tmp_path, max_epochs=5, callbacks=[ckpt, PoisonAt(2)])
+    with pytest.raises(NonFiniteLossError, match=r"not finite at epoch 2, .* last good checkpoint is .*last.ckpt"):
+        trainer.fit(rotation_model(), rotation_dm)
+    saved = torch.load(tmp_path / "ckpt" / "last.ckpt", weights_only=False)
+    assert saved["epoch"] == 1
+    assert all(torch.isfinite(v).all() for v in saved["state_dict"].values())
+
+
+def test_checkpoint_of_another_configuration_is_refused(tmp_path, rotation_dm):
+    ckpt = ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True)
+    fast_trainer(tmp_path, max_epochs=1, callbacks=[ckpt]).fit(rotation_model(), rotation_dm)
+    other = rotation_model(state_dim=3, node_init_map=None)
+    trainer = fast_trainer(tmp_path, max_epochs=3)
+    with pytest.raises(ValueError, match=r"another configuration[\s\S]*state_dim: checkpoint 2, this run 3"):
+        trainer.fit(other, rotation_dm, ckpt_path=str(tmp_path / "ckpt" / "last.ckpt"))
+    assert trainer.global_step == 0
+
+
+def test_load_from_checkpoint_round_trip(tmp_path, rotation_dm):
+    ckpt = ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True)
+    model = rotation_model()
+    fast_trainer(tmp_path, max_epochs=2, callbacks=[ckpt]).fit(model, rotation_dm)
+    # built in Python: f and g are not in the hyperparameters, pass them again
+    loaded = MultipleShootingModule.load_from_checkpoint(
+        tmp_path / "ckpt" / "last.ckpt", f=LocallyLinearTransition(2, 4, 16), g=Projection([0])
+    )
+    for key, value in model.state_dict().items():
+        torch.testing.assert_close(loaded.state_dict()[key], value)

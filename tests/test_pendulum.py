@@ -1,0 +1,304 @@
+"""The n-link pendulum data set: physics, rendering, noise, determinism, cache, DataModule."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.integrate import solve_ivp
+from scipy.stats import norm
+
+from datamodules import pendulum as P
+from datamodules.pendulum import PendulumDataModule
+
+G = 9.81
+
+
+# ------------------------------------------------------------------ independent references
+def chain_energy(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Energy of unit point masses on unit links, from relative angles ``[..., n]``."""
+    phi, dphi = np.cumsum(q, -1), np.cumsum(v, -1)
+    height = -np.cumsum(np.cos(phi), -1)
+    vx = np.cumsum(dphi * np.cos(phi), -1)
+    vz = np.cumsum(dphi * np.sin(phi), -1)
+    return 0.5 * (vx**2 + vz**2).sum(-1) + G * height.sum(-1)
+
+
+def lagrangian_rhs(n: int, damping: float):
+    """Equations of motion in *absolute* link angles, derived by hand (no Pinocchio)."""
+    idx = np.arange(n)
+    beyond = n - np.maximum(idx[:, None], idx[None, :])  # masses at or after link max(i, j)
+
+    def rhs(_t, x):
+        phi, dphi = x[:n], x[n:]
+        diff = phi[:, None] - phi[None, :]
+        mass = beyond * np.cos(diff)
+        theta_dot = np.diff(np.concatenate([[0.0], dphi]))
+        torque = -damping * theta_dot  # on relative joints
+        generalized = torque - np.concatenate([torque[1:], [0.0]])
+        rhs_force = generalized - (beyond * np.sin(diff) * dphi[None, :] ** 2).sum(1) - G * (n - idx) * np.sin(phi)
+        return np.concatenate([dphi, np.linalg.solve(mass, rhs_force)])
+
+    return rhs
+
+
+def simulate(n, q0, v0, duration=10.0, frame_dt=0.1, dt=5e-3, damping=0.0):
+    model = P.pendulum_model(n)
+    frames = int(round(duration / frame_dt))
+    return P.simulate(model, model.createData(), q0, v0, frames, int(round(frame_dt / dt)), dt, damping)
+
+
+def small_module(tmp_path, **kw) -> PendulumDataModule:
+    args = dict(n_train=4, n_test=4, data_dir=str(tmp_path), workers=1, batch_size=2, val_trajectories=2)
+    args.update(kw)
+    return PendulumDataModule(**args)
+
+
+@pytest.fixture(scope="module")
+def simple_data(tmp_path_factory):
+    dm = small_module(tmp_path_factory.mktemp("pend"))
+    dm.prepare_data()
+    return dm, dm.load_arrays("train"), dm.load_arrays("test")
+
+
+# ------------------------------------------------------------------ physics
+def test_simple_pendulum_energy_conserved(simple_data):
+    _, train, test = simple_data
+    for arrays in (train, test):
+        s = np.asarray(arrays["state"], dtype=np.float64)
+        e = 0.5 * s[..., 1] ** 2 - G * np.cos(s[..., 0])  # m = l = 1
+        scale = np.maximum(np.abs(e[:, :1]), G)  # e may cross 0: compare to the energy scale m g l
+        assert (np.abs(e - e[:, :1]) / scale).max() < 1e-3
+    # hard cases: near the top, large speed; 10 s with the default step
+    q, v = simulate(1, [[math.pi - 1e-3], [2.5], [0.3]], [[0.0], [1.0], [-4.0]], duration=10.0)
+    e = 0.5 * v[..., 0] ** 2 - G * np.cos(q[..., 0])
+    assert (np.abs(e - e[:, :1]) / G).max() < 1e-3
+
+
+def test_simple_pendulum_matches_closed_form_ode():
+    q, v = simulate(1, [[2.0]], [[0.5]], duration=5.0)
+    t = np.arange(50) * 0.1
+    ref = solve_ivp(lambda _t, x: [x[1], -G * np.sin(x[0])], (0, t[-1]), [2.0, 0.5], t_eval=t, rtol=1e-11, atol=1e-11)
+    assert np.abs(q[0, :, 0] - ref.y[0]).max() < 1e-6
+    assert np.abs(v[0, :, 0] - ref.y[1]).max() < 1e-6
+
+
+def test_small_oscillation_period():
+    theta0 = 0.05
+    q, _ = simulate(1, [[theta0]], [[0.0]], duration=10.0, frame_dt=0.01)
+    x = q[0, :, 0]
+    t = np.arange(len(x)) * 0.01
+    k = np.flatnonzero(np.sign(x[:-1]) != np.sign(x[1:]))
+    crossings = t[k] - x[k] * (t[k + 1] - t[k]) / (x[k + 1] - x[k])  # linear interpolation
+    period = 2 * (crossings[-1] - crossings[0]) / (len(crossings) - 1)
+    assert len(crossings) >= 8
+    assert period == pytest.approx(2 * math.pi * math.sqrt(1.0 / G), rel=5e-3)
+
+
+def test_quadruple_matches_independent_lagrangian():
+    rng = np.random.default_rng(3)
+    q0 = rng.uniform(-1.0, 1.0, 4)
+    v0 = rng.uniform(-0.5, 0.5, 4)
+    q, v = simulate(4, q0[None], v0[None], duration=2.0, damping=0.1)
+    t = np.arange(20) * 0.1
+    phi0, dphi0 = np.cumsum(q0), np.cumsum(v0)
+    ref = solve_ivp(lagrangian_rhs(4, 0.1), (0, t[-1]), np.concatenate([phi0, dphi0]), t_eval=t, rtol=1e-11, atol=1e-11)
+    assert np.abs(np.cumsum(q[0], -1) - ref.y[:4].T).max() < 1e-5
+    assert np.abs(np.cumsum(v[0], -1) - ref.y[4:].T).max() < 1e-4
+
+
+def test_quadruple_energy_damped_decreases_undamped_conserved():
+    rng = np.random.default_rng(0)
+    q0 = rng.uniform(-math.pi, math.pi, (3, 4))
+    v0 = np.zeros((3, 4))
+    scale = G * 10  # g * (1 + 2 + 3 + 4): the potential-energy range
+    q, v = simulate(4, q0, v0, damping=0.0)
+    e = chain_energy(q, v)
+    assert (np.abs(e - e[:, :1]) / scale).max() < 1e-3
+    q, v = simulate(4, q0, v0, damping=0.1)
+    e = chain_energy(q, v)
+    assert (np.diff(e, axis=1) < 1e-3 * scale).all()  # dE/dt = -0.1 * |v|^2 <= 0, up to integration error
+    assert (e[:, -1] < e[:, 0] - 0.05 * scale).all()
+
+
+# ------------------------------------------------------------------ rendering
+def naive_render(angles: np.ndarray, size: int, width: float) -> np.ndarray:
+    """Per-pixel loop: distance from the pixel centre to each segment of the chain."""
+    n = angles.shape[1]
+    link = (size / 2 - width / 2 - 1) / n
+    out = np.zeros((len(angles), 1, size, size))
+    for f, theta in enumerate(angles):
+        phi = np.cumsum(theta)
+        pts = np.concatenate([[[0.0, 0.0]], np.cumsum(link * np.stack([np.sin(phi), np.cos(phi)], 1), 0)]) + size / 2
+        for i in range(size):
+            for j in range(size):
+                p = np.array([j + 0.5, i + 0.5])
+                dist = min(
+                    np.linalg.norm(p - a - np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1) * (b - a))
+                    for a, b in zip(pts[:-1], pts[1:])
+                )
+                out[f, 0, i, j] = min(max(width / 2 + 0.5 - dist, 0.0), 1.0)
+    return out
+
+
+@pytest.mark.parametrize("n,size,width", [(1, 24, 2.0), (4, 48, 2.0), (3, 20, 1.0), (2, 17, 3.5)])
+def test_render_matches_naive_loop(n, size, width):
+    angles = np.random.default_rng(n).uniform(-4, 4, (3, n))
+    img = P.render(angles, size, width)
+    assert img.shape == (3, 1, size, size) and img.dtype == np.float32
+    assert img.min() >= 0 and img.max() <= 1
+    np.testing.assert_allclose(img, naive_render(angles, size, width), atol=1e-5)
+
+
+def centroid(img: np.ndarray) -> np.ndarray:
+    """Intensity-weighted centre (x right, y down) in pixel units, pixel centres at i + 0.5."""
+    w = img.reshape(img.shape[-2:]).astype(np.float64)
+    c = np.arange(w.shape[0]) + 0.5
+    return np.array([(w.sum(0) * c).sum(), (w.sum(1) * c).sum()]) / w.sum()
+
+
+@pytest.mark.parametrize("n,size", [(1, 24), (4, 48)])
+def test_render_geometry(n, size):
+    length = size / 2 - 1 - 1  # whole chain, line width 2
+    for theta, direction in [(0.0, (0, 1)), (math.pi / 2, (1, 0)), (-math.pi / 2, (-1, 0)), (math.pi, (0, -1))]:
+        angles = np.zeros((1, n))
+        angles[0, 0] = theta  # straight chain: mid-chain point at half the length
+        img = P.render(angles, size, 2.0)[0]
+        assert img.shape == (1, size, size)
+        expected = size / 2 + 0.5 * length * np.array(direction)
+        np.testing.assert_allclose(centroid(img), expected, atol=0.15)
+    # a bent chain: the first link straight right, the others down again, the mean of link midpoints
+    if n == 4:
+        img = P.render(np.array([[math.pi / 2, -math.pi / 2, 0, 0]]), size, 2.0)[0]
+        link = length / 4
+        mids = np.array([[0.5, 0], [1, 0.5], [1, 1.5], [1, 2.5]]) * link + size / 2
+        np.testing.assert_allclose(centroid(img), mids.mean(0), atol=0.5)
+
+
+def test_frames_match_states(simple_data):
+    """Every clean frame of the data set shows the link where its stored angle puts it."""
+    _, train, _ = simple_data
+    theta = np.asarray(train["state"][..., 0], dtype=np.float64).reshape(-1)
+    frames = np.asarray(train["y_clean"]).reshape(-1, 24, 24) / 255.0
+    mid = 12 + 0.5 * 10 * np.stack([np.sin(theta), np.cos(theta)], 1)
+    got = np.stack([centroid(f) for f in frames])
+    assert np.abs(got - mid).max() < 0.3
+
+
+# ------------------------------------------------------------------ noise
+def test_noise_level(simple_data):
+    _, train, test = simple_data
+    y = np.concatenate([train["y"], test["y"]]).astype(np.float64) / 255.0
+    clean = np.concatenate([train["y_clean"], test["y_clean"]]).astype(np.float64) / 255.0
+    assert y.shape == clean.shape == (8, 100, 1, 24, 24)
+    dark = clean == 0
+    assert y[dark].mean() == pytest.approx(0.2 / math.sqrt(2 * math.pi), abs=2e-3)  # N(0, 0.2) clipped at 0
+    assert (y[dark] == 0).mean() == pytest.approx(0.5, abs=0.01)
+    # mid-grey pixels: residual moments of clip(c + Z, 0, 1) - c, integrated numerically per grey level
+    mask = (clean >= 0.2) & (clean <= 0.8)
+    assert mask.sum() > 2000
+    z = np.linspace(-8, 8, 20001) * 0.2
+    pdf = norm.pdf(z, scale=0.2) * (z[1] - z[0])
+    levels, counts = np.unique(clean[mask], return_counts=True)
+    r = np.clip(levels[:, None] + z[None], 0, 1) - levels[:, None]
+    m1 = ((r * pdf).sum(1) * counts).sum() / counts.sum()
+    m2 = ((r**2 * pdf).sum(1) * counts).sum() / counts.sum()
+    expected_std = math.sqrt(m2 - m1**2 + (1 / 255) ** 2 / 12)
+    residual = y[mask] - clean[mask]
+    assert residual.mean() == pytest.approx(m1, abs=0.01)
+    assert residual.std() == pytest.approx(expected_std, abs=0.01)
+    assert 0.15 < expected_std < 0.2
+
+
+# ------------------------------------------------------------------ determinism and cache
+def test_deterministic_across_workers_and_seeds(tmp_path, monkeypatch):
+    kw = dict(n_links=2, image_size=16, duration=1.0, n_train=5, n_test=3)
+    a = small_module(tmp_path / "a", workers=1, **kw)
+    ga = a.generate("train")
+    monkeypatch.setattr(P, "CHUNK_SIZE", 2)  # several tasks spread over two processes
+    b = small_module(tmp_path / "b", workers=2, **kw)
+    gb = b.generate("train")
+    for key in ("y", "y_clean", "state"):
+        np.testing.assert_array_equal(ga[key], gb[key])
+    assert ga["y"].shape == (5, 10, 1, 16, 16) and ga["state"].shape == (5, 10, 4)
+    test = a.generate("test")
+    assert not np.array_equal(ga["state"][:3], test["state"])
+    other = small_module(tmp_path / "c", seed=1, **kw).generate("train")
+    assert not np.array_equal(ga["state"], other["state"])
+    assert not np.array_equal(ga["y"], other["y"])
+    # trajectories within a set differ; the first frame is the initial state drawn in the allowed range
+    s = ga["state"]
+    assert len({tuple(x) for x in s[:, 0]}) == 5
+    assert np.abs(s[:, 0, :2]).max() <= math.pi + 1e-6 and np.abs(s[:, 0, 2:]).max() <= 1.0
+
+
+def test_cache_reused_and_keyed(tmp_path, monkeypatch):
+    kw = dict(duration=0.5, image_size=12, line_width=1.0)
+    dm = small_module(tmp_path, **kw)
+    dm.prepare_data()
+    first = dm.load_arrays("train")["y"].copy()
+
+    def fail(split):
+        raise AssertionError("regenerated although cached")
+
+    again = small_module(tmp_path, **kw)
+    monkeypatch.setattr(again, "generate", fail)
+    again.prepare_data()
+    np.testing.assert_array_equal(again.load_arrays("train")["y"], first)
+    other = small_module(tmp_path, noise_std=0.1, **kw)
+    assert other.cache_dir != dm.cache_dir
+    other.prepare_data()
+    assert other.is_cached("train") and other.is_cached("test") and dm.is_cached("train")
+
+
+# ------------------------------------------------------------------ DataModule
+def test_datamodule_end_to_end(simple_data):
+    dm, train, _ = simple_data
+    dm.setup("fit")
+    assert dm.num_train_trajectories == 4 and dm.seq_len == 100 and dm.obs_shape == (1, 24, 24)
+    batch = next(iter(dm.train_dataloader()))
+    assert set(batch) == {"index", "y", "y_clean", "state"}
+    assert batch["index"].dtype == torch.long and batch["index"].shape == (2,)
+    for key in ("y", "y_clean"):
+        assert batch[key].dtype == torch.float32 and batch[key].shape == (2, 100, 1, 24, 24)
+        assert 0 <= batch[key].min() and batch[key].max() <= 1
+    assert batch["state"].dtype == torch.float32 and batch["state"].shape == (2, 100, 2)
+    i = batch["index"].numpy()
+    np.testing.assert_allclose(batch["y"].numpy(), train["y"][i] / 255.0, atol=1e-6)
+    val = [b for b in dm.val_dataloader()]
+    val_idx = np.concatenate([b["index"].numpy() for b in val])
+    np.testing.assert_array_equal(val_idx, [0, 3])
+    np.testing.assert_allclose(val[0]["state"].numpy(), train["state"][val_idx[: len(val[0]["index"])]])
+    test_batch = next(iter(dm.test_dataloader()))
+    assert test_batch["y"].shape == (2, 100, 1, 24, 24)
+
+
+def test_paper_defaults():
+    dm = PendulumDataModule()
+    assert (dm.n_links, dm.image_size, dm.n_train, dm.n_test, dm.damping) == (1, 24, 1000, 1000, 0.0)
+    assert (dm.max_angle, dm.max_velocity, dm.noise_std, dm.n_frames) == (math.pi, 1.0, 0.2, 100)
+    assert dm.workers >= 1
+
+
+@pytest.mark.parametrize(
+    "kw,match",
+    [
+        (dict(n_links=0), "n_links"),
+        (dict(image_size=5), "image_size"),
+        (dict(n_links=4, image_size=10), "too small"),
+        (dict(dt=0.003), "multiple of the integrator step"),
+        (dict(duration=1.05), "multiple .* of frame_dt"),
+        (dict(noise_std=-0.1), "noise_std"),
+        (dict(damping=-1.0), "damping"),
+        (dict(n_train=0), "n_train"),
+        (dict(workers=0), "workers"),
+        (dict(line_width=0.0), "line_width"),
+        (dict(seed=-1), "seed"),
+        (dict(max_velocity=-1.0), "max_velocity"),
+    ],
+)
+def test_bad_arguments(kw, match):
+    with pytest.raises(ValueError, match=match):
+        PendulumDataModule(**kw)
