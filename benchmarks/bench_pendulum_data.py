@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt_
 import math
+import os
 import platform
 import shutil
 import statistics
@@ -24,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pinocchio as pin
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -120,13 +122,14 @@ def main() -> None:
     args = parser.parse_args()
 
     step = PendulumDataModule().dt
+    load_before = os.getloadavg()
     lines = [
         "# Pendulum data generation",
         "",
         f"- date: {dt_.datetime.now().isoformat(timespec='seconds')}",
         f"- command: `python {' '.join(sys.argv)}`",
-        f"- machine: {cpu_model()}, {P.available_cores()} available cores (os.cpu_count = {__import__('os').cpu_count()})",
-        f"- python {platform.python_version()}, numpy {np.__version__}, pinocchio {__import__('pinocchio').__version__}",
+        f"- machine: {cpu_model()}, {P.available_cores()} available cores (os.cpu_count = {os.cpu_count()})",
+        f"- python {platform.python_version()}, numpy {np.__version__}, pinocchio {pin.__version__}",
         f"- integrator: RK4, dt = {step} s, frames every 0.1 s, 100 frames; trajectories simulated in chunks of "
         f"{P.CHUNK_SIZE} per worker task",
         "",
@@ -175,6 +178,9 @@ def main() -> None:
             med, mx = energy_drift(n, vmax, h)
             lines.append(f"| {label} | {h:g}{' (default)' if h == step else ''} | {med:.1e} | {mx:.1e} |")
 
+    load = [" / ".join(f"{x:.1f}" for x in la) for la in (load_before, os.getloadavg())]
+    lines.insert(6, f"- load average (1 / 5 / 15 min) at start: {load[0]}, at end: {load[1]} "
+                    "(other processes on the machine slow the figures down)")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")

@@ -8,18 +8,20 @@ viscous joint damping applies the torque ``tau = -damping * theta_dot``. The for
 Pinocchio's ``pin.aba``, integrated with classical RK4 at a fixed step ``dt``.
 
 Choice of ``dt`` (default ``5e-3``): the largest step, among those that divide the frame period,
-that keeps both paper systems comfortably accurate. Measured maximum energy error over 10 s
-(undamped, 40 random initial states drawn like the paper's, relative to the potential-energy scale
-``g * sum of mass heights`` = ``g`` for one link, ``10 g`` for four), on this project's machine::
+that keeps both paper systems comfortably accurate. Measured maximum energy error over 10 s,
+undamped, relative to the potential-energy scale ``g * sum of mass heights`` (``g`` for one link,
+``10 g`` for four), median / max over 48 initial states drawn like the paper's
+(``benchmarks/bench_pendulum_data.py`` re-measures the two middle rows)::
 
-    dt       1 link    4 links (angles ~ U[-pi, pi], at rest)
-    2e-2     5e-7      1.2e-1
-    1e-2     2e-8      2.8e-3
-    5e-3     1e-9      2.5e-4   (median 1e-5)
-    2.5e-3   5e-11     9e-6
+    dt       1 link, theta_dot ~ U[-1, 1]   4 links, angles ~ U[-pi, pi], at rest
+    2e-2     2e-7 / 5e-7                    9e-3 / 1.2e-1   (40 states)
+    1e-2     9e-9 / 2e-8                    7e-4 / 7.8e-3   above 0.1 % for some states
+    5e-3     4e-10 / 1e-9                   2e-5 / 2.4e-4   the default
+    2.5e-3   2e-11 / 5e-11                  4e-7 / 9e-6     (40 states)
 
 (semi-implicit Euler at ``dt = 1e-3``, the reference implementation's scheme, loses ~40 % of the
-energy of a simple pendulum in 10 s). ``benchmarks/bench_pendulum_data.py`` re-measures the drift.
+energy of a simple pendulum in 10 s). Cost: ~7 ms (1 link) and ~16 ms (4 links) of dynamics per
+trajectory, ~1 ms rendering, 1-2 ms noise, on one core of this project's machine.
 
 Images: the chain is drawn from the image centre as anti-aliased thick lines with round caps;
 a pixel's intensity is ``clip(line_width / 2 + 0.5 - distance, 0, 1)`` where ``distance`` is from
@@ -357,7 +359,8 @@ class PendulumDataModule(TrajectoryDataModule):
                 raise ValueError(message)
 
         need(self.n_links >= 1, f"n_links must be >= 1, got {self.n_links}")
-        need(self.n_train >= 1 and self.n_test >= 1, f"n_train and n_test must be >= 1, got {self.n_train}, {self.n_test}")
+        need(self.n_train >= 1 and self.n_test >= 1,
+             f"n_train and n_test must be >= 1, got {self.n_train}, {self.n_test}")
         need(self.line_width > 0, f"line_width must be > 0 pixels, got {self.line_width}")
         need(self.image_size >= 1, f"image_size must be a positive number of pixels, got {self.image_size}")
         link = chain_length_pixels(self.image_size, self.line_width) / self.n_links

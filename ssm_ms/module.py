@@ -233,6 +233,22 @@ class MultipleShootingModule(pl.LightningModule):
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
 
     # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if "f" not in self.hparams:  # built in Python: keep the networks so the checkpoint reloads on its own
+            checkpoint["networks"] = {"f": self.f, "g": self.g}
+
+    @classmethod
+    def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> MultipleShootingModule:
+        """Lightning's loader; for a model built in Python (f and g not in its config), the pickled
+        networks saved in the checkpoint are used unless ``f=`` and ``g=`` are given."""
+        checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
+        networks = checkpoint.get("networks")
+        if networks is not None:  # pickled modules: the checkpoint must be trusted anyway
+            kwargs.setdefault("f", networks["f"])
+            kwargs.setdefault("g", networks["g"])
+            kwargs.setdefault("weights_only", False)
+        return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
+
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse a checkpoint of another configuration with a message that says what differs."""
         state = checkpoint.get("state_dict", {})

@@ -70,3 +70,19 @@ def fast_trainer(tmp_path, max_epochs: int, callbacks=(), **kwargs) -> pl.Traine
 @pytest.fixture
 def rotation_dm(tmp_path):
     return RotationDataModule(data_dir=str(tmp_path / "data"), batch_size=4, val_trajectories=2)
+
+
+class ExactRotation(torch.nn.Module):
+    """The true transition of RotationDataModule: rotation by ``omega`` (a learnable angle)."""
+
+    def __init__(self, omega: float = 0.3, learnable: bool = True):
+        super().__init__()
+        self.state_dim = 2
+        if learnable:
+            self.omega = torch.nn.Parameter(torch.tensor(float(omega)))
+        else:
+            self.register_buffer("omega", torch.tensor(float(omega)))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        c, s = torch.cos(self.omega), torch.sin(self.omega)
+        return torch.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1]], dim=1)

@@ -7,7 +7,7 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
 from ssm_ms.module import MultipleShootingModule, NonFiniteLossError
 from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, Projection
-from tests.conftest import RotationDataModule, fast_trainer, rotation_model
+from tests.conftest import ExactRotation, RotationDataModule, fast_trainer, rotation_model
 
 
 def test_nodes_are_looked_up_by_trajectory_index():
@@ -102,17 +102,8 @@ def test_constructor_rejects_impossible_settings():
 
 
 def test_any_module_works_as_f_and_g(tmp_path):
-    class Rotation(torch.nn.Module):  # a user's own transition, with a learnable angle
-        def __init__(self):
-            super().__init__()
-            self.omega = torch.nn.Parameter(torch.tensor(0.1))
-
-        def forward(self, x):
-            c, s = torch.cos(self.omega), torch.sin(self.omega)
-            return torch.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1]], dim=1)
-
     dm = RotationDataModule(data_dir=str(tmp_path), noise_std=0.0, batch_size=8, val_trajectories=0)
-    model = MultipleShootingModule(Rotation(), Projection([0]), state_dim=2, n_nodes=2, lr=0.05)
+    model = MultipleShootingModule(ExactRotation(0.1), Projection([0]), state_dim=2, n_nodes=2, lr=0.05)
     fast_trainer(tmp_path, max_epochs=150).fit(model, dm)
     assert abs(model.f.omega.item()) == pytest.approx(0.3, abs=0.02)  # the data's rotation per step
 
@@ -154,9 +145,13 @@ def test_load_from_checkpoint_round_trip(tmp_path, rotation_dm):
     ckpt = ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True)
     model = rotation_model()
     fast_trainer(tmp_path, max_epochs=2, callbacks=[ckpt]).fit(model, rotation_dm)
-    # built in Python: f and g are not in the hyperparameters, pass them again
-    loaded = MultipleShootingModule.load_from_checkpoint(
-        tmp_path / "ckpt" / "last.ckpt", f=LocallyLinearTransition(2, 4, 16), g=Projection([0])
-    )
-    for key, value in model.state_dict().items():
-        torch.testing.assert_close(loaded.state_dict()[key], value)
+    # built in Python: f and g are not in the hyperparameters; the checkpoint carries the networks
+    for loaded in (
+        MultipleShootingModule.load_from_checkpoint(tmp_path / "ckpt" / "last.ckpt"),
+        MultipleShootingModule.load_from_checkpoint(
+            tmp_path / "ckpt" / "last.ckpt", f=LocallyLinearTransition(2, 4, 16), g=Projection([0])
+        ),
+    ):
+        assert loaded.state_dict().keys() == model.state_dict().keys()
+        for key, value in model.state_dict().items():
+            torch.testing.assert_close(loaded.state_dict()[key], value)

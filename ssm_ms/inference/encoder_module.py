@@ -1,0 +1,125 @@
+"""Second stage: a CNN-LSTM trained to map measurements to the latent states the SSM recovered.
+
+Targets come from the trained SSM: for training trajectory ``j``, its latent trajectory is the
+concatenation of ``f^k(s[j, i])``, ``k = 0..n-1``, over its shooting nodes ``i``. They are
+normalised per component (statistics over all training trajectories, kept in the checkpoint) and
+the encoder is trained by regression on the whole sequence. At test time it reads the first
+``n_filter`` measurements and its last output starts the forecast.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from ssm_ms.evaluation import ForecastModule
+from ssm_ms.nets.encoder import StateEncoder
+from ssm_ms.shooting import rollout
+
+
+class StateEncoderModule(ForecastModule):
+    """Trains a :class:`~ssm_ms.nets.encoder.StateEncoder` on the SSM's latent trajectories.
+
+    Args:
+        ssm_checkpoint: the trained ``MultipleShootingModule`` (frozen here).
+        n_filter: measurements the encoder reads at test time.
+        encoder: keyword arguments of ``StateEncoder`` (``preset``, ``hidden``, ...), without
+            ``state_dim`` / ``obs_shape`` (taken from the SSM).
+        lr: Adam learning rate.
+        Other arguments: see :class:`~ssm_ms.evaluation.ForecastModule`.
+    """
+
+    method_kind = "encoder"
+
+    def __init__(
+        self,
+        ssm_checkpoint: str,
+        n_filter: int,
+        encoder: dict[str, Any] | None = None,
+        lr: float = 1e-3,
+        n_predict: int | None = None,
+        metrics: list[str] = ["mse", "bce"],
+        bce_reduction: str = "mean",
+        original_units: bool = False,
+        experiment: str | None = None,
+        results_dir: str = "results",
+        figures_dir: str | None = None,
+        method_name: str | None = None,
+    ):
+        super().__init__(ssm_checkpoint, n_filter, n_predict, metrics, bce_reduction, original_units, experiment,
+                         results_dir, figures_dir, method_name)
+        kwargs = dict(encoder or {"preset": "vector" if len(self.ssm.obs_shape()) == 1 else None})
+        for reserved in ("state_dim", "obs_shape"):
+            if reserved in kwargs:
+                raise ValueError(f"encoder.{reserved} comes from the SSM checkpoint; remove it from the config")
+        self.encoder = StateEncoder(self.ssm.state_dim, self.ssm.obs_shape(), **kwargs)
+        d = self.ssm.state_dim
+        self.register_buffer("latent_mean", torch.zeros(d))
+        self.register_buffer("latent_std", torch.ones(d))
+        self.register_buffer("latent_stats_ready", torch.tensor(False))
+
+    # ------------------------------------------------------------------ targets
+    @torch.no_grad()
+    def latent_targets(self, index: torch.Tensor, seq_len: int) -> torch.Tensor:
+        """The SSM's latent trajectories ``[B, T, d]`` of training trajectories ``index``."""
+        nodes = self.ssm.node_states(index)  # [B, m, d]
+        b, m, d = nodes.shape
+        n = seq_len // m
+        return rollout(self.ssm.f, nodes.reshape(b * m, d), n).view(b, m * n, d)
+
+    @torch.no_grad()
+    def compute_latent_statistics(self, seq_len: int, chunk: int = 1024) -> None:
+        """Per-component mean and std of the latent trajectories of all training trajectories."""
+        n_traj = self.ssm.nodes.num_embeddings
+        total = torch.zeros(self.ssm.state_dim, dtype=torch.float64, device=self.device)
+        total_sq = torch.zeros_like(total)
+        count = 0
+        for start in range(0, n_traj, chunk):
+            index = torch.arange(start, min(start + chunk, n_traj), device=self.device)
+            z = self.latent_targets(index, seq_len).double().flatten(0, 1)
+            total += z.sum(0)
+            total_sq += z.pow(2).sum(0)
+            count += len(z)
+        mean = total / count
+        std = (total_sq / count - mean.pow(2)).clamp_min(0).sqrt()
+        self.latent_mean.copy_(mean.float())
+        self.latent_std.copy_(std.float().clamp_min(1e-6))
+        self.latent_stats_ready.fill_(True)
+
+    def setup(self, stage: str) -> None:
+        super().setup(stage)
+        dm = self.datamodule
+        if stage == "fit" and not bool(self.latent_stats_ready):
+            self.compute_latent_statistics(dm.seq_len)
+
+    def on_fit_start(self) -> None:
+        self.ssm.eval()  # frozen: the trainer puts the whole module in train mode
+
+    # ------------------------------------------------------------------ training
+    def _regression(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        y = batch["y"]
+        target = (self.latent_targets(batch["index"], y.shape[1]) - self.latent_mean) / self.latent_std
+        return F.mse_loss(self.encoder(y), target)
+
+    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        loss = self._regression(batch)
+        self.log("encoder/train_mse", loss, batch_size=len(batch["y"]), prog_bar=True)
+        return loss
+
+    def validation_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> None:
+        self.log("encoder/val_mse", self._regression(batch), batch_size=len(batch["y"]), prog_bar=True)
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.encoder.parameters(), lr=self.hparams.lr)
+
+    # ------------------------------------------------------------------ inference
+    def infer(self, y_filter: torch.Tensor) -> torch.Tensor:
+        if not bool(self.latent_stats_ready):
+            raise RuntimeError(
+                "this encoder has not been trained: fit it first (python cli.py fit --config <encoder config>) "
+                "and test with --ckpt_path <its checkpoint>"
+            )
+        return self.encoder(y_filter) * self.latent_std + self.latent_mean

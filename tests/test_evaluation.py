@@ -1,0 +1,171 @@
+"""The forecasting protocol: metrics against hand computations, frame bookkeeping with an exact model,
+the encoder stage on a tiny trained checkpoint, the UKF stage, results files and bad input."""
+
+import json
+import math
+
+import pytest
+import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
+
+from ssm_ms.evaluation import ForecastModule, bce_per_sequence, mse_per_sequence, split_sequence
+from ssm_ms.inference.encoder_module import StateEncoderModule
+from ssm_ms.inference.filter_module import FilterForecaster
+from ssm_ms.module import MultipleShootingModule
+from ssm_ms.nets import Projection
+from tests.conftest import ExactRotation, RotationDataModule, fast_trainer, rotation_model
+
+
+# ---------------------------------------------------------------------------- metrics
+def test_mse_and_bce_against_hand_computation():
+    torch.manual_seed(0)
+    pred = torch.rand(3, 4, 1, 2, 2, dtype=torch.float64) * 0.98 + 0.01
+    target = torch.rand(3, 4, 1, 2, 2, dtype=torch.float64)
+    for b in range(3):
+        se, bce_mean, bce_sum = 0.0, 0.0, 0.0
+        for t in range(4):
+            frame_bce = 0.0
+            for i in range(2):
+                for j in range(2):
+                    p, q = pred[b, t, 0, i, j].item(), target[b, t, 0, i, j].item()
+                    se += (p - q) ** 2
+                    frame_bce += -(q * math.log(p + 1e-12) + (1 - q) * math.log(1 - p + 1e-12))
+            bce_mean += frame_bce / 4
+            bce_sum += frame_bce
+        assert mse_per_sequence(pred, target)[b].item() == pytest.approx(se / 16)
+        assert bce_per_sequence(pred, target, "mean")[b].item() == pytest.approx(bce_mean / 4)
+        assert bce_per_sequence(pred, target, "sum")[b].item() == pytest.approx(bce_sum / 4)
+
+
+def test_bce_of_saturated_predictions_is_finite():
+    pred = torch.tensor([[[0.0, 1.0]]])
+    target = torch.tensor([[[1.0, 0.0]]])
+    assert bce_per_sequence(pred, target).item() == pytest.approx(-math.log(1e-12))
+
+
+def test_filter_lengths_longer_than_the_sequences_are_refused():
+    y = torch.zeros(2, 20, 1)
+    assert [t.shape[1] for t in split_sequence(y, 15)] == [15, 5]
+    assert [t.shape[1] for t in split_sequence(y, 10, 4)] == [10, 4]
+    with pytest.raises(ValueError, match="cannot filter 20 and predict 0 frames of sequences of length 20"):
+        split_sequence(y, 20)
+    with pytest.raises(ValueError, match="cannot filter 15 and predict 10 frames of sequences of length 20"):
+        split_sequence(y, 15, 10)
+
+
+# ---------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def exact_ssm(tmp_path_factory):
+    """An SSM whose f is the data's true rotation (trained briefly: nodes only matter for the encoder)."""
+    tmp = tmp_path_factory.mktemp("exact")
+    dm = RotationDataModule(data_dir=str(tmp / "data"), seq_len=12, batch_size=4, val_trajectories=2)
+    model = MultipleShootingModule(ExactRotation(0.3, learnable=False), Projection([0]), state_dim=2, n_nodes=3, lr=0.05)
+    ckpt = ModelCheckpoint(dirpath=tmp / "ckpt", save_last=True)
+    fast_trainer(tmp, max_epochs=40, callbacks=[ckpt]).fit(model, dm)
+    return tmp, tmp / "ckpt" / "last.ckpt"
+
+
+def rotation_dm(tmp):
+    return RotationDataModule(data_dir=str(tmp / "data"), seq_len=12, batch_size=4, val_trajectories=2)
+
+
+class Oracle(ForecastModule):
+    """Infers the true states (read from the batch), and records what it was given."""
+
+    method_kind = "oracle"
+
+    def on_test_batch_start(self, batch, batch_idx, dataloader_idx=0):
+        self.batch = batch
+
+    def infer(self, y_filter):
+        k = self.hparams.n_filter
+        assert torch.equal(y_filter, self.batch["y"][:, :k])  # exactly the first k measurements
+        return self.batch["state"][:, :k]
+
+
+# ---------------------------------------------------------------------------- the protocol
+def test_protocol_bookkeeping_with_the_exact_model(exact_ssm):
+    tmp, ckpt = exact_ssm
+    dm = rotation_dm(tmp)
+    oracle = Oracle(str(ckpt), n_filter=8, metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot")
+    fast_trainer(tmp, max_epochs=1).test(oracle, dm)
+    saved = json.loads((tmp / "results" / "rot.json").read_text())["runs"]["oracle"]["summary"]
+    # exact f from the true state at k-1: frames k..T-1 are predicted exactly (no off-by-one)
+    assert saved["oracle/clean/mse"]["mean"] < 1e-10
+    # references, recomputed here: the last inferred frame and the mean training frame, held constant
+    test = dm.load_arrays("test")
+    clean = torch.from_numpy(test["y_clean"].copy()).double()  # [4, 12, 1]
+    last = clean[:, 7:8]  # g(x[k-1]) = the clean frame at k-1 since the states are exact
+    expected_last = (clean[:, 8:] - last).pow(2).mean((1, 2))
+    train_y = torch.from_numpy(dm.load_arrays("train")["y"].copy()).double()
+    expected_mean = (clean[:, 8:] - train_y.mean((0, 1))).pow(2).mean((1, 2))
+    assert saved["last/clean/mse"]["mean"] == pytest.approx(expected_last.mean().item(), rel=1e-5)
+    assert saved["last/clean/mse"]["std"] == pytest.approx(expected_last.std(unbiased=False).item(), rel=1e-4)
+    assert saved["mean/clean/mse"]["mean"] == pytest.approx(expected_mean.mean().item(), rel=1e-5)
+    noisy = torch.from_numpy(test["y"].copy()).double()
+    expected_noisy = (noisy[:, 8:] - clean[:, 8:]).pow(2).mean((1, 2))
+    assert saved["oracle/noisy/mse"]["mean"] == pytest.approx(expected_noisy.mean().item(), rel=1e-4)
+    report = (tmp / "results" / "rot.md").read_text()
+    assert "| oracle |" in report and "| last (reference, with oracle) |" in report
+
+
+def test_encoder_stage_on_a_tiny_trained_checkpoint(exact_ssm):
+    tmp, ckpt = exact_ssm
+    dm = rotation_dm(tmp)
+    enc = StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 32}, lr=1e-2,
+                             metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot_enc")
+    trainer = fast_trainer(tmp, max_epochs=30)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    trainer.fit(enc, dm)
+    # latent statistics over all training trajectories, recomputed by a naive loop over nodes and steps
+    ssm = enc.ssm
+    zs = []
+    for j in range(8):
+        for i in range(3):
+            x = ssm.node_states(torch.tensor([j]))[0, i : i + 1]
+            for _ in range(4):
+                zs.append(x[0])
+                x = ssm.f(x)
+    zs = torch.stack(zs)
+    torch.testing.assert_close(enc.latent_mean, zs.mean(0), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(enc.latent_std, zs.std(0, unbiased=False), rtol=1e-4, atol=1e-5)
+    # the encoder learned the regression: far better than predicting the mean latent (loss 1)
+    with torch.no_grad():
+        assert enc._regression(batch).item() < 0.3
+    fast_trainer(tmp, max_epochs=1).test(enc, dm)
+    saved = json.loads((tmp / "results" / "rot_enc.json").read_text())["runs"]["encoder"]["summary"]
+    assert saved["encoder/clean/mse"]["mean"] < saved["mean/clean/mse"]["mean"]
+
+
+def test_ukf_stage_tracks_the_exact_model(exact_ssm):
+    tmp, ckpt = exact_ssm
+    dm = rotation_dm(tmp)
+    ukf = FilterForecaster(str(ckpt), n_filter=8, method="ukf", measurement_var=0.05**2, init_var=1.0,
+                           metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot_ukf")
+    fast_trainer(tmp, max_epochs=1).test(ukf, dm)
+    saved = json.loads((tmp / "results" / "rot_ukf.json").read_text())["runs"]["ukf"]["summary"]
+    # noise std 0.05 on a unit circle: the filtered phase is accurate, the forecast too
+    assert saved["ukf/clean/mse"]["mean"] < 0.01
+    assert saved["ukf/clean/mse"]["mean"] < 0.1 * saved["mean/clean/mse"]["mean"]
+
+
+# ---------------------------------------------------------------------------- bad input
+def test_missing_checkpoint_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"the SSM checkpoint .*nope.ckpt does not exist: train the model first"):
+        StateEncoderModule(str(tmp_path / "nope.ckpt"), n_filter=5)
+
+
+def test_checkpoint_of_another_data_set_is_refused(exact_ssm):
+    tmp, ckpt = exact_ssm
+    other = RotationDataModule(data_dir=str(tmp / "data"), seq_len=12, omega=0.5, batch_size=4)
+    trainer = fast_trainer(tmp, max_epochs=1)
+    with pytest.raises(ValueError, match=r"trained on other data: data parameters differ .*'omega': \(0.3, 0.5\)"):
+        trainer.fit(StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8}), other)
+
+
+def test_measurement_dimension_must_match_g(exact_ssm):
+    tmp, ckpt = exact_ssm
+    enc = StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8})
+    with pytest.raises(ValueError, match=r"built for measurements of shape \[1\], got \[3\]"):
+        enc.encoder(torch.zeros(2, 5, 3))
