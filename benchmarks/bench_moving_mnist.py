@@ -6,18 +6,21 @@ Run from the repository root::
 
 Writes benchmarks/results/moving_mnist.md. Figures only: the targets (at most 200 MB added to the
 peak memory, at least 1,000 trajectories per second with 2 workers and batch 50) are stated next
-to them for reference.
+to them for reference. Memory is measured in fresh processes (this script with --probe-memory):
+ru_maxrss after the imports, after setup() and after iterating training batches.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import platform
 import resource
 import shlex
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -73,7 +76,7 @@ def time_us(fn, n: int, repeats: int = 5) -> float:
     return statistics.median(runs)
 
 
-def throughput(dm: MovingMNISTDataModule, warmup: int, batches: int, desc: str) -> tuple[float, dict]:
+def throughput(dm: MovingMNISTDataModule, warmup: int, batches: int, desc: str) -> float:
     """Trajectories per second over ``batches`` batches after ``warmup`` (fresh loader, fresh workers)."""
     loader = dm.train_dataloader()
     it = iter(loader)
@@ -84,11 +87,40 @@ def throughput(dm: MovingMNISTDataModule, warmup: int, batches: int, desc: str) 
     for _ in tqdm(range(batches), desc=desc, leave=False, mininterval=2.0):
         n += len(next(it)["index"])
     rate = n / (time.perf_counter() - t)
-    workers = {}
-    for k, w in enumerate(getattr(it, "_workers", [])):
-        workers[k] = proc_status(w.pid)
     del it, loader  # shuts the workers down
-    return rate, workers
+    return rate
+
+
+def probe_memory(args: argparse.Namespace) -> None:
+    """One fresh-process memory measurement, printed as JSON on the last line."""
+    rss0 = maxrss_mb()
+    dm = MovingMNISTDataModule(
+        mnist_root=args.mnist_root, n_train=args.n_train, batch_size=args.batch_size, num_workers=args.probe_memory
+    )
+    dm.prepare_data()
+    t = time.perf_counter()
+    dm.setup()
+    setup_s = time.perf_counter() - t
+    rss1 = maxrss_mb()
+    it = iter(dm.train_dataloader())
+    for _ in range(args.mem_batches):
+        next(it)
+    rss2, current = maxrss_mb(), proc_status().get("VmRSS", float("nan"))
+    workers = [proc_status(w.pid) for w in getattr(it, "_workers", [])]
+    digits_mb = sum(ds.digits.numel() for ds in dm.datasets.values()) / 2**20
+    print(json.dumps({"imports": rss0, "setup": rss1 - rss0, "batches": rss2 - rss0, "current": current - rss0,
+                      "setup_s": setup_s, "digits": digits_mb, "workers": workers}))
+
+
+def run_probes(args: argparse.Namespace, workers: int) -> list[dict]:
+    out = []
+    for _ in tqdm(range(args.mem_runs), desc=f"memory probes, workers={workers}", leave=False):
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--probe-memory", str(workers),
+               "--mnist-root", args.mnist_root, "--n-train", str(args.n_train), "--batch-size", str(args.batch_size),
+               "--mem-batches", str(args.mem_batches)]
+        res = subprocess.run(cmd, capture_output=True, text=True, check=True)
+        out.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    return out
 
 
 def main() -> None:
@@ -100,75 +132,77 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3, help="throughput runs (median reported)")
     ap.add_argument("--batches", type=int, default=300, help="timed batches per run")
     ap.add_argument("--warmup", type=int, default=20, help="batches before timing (worker start-up)")
+    ap.add_argument("--mem-runs", type=int, default=3, help="fresh processes per memory measurement (median)")
+    ap.add_argument("--mem-batches", type=int, default=100, help="batches iterated in a memory measurement")
+    ap.add_argument("--probe-memory", type=int, default=None, metavar="WORKERS", help=argparse.SUPPRESS)
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "moving_mnist.md"))
     args = ap.parse_args()
+    if args.probe_memory is not None:
+        probe_memory(args)
+        return
 
     command = "python " + " ".join(shlex.quote(a) for a in sys.argv)
-    rows: list[tuple[str, str]] = []
 
-    # ---------------------------------------------------------------- memory of setup
-    rss0, st0 = maxrss_mb(), proc_status()
-    dm = MovingMNISTDataModule(
-        mnist_root=args.mnist_root, n_train=args.n_train, batch_size=args.batch_size, num_workers=0, seed=0
-    )
-    dm.prepare_data()
-    t = time.perf_counter()
-    dm.setup()
-    setup_s = time.perf_counter() - t
-    rss1, st1 = maxrss_mb(), proc_status()
-    train = dm.datasets["train"]
-    it = iter(dm.train_dataloader())
-    for _ in tqdm(range(100), desc="memory: 100 batches, workers=0", leave=False, mininterval=2.0):
-        next(it)
-    del it
-    rss2, st2 = maxrss_mb(), proc_status()
+    # ---------------------------------------------------------------- memory (fresh processes)
+    probes = {w: run_probes(args, w) for w in sorted({0, args.workers})}
 
     # ---------------------------------------------------------------- per-item costs
+    dm = MovingMNISTDataModule(
+        mnist_root=args.mnist_root, n_train=args.n_train, batch_size=args.batch_size, num_workers=0
+    )
+    dm.prepare_data()
+    dm.setup()
+    train = dm.datasets["train"]
     digits = train.digits.numpy()
     tr = train.trajectory(12345)
     t_traj = time_us(lambda: trajectory(0, "train", 12345, len(digits)), 2000)
     t_render = time_us(lambda: render(digits, tr["digit_indices"], tr["top_left"], 64), 2000)
     t_item = time_us(lambda: train[12345], 1000)
+    t_batch = time_us(lambda: train.__getitems__(list(range(1000, 1000 + args.batch_size))), 20) / args.batch_size
 
     # ---------------------------------------------------------------- loader throughput
-    rates0 = [throughput(dm, 5, max(args.batches // 3, 10), "workers=0")[0]]
+    rate0 = throughput(dm, 5, max(args.batches // 3, 10), "workers=0")
     dm_w = MovingMNISTDataModule(
         mnist_root=args.mnist_root, n_train=args.n_train, batch_size=args.batch_size, num_workers=args.workers
     )
     dm_w.datasets = dm.datasets  # same data sets (same digits in memory), other loader settings
-    rates, worker_mem = [], {}
+    rates = []
     for r in range(args.runs):
-        rate, worker_mem = throughput(dm_w, args.warmup, args.batches, f"workers={args.workers} run {r + 1}")
-        rates.append(rate)
-    rss3, st3 = maxrss_mb(), proc_status()
-    children = maxrss_mb(resource.RUSAGE_CHILDREN)
+        rates.append(throughput(dm_w, args.warmup, args.batches, f"workers={args.workers} run {r + 1}"))
 
     # ---------------------------------------------------------------- report
-    def mb(x: float) -> str:
-        return f"{x:.1f} MiB"
+    def mem(ps: list[dict], key: str) -> str:
+        vals = [p[key] for p in ps]
+        return f"{statistics.median(vals):.1f} MiB ({', '.join(f'{v:.1f}' for v in vals)})"
 
+    rows: list[tuple[str, str]] = [
+        ("peak RSS after imports (torch, lightning, datamodules)", mem(probes[0], "imports")),
+        ("added to peak RSS by setup() of train + test", mem(probes[0], "setup")),
+        ("digits held (train + test, uint8)", f"{probes[0][0]['digits']:.1f} MiB"),
+        (f"**added to peak RSS by setup() + {args.mem_batches} batches, workers=0** (target <= 200 MiB)",
+         f"**{mem(probes[0], 'batches')}**"),
+    ]
+    if args.workers:
+        pw = probes[args.workers]
+        rows += [
+            (f"added to the main process's peak RSS by setup() + {args.mem_batches} batches, "
+             f"workers={args.workers}", mem(pw, "batches")),
+            (f"worker RSS after {args.mem_batches} batches, last probe (VmRSS / RssAnon / RssShmem; "
+             "fork-shared pages count in each)",
+             "; ".join(f"{s.get('VmRSS', 0):.0f} / {s.get('RssAnon', 0):.0f} / {s.get('RssShmem', 0):.0f} MiB"
+                       for s in pw[-1]["workers"]) or "n/a"),
+        ]
     rows += [
-        ("peak RSS (ru_maxrss) after imports", mb(rss0)),
-        ("peak RSS after setup() of train + test", mb(rss1)),
-        ("peak RSS after 100 training batches (workers=0)", mb(rss2)),
-        (f"peak RSS after the {args.workers}-worker runs (main process)", mb(rss3)),
-        ("**added to peak by setup + 100 batches** (target <= 200 MiB)", f"**{mb(rss2 - rss0)}**"),
-        ("current RSS before setup / after setup / after batches",
-         " / ".join(mb(s.get("VmRSS", float("nan"))) for s in (st0, st1, st2))),
-        ("digits held (train + test, uint8)",
-         mb((train.digits.numel() + dm.datasets["test"].digits.numel()) / 2**20)),
-        ("setup() time (read + check both MNIST splits)", f"{setup_s:.2f} s"),
+        ("setup() time (read + check both MNIST splits)",
+         f"{statistics.median(p['setup_s'] for p in probes[0]):.2f} s"),
         ("trajectory(): seeded RNG + motion, per item", f"{t_traj:.0f} us"),
         ("render(): 2 digits x 20 frames, per item", f"{t_render:.0f} us"),
         ("dataset[i] (motion + render + float32), per item", f"{t_item:.0f} us"),
-        ("loader throughput, workers=0 (1 run)", f"{rates0[0]:.0f} trajectories/s"),
+        (f"dataset.__getitems__ of {args.batch_size} (what the loader calls), per trajectory", f"{t_batch:.0f} us"),
+        ("loader throughput, workers=0 (1 run)", f"{rate0:.0f} trajectories/s"),
         (f"**loader throughput, workers={args.workers}, batch {args.batch_size}** (median of {args.runs}; "
-         "target >= 1000)", f"**{statistics.median(rates):.0f} trajectories/s**"),
-        (f"  the {args.runs} runs", ", ".join(f"{r:.0f}" for r in rates)),
-        ("worker RSS at the end of the last run (VmRSS / RssAnon / RssShmem)",
-         "; ".join(f"w{k}: {s.get('VmRSS', 0):.0f} / {s.get('RssAnon', 0):.0f} / {s.get('RssShmem', 0):.0f} MiB"
-                   for k, s in worker_mem.items()) or "n/a"),
-        ("peak RSS of the largest finished worker (RUSAGE_CHILDREN)", mb(children)),
+         "target >= 1000)", f"**{statistics.median(rates):.0f} trajectories/s** "
+         f"({', '.join(f'{r:.0f}' for r in rates)})"),
     ]
     n_cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     lines = [
@@ -180,11 +214,14 @@ def main() -> None:
         f"load average at the end {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
         f"- Software: Python {platform.python_version()}, torch {torch.__version__} "
         f"({torch.get_num_threads()} intra-op threads), numpy {np.__version__}",
-        f"- Data: n_train={args.n_train}, n_test=10000, seq_len=20, 64x64, 2 digits, step 3.6 px; "
-        f"MNIST from `{args.mnist_root}`",
-        f"- Throughput: {args.batches} batches of {args.batch_size} timed after {args.warmup} warm-up batches, "
-        f"fresh DataLoader per run, shuffled sampler; memory: ru_maxrss of this process before/after `setup()` "
-        f"and after iterating",
+        f"- Data: n_train={args.n_train}, n_test=10000, seq_len=20, 64x64, 2 digits, step 3.6 px, batch "
+        f"{args.batch_size}; MNIST from `{args.mnist_root}`",
+        f"- Memory: ru_maxrss in {args.mem_runs} fresh processes each (median, then all runs), relative to the "
+        f"peak after the imports. Beyond the digits, iterating adds the in-flight batches "
+        f"({args.batch_size} x 20 x 64 x 64 float32 = {args.batch_size * 20 * 64 * 64 * 4 / 2**20:.1f} MiB each) "
+        "and whatever freed heap glibc keeps (it varies from run to run)",
+        f"- Throughput: {args.batches} batches timed after {args.warmup} warm-up batches, fresh DataLoader "
+        "(fresh workers) per run, shuffled sampler",
         "",
         "| quantity | value |",
         "|---|---|",

@@ -6,7 +6,8 @@ Each trajectory shows ``n_digits`` MNIST digits of ``digit_size`` pixels bouncin
 constant ``step`` pixels per frame, and when a move would take a coordinate to or past ``0`` or
 ``L`` the coordinate is set to that border and its velocity component flips (the rule of the
 original generator, whose step is 0.1 of ``L``: 3.6 px). Frames are pasted at the integer part of
-the corner's position.
+the corner's position; frame 0 shows the start position (the original moves once before its first
+frame, which only shifts the uniform start).
 
 Trajectory ``i`` of a split is a pure function of ``(seed, split, i)``: its digit indices, start
 positions and directions come from a per-item RNG seeded with ``[seed, split code, i]``, and its
@@ -24,7 +25,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, get_worker_info
 
 from datamodules.base import TrajectoryDataModule
 from datamodules.mnist_idx import check_mnist_files, download_mnist, load_mnist, missing_mnist_files
@@ -96,14 +97,16 @@ def trajectory(
     }
 
 
-def render(digits: np.ndarray, digit_indices: np.ndarray, top_left: np.ndarray, image_size: int) -> np.ndarray:
+def render(
+    digits: np.ndarray, digit_indices: np.ndarray, top_left: np.ndarray, image_size: int, out: np.ndarray | None = None
+) -> np.ndarray:
     """Paste ``digits[digit_indices[d]]`` at ``top_left[t, d]`` into blank frames, composed with max.
 
-    Returns uint8 ``[T, image_size, image_size]``.
+    Returns uint8 ``[T, image_size, image_size]`` (written into ``out`` if given: it must be zeros).
     """
     s = digits.shape[1]
     n_frames = top_left.shape[0]
-    canvas = np.zeros((n_frames, image_size, image_size), dtype=np.uint8)
+    canvas = np.zeros((n_frames, image_size, image_size), dtype=np.uint8) if out is None else out
     corners = top_left.tolist()
     for d, k in enumerate(digit_indices.tolist()):
         img = digits[k]
@@ -112,6 +115,19 @@ def render(digits: np.ndarray, digit_indices: np.ndarray, top_left: np.ndarray, 
             window = canvas[t, r : r + s, c : c + s]
             np.maximum(window, img, out=window)
     return canvas
+
+
+def _float_batch(shape: tuple[int, ...]) -> torch.Tensor:
+    """An empty float32 tensor; inside a DataLoader worker it lives in shared memory, as
+    ``default_collate`` does, so that sending the batch to the main process copies nothing."""
+    if get_worker_info() is None:
+        return torch.empty(shape, dtype=torch.float32)
+    elem = torch.empty(0, dtype=torch.float32)
+    try:
+        storage = elem._typed_storage()._new_shared(math.prod(shape), device=elem.device)
+        return elem.new(storage).resize_(shape)
+    except (AttributeError, RuntimeError):  # private API moved: fall back to one extra copy
+        return torch.empty(shape, dtype=torch.float32).share_memory_()
 
 
 class MovingMNISTDataset(Dataset):
@@ -185,14 +201,36 @@ class MovingMNISTDataset(Dataset):
         tr = self.trajectory(index)
         return render(self.digits.numpy(), tr["digit_indices"], tr["top_left"], self.image_size)
 
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+    def _trajectory_index(self, i: int) -> int:
         if not -len(self) <= i < len(self):
             raise IndexError(f"item {i} out of range for a data set of {len(self)} trajectories")
         i = i % len(self)
-        j = i if self.indices is None else int(self.indices[i])
+        return i if self.indices is None else int(self.indices[i])
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        j = self._trajectory_index(i)
         # uint8 -> [0, 1] as base.to_float does, in numpy: torch's threaded cast is slow on a busy machine
         y = torch.from_numpy(np.multiply(self.frames(j), _INV_255, dtype=np.float32)).unsqueeze(1)
         return {"index": torch.tensor(j, dtype=torch.long), "y": y}
+
+    def __getitems__(self, items: list[int]) -> dict[str, torch.Tensor]:
+        """A whole batch, already collated (the DataLoader calls this instead of ``__getitem__``).
+
+        Each trajectory is rendered into one reused uint8 buffer and converted straight into its row
+        of the batch tensor, which saves the per-item tensors and the copy of stacking them.
+        """
+        js = [self._trajectory_index(int(i)) for i in items]
+        s = self.image_size
+        y = _float_batch((len(js), self.seq_len_, 1, s, s))
+        out = y.numpy()[:, :, 0]
+        frames = np.empty((self.seq_len_, s, s), dtype=np.uint8)  # one small buffer, reused
+        digits = self.digits.numpy()
+        for b, j in enumerate(js):
+            tr = self.trajectory(j)
+            frames.fill(0)
+            render(digits, tr["digit_indices"], tr["top_left"], s, out=frames)
+            np.multiply(frames, _INV_255, out=out[b])
+        return {"index": torch.tensor(js, dtype=torch.long), "y": y}
 
     def subset(self, positions: Sequence[int] | np.ndarray) -> MovingMNISTDataset:
         """Items at ``positions`` of this data set, keeping their trajectory indices (shares the digits)."""

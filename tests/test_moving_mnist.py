@@ -349,6 +349,12 @@ def test_dataset_pickles_and_subsets_share_digits(tiny):
     assert sub.digits.data_ptr() == ds.digits.data_ptr()
     subsub = dm.subset(sub, np.array([1]))
     assert len(subsub) == 1 and int(subsub[0]["index"]) == 2 and torch.equal(subsub[0]["y"], ds[2]["y"])
+    # a batch fetched at once (what the DataLoader uses) equals the items fetched one by one
+    batch = sub.__getitems__([1, 0, 1])
+    assert batch["index"].tolist() == [2, 4, 2]
+    assert batch["y"].shape == (3, 20, 1, 24, 24) and batch["y"].dtype == torch.float32
+    for b, j in enumerate([2, 4, 2]):
+        assert torch.equal(batch["y"][b], ds[j]["y"])
 
 
 # ---------------------------------------------------------------------------------- DataModule
