@@ -4,8 +4,10 @@ VENV   ?= .venv
 PY      = $(VENV)/bin/python
 STAMP   = $(VENV)/.installed
 LOGDIR ?= runs
+EXP    ?= pendulum
+SIZE   ?= paper
 
-.PHONY: install demo test test-slow tensorboard bench clean-data
+.PHONY: install demo test test-slow tensorboard bench reproduce
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -37,3 +39,11 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_lorenz_data.py
 	$(PY) benchmarks/bench_moving_mnist.py
 	$(PY) benchmarks/bench_ukf.py
+
+## One experiment end to end: SSM fit -> encoder fit -> test (-> UKF), results in results/$(EXP).md.
+## make reproduce EXP=pendulum [SIZE=cpu]; EXP among pendulum pendulum_fc quad quad_fc mnist lorenz_T10 ... oscillator
+reproduce: $(STAMP) $(if $(filter oscillator,$(EXP)),data/oscillator.npz)
+	$(PY) -m ssm_ms.reproduce $(EXP) --size $(SIZE)
+
+data/oscillator.npz: examples/make_oscillator_data.py
+	$(PY) examples/make_oscillator_data.py --out $@

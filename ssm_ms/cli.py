@@ -5,6 +5,8 @@ from __future__ import annotations
 import lightning.pytorch as pl
 from lightning.pytorch.cli import LightningCLI
 
+from ssm_ms.perf import configure_allocator
+
 
 def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     """Parse ``args`` (default: ``sys.argv``) and run the subcommand.
@@ -12,6 +14,7 @@ def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     Subclass mode for model and data (configs name them by ``class_path``) and the omegaconf parser
     (configs may interpolate, e.g. ``state_dim: ${model.init_args.state_dim}``).
     """
+    configure_allocator()  # large CPU tensors: reuse freed memory instead of page-faulting it back
     return LightningCLI(
         pl.LightningModule,
         pl.LightningDataModule,

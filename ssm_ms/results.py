@@ -48,7 +48,7 @@ def _cell(entry: dict[str, float] | None) -> str:
     return f"{entry['mean']:.4g} ± {entry['std']:.2g}"
 
 
-def render_markdown(experiment: str, runs: dict[str, dict[str, Any]]) -> str:
+def render_markdown(experiment: str, runs: dict[str, dict[str, Any]], pipeline: dict[str, Any] | None = None) -> str:
     """The markdown report of an experiment from its runs ``{method: {"info": ..., "summary": ...}}``."""
     lines = [f"# Forecasting results: {experiment}", ""]
     columns: list[str] = []
@@ -93,22 +93,46 @@ def render_markdown(experiment: str, runs: dict[str, dict[str, Any]]) -> str:
             if field in info:
                 lines.append(f"  - {field}: {info[field]}")
     lines.append("")
+    if pipeline:
+        lines += ["## How this was produced", "", f"`{pipeline.get('command', '')}` on {pipeline.get('machine', '?')}, "
+                  f"{pipeline.get('date', '?')}: {pipeline.get('total_seconds', '?')} s in all.", ""]
+        lines += ["| stage | seconds |", "|---|---|"]
+        lines += [f"| `{st['command']}` | {st['seconds']} |" for st in pipeline.get("stages", [])]
+        lines.append("")
     return "\n".join(lines)
 
 
-def write_results(results_dir: Path, info: dict[str, Any], summary: dict[str, dict[str, float]]) -> tuple[Path, Path]:
+def _load(json_path: Path) -> dict[str, Any]:
+    if json_path.exists():
+        try:
+            data = json.loads(json_path.read_text())
+            if isinstance(data, dict):
+                return data
+        except json.JSONDecodeError:
+            pass
+    return {}
+
+
+def _save(results_dir: Path, experiment: str, data: dict[str, Any]) -> Path:
+    data["experiment"] = experiment
+    (results_dir / f"{experiment}.json").write_text(json.dumps(data, indent=2, sort_keys=True))
+    md_path = results_dir / f"{experiment}.md"
+    md_path.write_text(render_markdown(experiment, data.get("runs", {}), data.get("pipeline")))
+    return md_path
+
+
+def write_results(results_dir: Path, info: dict[str, Any], summary: dict[str, dict[str, float]]) -> Path:
     """Merge one test run into ``<results_dir>/<experiment>.json`` and rewrite ``<experiment>.md``."""
     results_dir.mkdir(parents=True, exist_ok=True)
     experiment = info["experiment"]
-    json_path = results_dir / f"{experiment}.json"
-    runs: dict[str, Any] = {}
-    if json_path.exists():
-        try:
-            runs = json.loads(json_path.read_text()).get("runs", {})
-        except (json.JSONDecodeError, AttributeError):
-            runs = {}
-    runs[info["method"]] = {"info": info, "summary": summary}
-    json_path.write_text(json.dumps({"experiment": experiment, "runs": runs}, indent=2, sort_keys=True))
-    md_path = results_dir / f"{experiment}.md"
-    md_path.write_text(render_markdown(experiment, runs))
-    return json_path, md_path
+    data = _load(results_dir / f"{experiment}.json")
+    data.setdefault("runs", {})[info["method"]] = {"info": info, "summary": summary}
+    return _save(results_dir, experiment, data)
+
+
+def write_pipeline(results_dir: Path, experiment: str, pipeline: dict[str, Any]) -> Path:
+    """Record how the whole experiment was produced (commands, durations, machine) and rewrite the table."""
+    results_dir.mkdir(parents=True, exist_ok=True)
+    data = _load(results_dir / f"{experiment}.json")
+    data["pipeline"] = pipeline
+    return _save(results_dir, experiment, data)

@@ -1,0 +1,42 @@
+"""Process-level settings that make CPU training fast.
+
+On CPU, a training step of the paper's pendulum model allocates and frees activation tensors of
+~100 MB (4000 decoded 24x24 frames and the decoder's feature maps) dozens of times. glibc serves
+such sizes with fresh ``mmap`` pages and returns them to the system on ``free``, so every step pays
+millions of page faults: measured here, 6 million minor faults and 1-2 s per step, against 0.35
+million and ~0.4 s when the memory is kept for reuse (see benchmarks/results/train_step.md).
+:func:`configure_allocator` tells glibc to serve large blocks from the heap and keep freed memory
+(the process's resident memory then stays at its peak). ``cli.py`` calls it; call it yourself at the
+start of a Python training script. ``SSM_MS_MALLOC_TUNING=0`` disables it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+
+M_TRIM_THRESHOLD = -1
+M_MMAP_THRESHOLD = -3
+_configured: bool | None = None
+
+
+def configure_allocator(mmap_threshold: int = 1 << 30, trim_threshold: int = (1 << 31) - 1) -> bool:
+    """Keep large freed blocks for reuse (glibc ``mallopt``). Returns whether it applied.
+
+    Does nothing (and returns False) off glibc, or when ``SSM_MS_MALLOC_TUNING=0``.
+    """
+    global _configured
+    if _configured is not None:
+        return _configured
+    _configured = False
+    if os.environ.get("SSM_MS_MALLOC_TUNING", "1") == "0":
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc (macOS, musl, Windows)
+        return False
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    _configured = bool(mallopt(M_MMAP_THRESHOLD, mmap_threshold)) and bool(mallopt(M_TRIM_THRESHOLD, trim_threshold))
+    return _configured
