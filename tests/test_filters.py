@@ -62,10 +62,18 @@ def simulate(A, H, Q, R, x0, P0, B, T, seed=1):
 
 
 @pytest.mark.parametrize(
-    "d, p, innovation, full_r",
-    [(4, 2, "auto", False), (4, 2, "low_rank", True), (2, 7, "auto", True), (2, 7, "dense", False), (3, 9, "auto", False)],
+    "d, p, innovation, full_r, beta",
+    [
+        (4, 2, "auto", False, 2.0),
+        (4, 2, "low_rank", True, 2.0),
+        (2, 7, "auto", True, 2.0),
+        (2, 7, "dense", False, 2.0),
+        (3, 9, "auto", False, 2.0),
+        (3, 2, "auto", True, 0.0),  # cubature rule: the centre point is dropped
+        (3, 9, "auto", False, 0.0),
+    ],
 )
-def test_ukf_equals_kalman_filter_on_linear_gaussian_system(d, p, innovation, full_r):
+def test_ukf_equals_kalman_filter_on_linear_gaussian_system(d, p, innovation, full_r, beta):
     A, H, f, g = linear_system(d, p)
     q_diag = [0.01 * (i + 1) for i in range(d)]
     Q = torch.diag(torch.tensor(q_diag, dtype=F64))
@@ -79,7 +87,9 @@ def test_ukf_equals_kalman_filter_on_linear_gaussian_system(d, p, innovation, fu
     x0 = torch.linspace(-1, 1, d, dtype=F64)
     P0 = 0.1 * torch.eye(d, dtype=F64)
     y = simulate(A, H, Q, R, x0, P0, B=3, T=25)
-    ukf = UnscentedKalmanFilter(f, g, process_var=q_diag, measurement_var=r_arg, init_var=0.1, innovation=innovation)
+    ukf = UnscentedKalmanFilter(
+        f, g, process_var=q_diag, measurement_var=r_arg, init_var=0.1, innovation=innovation, beta=beta
+    )
     means, covs = ukf.filter(y, x0=x0)
     ref_m, ref_c = kalman_filter(y, A, H, Q, R, x0, P0)
     assert means.shape == (3, 25, d) and covs.shape == (3, 25, d, d)
@@ -89,6 +99,23 @@ def test_ukf_equals_kalman_filter_on_linear_gaussian_system(d, p, innovation, fu
     m_next, c_next = ukf.predict(means[:, -1], covs[:, -1])
     torch.testing.assert_close(m_next, ref_m[:, -1] @ A.T, rtol=0, atol=1e-9)
     torch.testing.assert_close(c_next, A @ ref_c[:, -1] @ A.T + Q, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("beta, points", [(2.0, 7), (0.0, 6)])
+def test_one_batched_call_of_f_and_g_per_step(beta, points):
+    calls = {"f": [], "g": []}
+
+    def f(x):
+        calls["f"].append(tuple(x.shape))
+        return 0.9 * x
+
+    def g(x):
+        calls["g"].append(tuple(x.shape))
+        return x[:, :2]
+
+    UnscentedKalmanFilter(f, g, state_dim=3, beta=beta).filter(torch.randn(5, 8, 2, dtype=F64))
+    assert calls["f"] == [(5 * points, 3)] * 7  # no prediction after the last step
+    assert calls["g"] == [(1, 3)] + [(5 * points, 3)] * 8  # one shape probe, then one call per step
 
 
 def test_ukf_image_shaped_measurement_and_float32():
@@ -193,12 +220,32 @@ def test_gradients_reach_f_parameters_gradcheck():
 
     def run(weight, y, x0):
         f = lambda x: x + 0.1 * torch.tanh(x @ weight.T)  # noqa: E731
-        ukf = UnscentedKalmanFilter(f, lambda x: x[:, :1] ** 2 + x[:, 1:], process_var=0.05, measurement_var=0.3, state_dim=2)
+        g = lambda x: x[:, :1] ** 2 + x[:, 1:]  # noqa: E731
+        ukf = UnscentedKalmanFilter(f, g, process_var=0.05, measurement_var=0.3, state_dim=2)
         means, covs = ukf.filter(y, x0=x0)
         return means, covs
 
     weight = torch.randn(2, 2, dtype=F64, requires_grad=True)
     assert torch.autograd.gradcheck(run, (weight, y.requires_grad_(), x0.requires_grad_()), eps=1e-6, atol=1e-6)
+
+
+def test_gradients_low_rank_innovation_gradcheck():
+    # p = 4 > 2d+1 = 3: the sigma-point-space (Woodbury) update, with a full measurement covariance
+    torch.manual_seed(1)
+    y = torch.randn(2, 3, 4, dtype=F64)
+    proj = torch.randn(4, 1, dtype=F64)
+    r = [[0.5, 0.1, 0.0, 0.0], [0.1, 0.5, 0.0, 0.0], [0.0, 0.0, 0.4, 0.0], [0.0, 0.0, 0.0, 0.6]]
+
+    def run(weight, y):
+        ukf = UnscentedKalmanFilter(
+            lambda x: torch.sin(x * weight), lambda x: torch.tanh(x @ proj.T), process_var=0.05, measurement_var=r,
+            state_dim=1,
+        )
+        assert ukf._setup(1, 4, F64, torch.device("cpu")).mode == "low_rank"
+        return ukf.filter(y)
+
+    weight = torch.tensor([1.3], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(run, (weight, y.requires_grad_()), eps=1e-6, atol=1e-6)
 
 
 def test_gradients_flow_to_module_parameters():
@@ -273,6 +320,8 @@ def test_ukf_bad_inputs_raise_clear_errors():
         UnscentedKalmanFilter(f, g, process_var=[-1.0, 1.0, 1.0])
     with pytest.raises(ValueError, match="positive semi-definite"):
         UnscentedKalmanFilter(f, g, process_var=[[1.0, 2.0], [2.0, 1.0]])
+    with pytest.raises(ValueError, match="measurement_var must be positive definite"):
+        UnscentedKalmanFilter(f, g, measurement_var=[[1.0, 0.0], [0.0, 0.0]], state_dim=3)
     with pytest.raises(ValueError, match="init_var has 2 entries per side but state_dim is 3"):
         UnscentedKalmanFilter(f, g, init_var=[1.0, 1.0], state_dim=3)
     with pytest.raises(ValueError, match="state dimension is unknown"):
@@ -330,15 +379,19 @@ def test_particle_filter_matches_kalman_filter():
     y = simulate(A, H, Q, R, torch.zeros(d, dtype=F64), P0, B, T)
     ref_m, ref_c = kalman_filter(y, A, H, Q, R, torch.zeros(d, dtype=F64), P0)
     n = 20000
-    pf = ParticleFilter(f, g, n_particles=n, state_dim=d, process_std=q**0.5, measurement_std=r**0.5, init_std=0.1**0.5, seed=0)
+    pf = ParticleFilter(
+        f, g, n_particles=n, state_dim=d, process_std=q**0.5, measurement_std=r**0.5, init_std=0.1**0.5, seed=0
+    )
     res = pf.filter(y, return_particles=True)
     assert res.means.shape == (B, T, d) and res.ess.shape == (B, T)
-    # Monte Carlo error of a weighted mean ~ posterior std / sqrt(ESS); resampling adds a little more.
-    std = ref_c.diagonal(dim1=-2, dim2=-1).sqrt()
-    z = (res.means - ref_m).abs() / (std / res.ess.unsqueeze(-1).sqrt())
-    assert z.max() < 6.0, f"largest deviation {z.max():.2f} Monte Carlo standard errors"
-    assert (res.ess > 0.1 * n).all(), "too few effective particles for the tolerance above to be tight"
-    assert (res.means - ref_m).abs().max() < 0.05
+    # Monte Carlo error of a weighted mean ~ posterior std / sqrt(ESS): with ESS >= 0.1 N = 2000 that is
+    # 0.022 std per step; resampling carries earlier steps' error along (a few times more at most). So the
+    # worst error must stay below 0.15 std (~7 single-step standard errors) and the RMS below 0.05 std.
+    # (A 20% wrong measurement std already gives 0.3 std and 0.11 std.)
+    assert (res.ess > 0.1 * n).all(), "too few effective particles for the tolerance below"
+    err = (res.means - ref_m).abs() / ref_c.diagonal(dim1=-2, dim2=-1).sqrt()
+    rms = err.pow(2).mean().sqrt()
+    assert err.max() < 0.15 and rms < 0.05, f"max {err.max():.3f}, RMS {rms:.3f} posterior std"
     # the returned last-step particles and weights carry the last posterior
     torch.testing.assert_close(torch.einsum("bp,bpd->bd", res.weights, res.particles), res.means[:, -1])
 

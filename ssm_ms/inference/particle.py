@@ -14,7 +14,7 @@ trajectories. Same time convention as the UKF::
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import NamedTuple, Optional, Union
 
 import torch
@@ -56,7 +56,9 @@ class ParticleFilter:
         g: observation model ``[N, d] -> [N, *obs_shape]``.
         n_particles: particles per trajectory.
         process_std: std of the Gaussian process noise added after ``f`` (scalar or per dimension).
-            Keeps the particle cloud from collapsing after resampling when ``f`` is deterministic.
+            Keeps the particle cloud from collapsing after resampling when ``f`` is deterministic: on
+            Lorenz (true dynamics, 2000 particles, normalised units) 1e-2 tracks y and z with RMSE
+            0.15, while 1e-3 (the UKF's process variance 1e-6) loses them (RMSE 0.4-0.7).
         measurement_std: std of the Gaussian measurement noise (scalar or per flattened component);
             used when ``likelihood="gaussian"``. The default is the paper's Lorenz variance 0.5.
         likelihood: ``"gaussian"``, or ``"bernoulli"`` for images in [0, 1]: ``g`` must output pixel
@@ -75,10 +77,10 @@ class ParticleFilter:
         f: Callable[[Tensor], Tensor],
         g: Callable[[Tensor], Tensor],
         n_particles: int = 1000,
-        process_std: Union[float, Sequence[float]] = 1e-3,
-        measurement_std: Union[float, Sequence[float]] = math.sqrt(0.5),
+        process_std: Union[float, list[float]] = 1e-2,
+        measurement_std: Union[float, list[float]] = math.sqrt(0.5),
         likelihood: str = "gaussian",
-        init_std: Union[float, Sequence[float]] = math.sqrt(0.1),
+        init_std: Union[float, list[float]] = math.sqrt(0.1),
         resample_threshold: float = 0.5,
         likelihood_scale: float = 1.0,
         seed: Optional[int] = None,
@@ -89,7 +91,9 @@ class ParticleFilter:
         if likelihood not in ("gaussian", "bernoulli"):
             raise ValueError(f"likelihood must be 'gaussian' or 'bernoulli', got {likelihood!r}")
         if not 0.0 <= resample_threshold <= 1.0:
-            raise ValueError(f"resample_threshold is a fraction of the particle count in [0, 1], got {resample_threshold}")
+            raise ValueError(
+                f"resample_threshold is a fraction of the particle count in [0, 1], got {resample_threshold}"
+            )
         if not likelihood_scale > 0:
             raise ValueError(f"likelihood_scale must be > 0, got {likelihood_scale}")
         self.f, self.g = f, g
@@ -102,10 +106,11 @@ class ParticleFilter:
         self.likelihood_scale = float(likelihood_scale)
         self.seed = seed
         if state_dim is None:
-            state_dim = getattr(f, "state_dim", None)
-            if not isinstance(state_dim, int):
-                sizes = [s.numel() for s in (self.process_std, self.init_std) if s.ndim == 1]
-                state_dim = sizes[0] if sizes else None
+            from_f = getattr(f, "state_dim", None)
+            sizes = [s.numel() for s in (self.process_std, self.init_std) if s.ndim == 1]
+            state_dim = from_f if isinstance(from_f, int) else (sizes[0] if sizes else None)
+        if state_dim is not None and (not isinstance(state_dim, int) or state_dim < 1):
+            raise ValueError(f"state_dim must be a positive int, got {state_dim!r}")
         for name, s in (("process_std", self.process_std), ("init_std", self.init_std)):
             if state_dim is not None and s.ndim == 1 and s.numel() != state_dim:
                 raise ValueError(f"{name} has {s.numel()} entries but state_dim is {state_dim}")
@@ -155,7 +160,9 @@ class ParticleFilter:
                 raise ValueError(f"x0 must be [d] or [B, d] with B={bsz}, d={d}, got {list(x0.shape)}")
             d = x0.shape[-1]
         if d is None:
-            raise ValueError("the state dimension is unknown: pass state_dim=..., an f with a state_dim attribute, or x0")
+            raise ValueError(
+                "the state dimension is unknown: pass state_dim=..., an f with a state_dim attribute, or x0"
+            )
         if self.likelihood == "bernoulli" and (bool((y < 0).any()) or bool((y > 1).any())):
             raise ValueError(
                 "likelihood='bernoulli' needs measurements in [0, 1] (images as probabilities); these are "

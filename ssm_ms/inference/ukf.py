@@ -2,7 +2,8 @@
 
 The filter infers the states of unseen trajectories from their measurements with the learned ``f`` and
 ``g`` and nothing else (no training). It is vectorised over trajectories and sigma points: each step
-calls ``g`` once on ``[B * (2d+1), d]`` and ``f`` once on ``[B * (2d+1), d]``. It runs on the device and
+calls ``g`` once and ``f`` once on ``[B * (2d+1), d]`` (``2d`` when the central point has zero weight,
+e.g. ``beta=0``). Time goes mostly into ``f`` (see benchmarks/results/ukf.md). It runs on the device and
 dtype of ``y`` and is differentiable (gradients reach ``f``, ``g``, ``y``, ``x0`` and ``P0``).
 
 Convention::
@@ -19,13 +20,14 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import NamedTuple, Optional, Union
 
 import torch
 from torch import Tensor
 
-Variance = Union[float, Sequence[float], Sequence[Sequence[float]], Tensor]
+# Plain types only, so that configs (jsonargparse / LightningCLI) can give them; tensors work too at run time.
+Variance = Union[float, list[float], list[list[float]]]
 
 
 class CovarianceJitterWarning(UserWarning):
@@ -85,6 +87,23 @@ def _as_matrix(t: Tensor, dim: int, name: str, dtype: torch.dtype, device: torch
     return t
 
 
+class _Setup:
+    """Per-call constants of the filter (weights, sigma-point pattern, noise matrices)."""
+
+    def __init__(self, d: int, wm: Tensor, wc: Tensor, pattern: Tensor, q: Tensor, mode: str):
+        self.d, self.wm, self.wc, self.pattern, self.q, self.mode = d, wm, wc, pattern, q, mode
+        self.pattern_t = pattern.t().contiguous()  # [d, n]
+        # weighted mean over sigma points as one matrix product: [B, n*d] @ kron(wm, I_d) -> [B, d]
+        self.wm_kron = torch.kron(wm.unsqueeze(-1), torch.eye(d, dtype=wm.dtype, device=wm.device))
+        self.wm_col = wm.unsqueeze(-1)  # [n, 1]
+        self.sqrt_wc: Tensor = wc
+        self.eye_n: Tensor = wc
+        self.r: Optional[Tensor] = None
+        self.r_std: Optional[Tensor] = None
+        self.u_scale: Optional[Tensor] = None
+        self.r_chol: Optional[Tensor] = None
+
+
 class UnscentedKalmanFilter:
     """Batched unscented Kalman filter with additive Gaussian process and measurement noise.
 
@@ -99,7 +118,9 @@ class UnscentedKalmanFilter:
         alpha, beta, kappa: unscented transform; ``lambda = alpha^2 (d + kappa) - d``, sigma points
             ``m +- sqrt(d + lambda) * columns of chol(P)``. The defaults (1, 2, 0) give non-negative
             weights, so every covariance is a sum of outer products (PSD by construction) and float32
-            is safe; a small alpha (e.g. 1e-3) gives a large negative central weight.
+            is safe; a small alpha (e.g. 1e-3) gives a large negative central weight. With
+            ``(1, 0, 0)`` (the cubature rule) the central point has zero weight and is not evaluated:
+            ``2d`` calls of ``f`` per trajectory instead of ``2d+1``.
         jitter: first diagonal jitter, relative to the mean diagonal (and at least the dtype's eps),
             tried when a Cholesky fails; it is multiplied by 10 up to ``max_jitter_tries`` times, and only
             the failing trajectories get it.
@@ -149,9 +170,8 @@ class UnscentedKalmanFilter:
         }
         dims = {n: v for n, v in dims.items() if v is not None}
         if state_dim is None:
-            state_dim = getattr(f, "state_dim", None)
-            if not isinstance(state_dim, int) and dims:
-                state_dim = next(iter(dims.values()))
+            from_f = getattr(f, "state_dim", None)
+            state_dim = from_f if isinstance(from_f, int) else next(iter(dims.values()), None)
         if state_dim is not None:
             if not isinstance(state_dim, int) or state_dim < 1:
                 raise ValueError(f"state_dim must be a positive int, got {state_dim!r}")
@@ -167,22 +187,61 @@ class UnscentedKalmanFilter:
         """Mean weights ``[2d+1]``, covariance weights ``[2d+1]`` and the sigma-point scale ``sqrt(d+lambda)``."""
         lam = self.alpha**2 * (d + self.kappa) - d
         if d + lam <= 0:
-            raise ValueError(
-                f"alpha^2 (d + kappa) = {d + lam:.3g} must be > 0 (d = {d}): raise alpha or kappa"
-            )
+            raise ValueError(f"alpha^2 (d + kappa) = {d + lam:.3g} must be > 0 (d = {d}): raise alpha or kappa")
         wm = torch.full((2 * d + 1,), 0.5 / (d + lam), dtype=torch.float64)
         wc = wm.clone()
         wm[0] = lam / (d + lam)
         wc[0] = lam / (d + lam) + 1.0 - self.alpha**2 + self.beta
         return wm.to(dtype=dtype, device=device), wc.to(dtype=dtype, device=device), math.sqrt(d + lam)
 
+    def _setup(self, d: int, p: Optional[int], dtype: torch.dtype, device: torch.device) -> _Setup:
+        """Everything a step needs that does not change over time, built once per call (p=None: predict only)."""
+        wm, wc, scale = self.weights(d, dtype, device)
+        eye = torch.eye(d, dtype=dtype, device=device)
+        pattern = scale * torch.cat([torch.zeros(1, d, dtype=dtype, device=device), eye, -eye])  # [n, d]
+        if float(wm[0]) == 0.0 and float(wc[0]) == 0.0:  # e.g. beta=0 (cubature rule): the centre is unused
+            wm, wc, pattern = wm[1:], wc[1:], pattern[1:]
+        q = _as_matrix(self.process_var, d, "process_var", dtype, device)
+        if p is None:
+            return _Setup(d=d, wm=wm, wc=wc, pattern=pattern, q=q, mode="none")
+        if p < 1:
+            raise ValueError("measurements must have at least one component")
+        r = self.measurement_var
+        if r.ndim >= 1 and r.shape[0] != p:
+            raise ValueError(
+                f"measurement_var has {r.shape[0]} entries per side but a measurement has {p} components "
+                "(flattened): give a scalar or one variance per component"
+            )
+        nonneg = bool((wc >= 0).all())
+        mode = self.innovation
+        if mode == "auto":
+            mode = "low_rank" if nonneg and p > len(wc) else "dense"
+        if mode == "low_rank" and not nonneg:
+            raise ValueError(
+                "innovation='low_rank' needs non-negative covariance weights: use alpha=1 and kappa>=0, or "
+                "innovation='dense'"
+            )
+        setup = _Setup(d=d, wm=wm, wc=wc, pattern=pattern, q=q, mode=mode)
+        sqrt_wc = wc.clamp_min(0).sqrt()
+        setup.sqrt_wc = sqrt_wc.unsqueeze(-1)
+        if mode == "dense":
+            setup.r = _as_matrix(r, p, "measurement_var", dtype, device)
+        elif r.ndim <= 1:  # diagonal R: whitening is a division by the std
+            r_std = r.to(dtype=dtype, device=device).sqrt().expand(p)
+            setup.r_std = r_std
+            setup.u_scale = sqrt_wc.unsqueeze(-1) / r_std  # [n, p]
+        else:
+            setup.r_chol = torch.linalg.cholesky(r.to(dtype=dtype, device=device))
+        setup.eye_n = torch.eye(len(wc), dtype=dtype, device=device)
+        return setup
+
     def _cholesky(self, a: Tensor, what: str, step: int) -> Tensor:
-        """Lower Cholesky factor of the symmetrised batch ``a [B, n, n]``, with jitter on failing members."""
-        a = 0.5 * (a + a.transpose(-1, -2))
+        """Lower Cholesky factor of the batch ``a [B, n, n]`` (lower triangle read), jitter on failing members."""
         chol, info = torch.linalg.cholesky_ex(a)
-        if not bool((info != 0).any()):
+        if not bool(info.any()):
             return chol
         fail = info != 0
+        a = 0.5 * (a + a.transpose(-1, -2))
         n = a.shape[-1]
         eye = torch.eye(n, dtype=a.dtype, device=a.device)
         diag = a.diagonal(dim1=-2, dim2=-1)
@@ -208,102 +267,79 @@ class UnscentedKalmanFilter:
         a_fix = torch.where(fail[:, None, None], fallback, a + (level * scale)[:, None, None] * eye)
         return torch.linalg.cholesky_ex(a_fix)[0]
 
-    def _sigma_points(self, mean: Tensor, cov: Tensor, scale: float, what: str, step: int) -> Tensor:
-        """``[B, 2d+1, d]``: the mean, then mean +- scale * columns of chol(cov)."""
-        delta = scale * self._cholesky(cov, what, step).transpose(-1, -2)  # rows = scaled columns of L
-        return mean.unsqueeze(-2) + torch.cat([torch.zeros_like(delta[:, :1]), delta, -delta], dim=-2)
+    def _sigma_points(self, mean: Tensor, cov: Tensor, setup: _Setup, what: str, step: int) -> tuple[Tensor, Tensor]:
+        """Sigma points ``[B, 2d+1, d]`` (mean, then mean +- scale * columns of chol(cov)) and their offsets."""
+        b, d = mean.shape
+        chol = self._cholesky(cov, what, step)  # [B, d, d], contiguous
+        # offsets[b] = pattern @ chol[b]^T, as one [B*d, d] @ [d, n] product
+        offsets = (chol.reshape(b * d, d) @ setup.pattern_t).view(b, d, -1).transpose(-1, -2)
+        return mean.unsqueeze(-2) + offsets, offsets
 
     # ----------------------------------------------------------------------------------------------
-    def predict(self, mean: Tensor, cov: Tensor, step: int = -1) -> tuple[Tensor, Tensor]:
+    def predict(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
         """One prediction through ``f``: posterior ``(mean [B, d], cov [B, d, d])`` at t -> prior at t+1."""
-        d = mean.shape[-1]
-        wm, wc, scale = self.weights(d, mean.dtype, mean.device)
-        q = _as_matrix(self.process_var, d, "process_var", mean.dtype, mean.device)
-        return self._predict(mean, cov, wm, wc, scale, q, step)
+        setup = self._setup(mean.shape[-1], None, mean.dtype, mean.device)
+        self._events = []
+        mean, cov = self._predict(mean, cov, setup, -1)
+        self._warn_jitter()
+        return mean, 0.5 * (cov + cov.transpose(-1, -2))
 
-    def _predict(self, mean, cov, wm, wc, scale, q, step):
+    def _predict(self, mean: Tensor, cov: Tensor, setup: _Setup, step: int) -> tuple[Tensor, Tensor]:
         b, d = mean.shape
-        sigma = self._sigma_points(mean, cov, scale, "posterior", step)
-        fx = self.f(sigma.reshape(-1, d)).reshape(b, -1, d)
-        mean_pred = torch.einsum("s,bsd->bd", wm, fx)
-        dev = fx - mean_pred.unsqueeze(-2)
-        cov_pred = (dev.transpose(-1, -2) * wc) @ dev + q
-        return mean_pred, 0.5 * (cov_pred + cov_pred.transpose(-1, -2))
+        sigma, _ = self._sigma_points(mean, cov, setup, "posterior", step)
+        fx = self.f(sigma.reshape(-1, d))
+        mean_pred = fx.reshape(b, -1) @ setup.wm_kron
+        dev = fx.reshape(b, -1, d) - mean_pred.unsqueeze(-2)
+        return mean_pred, torch.baddbmm(setup.q, dev.transpose(-1, -2) * setup.wc, dev)
 
-    def update(self, mean: Tensor, cov: Tensor, y_t: Tensor, step: int = -1) -> tuple[Tensor, Tensor]:
+    def update(self, mean: Tensor, cov: Tensor, y_t: Tensor) -> tuple[Tensor, Tensor]:
         """One measurement update: prior ``(mean [B, d], cov [B, d, d])`` and ``y_t [B, *obs_shape]`` -> posterior."""
-        d = mean.shape[-1]
-        wm, wc, scale = self.weights(d, mean.dtype, mean.device)
         y_flat = y_t.reshape(y_t.shape[0], -1)
-        ctx = self._measurement_context(y_flat.shape[-1], d, wc, mean.dtype, mean.device)
-        return self._update(mean, cov, y_flat, wm, wc, scale, ctx, step)
+        setup = self._setup(mean.shape[-1], y_flat.shape[-1], mean.dtype, mean.device)
+        self._events = []
+        mean, cov = self._update(mean, cov, y_flat, setup, -1)
+        self._warn_jitter()
+        return mean, 0.5 * (cov + cov.transpose(-1, -2))
 
-    def _measurement_context(self, p: int, d: int, wc: Tensor, dtype, device) -> dict:
-        r = self.measurement_var
-        if r.ndim >= 1 and r.shape[0] != p:
-            raise ValueError(
-                f"measurement_var has {r.shape[0]} entries per side but a measurement has {p} components "
-                "(flattened): give a scalar or one variance per component"
-            )
-        mode = self.innovation
-        if mode == "auto":
-            mode = "low_rank" if bool((wc >= 0).all()) and p > 2 * d + 1 else "dense"
-        if mode == "low_rank" and not bool((wc >= 0).all()):
-            raise ValueError(
-                "innovation='low_rank' needs non-negative covariance weights: use alpha=1, kappa>=0, or "
-                "innovation='dense'"
-            )
-        ctx: dict = {"mode": mode}
-        if mode == "dense":
-            ctx["r"] = _as_matrix(r, p, "measurement_var", dtype, device)
-        elif r.ndim <= 1:  # diagonal R: whitening is a division by the std
-            ctx["r_std"] = r.to(dtype=dtype, device=device).sqrt().expand(p)
-        else:
-            ctx["r_chol"] = torch.linalg.cholesky(r.to(dtype=dtype, device=device))
-        ctx["sqrt_wc"] = wc.clamp_min(0).sqrt()
-        return ctx
-
-    def _update(self, mean, cov, y_flat, wm, wc, scale, ctx, step):
+    def _update(self, mean: Tensor, cov: Tensor, y_flat: Tensor, setup: _Setup, step: int) -> tuple[Tensor, Tensor]:
         b, d = mean.shape
-        sigma = self._sigma_points(mean, cov, scale, "prior", step)
-        gy = self.g(sigma.reshape(-1, d))
-        gy = gy.reshape(b, sigma.shape[1], -1)
-        y_pred = torch.einsum("s,bsp->bp", wm, gy)
-        innov = y_flat - y_pred  # [B, p]
-        x_dev = sigma - mean.unsqueeze(-2)  # [B, n, d]
+        p = y_flat.shape[-1]
+        sigma, x_dev = self._sigma_points(mean, cov, setup, "prior", step)
+        gy = self.g(sigma.reshape(-1, d)).reshape(b, sigma.shape[1], p)
+        y_pred = (gy * setup.wm_col).sum(-2)
         y_dev = gy - y_pred.unsqueeze(-2)  # [B, n, p]
-        if ctx["mode"] == "dense":
-            s = (y_dev.transpose(-1, -2) * wc) @ y_dev + ctx["r"]  # [B, p, p]
-            c = (x_dev.transpose(-1, -2) * wc) @ y_dev  # [B, d, p]
-            chol_s = self._cholesky(s, "innovation", step)
-            # W = L_S^{-1} [C^T, innov]: P+ = P - W_C^T W_C, m+ = m + W_C^T W_e
-            rhs = torch.cat([c.transpose(-1, -2), innov.unsqueeze(-1)], dim=-1)
-            w = torch.linalg.solve_triangular(chol_s, rhs, upper=False)
-            w_c, w_e = w[..., :d], w[..., d:]
-            mean_post = mean + (w_c.transpose(-1, -2) @ w_e).squeeze(-1)
-            cov_post = cov - w_c.transpose(-1, -2) @ w_c
-        else:
-            # S = R + U U^T with U = Y_dev^T sqrt(Wc); C = X_s^T U^T with X_s = sqrt(Wc) X_dev.
-            # With G = U^T R^-1 U and A = I + G (Woodbury):
-            #   C S^-1 e = X_s^T A^-1 U^T R^-1 e,   P+ = P - C S^-1 C^T = X_s^T A^-1 X_s.
-            sw = ctx["sqrt_wc"]
-            u = y_dev * sw[:, None]  # [B, n, p] (= U^T)
-            x_s = x_dev * sw[:, None]  # [B, n, d]
-            if "r_std" in ctx:
-                u_w, e_w = u / ctx["r_std"], innov / ctx["r_std"]
+        innov = (y_flat - y_pred).unsqueeze(-1)  # [B, p, 1]
+        if setup.mode == "dense":
+            # One product gives C^T and S: [x_dev, y_dev]^T Wc [x_dev, y_dev].
+            z = torch.cat([x_dev, y_dev], dim=-1)
+            m = (z.transpose(-1, -2) * setup.wc) @ z
+            s = m[:, d:, d:] + setup.r
+            rhs = torch.cat([m[:, d:, :d], innov], dim=-1)  # [C^T, innov], [B, p, d+1]
+            # W = L_S^-1 rhs: m+ = m + W_C^T W_e, P+ = P - W_C^T W_C (no inverse of S)
+            if p == 1 and bool((s > 0).all()):  # scalar measurement: L_S = sqrt(S)
+                w = rhs * s.rsqrt()
             else:
-                rc = ctx["r_chol"]
-                u_w = torch.linalg.solve_triangular(rc, u.transpose(-1, -2), upper=False).transpose(-1, -2)
-                e_w = torch.linalg.solve_triangular(rc, innov.unsqueeze(-1), upper=False).squeeze(-1)
-            n = u.shape[1]
-            a = u_w @ u_w.transpose(-1, -2) + torch.eye(n, dtype=u.dtype, device=u.device)
-            chol_a = self._cholesky(a, "innovation (sigma-point space)", step)
-            rhs = torch.cat([x_s, (u_w @ e_w.unsqueeze(-1))], dim=-1)  # [B, n, d+1]
-            z = torch.linalg.solve_triangular(chol_a, rhs, upper=False)
-            z_x, z_e = z[..., :d], z[..., d:]
-            mean_post = mean + (z_x.transpose(-1, -2) @ z_e).squeeze(-1)
-            cov_post = z_x.transpose(-1, -2) @ z_x
-        return mean_post, 0.5 * (cov_post + cov_post.transpose(-1, -2))
+                w = torch.linalg.solve_triangular(self._cholesky(s, "innovation", step), rhs, upper=False)
+            w_c, w_e = w[..., :d], w[..., d:]
+            w_ct = w_c.transpose(-1, -2)
+            return mean + (w_c * w_e).sum(-2), cov - (w_ct * w_c if p == 1 else w_ct @ w_c)
+        # S = R + U U^T with U = Y_dev^T sqrt(Wc); C = X_s^T U^T with X_s = sqrt(Wc) X_dev. With
+        # G = U^T R^-1 U and A = I + G (Woodbury): C S^-1 e = X_s^T A^-1 U^T R^-1 e and
+        # P+ = P - C S^-1 C^T = X_s^T A^-1 X_s (PSD by construction).
+        if setup.r_chol is None:
+            u_w, e_w = y_dev * setup.u_scale, innov / setup.r_std.unsqueeze(-1)
+        else:
+            u_w = torch.linalg.solve_triangular(
+                setup.r_chol, (y_dev * setup.sqrt_wc).transpose(-1, -2), upper=False
+            ).transpose(-1, -2)
+            e_w = torch.linalg.solve_triangular(setup.r_chol, innov, upper=False)
+        a = torch.baddbmm(setup.eye_n, u_w, u_w.transpose(-1, -2))
+        chol_a = self._cholesky(a, "innovation (sigma-point space)", step)
+        rhs = torch.cat([x_dev * setup.sqrt_wc, u_w @ e_w], dim=-1)  # [B, n, d+1]
+        z = torch.linalg.solve_triangular(chol_a, rhs, upper=False)
+        z_x, z_e = z[..., :d], z[..., d:]
+        z_xt = z_x.transpose(-1, -2)
+        return mean + (z_xt @ z_e).squeeze(-1), z_xt @ z_x
 
     # ----------------------------------------------------------------------------------------------
     def filter(self, y: Tensor, x0: Optional[Tensor] = None, P0: Optional[Tensor] = None) -> UKFResult:
@@ -335,18 +371,24 @@ class UnscentedKalmanFilter:
                 f"shape {list(y.shape[2:])} (y is {list(y.shape)} = [B, T, *obs_shape]): make g match the data"
             )
         y_flat = y.reshape(bsz, steps, -1)
-        wm, wc, scale = self.weights(d, dtype, device)
-        q = _as_matrix(self.process_var, d, "process_var", dtype, device)
-        ctx = self._measurement_context(y_flat.shape[-1], d, wc, dtype, device)
+        setup = self._setup(d, y_flat.shape[-1], dtype, device)
 
         self._events = []
         means, covs = [], []
         for t in range(steps):
-            mean, cov = self._update(mean, cov, y_flat[:, t], wm, wc, scale, ctx, t)
+            mean, cov = self._update(mean, cov, y_flat[:, t], setup, t)
             means.append(mean)
             covs.append(cov)
             if t + 1 < steps:
-                mean, cov = self._predict(mean, cov, wm, wc, scale, q, t)
+                mean, cov = self._predict(mean, cov, setup, t)
+        self._warn_jitter()
+        covs_t = torch.stack(covs, dim=1)
+        # The recursion reads only lower triangles (Cholesky); symmetrise the outputs once.
+        return UKFResult(torch.stack(means, dim=1), 0.5 * (covs_t + covs_t.transpose(-1, -2)))
+
+    # ----------------------------------------------------------------------------------------------
+    def _warn_jitter(self) -> None:
+        """One summary warning for the jitter added since the events were last cleared."""
         if self._events:
             first = self._events[0]
             worst = max(e[2] for e in self._events)
@@ -356,11 +398,10 @@ class UnscentedKalmanFilter:
                 f"jitter {worst:.1e} x mean diagonal. A near-singular covariance usually means too little "
                 "process noise for f (raise process_var) or float32 round-off.",
                 CovarianceJitterWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
-        return UKFResult(torch.stack(means, dim=1), torch.stack(covs, dim=1))
+        self._events = []
 
-    # ----------------------------------------------------------------------------------------------
     def _resolve_state_dim(self, x0: Optional[Tensor], P0: Optional[Tensor]) -> int:
         cands = []
         if x0 is not None:

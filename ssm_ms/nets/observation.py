@@ -8,6 +8,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 # (stem channels, stem size, [(out_channels, kernel, stride), ...]) of the paper's decoders.
@@ -34,6 +35,10 @@ class ConvDecoder(nn.Module):
         layers: ``[out_channels, kernel, stride]`` of each transposed convolution; the last one
             produces the image channels.
         output: ``"sigmoid"`` (pixels in [0, 1]) or ``"linear"``.
+        channels_last: run the feature maps in channels-last memory layout (same results, same
+            parameters). On CPU the transposed convolutions are much faster in it: the paper's
+            pendulum training step drops from ~0.41 s to ~0.31 s (benchmarks/results/train_step.md).
+            LayerNorm is then applied to the ``(H, W, C)``-ordered sample, a view, never a copy.
     """
 
     def __init__(
@@ -44,6 +49,7 @@ class ConvDecoder(nn.Module):
         stem_size: int | None = None,
         layers: Sequence[Sequence[int]] | None = None,
         output: str = "sigmoid",
+        channels_last: bool = True,
     ):
         super().__init__()
         if preset is not None:
@@ -71,11 +77,33 @@ class ConvDecoder(nn.Module):
             blocks.append(nn.Sigmoid())
         self.deconv = nn.Sequential(*blocks)
         self.out_shape = (c, s, s)
+        self.channels_last = channels_last
+        if channels_last:
+            self.deconv.to(memory_format=torch.channels_last)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         lead = x.shape[:-1]
         h = self.stem(x.reshape(-1, self.state_dim)).view(-1, *self.stem_shape)
-        return self.deconv(h).view(*lead, *self.out_shape)
+        if not self.channels_last:
+            return self.deconv(h).view(*lead, *self.out_shape)
+        h = h.contiguous(memory_format=torch.channels_last)
+        for layer in self.deconv:
+            h = layer_norm_channels_last(layer, h) if isinstance(layer, nn.LayerNorm) else layer(h)
+        return h.reshape(*lead, *self.out_shape)  # a view for one output channel, else a copy
+
+
+def layer_norm_channels_last(ln: nn.LayerNorm, h: torch.Tensor) -> torch.Tensor:
+    """``ln`` over ``(C, H, W)`` of a channels-last ``h [N, C, H, W]``, without a layout conversion.
+
+    The statistics of a sample do not depend on the order of its elements, so the sample is
+    normalised as its ``(H, W, C)`` memory order (a view) with the affine parameters permuted alike.
+    """
+    n, c, height, width = h.shape
+    flat = h.permute(0, 2, 3, 1).reshape(n, height * width * c)
+    weight = ln.weight.permute(1, 2, 0).reshape(-1) if ln.weight is not None else None
+    bias = ln.bias.permute(1, 2, 0).reshape(-1) if ln.bias is not None else None
+    out = F.layer_norm(flat, (flat.shape[1],), weight, bias, ln.eps)
+    return out.view(n, height, width, c).permute(0, 3, 1, 2)
 
 
 class Projection(nn.Module):

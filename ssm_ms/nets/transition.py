@@ -26,7 +26,7 @@ class LocallyLinearTransition(nn.Module):
             raise ValueError(f"state_dim, n_matrices and hidden must be >= 1, got {state_dim}, {n_matrices}, {hidden}")
         self.state_dim, self.n_matrices = state_dim, n_matrices
         self.beta = nn.Sequential(
-            nn.Linear(state_dim, hidden), nn.ReLU(), nn.Linear(hidden, n_matrices), nn.Softmax(dim=-1)
+            nn.Linear(state_dim, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, n_matrices), nn.Softmax(dim=-1)
         )
         # [K * d, d]: row block k is A_k. Uniform(-1/sqrt(K d), 1/sqrt(K d)), like a Linear(K d -> d).
         bound = 1.0 / (n_matrices * state_dim) ** 0.5
@@ -55,7 +55,7 @@ class FullyConnectedTransition(nn.Module):
         layers: list[nn.Module] = []
         width = state_dim
         for h in hidden:
-            layers += [nn.Linear(width, h), nn.ReLU()]
+            layers += [nn.Linear(width, h), nn.ReLU(inplace=True)]
             width = h
         layers.append(nn.Linear(width, state_dim))
         self.mlp = nn.Sequential(*layers)

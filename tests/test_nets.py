@@ -1,0 +1,90 @@
+"""Networks against independent computations: the LL and FC transitions, decoder shapes and layouts."""
+
+import pytest
+import torch
+
+from ssm_ms.nets import ConvDecoder, FullyConnectedTransition, LocallyLinearTransition, Projection
+from ssm_ms.nets.encoder import StateEncoder
+
+
+def test_locally_linear_is_x_plus_weighted_matrices():
+    torch.manual_seed(0)
+    f = LocallyLinearTransition(4, n_matrices=5, hidden=16).double()
+    x = torch.randn(6, 4, dtype=torch.float64)
+    a = f.matrices.view(5, 4, 4)
+    for n in range(6):
+        beta = f.beta(x[n : n + 1])[0]
+        assert beta.sum().item() == pytest.approx(1.0) and (beta > 0).all()  # softmax weights
+        expected = x[n] + sum(beta[k] * (a[k] @ x[n]) for k in range(5))
+        torch.testing.assert_close(f(x[n : n + 1])[0], expected)
+        torch.testing.assert_close(f.matrix(x[n : n + 1])[0] @ x[n], expected)
+
+
+def test_fully_connected_is_residual():
+    f = FullyConnectedTransition(3, hidden=(8, 8))
+    torch.nn.init.zeros_(f.mlp[-1].weight)
+    torch.nn.init.zeros_(f.mlp[-1].bias)
+    x = torch.randn(5, 3)
+    torch.testing.assert_close(f(x), x)  # MLP output zero -> identity
+    assert [m.out_features for m in f.mlp if isinstance(m, torch.nn.Linear)] == [8, 8, 3]
+
+
+@pytest.mark.parametrize("preset, size, channels", [("pendulum", 24, [16, 12, 1]), ("quad", 48, [16, 16, 12, 1]),
+                                                    ("mnist", 64, [512, 256, 256, 1])])
+def test_decoder_presets(preset, size, channels):
+    g = ConvDecoder(5, preset)
+    out = g(torch.randn(3, 5))
+    assert out.shape == (3, 1, size, size)
+    assert ((out >= 0) & (out <= 1)).all()  # sigmoid (may saturate in float32)
+    convs = [m for m in g.deconv if isinstance(m, torch.nn.ConvTranspose2d)]
+    assert [m.out_channels for m in convs] == channels
+    # spatial size: each transposed convolution maps s -> (s - 1) * stride + kernel
+    s = 3
+    for m in convs:
+        s = (s - 1) * m.stride[0] + m.kernel_size[0]
+    assert s == size
+
+
+@pytest.mark.parametrize("out_channels", [1, 3])
+def test_channels_last_decoder_equals_the_plain_one(out_channels):
+    torch.manual_seed(0)
+    spec = dict(preset=None, stem_channels=8, stem_size=3, layers=[[6, 3, 2], [5, 3, 2], [out_channels, 2, 1]])
+    fast = ConvDecoder(4, **spec, channels_last=True).double()
+    plain = ConvDecoder(4, **spec, channels_last=False).double()
+    with torch.no_grad():  # non-trivial LayerNorm affine parameters, to catch a wrong permutation
+        for p in fast.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    plain.load_state_dict(fast.state_dict())
+    x = torch.randn(7, 4, dtype=torch.float64, requires_grad=True)
+    a, b = fast(x), plain(x)
+    torch.testing.assert_close(a, b)
+    weight = torch.randn_like(a)
+    ga = torch.autograd.grad((a * weight).sum(), [x, *fast.parameters()])
+    gb = torch.autograd.grad((b * weight).sum(), [x, *plain.parameters()])
+    for u, v in zip(ga, gb):
+        torch.testing.assert_close(u, v)
+
+
+def test_decoder_and_projection_errors():
+    with pytest.raises(ValueError, match="unknown ConvDecoder preset 'cifar'"):
+        ConvDecoder(3, "cifar")
+    with pytest.raises(ValueError, match="needs a preset, or stem_channels"):
+        ConvDecoder(3, None)
+    p = Projection([0, 2])
+    torch.testing.assert_close(p(torch.arange(6.0).view(2, 3)), torch.tensor([[0.0, 2.0], [3.0, 5.0]]))
+    with pytest.raises(ValueError, match=r"reads state components \[0, 2\] but the state has 2"):
+        p(torch.zeros(1, 2))
+
+
+@pytest.mark.parametrize("preset, shape, features", [("pendulum", (1, 24, 24), 64), ("quad", (1, 48, 48), 64),
+                                                     ("mnist", (1, 64, 64), 256), ("vector", (1,), 1)])
+def test_encoder_presets(preset, shape, features):
+    enc = StateEncoder(7, shape, preset=preset, hidden=16)
+    assert enc.lstm.input_size == features
+    y = torch.rand(2, 5, *shape)
+    out = enc(y)
+    assert out.shape == (2, 5, 7)
+    # causal: the state at t depends on measurements 0..t only
+    y2 = y.clone()
+    y2[:, 3:] = torch.rand_like(y2[:, 3:])
+    torch.testing.assert_close(enc(y2)[:, :3], out[:, :3])
