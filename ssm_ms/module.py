@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from collections.abc import Mapping
 from typing import Any
 
@@ -235,18 +236,20 @@ class MultipleShootingModule(pl.LightningModule):
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         if "f" not in self.hparams:  # built in Python: keep the networks so the checkpoint reloads on its own
-            checkpoint["networks"] = {"f": self.f, "g": self.g}
+            buffer = io.BytesIO()  # as bytes: the checkpoint itself stays loadable with weights_only=True
+            torch.save({"f": self.f, "g": self.g}, buffer)
+            checkpoint["networks"] = buffer.getvalue()
 
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> MultipleShootingModule:
-        """Lightning's loader; for a model built in Python (f and g not in its config), the pickled
-        networks saved in the checkpoint are used unless ``f=`` and ``g=`` are given."""
-        checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
-        networks = checkpoint.get("networks")
-        if networks is not None:  # pickled modules: the checkpoint must be trusted anyway
-            kwargs.setdefault("f", networks["f"])
-            kwargs.setdefault("g", networks["g"])
-            kwargs.setdefault("weights_only", False)
+        """Lightning's loader; for a model built in Python (f and g not in its config), the networks
+        pickled in the checkpoint are used unless ``f=`` and ``g=`` are given (trust the file)."""
+        if "f" not in kwargs or "g" not in kwargs:
+            checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=True)
+            if "networks" in checkpoint:
+                networks = torch.load(io.BytesIO(checkpoint["networks"]), map_location="cpu", weights_only=False)
+                kwargs.setdefault("f", networks["f"])
+                kwargs.setdefault("g", networks["g"])
         return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:

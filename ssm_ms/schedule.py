@@ -29,7 +29,8 @@ class ShootingSchedule(Callback):
         alpha_epoch: the epoch at which alpha is raised.
         lr_milestones: epochs at which the learning rate is multiplied by ``lr_factor``.
         lr_factor: the factor applied at each learning-rate milestone.
-        reset_optimizer_at: epochs at which the optimizer state (Adam's moments) is cleared.
+        reset_optimizer_at: epochs at which the optimizer state (Adam's moments) is cleared
+            (default: ``[alpha_epoch]``, the paper's reset when alpha is raised).
     """
 
     def __init__(
@@ -38,8 +39,10 @@ class ShootingSchedule(Callback):
         alpha_epoch: int = 200,
         lr_milestones: Sequence[int] = (200, 600),
         lr_factor: float = 0.1,
-        reset_optimizer_at: Sequence[int] = (200,),
+        reset_optimizer_at: Sequence[int] | None = None,
     ):
+        if reset_optimizer_at is None:
+            reset_optimizer_at = (alpha_epoch,)
         if alpha < 0 or lr_factor <= 0:
             raise ValueError(f"alpha must be >= 0 and lr_factor > 0, got {alpha} and {lr_factor}")
         if alpha_epoch < 0 or any(e < 0 for e in lr_milestones) or any(e < 0 for e in reset_optimizer_at):

@@ -22,8 +22,9 @@ class Probe(Callback):
         self.seen[trainer.current_epoch] = (pl_module.alpha.item(), opt.param_groups[0]["lr"], max(steps, default=0))
 
 
-def schedule():
-    return ShootingSchedule(alpha=50.0, alpha_epoch=2, lr_milestones=[2, 4], lr_factor=0.1, reset_optimizer_at=[2])
+def schedule(**kwargs):
+    # the optimizer reset defaults to the epoch alpha is raised
+    return ShootingSchedule(alpha=50.0, alpha_epoch=2, lr_milestones=[2, 4], lr_factor=0.1, **kwargs)
 
 
 def test_schedule_steps_alpha_lr_and_resets_the_optimizer(tmp_path, rotation_dm):
@@ -37,6 +38,14 @@ def test_schedule_steps_alpha_lr_and_resets_the_optimizer(tmp_path, rotation_dm)
     assert lr == pytest.approx([LR, LR, LR / 10, LR / 10, LR / 100])
     # Adam counts steps per parameter: cleared at epoch 2 only, then counts again from zero
     assert adam_steps == [0, steps_per_epoch, 0, steps_per_epoch, 2 * steps_per_epoch]
+
+
+def test_optimizer_resets_where_configured(tmp_path, rotation_dm):
+    """The reference code's variant: a fresh Adam at both learning-rate milestones."""
+    probe = Probe()
+    trainer = fast_trainer(tmp_path, max_epochs=5, callbacks=[schedule(reset_optimizer_at=[2, 4]), probe])
+    trainer.fit(rotation_model(lr=LR), rotation_dm)
+    assert [probe.seen[e][2] for e in range(5)] == [0, 2, 0, 2, 0]
 
 
 def _params(model):
