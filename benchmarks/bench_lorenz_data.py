@@ -24,17 +24,10 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
+from ssm_ms.machine import cpu_model  # noqa: E402
 from datamodules.lorenz import LorenzDataModule  # noqa: E402
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def timed(fn) -> tuple[float, object]:
@@ -78,7 +71,7 @@ def main() -> None:
         f"- Command: `python {shlex.join(['benchmarks/bench_lorenz_data.py', *sys.argv[1:]])}`",
         "- Set-up: paper defaults (RK4, dt = 0.005, float64 integration, float32 storage of y, y_clean, state).",
         "",
-        f"| What | median (s) | runs (s) | arrays (MB) |",
+        "| What | median (s) | runs (s) | arrays (MB) |",
         "|---|---:|---|---:|",
     ]
     for what, times, nbytes in rows:

@@ -32,6 +32,7 @@ from tqdm import tqdm
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from ssm_ms.machine import cpu_model  # noqa: E402
 from datamodules.moving_mnist import MovingMNISTDataModule, render, trajectory  # noqa: E402
 
 DEFAULT_ROOT = REPO.parent / "shared" / "data"
@@ -55,14 +56,6 @@ def proc_status(pid: int | str = "self") -> dict[str, float]:
     return out
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def time_us(fn, n: int, repeats: int = 5) -> float:

@@ -29,6 +29,7 @@ import pinocchio as pin
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from ssm_ms.machine import cpu_model  # noqa: E402
 from datamodules import pendulum as P  # noqa: E402
 from datamodules.pendulum import PendulumDataModule  # noqa: E402
 
@@ -40,14 +41,6 @@ CONFIGS = {
 }
 
 
-def cpu_model() -> str:
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def chain_energy(q: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ the figure is the median over all timed steps of all repeats. Variants:
 
 * ``ours``: ``multiple_shooting_loss`` (all sub-trajectories rolled out at once, one call of g),
   with ``ssm_ms.perf.configure_allocator`` as ``cli.py`` does;
+* ``ours, decoder in NCHW layout``: ``ConvDecoder(channels_last=False)``;
 * ``ours, default allocator``: the same code without it;
 * ``ours, decode_chunk=N``: decoding in chunks of N states;
 * ``per-step decoding``: the reference implementation's structure (g called once per time step on
@@ -30,6 +31,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from ssm_ms.machine import cpu_model  # noqa: E402
 
 
 def worker(model: str, variant: str, steps: int, threads: int) -> dict:
@@ -47,7 +51,7 @@ def worker(model: str, variant: str, steps: int, threads: int) -> dict:
     torch.manual_seed(0)
     d, b, m, n = 10, 40, 4, 25
     f = LocallyLinearTransition(d) if model == "SSM-LL" else FullyConnectedTransition(d)
-    g = ConvDecoder(d, "pendulum")
+    g = ConvDecoder(d, "pendulum", channels_last=variant != "nchw")
     nodes = torch.nn.Parameter(0.1 * torch.randn(b, m, d))
     y = torch.rand(b, m * n, 1, 24, 24)
     opt = torch.optim.Adam([*f.parameters(), *g.parameters(), nodes], lr=1e-3)
@@ -72,7 +76,7 @@ def worker(model: str, variant: str, steps: int, threads: int) -> dict:
         (fit + 1000.0 * gap).backward()
         opt.step()
 
-    for _ in range(3):
+    for _ in range(5):
         step()
     faults0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     times = []
@@ -86,22 +90,11 @@ def worker(model: str, variant: str, steps: int, threads: int) -> dict:
 
 VARIANTS = [
     ("ours", "ours"),
+    ("nchw", "ours, decoder in NCHW layout"),
     ("default-allocator", "ours, default allocator"),
     ("chunk=1000", "ours, decode_chunk=1000"),
     ("per-step", "per-step decoding (reference structure)"),
 ]
-
-
-def machine() -> str:
-    cpu = platform.machine()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{os.cpu_count()} cores, {cpu}, Python {platform.python_version()}"
 
 
 def main() -> None:
@@ -139,11 +132,11 @@ def main() -> None:
     lines = [
         "# Training step: paper simple-pendulum configuration (batch 40, m = 4, n = 25, 24x24 frames)",
         "",
-        f"- machine: {machine()}, torch {torch.__version__}, {args.threads} threads",
+        f"- machine: {os.cpu_count()} cores, {cpu_model()}, Python {platform.python_version()}, torch {torch.__version__}, {args.threads} threads",
         f"- command: `python benchmarks/bench_train_step.py {' '.join(sys.argv[1:])}`".replace("  ", " "),
         f"- date: {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
         f"- load average at the end (1, 5, 15 min): {load[0]:.2f}, {load[1]:.2f}, {load[2]:.2f}",
-        f"- {args.repeats} processes x {args.steps} timed steps per variant (after 3 warm-up steps); "
+        f"- {args.repeats} processes x {args.steps} timed steps per variant (after 5 warm-up steps); "
         "seconds per optimizer step (forward, backward, Adam)",
         "- paper's reference code on this machine (2 threads), as quoted in the issue: SSM-LL 0.64 s, SSM-FC 0.78 s",
         "",

@@ -28,6 +28,7 @@ sys.path.insert(0, str(ROOT))
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
+from ssm_ms.machine import cpu_model  # noqa: E402
 from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402
 from ssm_ms.nets.observation import Projection  # noqa: E402
 from ssm_ms.nets.transition import LocallyLinearTransition  # noqa: E402
@@ -36,14 +37,6 @@ from ssm_ms.perf import configure_allocator  # noqa: E402
 PAPER_REFERENCE_MS = 6.7  # the paper's reference code on this machine, per step for the batch (brief)
 
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def load() -> str:

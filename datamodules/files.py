@@ -154,8 +154,10 @@ class FileDataModule(TrajectoryDataModule):
             shape as the measurements once concatenated; ``.npz`` read at ``clean_key`` or else ``key``).
         test_fraction: hold out the last ``round(test_fraction * N)`` training trajectories as the test
             split (only without ``test_path``).
-        data_dir, batch_size, eval_batch_size, num_workers, val_trajectories, normalize, shuffle, seed:
-            see :class:`~datamodules.base.TrajectoryDataModule` (``data_dir`` is unused: no cache).
+        seed: seed of the shuffling.
+        **kwargs: the :class:`~datamodules.base.TrajectoryDataModule` arguments (``batch_size``,
+            ``eval_batch_size``, ``num_workers``, ``val_trajectories``, ``normalize``, ``shuffle``;
+            ``data_dir`` is unused: nothing is cached).
     """
 
     name = "files"
@@ -171,25 +173,10 @@ class FileDataModule(TrajectoryDataModule):
         val_clean_path: str | list[str] | None = None,
         test_clean_path: str | list[str] | None = None,
         test_fraction: float = 0.0,
-        data_dir: str = "data",
-        batch_size: int = 40,
-        eval_batch_size: int | None = None,
-        num_workers: int = 0,
-        val_trajectories: int = 16,
-        normalize: bool = False,
-        shuffle: bool = True,
         seed: int = 0,
+        **kwargs: Any,
     ):
-        super().__init__(
-            data_dir=data_dir,
-            batch_size=batch_size,
-            eval_batch_size=eval_batch_size,
-            num_workers=num_workers,
-            val_trajectories=val_trajectories,
-            normalize=normalize,
-            shuffle=shuffle,
-            seed=seed,
-        )
+        super().__init__(seed=seed, **kwargs)
         self.paths = {"train": _as_list(train_path), "val": _as_list(val_path), "test": _as_list(test_path)}
         self.clean_paths = {
             "train": _as_list(train_clean_path), "val": _as_list(val_clean_path), "test": _as_list(test_clean_path)

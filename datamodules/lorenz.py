@@ -104,8 +104,9 @@ class LorenzDataModule(TrajectoryDataModule):
         init_range: initial states are uniform in ``[-init_range, init_range]^3``.
         noise_std: standard deviation of the Gaussian measurement noise.
         seed: seed of the generator (train and test use separate streams) and of the shuffling.
-        data_dir, batch_size, eval_batch_size, num_workers, val_trajectories, normalize, shuffle:
-            see :class:`~datamodules.base.TrajectoryDataModule`.
+        normalize: normalise with training statistics (default here: on).
+        **kwargs: the other :class:`~datamodules.base.TrajectoryDataModule` arguments (``data_dir``,
+            ``batch_size``, ``eval_batch_size``, ``num_workers``, ``val_trajectories``, ``shuffle``).
     """
 
     name = "lorenz"
@@ -125,24 +126,10 @@ class LorenzDataModule(TrajectoryDataModule):
         init_range: float = 10.0,
         noise_std: float = 2.5,
         seed: int = 0,
-        data_dir: str = "data",
-        batch_size: int = 40,
-        eval_batch_size: int | None = None,
-        num_workers: int = 0,
-        val_trajectories: int = 16,
         normalize: bool = True,
-        shuffle: bool = True,
+        **kwargs: Any,
     ):
-        super().__init__(
-            data_dir=data_dir,
-            batch_size=batch_size,
-            eval_batch_size=eval_batch_size,
-            num_workers=num_workers,
-            val_trajectories=val_trajectories,
-            normalize=normalize,
-            shuffle=shuffle,
-            seed=seed,
-        )
+        super().__init__(normalize=normalize, seed=seed, **kwargs)
         if piece_length is None:
             piece_length = train_steps
         for arg, value in (("n_train", n_train), ("train_steps", train_steps), ("n_test", n_test),

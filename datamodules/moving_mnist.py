@@ -275,14 +275,10 @@ class MovingMNISTDataModule(TrajectoryDataModule):
         digit_size: int = 28,
         n_digits: int = 2,
         step: float = 3.6,
-        data_dir: str = "data",
         batch_size: int = 50,
-        eval_batch_size: int | None = None,
-        num_workers: int = 0,
-        val_trajectories: int = 16,
         normalize: bool = False,
-        shuffle: bool = True,
         seed: int = 0,
+        **kwargs: Any,
     ):
         if normalize:
             raise ValueError(
@@ -302,10 +298,7 @@ class MovingMNISTDataModule(TrajectoryDataModule):
             )
         if not (math.isfinite(step) and step >= 0):
             raise ValueError(f"moving_mnist: step (pixels per frame) must be finite and >= 0, got {step}")
-        super().__init__(
-            data_dir=data_dir, batch_size=batch_size, eval_batch_size=eval_batch_size, num_workers=num_workers,
-            val_trajectories=val_trajectories, normalize=False, shuffle=shuffle, seed=seed,
-        )
+        super().__init__(batch_size=batch_size, normalize=False, seed=seed, **kwargs)
         self.mnist_root = mnist_root
         self.download = download
         self.n_train, self.n_test = n_train, n_test

@@ -302,8 +302,9 @@ class PendulumDataModule(TrajectoryDataModule):
         line_width: thickness of the drawn links, in pixels.
         seed: seed of the generator (and of the training-set shuffling).
         workers: processes generating trajectories in parallel (default: the available cores).
-        data_dir, batch_size, eval_batch_size, num_workers, val_trajectories, normalize, shuffle:
-            see :class:`~datamodules.base.TrajectoryDataModule`.
+        **kwargs: the :class:`~datamodules.base.TrajectoryDataModule` arguments (``data_dir``,
+            ``batch_size``, ``eval_batch_size``, ``num_workers``, ``val_trajectories``, ``normalize``,
+            ``shuffle``).
     """
 
     name = "pendulum"
@@ -324,24 +325,9 @@ class PendulumDataModule(TrajectoryDataModule):
         line_width: float = 2.0,
         seed: int = 0,
         workers: int | None = None,
-        data_dir: str = "data",
-        batch_size: int = 40,
-        eval_batch_size: int | None = None,
-        num_workers: int = 0,
-        val_trajectories: int = 16,
-        normalize: bool = False,
-        shuffle: bool = True,
+        **kwargs: Any,
     ):
-        super().__init__(
-            data_dir=data_dir,
-            batch_size=batch_size,
-            eval_batch_size=eval_batch_size,
-            num_workers=num_workers,
-            val_trajectories=val_trajectories,
-            normalize=normalize,
-            shuffle=shuffle,
-            seed=seed,
-        )
+        super().__init__(seed=seed, **kwargs)
         self.n_links = int(n_links)
         self.image_size = int(image_size)
         self.n_train, self.n_test = int(n_train), int(n_test)

@@ -22,10 +22,7 @@ inferred frame ``g(x[k-1])``; ``mean`` predicts the mean training frame.
 
 from __future__ import annotations
 
-import json
 import os
-import platform
-import socket
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -37,6 +34,7 @@ import lightning.pytorch as pl
 import torch
 from torchmetrics import CatMetric
 
+from ssm_ms.machine import describe
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.shooting import decode, rollout
 
@@ -183,6 +181,10 @@ class ForecastModule(pl.LightningModule):
         if n_filter < 1:
             raise ValueError(f"n_filter must be >= 1, got {n_filter}")
         self.ssm, self._ssm_checkpoint = load_ssm(ssm_checkpoint)
+        # plain attributes: under LightningCLI, hparams hold only what the config set
+        self.ssm_checkpoint, self.n_filter, self.n_predict = str(ssm_checkpoint), int(n_filter), n_predict
+        self.bce_reduction, self.original_units = bce_reduction, bool(original_units)
+        self.experiment, self.results_dir, self.figures_dir = experiment, results_dir, figures_dir
         self.metric_names = list(metrics)
         self.method_name = method_name or self.method_kind
         self._metrics = torch.nn.ModuleDict()
@@ -243,8 +245,8 @@ class ForecastModule(pl.LightningModule):
 
     @torch.no_grad()
     def test_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> None:
-        k = self.hparams.n_filter
-        y_filter, y_future = split_sequence(batch["y"], k, self.hparams.n_predict)
+        k = self.n_filter
+        y_filter, y_future = split_sequence(batch["y"], k, self.n_predict)
         p = y_future.shape[1]
         states = self.infer(y_filter)  # [B, k, d]
         pred_states = forecast(self.ssm.f, states[:, -1], p)  # [B, p, d]
@@ -259,12 +261,12 @@ class ForecastModule(pl.LightningModule):
         if "y_clean" in batch:
             targets["clean"] = batch["y_clean"][:, k : k + p]
         norm = self.normalizer()
-        if self.hparams.original_units and norm is not None:
+        if self.original_units and norm is not None:
             preds = {name: norm.denormalize(v) for name, v in preds.items()}
             targets = {name: norm.denormalize(v) for name, v in targets.items()}
         for method, pred in preds.items():
             for target_name, target in targets.items():
-                scores = sequence_metrics(pred, target, self.metric_names, self.hparams.bce_reduction)
+                scores = sequence_metrics(pred, target, self.metric_names, self.bce_reduction)
                 for metric, values in scores.items():
                     self._record(f"{method}/{target_name}/{metric}", values)
         if self._first_batch is None:  # kept for the figures
@@ -285,8 +287,8 @@ class ForecastModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ output
     def experiment_name(self) -> str:
-        if self.hparams.experiment:
-            return self.hparams.experiment
+        if self.experiment:
+            return self.experiment
         dm = self.datamodule
         return getattr(dm, "name", "experiment")
 
@@ -296,19 +298,19 @@ class ForecastModule(pl.LightningModule):
         info = {
             "experiment": self.experiment_name(),
             "method": self.method_name,
-            "ssm_checkpoint": str(self.hparams.ssm_checkpoint),
-            "n_filter": self.hparams.n_filter,
-            "n_predict": self.hparams.n_predict,
+            "ssm_checkpoint": str(self.ssm_checkpoint),
+            "n_filter": self.n_filter,
+            "n_predict": self.n_predict if self.n_predict is not None else "the rest of each sequence",
             "metrics": self.metric_names,
-            "bce_reduction": self.hparams.bce_reduction,
+            "bce_reduction": self.bce_reduction,
             "bce_clamp": f"log(p + {BCE_EPS:g}), log(1 - p + {BCE_EPS:g})",
-            "original_units": self.hparams.original_units,
+            "original_units": self.original_units,
             "command": " ".join(sys.argv),
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "machine": machine_description(),
+            "machine": describe(),
             "test_seconds": round(time.time() - getattr(self, "_start_time", time.time()), 1),
         }
-        write_results(Path(self.hparams.results_dir), info, summary)
+        write_results(Path(self.results_dir), info, summary)
 
     def log_figures(self) -> None:
         if self._first_batch is not None:
@@ -321,9 +323,9 @@ def log_forecast_figures(module: ForecastModule, first: dict[str, torch.Tensor],
     from ssm_ms import viz
 
     writer = viz.tensorboard_writer(module.trainer) if module._trainer is not None else None
-    out_dir = Path(module.hparams.figures_dir) if module.hparams.figures_dir else None
+    out_dir = Path(module.figures_dir) if module.figures_dir else None
     name = f"{module.experiment_name()}_{module.method_name}"
-    k = module.hparams.n_filter
+    k = module.n_filter
     y, y_model = first["y"], first["y_model"]
     figures: dict[str, Any] = {}
     if y.dim() == 5:  # images
@@ -355,7 +357,7 @@ def log_forecast_figures(module: ForecastModule, first: dict[str, torch.Tensor],
         attractor = rollout(module.ssm.f, x0, 10_000)[0]
         if attractor.shape[-1] >= 3:
             figures["attractor"] = viz.attractor_figure(attractor[:, :3], title="f iterated 10,000 times from a node")
-    log_dir = Path(module.hparams.ssm_checkpoint).parent.parent
+    log_dir = Path(module.ssm_checkpoint).parent.parent
     try:
         figures["ssm_training"] = viz.loss_curves_figure(log_dir)
     except (FileNotFoundError, ValueError):
@@ -365,17 +367,3 @@ def log_forecast_figures(module: ForecastModule, first: dict[str, torch.Tensor],
             writer.add_figure(f"test/{module.method_name}/{key}", fig, 0, close=False)
         if out_dir is not None:
             viz.save_figure(fig, out_dir / f"{name}_{key}.png")
-
-
-def machine_description() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
-    return f"{socket.gethostname()}: {os.cpu_count()} cores, {cpu}, {gpu}, torch {torch.__version__}"

@@ -76,7 +76,8 @@ class MultipleShootingModule(pl.LightningModule):
     ):
         super().__init__()
         # Built by LightningCLI, f and g are recorded as their config (class_path + init_args), so
-        # `load_from_checkpoint` can rebuild them; built in Python, pass f= and g= when loading.
+        # `load_from_checkpoint` rebuilds them; built in Python, checkpoints carry the networks
+        # themselves (see on_save_checkpoint).
         self.save_hyperparameters(ignore=[] if _given_by_cli() else ["f", "g"])
         loss_function(loss)  # unknown loss name: fail now, not at the first step
         if state_dim < 1 or n_nodes < 1:

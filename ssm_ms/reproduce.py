@@ -19,7 +19,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from ssm_ms.evaluation import machine_description
+from ssm_ms.machine import describe
 from ssm_ms.results import write_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> None:
     md = write_pipeline(results_dir, experiment, {
         "stages": stages,
         "total_seconds": round(sum(s["seconds"] for s in stages), 1),
-        "machine": machine_description(),
+        "machine": describe(),
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "command": f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else ""),
     })

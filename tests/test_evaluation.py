@@ -13,7 +13,7 @@ from ssm_ms.inference.encoder_module import StateEncoderModule
 from ssm_ms.inference.filter_module import FilterForecaster
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import Projection
-from tests.conftest import ExactRotation, RotationDataModule, fast_trainer, rotation_model
+from tests.conftest import ExactRotation, RotationDataModule, fast_trainer
 
 
 # ---------------------------------------------------------------------------- metrics
@@ -169,3 +169,13 @@ def test_measurement_dimension_must_match_g(exact_ssm):
     enc = StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8})
     with pytest.raises(ValueError, match=r"built for measurements of shape \[1\], got \[3\]"):
         enc.encoder(torch.zeros(2, 5, 3))
+
+
+def test_particle_filter_stage_tracks_the_exact_model(exact_ssm):
+    tmp, ckpt = exact_ssm
+    dm = rotation_dm(tmp)
+    pf = FilterForecaster(str(ckpt), n_filter=8, method="pf", n_particles=2000, measurement_var=0.05**2,
+                          init_var=1.0, metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot_pf")
+    fast_trainer(tmp, max_epochs=1).test(pf, dm)
+    saved = json.loads((tmp / "results" / "rot_pf.json").read_text())["runs"]["pf"]["summary"]
+    assert saved["pf/clean/mse"]["mean"] < 0.1 * saved["mean/clean/mse"]["mean"]

@@ -1,6 +1,5 @@
 """MultipleShootingModule: node lookup, node initialisation, checks before training, NaN handling."""
 
-import lightning.pytorch as pl
 import pytest
 import torch
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint

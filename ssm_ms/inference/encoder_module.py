@@ -29,7 +29,10 @@ class StateEncoderModule(ForecastModule):
         encoder: keyword arguments of ``StateEncoder`` (``preset``, ``hidden``, ...), without
             ``state_dim`` / ``obs_shape`` (taken from the SSM).
         lr: Adam learning rate.
-        Other arguments: see :class:`~ssm_ms.evaluation.ForecastModule`.
+        metrics: scores of the test protocol.
+        **kwargs: the protocol's other arguments (``n_predict``, ``bce_reduction``, ``original_units``,
+            ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``), see
+            :class:`~ssm_ms.evaluation.ForecastModule`.
     """
 
     method_kind = "encoder"
@@ -40,17 +43,10 @@ class StateEncoderModule(ForecastModule):
         n_filter: int,
         encoder: dict[str, Any] | None = None,
         lr: float = 1e-3,
-        n_predict: int | None = None,
         metrics: list[str] = ["mse", "bce"],
-        bce_reduction: str = "mean",
-        original_units: bool = False,
-        experiment: str | None = None,
-        results_dir: str = "results",
-        figures_dir: str | None = None,
-        method_name: str | None = None,
+        **kwargs: Any,
     ):
-        super().__init__(ssm_checkpoint, n_filter, n_predict, metrics, bce_reduction, original_units, experiment,
-                         results_dir, figures_dir, method_name)
+        super().__init__(ssm_checkpoint, n_filter, metrics=metrics, **kwargs)
         kwargs = dict(encoder or {"preset": "vector" if len(self.ssm.obs_shape()) == 1 else None})
         for reserved in ("state_dim", "obs_shape"):
             if reserved in kwargs:
