@@ -22,6 +22,7 @@ inferred frame ``g(x[k-1])``; ``mean`` predicts the mean training frame.
 
 from __future__ import annotations
 
+import contextvars
 import os
 import sys
 import time
@@ -95,7 +96,11 @@ def load_ssm(path: str | os.PathLike, map_location: str | torch.device = "cpu") 
     checkpoint = torch.load(path, map_location=map_location, weights_only=False)
     if "state_dict" not in checkpoint or "nodes.weight" not in checkpoint["state_dict"]:
         raise ValueError(f"{path} is not a checkpoint of a MultipleShootingModule (no shooting nodes in it)")
-    model = MultipleShootingModule.load_from_checkpoint(path, map_location=map_location, weights_only=False)
+    # LightningCLI hands a module it builds its hyperparameters through a context variable; the SSM loaded
+    # here, during that construction, must not pick them up: load it in an empty context.
+    model = contextvars.Context().run(
+        MultipleShootingModule.load_from_checkpoint, path, map_location=map_location, weights_only=False
+    )
     model.freeze()
     return model, checkpoint
 
@@ -334,7 +339,7 @@ def log_forecast_figures(module: ForecastModule, first: dict[str, torch.Tensor],
         if writer is not None:
             writer.add_image(f"test/{module.method_name}/prediction_mosaic", mosaic, 0)
         if out_dir is not None:
-            viz.save_png(mosaic, out_dir / f"{name}_mosaic.png")
+            viz.save_png(mosaic, out_dir / f"{name}_mosaic.png", scale=max(1, 256 // y.shape[-1]))
             viz.save_gif(y[0], y_model[0], k, out_dir / f"{name}.gif")
     elif y.dim() == 3:  # vectors
         norm = module.normalizer()

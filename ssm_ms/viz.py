@@ -169,12 +169,17 @@ def _cpu(x: torch.Tensor) -> torch.Tensor:
     return x.detach().float().cpu()
 
 
-def save_png(image: torch.Tensor, path) -> Path:
-    """Write an image tensor ``[C, H, W]`` (C = 1, 3 or 4) or ``[H, W]`` with values in [0, 1] as a PNG.
+def save_png(image: torch.Tensor, path, scale: int = 1) -> Path:
+    """Write an image tensor ``[C, H, W]`` (C = 1, 3 or 4) or ``[H, W]`` with values in [0, 1] as a PNG,
+    each pixel repeated ``scale`` times per axis (nearest neighbour: small frames stay readable).
 
     Parent folders are created. Returns the path.
     """
+    if scale < 1:
+        raise ValueError(f"scale must be >= 1, got {scale}")
     img = _cpu(image)
+    if scale > 1:
+        img = img.repeat_interleave(scale, dim=-1).repeat_interleave(scale, dim=-2)
     if img.dim() == 2:
         img = img.unsqueeze(0)
     if img.dim() != 3 or img.shape[0] not in (1, 3, 4):
@@ -368,8 +373,9 @@ def lorenz_prediction_figure(
         states: ``[T, d]``: the model's inferred states for ``t < n_filter``, then its predicted states.
             Component ``measured_index`` is in measurement units (g reads it).
         n_filter: first predicted step; a dashed vertical line at ``n_filter * dt`` in every panel.
-        true_state: optional ``[T, d']``: drawn faintly in the panels of the unmeasured components (the
-            latent axes of a learned model need not match them); in the measured panel the noiseless
+        true_state: optional ``[T, d']``: drawn faintly, on a right-hand axis of its own, in the panels of
+            the unmeasured components (the latent axes of a learned model need not match them in scale or
+            offset); in the measured panel the noiseless
             measurement is the true component.
         dt: seconds per step.
         measured_index: the state component the measurement reads.
@@ -416,11 +422,15 @@ def lorenz_prediction_figure(
             if clean is not None:
                 ax.plot(time, clean[sel], "-", lw=1.0, color="k", label="noiseless measurement", gid="noiseless")
         elif true is not None and i < true.shape[1]:
-            ax.plot(time, true[sel, i], "-", lw=1.0, color="0.6", alpha=0.6,
-                    label="true state (latent axes need not match)", gid="true")
+            # on its own (right) axis: a learned latent coordinate has its own scale and offset
+            twin = ax.twinx()
+            twin.set_label("true-state axis")
+            twin.plot(time, true[sel, i], "-", lw=1.0, color="0.6", alpha=0.7, gid="true")
+            twin.set_ylabel(f"true state {i} (right axis)", color="0.5", fontsize=8)
+            twin.tick_params(axis="y", colors="0.5", labelsize=7)
         ax.plot(time, s[sel, i], "-", lw=1.4, color="C0" if i == measured_index else "C1", label="model", gid="model")
         ax.axvline(n_filter * dt, color="C3", ls="--", lw=1.0, label="prediction starts", gid="prediction_start")
-        ax.set_ylabel(f"state {i}" + (" (measured)" if i == measured_index else ""))
+        ax.set_ylabel(f"state {i}" + (" (measured)" if i == measured_index else " (model, left axis)"))
         ax.legend(loc="upper left", fontsize=7, ncol=4)
     axes[-1].set_xlabel("time [s]")
     fig.suptitle(f"filtering {n_filter} steps, then prediction")

@@ -98,9 +98,11 @@ def test_ukf_stage_from_the_cli(tmp_path):
     ssm = CPU / "lorenz_T1000.yaml"
     fit_tiny(tmp_path, ssm)
     ssm_ckpt = outputs(tmp_path, ssm) / "checkpoints" / "last.ckpt"
-    run(tmp_path, "test", CPU / "lorenz_T1000_ukf.yaml", "--model.init_args.ssm_checkpoint", str(ssm_ckpt),
+    cli = run(tmp_path, "test", CPU / "lorenz_T1000_ukf.yaml", "--model.init_args.ssm_checkpoint", str(ssm_ckpt),
         "--model.init_args.results_dir", str(tmp_path / "results"), "--model.init_args.figures_dir",
         str(tmp_path / "figures"), "--trainer.limit_test_batches", "1", *TINY["lorenz"])
+    # the SSM loaded inside the CLI-built forecaster keeps its own hyperparameters, not the forecaster's
+    assert cli.model.ssm.hparams["node_init_map"] == {0: 0} and "n_filter" not in cli.model.ssm.hparams
     saved = (tmp_path / "results" / "lorenz_T1000_cpu.json").read_text()
     assert '"ukf/clean/mse"' in saved
     assert (tmp_path / "figures" / "lorenz_T1000_cpu_ukf_lorenz_prediction.png").is_file()

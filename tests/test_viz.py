@@ -128,17 +128,22 @@ def test_lorenz_prediction_figure(window):
     fig = lorenz_prediction_figure(y, y_clean[:, 0], states, n_filter, true_state=true, dt=dt, window=window)
     lo, hi = (0, t) if window is None else (n_filter - window, n_filter + window)
     time = np.arange(lo, hi) * dt
-    assert len(fig.axes) == 3
-    for i, ax in enumerate(fig.axes):
+    main = [ax for ax in fig.axes if ax.get_label() != "true-state axis"]
+    twins = [ax for ax in fig.axes if ax not in main]
+    assert len(main) == 3 and len(twins) == 2  # the true unmeasured components on their own right axes
+    for i, twin in zip((1, 2), twins):
+        (true_line,) = lines_by_gid(twin, "true")
+        np.testing.assert_array_equal(true_line.get_ydata(), true[lo:hi, i].double().numpy())
+    for i, ax in enumerate(main):
         (start,) = lines_by_gid(ax, "prediction_start")
         np.testing.assert_allclose(start.get_xdata(), [n_filter * dt] * 2)
         (model,) = lines_by_gid(ax, "model")
         np.testing.assert_allclose(model.get_xdata(), time)
         np.testing.assert_array_equal(model.get_ydata(), states[lo:hi, i].double().numpy())
-        assert len(lines_by_gid(ax, "true")) == (0 if i == 0 else 1)
-    (meas,) = lines_by_gid(fig.axes[0], "measurement")
+        assert not lines_by_gid(ax, "true")
+    (meas,) = lines_by_gid(main[0], "measurement")
     np.testing.assert_array_equal(meas.get_ydata(), y[lo:hi, 0].double().numpy())
-    (clean,) = lines_by_gid(fig.axes[0], "noiseless")
+    (clean,) = lines_by_gid(main[0], "noiseless")
     np.testing.assert_array_equal(clean.get_ydata(), y_clean[lo:hi, 0].double().numpy())
 
 
@@ -258,3 +263,12 @@ def test_loss_curves_merge_resumed_runs_later_write_wins(tmp_path):
     (line,) = [ln for ax in loss_curves_figure(tmp_path).axes for ln in ax.get_lines() if ln.get_gid() == "train/fit"]
     np.testing.assert_array_equal(line.get_xdata(), np.arange(9))
     np.testing.assert_array_equal(line.get_ydata(), [1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0])
+
+
+def test_save_png_scales_by_pixel_repetition(tmp_path):
+    img = torch.rand(1, 3, 5)
+    path = save_png(img, tmp_path / "a.png", scale=3)
+    arr = np.asarray(Image.open(path)).astype(np.float64) / 255
+    assert arr.shape == (9, 15)
+    expected = np.kron(img[0].numpy(), np.ones((3, 3)))  # every pixel a 3x3 block
+    assert np.abs(arr - expected).max() <= 0.5 / 255 + 1e-9
