@@ -370,5 +370,6 @@ def log_forecast_figures(module: ForecastModule, first: dict[str, torch.Tensor],
     for key, fig in figures.items():
         if writer is not None:
             writer.add_figure(f"test/{module.method_name}/{key}", fig, 0, close=False)
-        if out_dir is not None:
-            viz.save_figure(fig, out_dir / f"{name}_{key}.png")
+        if out_dir is not None:  # figures of the SSM alone do not depend on the inference method
+            stem = module.experiment_name() if key in ("attractor", "ssm_training") else name
+            viz.save_figure(fig, out_dir / f"{stem}_{key}.png")
