@@ -20,6 +20,8 @@ from typing import NamedTuple, Optional, Union
 import torch
 from torch import Tensor
 
+from ssm_ms.inference.measurements import check_measurements
+
 
 class ParticleFilterResult(NamedTuple):
     """Weighted posterior means ``[B, T, d]``; effective sample size before resampling ``[B, T]``;
@@ -144,14 +146,7 @@ class ParticleFilter:
         :class:`ParticleFilterResult` comes back instead (means, ESS, last posterior particles/weights).
         Runs without autograd graphs: the filter is for inference (resampling is not differentiable).
         """
-        if not isinstance(y, Tensor) or y.ndim < 3:
-            shape = list(y.shape) if isinstance(y, Tensor) else type(y).__name__
-            raise ValueError(f"y must be a tensor [B, T, *obs_shape] (batch, time, observation), got {shape}")
-        if not y.is_floating_point():
-            raise ValueError(f"y must be floating point, got {y.dtype}: convert images with base.to_float")
-        bsz, steps = y.shape[:2]
-        if bsz == 0 or steps == 0:
-            raise ValueError(f"y must hold at least one trajectory and one step, got shape {list(y.shape)}")
+        bsz, steps = check_measurements(y)
         dtype, device = y.dtype, y.device
         d = self.state_dim
         if x0 is not None:

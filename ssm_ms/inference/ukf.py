@@ -26,6 +26,8 @@ from typing import NamedTuple, Optional, Union
 import torch
 from torch import Tensor
 
+from ssm_ms.inference.measurements import check_measurements
+
 # Plain types only, so that configs (jsonargparse / LightningCLI) can give them; tensors work too at run time.
 Variance = Union[float, list[float], list[list[float]]]
 
@@ -348,14 +350,7 @@ class UnscentedKalmanFilter:
         ``x0``: prior mean at time 0, ``[d]`` or ``[B, d]`` (default zeros). ``P0``: prior covariance,
         ``[d, d]`` or ``[B, d, d]`` (default ``init_var``), symmetric positive definite.
         """
-        if not isinstance(y, Tensor) or y.ndim < 3:
-            shape = list(y.shape) if isinstance(y, Tensor) else type(y).__name__
-            raise ValueError(f"y must be a tensor [B, T, *obs_shape] (batch, time, observation), got {shape}")
-        if not y.is_floating_point():
-            raise ValueError(f"y must be floating point, got {y.dtype}: convert images with base.to_float")
-        bsz, steps = y.shape[:2]
-        if bsz == 0 or steps == 0:
-            raise ValueError(f"y must hold at least one trajectory and one step, got shape {list(y.shape)}")
+        bsz, steps = check_measurements(y)
         dtype, device = y.dtype, y.device
         d = self._resolve_state_dim(x0, P0)
         mean = self._initial_mean(x0, bsz, d, dtype, device)
