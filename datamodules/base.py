@@ -32,8 +32,6 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
 
-ARRAY_KEYS = ("y", "y_clean", "state")
-
 
 class Normalizer:
     """Per-channel affine normalisation ``(y - mean) / std`` over the first observation axis.

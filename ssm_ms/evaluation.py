@@ -41,7 +41,6 @@ from ssm_ms.shooting import decode, rollout
 
 BCE_EPS = 1e-12
 METRICS = ("mse", "bce")
-REFERENCES = ("last", "mean")
 
 
 # ---------------------------------------------------------------------------- pure functions

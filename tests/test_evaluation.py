@@ -164,7 +164,7 @@ def test_checkpoint_of_another_data_set_is_refused(exact_ssm):
         trainer.fit(StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8}), other)
 
 
-def test_measurement_dimension_must_match_g(exact_ssm):
+def test_encoder_refuses_measurements_of_another_shape(exact_ssm):
     tmp, ckpt = exact_ssm
     enc = StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8})
     with pytest.raises(ValueError, match=r"built for measurements of shape \[1\], got \[3\]"):
