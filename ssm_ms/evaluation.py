@@ -200,6 +200,10 @@ class ForecastModule(pl.LightningModule):
         """Inferred states ``[B, k, d]`` from measurements ``[B, k, *obs_shape]``."""
         raise NotImplementedError
 
+    def inference_settings(self) -> str | None:
+        """One line on how states are inferred, recorded with the results (``None``: nothing to add)."""
+        return None
+
     # ------------------------------------------------------------------ set-up
     @property
     def datamodule(self):
@@ -309,6 +313,7 @@ class ForecastModule(pl.LightningModule):
             "bce_reduction": self.bce_reduction,
             "bce_clamp": f"log(p + {BCE_EPS:g}), log(1 - p + {BCE_EPS:g})",
             "original_units": self.original_units,
+            "inference": self.inference_settings(),
             "command": " ".join(sys.argv),
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "machine": describe(),

@@ -89,8 +89,8 @@ def render_markdown(experiment: str, runs: dict[str, dict[str, Any]], pipeline: 
         info = run["info"]
         lines.append(f"- **{method}**: `{info.get('command', '')}`")
         for field in ("date", "machine", "ssm_checkpoint", "n_filter", "n_predict", "bce_reduction", "bce_clamp",
-                      "original_units", "test_seconds"):
-            if field in info:
+                      "original_units", "inference", "test_seconds"):
+            if info.get(field) is not None:
                 lines.append(f"  - {field}: {info[field]}")
     lines.append("")
     if pipeline:

@@ -148,6 +148,17 @@ def test_ukf_stage_tracks_the_exact_model(exact_ssm):
     # noise std 0.05 on a unit circle: the filtered phase is accurate, the forecast too
     assert saved["ukf/clean/mse"]["mean"] < 0.01
     assert saved["ukf/clean/mse"]["mean"] < 0.1 * saved["mean/clean/mse"]["mean"]
+    # f and g in bfloat16, labelled as another method of the same experiment: as accurate, and said so
+    half = FilterForecaster(str(ckpt), n_filter=8, method="ukf", measurement_var=0.05**2, init_var=1.0,
+                            autocast="bfloat16", method_name="ukf_bf16", metrics=["mse"],
+                            results_dir=str(tmp / "results"), experiment="rot_ukf")
+    fast_trainer(tmp, max_epochs=1).test(half, dm)
+    runs = json.loads((tmp / "results" / "rot_ukf.json").read_text())["runs"]
+    assert set(runs) == {"ukf", "ukf_bf16"}
+    assert runs["ukf_bf16"]["summary"]["ukf_bf16/clean/mse"]["mean"] < 0.01
+    assert runs["ukf"]["info"]["inference"].endswith("full precision")
+    assert runs["ukf_bf16"]["info"]["inference"].endswith("f and g under autocast(bfloat16)")
+    assert "f and g under autocast(bfloat16)" in (tmp / "results" / "rot_ukf.md").read_text()
 
 
 # ---------------------------------------------------------------------------- bad input

@@ -61,19 +61,24 @@ def simulate(A, H, Q, R, x0, P0, B, T, seed=1):
 
 
 @pytest.mark.parametrize(
-    "d, p, innovation, full_r, beta",
+    "d, p, innovation, full_r, beta, g_known_linear",
     [
-        (4, 2, "auto", False, 2.0),
-        (4, 2, "low_rank", True, 2.0),
-        (2, 7, "auto", True, 2.0),
-        (2, 7, "dense", False, 2.0),
-        (3, 9, "auto", False, 2.0),
-        (3, 2, "auto", True, 0.0),  # cubature rule: the centre point is dropped
-        (3, 9, "auto", False, 0.0),
+        (4, 2, "auto", False, 2.0, True),  # dense mode with an nn.Linear g: H P H^T, no sigma points
+        (4, 2, "auto", False, 2.0, False),  # the same through sigma points
+        (4, 2, "low_rank", True, 2.0, True),
+        (2, 7, "auto", True, 2.0, True),
+        (2, 7, "dense", False, 2.0, True),
+        (2, 7, "dense", True, 2.0, False),
+        (3, 9, "auto", False, 2.0, True),
+        (3, 2, "auto", True, 0.0, True),  # cubature rule: the centre point is dropped
+        (3, 2, "auto", True, 0.0, False),
+        (3, 9, "auto", False, 0.0, True),
     ],
 )
-def test_ukf_equals_kalman_filter_on_linear_gaussian_system(d, p, innovation, full_r, beta):
+def test_ukf_equals_kalman_filter_on_linear_gaussian_system(d, p, innovation, full_r, beta, g_known_linear):
     A, H, f, g = linear_system(d, p)
+    if not g_known_linear:
+        g = g.forward  # a plain function: the filter cannot tell it is linear
     q_diag = [0.01 * (i + 1) for i in range(d)]
     Q = torch.diag(torch.tensor(q_diag, dtype=F64))
     if full_r:
@@ -181,6 +186,90 @@ def lorenz_data(B, T, seed=0):
     z = (torch.stack(xs, 1) - LORENZ_MEAN) / LORENZ_STD
     y = z[..., :1] + math.sqrt(0.5) * torch.randn(B, T, 1, generator=gen, dtype=F64)
     return z, y
+
+
+def test_linear_g_is_not_evaluated_on_sigma_points_and_changes_nothing():
+    """Projection / nn.Linear g: the update uses H directly; same result as sigma points through g."""
+    from ssm_ms.nets.observation import Projection
+    from ssm_ms.nets.transition import LocallyLinearTransition
+
+    class CountingProjection(Projection):
+        calls = 0
+
+        def forward(self, x):
+            CountingProjection.calls += 1
+            return super().forward(x)
+
+    torch.manual_seed(0)
+    f = LocallyLinearTransition(3, n_matrices=4, hidden=16).double()
+    y = torch.randn(4, 30, 2, dtype=F64)
+    lin = nn.Linear(3, 2).double()  # with a bias: g(x) = H x + c
+    for g in (CountingProjection([2, 0]), lin):
+        CountingProjection.calls = 0
+        fast = UnscentedKalmanFilter(f, g, process_var=1e-3).filter(y)
+        if isinstance(g, CountingProjection):
+            assert CountingProjection.calls == 1  # the shape check only
+        slow = UnscentedKalmanFilter(f, g.forward, process_var=1e-3, state_dim=3).filter(y)
+        if isinstance(g, CountingProjection):
+            assert CountingProjection.calls == 1 + 1 + 30  # + the shape check and one call per update
+        torch.testing.assert_close(fast.means, slow.means, rtol=0, atol=1e-10)
+        torch.testing.assert_close(fast.covs, slow.covs, rtol=0, atol=1e-10)
+    with pytest.raises(ValueError, match="g failed on a state of dimension 3"):
+        UnscentedKalmanFilter(f, nn.Linear(4, 2).double()).filter(y)
+
+    class InconsistentLinear(nn.Module):  # says H is 2 x 4, but reads 3 components
+        def forward(self, x):
+            return x[:, :2]
+
+        def observation_matrix(self, d):
+            return torch.zeros(2, 4)
+
+    with pytest.raises(ValueError, match="linear with a \\[2, 4\\] matrix but states have 3"):
+        UnscentedKalmanFilter(f, InconsistentLinear()).filter(y)
+
+
+def test_projection_observation_matrix():
+    from ssm_ms.nets.observation import Projection
+
+    x = torch.randn(5, 4)
+    proj = Projection([3, 1, 1])
+    h = proj.observation_matrix(4)
+    torch.testing.assert_close(x @ h.T, torch.stack([x[:, 3], x[:, 1], x[:, 1]], -1), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="state has 3"):
+        proj.observation_matrix(3)
+
+
+def test_autocast_runs_f_and_g_in_bfloat16_and_keeps_the_filter_in_float32():
+    torch.manual_seed(0)
+    f_net = nn.Sequential(nn.Linear(3, 64), nn.Tanh(), nn.Linear(64, 3))
+    g_net = nn.Sequential(nn.Linear(3, 8), nn.Tanh(), nn.Linear(8, 2))
+    seen = []
+
+    def f(x):
+        out = f_net(x)
+        seen.append(out.dtype)
+        return x + 0.1 * out
+
+    z, _ = lorenz_data(B=3, T=200)
+    y = (g_net(z.float()) + 0.1 * torch.randn(3, 200, 2)).detach()
+    with torch.no_grad():
+        full = UnscentedKalmanFilter(f, g_net, process_var=1e-3, state_dim=3).filter(y)
+        assert set(seen) == {torch.float32}
+        seen.clear()
+        half = UnscentedKalmanFilter(f, g_net, process_var=1e-3, state_dim=3, autocast="bfloat16").filter(y)
+    assert set(seen) == {torch.bfloat16}
+    assert half.means.dtype == half.covs.dtype == torch.float32
+    diff = (half.means - full.means).abs().max()
+    assert 0 < diff < 0.05 * full.means.abs().max(), diff  # reduced precision, but the same estimates
+    check_covariances(half.covs.double())
+
+    seen.clear()
+    pf_half = ParticleFilter(f, g_net, n_particles=30, seed=0, state_dim=3, autocast="bfloat16").filter(y)
+    assert set(seen) == {torch.bfloat16} and pf_half.dtype == torch.float32  # (accuracy: the Kalman test)
+
+    for cls in (UnscentedKalmanFilter, ParticleFilter):
+        with pytest.raises(ValueError, match="autocast must be null"):
+            cls(f, g_net, state_dim=3, autocast="fp8")
 
 
 def test_ukf_tracks_unobserved_lorenz_components():
@@ -369,7 +458,8 @@ def test_systematic_resampling_is_unbiased_over_offsets():
     torch.testing.assert_close(freq, w[0], rtol=0, atol=0.01)
 
 
-def test_particle_filter_matches_kalman_filter():
+@pytest.mark.parametrize("autocast", [None, "bfloat16"])
+def test_particle_filter_matches_kalman_filter(autocast):
     d, p, B, T = 2, 1, 3, 12
     A, H, f, g = linear_system(d, p, seed=2)
     q, r = 0.05, 0.3
@@ -378,17 +468,21 @@ def test_particle_filter_matches_kalman_filter():
     y = simulate(A, H, Q, R, torch.zeros(d, dtype=F64), P0, B, T)
     ref_m, ref_c = kalman_filter(y, A, H, Q, R, torch.zeros(d, dtype=F64), P0)
     n = 20000
+    if autocast:  # float32 filter, f and g in bfloat16: the estimates must stay as close
+        f, g, y = f.float(), g.float(), y.float()
     pf = ParticleFilter(
-        f, g, n_particles=n, state_dim=d, process_std=q**0.5, measurement_std=r**0.5, init_std=0.1**0.5, seed=0
+        f, g, n_particles=n, state_dim=d, process_std=q**0.5, measurement_std=r**0.5, init_std=0.1**0.5, seed=0,
+        autocast=autocast,
     )
     res = pf.filter(y, return_particles=True)
+    assert res.means.dtype == y.dtype
     assert res.means.shape == (B, T, d) and res.ess.shape == (B, T)
     # Monte Carlo error of a weighted mean ~ posterior std / sqrt(ESS): with ESS >= 0.1 N = 2000 that is
     # 0.022 std per step; resampling carries earlier steps' error along (a few times more at most). So the
     # worst error must stay below 0.15 std (~7 single-step standard errors) and the RMS below 0.05 std.
     # (A 20% wrong measurement std already gives 0.3 std and 0.11 std.)
     assert (res.ess > 0.1 * n).all(), "too few effective particles for the tolerance below"
-    err = (res.means - ref_m).abs() / ref_c.diagonal(dim1=-2, dim2=-1).sqrt()
+    err = (res.means.double() - ref_m).abs() / ref_c.diagonal(dim1=-2, dim2=-1).sqrt()
     rms = err.pow(2).mean().sqrt()
     assert err.max() < 0.15 and rms < 0.05, f"max {err.max():.3f}, RMS {rms:.3f} posterior std"
     # the returned last-step particles and weights carry the last posterior

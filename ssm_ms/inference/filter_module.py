@@ -34,6 +34,9 @@ class FilterForecaster(ForecastModule):
         init_var: prior variance at time 0 (paper: 0.1).
         n_particles, likelihood, resample_threshold, likelihood_scale, seed: particle filter settings
             (``likelihood="bernoulli"`` for images in [0, 1]).
+        autocast: ``None`` (full precision) or ``"bfloat16"`` / ``"float16"``: run ``f`` and ``g`` under
+            ``torch.autocast`` inside the filter (faster on CPUs with AVX512-BF16 and on GPUs; see
+            benchmarks/results/ukf.md for speed and effect on the Lorenz results).
         metrics: scores of the test protocol.
         method_name: label of the results (default: ``method``).
         **kwargs: the protocol's other arguments (``n_predict``, ``bce_reduction``, ``original_units``,
@@ -54,6 +57,7 @@ class FilterForecaster(ForecastModule):
         resample_threshold: float = 0.5,
         likelihood_scale: float = 1.0,
         seed: int = 0,
+        autocast: str | None = None,
         metrics: list[str] = ["mse"],
         method_name: str | None = None,
         **kwargs: Any,
@@ -64,12 +68,25 @@ class FilterForecaster(ForecastModule):
         f, g = self.ssm.f, self.ssm.g
         if method == "ukf":
             self.filter = UnscentedKalmanFilter(f, g, process_var=process_var, measurement_var=measurement_var,
-                                                init_var=init_var, state_dim=self.ssm.state_dim)
+                                                init_var=init_var, state_dim=self.ssm.state_dim, autocast=autocast)
         else:
             self.filter = ParticleFilter(f, g, n_particles=n_particles, process_std=process_std,
                                          measurement_std=math.sqrt(measurement_var), likelihood=likelihood,
                                          init_std=math.sqrt(init_var), resample_threshold=resample_threshold,
-                                         likelihood_scale=likelihood_scale, seed=seed, state_dim=self.ssm.state_dim)
+                                         likelihood_scale=likelihood_scale, seed=seed, state_dim=self.ssm.state_dim,
+                                         autocast=autocast)
+
+    def inference_settings(self) -> str:
+        flt = self.filter
+        if isinstance(flt, UnscentedKalmanFilter):
+            noise = f"process_var={flt.process_var.tolist()}, measurement_var={flt.measurement_var.tolist()}, " \
+                    f"init_var={flt.init_var.tolist()}"
+        else:
+            noise = f"n_particles={flt.n_particles}, process_std={flt.process_std.tolist()}, " \
+                    f"measurement_std={flt.measurement_std.tolist()}, likelihood={flt.likelihood}"
+        precision = "full precision" if flt.autocast is None else \
+            f"f and g under autocast({str(flt.autocast).removeprefix('torch.')})"
+        return f"{type(flt).__name__}: {noise}; {precision}"
 
     def prior_mean(self, y_filter: torch.Tensor) -> torch.Tensor:
         """``[B, d]``: mean shooting node, with measured components taken from ``y[0]``."""

@@ -20,7 +20,7 @@ from typing import NamedTuple, Optional, Union
 import torch
 from torch import Tensor
 
-from ssm_ms.inference.measurements import check_measurements
+from ssm_ms.inference.shared import call_model, check_autocast, check_measurements
 
 
 class ParticleFilterResult(NamedTuple):
@@ -72,6 +72,10 @@ class ParticleFilter:
             degeneracy with high-dimensional images. 1.0 is the exact filter.
         seed: seeds a private generator on ``y``'s device when ``filter`` gets no generator.
         state_dim: ``d``; if omitted, taken from ``f.state_dim``, a per-dimension std or ``x0``.
+        autocast: ``None`` (default, the dtype of ``y``), ``"bfloat16"`` or ``"float16"``: evaluate ``f``
+            and ``g`` under ``torch.autocast`` with this dtype (their matrix products and convolutions
+            in reduced precision), which is what a filter spends its time on; the weights and
+            resampling stay in ``y``'s dtype.
     """
 
     def __init__(
@@ -87,6 +91,7 @@ class ParticleFilter:
         likelihood_scale: float = 1.0,
         seed: Optional[int] = None,
         state_dim: Optional[int] = None,
+        autocast: Optional[str] = None,
     ):
         if not isinstance(n_particles, int) or n_particles < 1:
             raise ValueError(f"n_particles must be a positive int, got {n_particles!r}")
@@ -99,6 +104,7 @@ class ParticleFilter:
         if not likelihood_scale > 0:
             raise ValueError(f"likelihood_scale must be > 0, got {likelihood_scale}")
         self.f, self.g = f, g
+        self.autocast = check_autocast(autocast)
         self.n_particles = n_particles
         self.process_std = self._check_std(process_std, "process_std", allow_zero=True)
         self.measurement_std = self._check_std(measurement_std, "measurement_std", allow_zero=False)
@@ -188,7 +194,7 @@ class ParticleFilter:
             log_w = torch.full((bsz, n), -log_n, dtype=dtype, device=device)
             means, ess_all = [], []
             for t in range(steps):
-                obs = self.g(particles.reshape(bsz * n, d))
+                obs = call_model(self.g, particles.reshape(bsz * n, d), self.autocast)
                 if t == 0:
                     self._check_obs(obs, y, bsz * n)
                 obs = obs.reshape(bsz, n, -1)
@@ -209,7 +215,8 @@ class ParticleFilter:
                 particles = particles.gather(1, idx.unsqueeze(-1).expand(bsz, n, d))
                 log_w = torch.where(need[:, None], torch.full_like(log_w, -log_n), log_w)
                 noise = torch.randn(bsz, n, d, dtype=dtype, device=device, generator=generator)
-                particles = self.f(particles.reshape(bsz * n, d)).reshape(bsz, n, d) + proc_std * noise
+                particles = call_model(self.f, particles.reshape(bsz * n, d), self.autocast)
+                particles = particles.reshape(bsz, n, d) + proc_std * noise
             means_t = torch.stack(means, dim=1)
         if not return_particles:
             return means_t

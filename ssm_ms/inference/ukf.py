@@ -26,7 +26,7 @@ from typing import NamedTuple, Optional, Union
 import torch
 from torch import Tensor
 
-from ssm_ms.inference.measurements import check_measurements
+from ssm_ms.inference.shared import call_model, check_autocast, check_measurements
 
 # Plain types only, so that configs (jsonargparse / LightningCLI) can give them; tensors work too at run time.
 Variance = Union[float, list[float], list[list[float]]]
@@ -104,6 +104,8 @@ class _Setup:
         self.r_std: Optional[Tensor] = None
         self.u_scale: Optional[Tensor] = None
         self.r_chol: Optional[Tensor] = None
+        self.h: Optional[Tensor] = None  # g(x) = h x + c when g is linear (dense mode)
+        self.c: Optional[Tensor] = None
 
 
 class UnscentedKalmanFilter:
@@ -134,6 +136,14 @@ class UnscentedKalmanFilter:
             (``S = R + U U^T`` with ``U`` of rank ``2d+1``, Woodbury), cost ``O(p (2d+1)^2 + p^2 (2d+1))``
             with a full ``R`` and ``O(p (2d+1)^2)`` with a diagonal one; needs non-negative weights.
             ``"auto"`` (default) picks ``low_rank`` when the weights allow it and ``p > 2d+1``.
+            In ``dense`` mode a linear ``g`` (``nn.Linear``, or a module with ``observation_matrix(d)``
+            such as :class:`~ssm_ms.nets.observation.Projection`) is not evaluated on sigma points: the
+            unscented transform of a linear map is exact, so the update uses ``H P H^T`` and ``P H^T``
+            directly (the same result, fewer operations). Wrap ``g`` in a function to force sigma points.
+        autocast: ``None`` (default: the dtype of ``y``), ``"bfloat16"`` or ``"float16"``: evaluate ``f``
+            and ``g`` under ``torch.autocast`` with this dtype, so their matrix products run in reduced
+            precision (``f`` is most of a step's time, see benchmarks/results/ukf.md); means,
+            covariances and Cholesky factors stay in ``y``'s dtype.
 
     The paper's settings for Lorenz in normalised units are the defaults: ``P0 = 0.1 I``,
     measurement variance 0.5, process variance 1e-6.
@@ -153,8 +163,10 @@ class UnscentedKalmanFilter:
         max_jitter_tries: int = 6,
         state_dim: Optional[int] = None,
         innovation: str = "auto",
+        autocast: Optional[str] = None,
     ):
         self.f, self.g = f, g
+        self.autocast = check_autocast(autocast)
         self.process_var = _check_variance(process_var, "process_var", allow_zero=True)
         self.measurement_var = _check_variance(measurement_var, "measurement_var", allow_zero=False)
         self.init_var = _check_variance(init_var, "init_var", allow_zero=False)
@@ -228,6 +240,7 @@ class UnscentedKalmanFilter:
         setup.sqrt_wc = sqrt_wc.unsqueeze(-1)
         if mode == "dense":
             setup.r = _as_matrix(r, p, "measurement_var", dtype, device)
+            setup.h, setup.c = self._linear_observation(d, p, dtype, device)
         elif r.ndim <= 1:  # diagonal R: whitening is a division by the std
             r_std = r.to(dtype=dtype, device=device).sqrt().expand(p)
             setup.r_std = r_std
@@ -236,6 +249,23 @@ class UnscentedKalmanFilter:
             setup.r_chol = torch.linalg.cholesky(r.to(dtype=dtype, device=device))
         setup.eye_n = torch.eye(len(wc), dtype=dtype, device=device)
         return setup
+
+    def _linear_observation(
+        self, d: int, p: int, dtype: torch.dtype, device: torch.device
+    ) -> tuple[Optional[Tensor], Optional[Tensor]]:
+        """``(H [p, d], c [p] or None)`` when ``g(x) = H x + c`` is known to be linear, else ``(None, None)``."""
+        g = self.g
+        if isinstance(g, torch.nn.Linear):
+            h, c = g.weight, g.bias
+        elif callable(getattr(g, "observation_matrix", None)):
+            h, c = g.observation_matrix(d), None
+        else:
+            return None, None
+        if tuple(h.shape) != (p, d):
+            raise ValueError(
+                f"g is linear with a {list(h.shape)} matrix but states have {d} components and measurements {p}"
+            )
+        return h.to(dtype=dtype, device=device), None if c is None else c.to(dtype=dtype, device=device)
 
     def _cholesky(self, a: Tensor, what: str, step: int) -> Tensor:
         """Lower Cholesky factor of the batch ``a [B, n, n]`` (lower triangle read), jitter on failing members."""
@@ -289,7 +319,7 @@ class UnscentedKalmanFilter:
     def _predict(self, mean: Tensor, cov: Tensor, setup: _Setup, step: int) -> tuple[Tensor, Tensor]:
         b, d = mean.shape
         sigma, _ = self._sigma_points(mean, cov, setup, "posterior", step)
-        fx = self.f(sigma.reshape(-1, d))
+        fx = call_model(self.f, sigma.reshape(-1, d), self.autocast)
         mean_pred = fx.reshape(b, -1) @ setup.wm_kron
         dev = fx.reshape(b, -1, d) - mean_pred.unsqueeze(-2)
         return mean_pred, torch.baddbmm(setup.q, dev.transpose(-1, -2) * setup.wc, dev)
@@ -306,8 +336,13 @@ class UnscentedKalmanFilter:
     def _update(self, mean: Tensor, cov: Tensor, y_flat: Tensor, setup: _Setup, step: int) -> tuple[Tensor, Tensor]:
         b, d = mean.shape
         p = y_flat.shape[-1]
+        if setup.h is not None:  # linear g: the moments the unscented transform would give, exactly
+            ct = setup.h @ cov  # C^T = H P, [B, p, d]
+            y_pred = mean @ setup.h.t() if setup.c is None else torch.addmm(setup.c, mean, setup.h.t())
+            s = ct @ setup.h.t() + setup.r
+            return self._dense_correction(mean, cov, ct, s, (y_flat - y_pred).unsqueeze(-1), step)
         sigma, x_dev = self._sigma_points(mean, cov, setup, "prior", step)
-        gy = self.g(sigma.reshape(-1, d)).reshape(b, sigma.shape[1], p)
+        gy = call_model(self.g, sigma.reshape(-1, d), self.autocast).reshape(b, sigma.shape[1], p)
         y_pred = (gy * setup.wm_col).sum(-2)
         y_dev = gy - y_pred.unsqueeze(-2)  # [B, n, p]
         innov = (y_flat - y_pred).unsqueeze(-1)  # [B, p, 1]
@@ -315,16 +350,7 @@ class UnscentedKalmanFilter:
             # One product gives C^T and S: [x_dev, y_dev]^T Wc [x_dev, y_dev].
             z = torch.cat([x_dev, y_dev], dim=-1)
             m = (z.transpose(-1, -2) * setup.wc) @ z
-            s = m[:, d:, d:] + setup.r
-            rhs = torch.cat([m[:, d:, :d], innov], dim=-1)  # [C^T, innov], [B, p, d+1]
-            # W = L_S^-1 rhs: m+ = m + W_C^T W_e, P+ = P - W_C^T W_C (no inverse of S)
-            if p == 1 and bool((s > 0).all()):  # scalar measurement: L_S = sqrt(S)
-                w = rhs * s.rsqrt()
-            else:
-                w = torch.linalg.solve_triangular(self._cholesky(s, "innovation", step), rhs, upper=False)
-            w_c, w_e = w[..., :d], w[..., d:]
-            w_ct = w_c.transpose(-1, -2)
-            return mean + (w_c * w_e).sum(-2), cov - (w_ct * w_c if p == 1 else w_ct @ w_c)
+            return self._dense_correction(mean, cov, m[:, d:, :d], m[:, d:, d:] + setup.r, innov, step)
         # S = R + U U^T with U = Y_dev^T sqrt(Wc); C = X_s^T U^T with X_s = sqrt(Wc) X_dev. With
         # G = U^T R^-1 U and A = I + G (Woodbury): C S^-1 e = X_s^T A^-1 U^T R^-1 e and
         # P+ = P - C S^-1 C^T = X_s^T A^-1 X_s (PSD by construction).
@@ -343,6 +369,23 @@ class UnscentedKalmanFilter:
         z_xt = z_x.transpose(-1, -2)
         return mean + (z_xt @ z_e).squeeze(-1), z_xt @ z_x
 
+    def _dense_correction(
+        self, mean: Tensor, cov: Tensor, ct: Tensor, s: Tensor, innov: Tensor, step: int
+    ) -> tuple[Tensor, Tensor]:
+        """Posterior from ``C^T = P_xy^T [B, p, d]``, ``S = P_yy + R [B, p, p]`` and the innovation ``[B, p, 1]``.
+
+        ``W = L_S^-1 [C^T, innov]``: ``m+ = m + W_C^T W_e``, ``P+ = P - W_C^T W_C`` (no inverse of ``S``).
+        """
+        d, p = mean.shape[-1], s.shape[-1]
+        rhs = torch.cat([ct, innov], dim=-1)  # [B, p, d+1]
+        if p == 1 and bool((s > 0).all()):  # scalar measurement: L_S = sqrt(S)
+            w = rhs * s.rsqrt()
+        else:
+            w = torch.linalg.solve_triangular(self._cholesky(s, "innovation", step), rhs, upper=False)
+        w_c, w_e = w[..., :d], w[..., d:]
+        w_ct = w_c.transpose(-1, -2)
+        return mean + (w_c * w_e).sum(-2), cov - (w_ct * w_c if p == 1 else w_ct @ w_c)
+
     # ----------------------------------------------------------------------------------------------
     def filter(self, y: Tensor, x0: Optional[Tensor] = None, P0: Optional[Tensor] = None) -> UKFResult:
         """Filtered means ``[B, T, d]`` and covariances ``[B, T, d, d]`` of ``y [B, T, *obs_shape]``.
@@ -357,7 +400,10 @@ class UnscentedKalmanFilter:
         cov = self._initial_cov(P0, bsz, d, dtype, device)
 
         # Check g against y once, on the initial mean.
-        probe = self.g(mean[:1])
+        try:
+            probe = call_model(self.g, mean[:1], self.autocast)
+        except RuntimeError as err:
+            raise ValueError(f"g failed on a state of dimension {d} ({err}): does state_dim match the SSM's g?") from err
         if not isinstance(probe, Tensor) or probe.ndim < 1 or probe.shape[0] != 1:
             raise ValueError("g must map [N, d] states to a tensor [N, *obs_shape]")
         if tuple(probe.shape[1:]) != tuple(y.shape[2:]):

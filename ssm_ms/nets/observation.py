@@ -124,3 +124,9 @@ class Projection(nn.Module):
                 f"Projection reads state components {self.indices.tolist()} but the state has {x.shape[-1]}"
             )
         return x.index_select(-1, self.indices)
+
+    def observation_matrix(self, state_dim: int) -> torch.Tensor:
+        """``H [p, state_dim]`` with ``g(x) = H x`` (one 1 per row): lets a Kalman update skip sigma points."""
+        if self.max_index >= state_dim:
+            raise ValueError(f"Projection reads state components {self.indices.tolist()} but the state has {state_dim}")
+        return torch.eye(state_dim, device=self.indices.device)[self.indices]
