@@ -148,17 +148,23 @@ def test_ukf_stage_tracks_the_exact_model(exact_ssm):
     # noise std 0.05 on a unit circle: the filtered phase is accurate, the forecast too
     assert saved["ukf/clean/mse"]["mean"] < 0.01
     assert saved["ukf/clean/mse"]["mean"] < 0.1 * saved["mean/clean/mse"]["mean"]
-    # f and g in bfloat16, labelled as another method of the same experiment: as accurate, and said so
-    half = FilterForecaster(str(ckpt), n_filter=8, method="ukf", measurement_var=0.05**2, init_var=1.0,
-                            autocast="bfloat16", method_name="ukf_bf16", metrics=["mse"],
+    # f and g in bfloat16 and the cubature rule, labelled as another method of the same experiment:
+    # as accurate, and the results say how the states were inferred
+    fast = FilterForecaster(str(ckpt), n_filter=8, method="ukf", measurement_var=0.05**2, init_var=1.0,
+                            autocast="bfloat16", unscented={"beta": 0.0}, method_name="ukf_fast", metrics=["mse"],
                             results_dir=str(tmp / "results"), experiment="rot_ukf")
-    fast_trainer(tmp, max_epochs=1).test(half, dm)
+    assert fast.filter.beta == 0.0
+    fast_trainer(tmp, max_epochs=1).test(fast, dm)
     runs = json.loads((tmp / "results" / "rot_ukf.json").read_text())["runs"]
-    assert set(runs) == {"ukf", "ukf_bf16"}
-    assert runs["ukf_bf16"]["summary"]["ukf_bf16/clean/mse"]["mean"] < 0.01
-    assert runs["ukf"]["info"]["inference"].endswith("full precision")
-    assert runs["ukf_bf16"]["info"]["inference"].endswith("f and g under autocast(bfloat16)")
+    assert set(runs) == {"ukf", "ukf_fast"}
+    assert runs["ukf_fast"]["summary"]["ukf_fast/clean/mse"]["mean"] < 0.01
+    assert runs["ukf"]["info"]["inference"].endswith("alpha=1, beta=2, kappa=0; full precision")
+    assert runs["ukf_fast"]["info"]["inference"].endswith("alpha=1, beta=0, kappa=0; f and g under autocast(bfloat16)")
     assert "f and g under autocast(bfloat16)" in (tmp / "results" / "rot_ukf.md").read_text()
+    with pytest.raises(ValueError, match=r"unscented takes alpha, beta and kappa, got \['gamma'\]"):
+        FilterForecaster(str(ckpt), n_filter=8, unscented={"gamma": 1.0})
+    with pytest.raises(ValueError, match="no effect with method 'pf'"):
+        FilterForecaster(str(ckpt), n_filter=8, method="pf", unscented={"beta": 0.0})
 
 
 # ---------------------------------------------------------------------------- bad input

@@ -32,6 +32,8 @@ class FilterForecaster(ForecastModule):
         measurement_var: measurement noise variance, in the units the SSM was trained in
             (normalised for Lorenz; paper: 0.5).
         init_var: prior variance at time 0 (paper: 0.1).
+        unscented: the UKF's sigma-point parameters, any of ``alpha``, ``beta``, ``kappa`` (default
+            ``{alpha: 1, beta: 2, kappa: 0}``); ``{beta: 0}`` is the cubature rule, 2d points instead of 2d+1.
         n_particles, likelihood, resample_threshold, likelihood_scale, seed: particle filter settings
             (``likelihood="bernoulli"`` for images in [0, 1]).
         autocast: ``None`` (full precision) or ``"bfloat16"`` / ``"float16"``: run ``f`` and ``g`` under
@@ -52,6 +54,7 @@ class FilterForecaster(ForecastModule):
         process_std: float = 1e-2,
         measurement_var: float = 0.5,
         init_var: float = 0.1,
+        unscented: dict[str, float] | None = None,
         n_particles: int = 1000,
         likelihood: str = "gaussian",
         resample_threshold: float = 0.5,
@@ -64,11 +67,18 @@ class FilterForecaster(ForecastModule):
     ):
         if method not in ("ukf", "pf"):
             raise ValueError(f"method must be 'ukf' or 'pf', got {method!r}")
+        unscented = dict(unscented or {})
+        unknown = set(unscented) - {"alpha", "beta", "kappa"}
+        if unknown:
+            raise ValueError(f"unscented takes alpha, beta and kappa, got {sorted(unknown)}")
+        if unscented and method != "ukf":
+            raise ValueError("unscented sets the UKF's sigma points: it has no effect with method 'pf', remove it")
         super().__init__(ssm_checkpoint, n_filter, metrics=metrics, method_name=method_name or method, **kwargs)
         f, g = self.ssm.f, self.ssm.g
         if method == "ukf":
             self.filter = UnscentedKalmanFilter(f, g, process_var=process_var, measurement_var=measurement_var,
-                                                init_var=init_var, state_dim=self.ssm.state_dim, autocast=autocast)
+                                                init_var=init_var, state_dim=self.ssm.state_dim, autocast=autocast,
+                                                **unscented)
         else:
             self.filter = ParticleFilter(f, g, n_particles=n_particles, process_std=process_std,
                                          measurement_std=math.sqrt(measurement_var), likelihood=likelihood,
@@ -80,7 +90,7 @@ class FilterForecaster(ForecastModule):
         flt = self.filter
         if isinstance(flt, UnscentedKalmanFilter):
             noise = f"process_var={flt.process_var.tolist()}, measurement_var={flt.measurement_var.tolist()}, " \
-                    f"init_var={flt.init_var.tolist()}"
+                    f"init_var={flt.init_var.tolist()}, alpha={flt.alpha:g}, beta={flt.beta:g}, kappa={flt.kappa:g}"
         else:
             noise = f"n_particles={flt.n_particles}, process_std={flt.process_std.tolist()}, " \
                     f"measurement_std={flt.measurement_std.tolist()}, likelihood={flt.likelihood}"
