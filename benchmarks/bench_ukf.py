@@ -4,15 +4,16 @@ Run from the repository root: ``python benchmarks/bench_ukf.py [--repeats 5] [--
 Set-up of the paper's comparison: 200 Lorenz trajectories x 2000 steps, measurement = the x component
 (variance 0.5, normalised units), ``f = LocallyLinearTransition(3, n_matrices=32, hidden=1024)`` (random
 weights: the cost does not depend on training), ``g = Projection([0])``, float32, ``torch.inference_mode``.
-Reports the median ms per filter step over ``--repeats`` full runs, and the split between ``f`` (timed alone
-on the same ``[B * 7, 3]`` input, as many calls as the filter makes) and the filter's own algebra (the
-filter with an identity ``f``), plus a profiler table of one run.
+Variants run in interleaved rounds (one full filter run of each per round, ``--repeats`` rounds) so that a
+shared machine's load falls on all of them alike; reports the median ms per filter step, ratios to the
+default in the same run, the split between ``f`` (timed alone on the same ``[B * 7, 3]`` input, as many
+calls as the filter makes) and the filter's own algebra (the filter with an identity ``f``), how far the
+bfloat16 estimates are from the float32 ones, and a profiler table of one run.
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
 import datetime
 import os
 import platform
@@ -29,6 +30,7 @@ import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
 from ssm_ms.machine import cpu_model  # noqa: E402
+from ssm_ms.inference.shared import call_model  # noqa: E402
 from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402
 from ssm_ms.nets.observation import Projection  # noqa: E402
 from ssm_ms.nets.transition import LocallyLinearTransition  # noqa: E402
@@ -94,84 +96,70 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trajectories", type=int, default=200)
     parser.add_argument("--steps", type=int, default=2000)
-    parser.add_argument("--repeats", type=int, default=5, help="full filter runs (median reported)")
+    parser.add_argument("--repeats", type=int, default=5, help="interleaved rounds (median reported)")
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--skip-default-malloc", action="store_true", help="only time with tuned malloc")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "ukf.md"))
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
+    tuned = configure_allocator()  # what cli.py does
     device = torch.device(args.device)
     dtype = torch.float32
     b, steps = args.trajectories, args.steps
     y = lorenz_measurements(b, steps).to(dtype=dtype, device=device)
     f = LocallyLinearTransition(3, n_matrices=32, hidden=1024).to(device=device, dtype=dtype)
     g = Projection([0]).to(device)
-    ukf = UnscentedKalmanFilter(f, g)  # paper's defaults: P0 = 0.1 I, R = 0.5, Q = 1e-6
-    ukf_identity = UnscentedKalmanFilter(nn.Identity(), g, state_dim=3)
     x_sigma = torch.randn(b * 7, 3, dtype=dtype, device=device)
-    load_before = load()
+    bf16 = {"autocast": "bfloat16"}
 
-    def f_only():
-        for _ in range(steps - 1):
-            f(x_sigma)
+    def f_alone(autocast):
+        def run(y):  # as many calls as a filter over y makes
+            for _ in range(y.shape[1] - 1):
+                call_model(f, x_sigma, autocast)
+        return run
 
-    ukf_cubature = UnscentedKalmanFilter(f, g, beta=0.0)
-    # What-if for f itself (not the filter): the same network with an in-place ReLU after the first layer.
-    f_inplace = copy.deepcopy(f)
-    relus = [m for m in f_inplace.modules() if isinstance(m, nn.ReLU)]
-    for m in relus:
-        m.inplace = True
-    ukf_inplace = UnscentedKalmanFilter(f_inplace, g)
+    # paper's noise defaults: P0 = 0.1 I, R = 0.5, Q = 1e-6
+    variants = {
+        "**UKF, float32 (default)**": UnscentedKalmanFilter(f, g).filter,
+        "UKF, float32, `g` through sigma points (a function, not known to be linear)":
+            UnscentedKalmanFilter(f, g.forward, state_dim=3).filter,
+        "UKF, `f` and `g` under autocast(bfloat16)": UnscentedKalmanFilter(f, g, **bf16).filter,
+        "UKF, autocast(bfloat16) and beta=0 (cubature rule: 6 points, `f` on [%d, 3])" % (b * 6):
+            UnscentedKalmanFilter(f, g, beta=0.0, **bf16).filter,
+        "filter algebra alone (identity `f`), float32": UnscentedKalmanFilter(nn.Identity(), g, state_dim=3).filter,
+        f"`f` alone on [{b * 7}, 3], float32": f_alone(None),
+        f"`f` alone on [{b * 7}, 3], autocast(bfloat16)": f_alone(torch.bfloat16),
+    }
+    default = next(iter(variants))
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    loads = [load()]
     with torch.inference_mode():
-        same = torch.equal(f(x_sigma), f_inplace(x_sigma))
+        for run in variants.values():  # warm-up (allocator, kernels)
+            run(y[:, :50])
+        for _ in range(args.repeats):
+            for name, run in variants.items():
+                sync(device)
+                start = time.perf_counter()
+                run(y)
+                sync(device)
+                times[name].append((time.perf_counter() - start) * 1e3 / steps)
+            print(" ".join(f"{statistics.median(v):.3f}" for v in times.values()), flush=True)
+        loads.append(load())
 
-    def f_inplace_only():
-        for _ in range(steps - 1):
-            f_inplace(x_sigma)
-
-    rows = []
-
-    def record(name: str, fn) -> float:
-        before = os.getloadavg()[0]
-        med, runs = median_ms_per_step(fn, steps, args.repeats, device)
-        rows.append((name, med, runs, f"{before:.2f}/{os.getloadavg()[0]:.2f}"))
-        print(f"{name}: median {med:.3f} ms/step, min {min(runs):.3f}", flush=True)
-        return med
-
-    with torch.inference_mode():
-        ukf.filter(y[:, :50])  # warm-up (allocator, kernels)
-        ukf_identity.filter(y[:, :50])
-        if not args.skip_default_malloc:
-            record("UKF step, whole (f, g, algebra), default glibc malloc", lambda: ukf.filter(y))
-            record(f"`f` alone on [{b * 7}, 3], default glibc malloc", f_only)
-        tuned = configure_allocator()  # what cli.py does
-        tag = "malloc tuned" if tuned else "malloc tuning unavailable"
-        total = record(f"**UKF step, whole (f, g, algebra), {tag}**", lambda: ukf.filter(y))
-        f_ms = record(f"`f` alone on [{b * 7}, 3], {tag}", f_only)
-        record(f"filter algebra + g (identity f), {tag}", lambda: ukf_identity.filter(y))
-        name = f"UKF step with beta=0 (cubature rule, 6 points, f on [{b * 6}, 3]), {tag}"
-        record(name, lambda: ukf_cubature.filter(y))
-        if relus:
-            record(f"what-if: UKF step, `f` with in-place ReLU, {tag}", lambda: ukf_inplace.filter(y))
-            record(f"what-if: `f` with in-place ReLU alone, {tag}", f_inplace_only)
+        full = UnscentedKalmanFilter(f, g).filter(y[:, :500])
+        finite = bool(torch.isfinite(full.means).all() and torch.isfinite(full.covs).all())
 
         from torch.profiler import ProfilerActivity, profile
 
         activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
         with profile(activities=activities) as prof:
-            ukf.filter(y[:, :200])
+            UnscentedKalmanFilter(f, g).filter(y[:, :200])
         sort = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
         table = prof.key_averages().table(sort_by=sort, row_limit=15, max_name_column_width=36)
-    load_after = load()
 
-    # accuracy check that the run did real work: the filter with the untrained f on these data
-    with torch.inference_mode():
-        means, covs = ukf.filter(y[:4, :100])
-        finite = bool(torch.isfinite(means).all() and torch.isfinite(covs).all())
-
+    med = {name: statistics.median(v) for name, v in times.items()}
     cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *sys.argv[1:]])
     dev_name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {args.threads} torch threads"
     lines = [
@@ -179,31 +167,32 @@ def main() -> None:
         "",
         f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
         f"- Machine: {cpu_model()}, {os.cpu_count()} logical cores (`os.cpu_count()`), Python "
-        f"{platform.python_version()}, torch {torch.__version__}; device: {dev_name}",
-        f"- Load average (1/5/15 min) before: {load_before}, after: {load_after} (the machine is shared: "
-        "figures under load are slower than on a quiet machine; this benchmark's own 2 threads add about 2 "
-        "to the 1-min figure while it runs)",
+        f"{platform.python_version()}, torch {torch.__version__}; device: {dev_name}; glibc malloc "
+        f"{'tuned as cli.py does' if tuned else 'not tunable here'}",
+        f"- Load average (1/5/15 min) before: {loads[0]}, after: {loads[1]} (the machine is shared: figures "
+        "under load are slower than on a quiet one; this benchmark's own threads add about 2 to the 1-min figure)",
         f"- Command: `{cmd}`",
         f"- Set-up: {b} trajectories x {steps} steps, state dim 3, measurement = x component, "
         "`LocallyLinearTransition(3, n_matrices=32, hidden=1024)` (random weights), `Projection([0])`, "
-        "float32, `torch.inference_mode()`, paper's noise settings, 7 sigma points per trajectory "
-        f"(alpha=1, beta=2, kappa=0). Each step: one `f` on [{b * 7}, 3], one `g`, two batched 3x3 Cholesky.",
-        f"- Paper's reference code: {PAPER_REFERENCE_MS} ms per step for the batch (figure from the brief).",
-        f"- Outputs finite: {finite}. In-place-ReLU copy of `f` gives identical outputs: {same}.",
+        "float32 measurements, `torch.inference_mode()`, paper's noise settings, 7 sigma points per "
+        "trajectory (alpha=1, beta=2, kappa=0) unless stated. Each step: one `f` on "
+        f"[{b * 7}, 3], a linear measurement update, two batched 3x3 Cholesky.",
+        f"- {args.repeats} interleaved rounds, one full {steps}-step run of every variant per round.",
+        f"- Paper's reference code: {PAPER_REFERENCE_MS} ms per step for the batch (figure from the issue).",
+        f"- Outputs finite: {finite}. The random `f` says nothing about accuracy: for the effect of bfloat16 on "
+        "forecasts with a trained model see `results/lorenz_T1000_cpu.md` (methods `ukf` and `ukf_bf16`).",
         "",
-        "| What | median ms / step | min | runs (ms / step) | 1-min load before/after |",
-        "|---|---:|---:|---|---|",
+        "| What | median ms / step | min | vs default (medians) | vs paper's 6.7 ms | rounds (ms / step) |",
+        "|---|---:|---:|---:|---:|---|",
     ]
-    for name, med, runs, ld in rows:
-        lines.append(f"| {name} | {med:.3f} | {min(runs):.3f} | {', '.join(f'{r:.3f}' for r in runs)} | {ld} |")
+    for name, runs in times.items():
+        lines.append(
+            f"| {name} | {med[name]:.3f} | {min(runs):.3f} | {med[name] / med[default]:.2f} | "
+            f"{med[name] / PAPER_REFERENCE_MS:.2f} | {', '.join(f'{r:.3f}' for r in runs)} |"
+        )
     lines += [
         "",
-        f"With {tag}: `f` is {100 * f_ms / total:.0f}% of the whole step; the algebra figure includes `g` and "
-        "the Python-level work of a step. \"malloc tuned\": `ssm_ms.perf.configure_allocator()` (as `cli.py`), "
-        "glibc keeps freed memory, so the 5.7 MB hidden activations of `f` are not page-faulted in again "
-        "every step; a process-wide setting, not part of the filter.",
-        "",
-        f"## Profile of 200 filter steps, {tag} (torch.profiler, self time)",
+        "## Profile of 200 filter steps, float32 default (torch.profiler, self time)",
         "",
         "```",
         table.strip(),
