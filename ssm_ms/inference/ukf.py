@@ -3,8 +3,9 @@
 The filter infers the states of unseen trajectories from their measurements with the learned ``f`` and
 ``g`` and nothing else (no training). It is vectorised over trajectories and sigma points: each step
 calls ``g`` once and ``f`` once on ``[B * (2d+1), d]`` (``2d`` when the central point has zero weight,
-e.g. ``beta=0``). Time goes mostly into ``f`` (see benchmarks/results/ukf.md). It runs on the device and
-dtype of ``y`` and is differentiable (gradients reach ``f``, ``g``, ``y``, ``x0`` and ``P0``).
+e.g. ``beta=0``); a linear ``g`` is not called at all (its matrix gives the update exactly). Time goes
+mostly into ``f`` (see benchmarks/results/ukf.md), which may run under ``torch.autocast``. The filter runs
+on the device and dtype of ``y`` and is differentiable (gradients reach ``f``, ``g``, ``y``, ``x0``, ``P0``).
 
 Convention::
 
