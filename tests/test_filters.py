@@ -270,6 +270,8 @@ def test_autocast_runs_f_and_g_in_bfloat16_and_keeps_the_filter_in_float32():
     for cls in (UnscentedKalmanFilter, ParticleFilter):
         with pytest.raises(ValueError, match="autocast must be null"):
             cls(f, g_net, state_dim=3, autocast="fp8")
+        with pytest.raises(ValueError, match=r"g must map \[N, d\] states to a tensor"):
+            cls(f, lambda x: x.tolist(), state_dim=3, autocast="bfloat16").filter(y)
 
 
 def test_ukf_tracks_unobserved_lorenz_components():

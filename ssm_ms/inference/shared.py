@@ -46,4 +46,4 @@ def call_model(fn: Callable[[Tensor], Tensor], x: Tensor, autocast: Optional[tor
         return fn(x)
     with torch.autocast(x.device.type, dtype=autocast):
         out = fn(x)
-    return out.to(x.dtype)
+    return out.to(x.dtype) if isinstance(out, Tensor) else out  # a non-tensor: the callers' checks name it
