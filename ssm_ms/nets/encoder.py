@@ -4,7 +4,8 @@ Each frame goes through a small CNN (``[Conv 3x3, LayerNorm, ReLU, MaxPool 2]`` 
 more 3x3 convolution); the per-frame features feed an LSTM whose hidden state a linear head maps to
 the latent state. The state at time ``t`` depends on measurements ``0..t`` only, so the encoder is
 a causal filter: its output at the last measured frame starts the forecast. Vector measurements
-(Lorenz) skip the CNN.
+(Lorenz) skip the CNN. The per-frame CNN is its own module, :class:`FrameEncoder`, shared with the
+baselines in :mod:`ssm_ms.baselines`.
 """
 
 from __future__ import annotations
@@ -23,17 +24,82 @@ ENCODER_PRESETS: dict[str, tuple[list[int], int | None, bool]] = {
 }
 
 
-class StateEncoder(nn.Module):
-    """CNN-LSTM encoder of measurement sequences.
+class FrameEncoder(nn.Module):
+    """The per-frame CNN of the paper's encoders: measurements ``[N, *obs_shape]`` -> features ``[N, out_features]``.
+
+    Images go through ``[Conv 3x3, LayerNorm, ReLU, MaxPool 2]`` blocks and one more 3x3 convolution;
+    vector measurements pass unchanged. Shared by the SSM's state encoder and the baselines
+    (sequence-to-sequence CNN-LSTM, RKN), so that every method reads a frame the same way.
 
     Args:
-        state_dim: latent dimension produced at every step.
         obs_shape: shape of one measurement: ``[C, H, W]`` images or ``[D]`` vectors.
         preset: ``"pendulum"``, ``"quad"``, ``"mnist"``, ``"vector"``, or ``None`` to give
             ``conv_channels`` / ``final_channels`` / ``final_relu`` explicitly.
         conv_channels: output channels of each conv-LayerNorm-ReLU-maxpool block.
         final_channels: channels of the last 3x3 convolution (``None``: no final convolution).
         final_relu: a ReLU after the last convolution.
+    """
+
+    def __init__(
+        self,
+        obs_shape: Sequence[int],
+        preset: str | None = None,
+        conv_channels: Sequence[int] | None = None,
+        final_channels: int | None = None,
+        final_relu: bool = False,
+    ):
+        super().__init__()
+        obs_shape = tuple(int(s) for s in obs_shape)
+        if preset is not None:
+            if preset not in ENCODER_PRESETS:
+                raise ValueError(f"unknown encoder preset {preset!r}; choose one of {sorted(ENCODER_PRESETS)} or None")
+            conv_channels, final_channels, final_relu = ENCODER_PRESETS[preset]
+        conv_channels = list(conv_channels or [])
+        self.obs_shape = obs_shape
+        if len(obs_shape) == 3:
+            layers: list[nn.Module] = []
+            c, h, w = obs_shape
+            for out_c in conv_channels:
+                if h < 4 or w < 4:
+                    raise ValueError(f"images of shape {list(obs_shape)} are too small for {len(conv_channels)} conv blocks")
+                layers += [nn.Conv2d(c, out_c, 3), nn.LayerNorm((out_c, h - 2, w - 2)), nn.ReLU(), nn.MaxPool2d(2)]
+                c, h, w = out_c, (h - 2) // 2, (w - 2) // 2
+            if final_channels is not None:
+                if h < 3 or w < 3:
+                    raise ValueError(f"images of shape {list(obs_shape)} are too small for the final convolution")
+                layers.append(nn.Conv2d(c, final_channels, 3))
+                c, h, w = final_channels, h - 2, w - 2
+                if final_relu:
+                    layers.append(nn.ReLU())
+            self.cnn: nn.Module = nn.Sequential(*layers)
+            self.out_features = c * h * w
+        elif len(obs_shape) == 1:
+            if conv_channels or final_channels is not None:
+                raise ValueError(f"vector measurements {list(obs_shape)} take no convolutions: use preset 'vector'")
+            self.cnn = nn.Identity()
+            self.out_features = obs_shape[0]
+        else:
+            raise ValueError(f"obs_shape must be [C, H, W] or [D], got {list(obs_shape)}")
+
+    def forward(self, y: torch.Tensor) -> torch.Tensor:
+        """``y [..., *obs_shape]`` -> ``[..., out_features]``."""
+        n_obs = len(self.obs_shape)
+        if tuple(y.shape[y.dim() - n_obs :]) != self.obs_shape:
+            raise ValueError(
+                f"the encoder was built for measurements of shape {list(self.obs_shape)}, "
+                f"got {list(y.shape[y.dim() - n_obs:])}"
+            )
+        lead = y.shape[: y.dim() - n_obs]
+        return self.cnn(y.reshape(-1, *self.obs_shape)).reshape(*lead, self.out_features)
+
+
+class StateEncoder(nn.Module):
+    """CNN-LSTM encoder of measurement sequences: :class:`FrameEncoder`, LSTM, linear head.
+
+    Args:
+        state_dim: latent dimension produced at every step.
+        obs_shape: shape of one measurement: ``[C, H, W]`` images or ``[D]`` vectors.
+        preset, conv_channels, final_channels, final_relu: the per-frame CNN, see :class:`FrameEncoder`.
         hidden: LSTM hidden size.
     """
 
@@ -48,47 +114,12 @@ class StateEncoder(nn.Module):
         hidden: int = 1024,
     ):
         super().__init__()
-        obs_shape = tuple(int(s) for s in obs_shape)
-        if preset is not None:
-            if preset not in ENCODER_PRESETS:
-                raise ValueError(f"unknown encoder preset {preset!r}; choose one of {sorted(ENCODER_PRESETS)} or None")
-            conv_channels, final_channels, final_relu = ENCODER_PRESETS[preset]
-        conv_channels = list(conv_channels or [])
-        self.obs_shape, self.state_dim = obs_shape, state_dim
-        if len(obs_shape) == 3:
-            layers: list[nn.Module] = []
-            c, h, w = obs_shape
-            for out_c in conv_channels:
-                if h < 4 or w < 4:
-                    raise ValueError(f"images of shape {obs_shape} are too small for {len(conv_channels)} conv blocks")
-                layers += [nn.Conv2d(c, out_c, 3), nn.LayerNorm((out_c, h - 2, w - 2)), nn.ReLU(), nn.MaxPool2d(2)]
-                c, h, w = out_c, (h - 2) // 2, (w - 2) // 2
-            if final_channels is not None:
-                if h < 3 or w < 3:
-                    raise ValueError(f"images of shape {obs_shape} are too small for the final convolution")
-                layers.append(nn.Conv2d(c, final_channels, 3))
-                c, h, w = final_channels, h - 2, w - 2
-                if final_relu:
-                    layers.append(nn.ReLU())
-            self.cnn: nn.Module = nn.Sequential(*layers)
-            features = c * h * w
-        elif len(obs_shape) == 1:
-            if conv_channels or final_channels is not None:
-                raise ValueError(f"vector measurements {obs_shape} take no convolutions: use preset 'vector'")
-            self.cnn = nn.Identity()
-            features = obs_shape[0]
-        else:
-            raise ValueError(f"obs_shape must be [C, H, W] or [D], got {list(obs_shape)}")
-        self.lstm = nn.LSTM(features, hidden, batch_first=True)
+        self.frames = FrameEncoder(obs_shape, preset, conv_channels, final_channels, final_relu)
+        self.obs_shape, self.state_dim = self.frames.obs_shape, state_dim
+        self.lstm = nn.LSTM(self.frames.out_features, hidden, batch_first=True)
         self.head = nn.Linear(hidden, state_dim)
 
     def forward(self, y: torch.Tensor) -> torch.Tensor:
         """``y [B, T, *obs_shape]`` -> latent states ``[B, T, state_dim]``."""
-        if tuple(y.shape[2:]) != self.obs_shape:
-            raise ValueError(
-                f"the encoder was built for measurements of shape {list(self.obs_shape)}, got {list(y.shape[2:])}"
-            )
-        b, t = y.shape[:2]
-        feats = self.cnn(y.reshape(b * t, *self.obs_shape)).reshape(b, t, -1)
-        out, _ = self.lstm(feats)
+        out, _ = self.lstm(self.frames(y))
         return self.head(out)
