@@ -8,9 +8,10 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from ssm_ms.evaluation import ForecastModule, bce_per_sequence, mse_per_sequence, split_sequence
+from ssm_ms.evaluation import bce_per_sequence, mse_per_sequence, split_sequence
 from ssm_ms.inference.encoder_module import StateEncoderModule
 from ssm_ms.inference.filter_module import FilterForecaster
+from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import Projection
 from tests.conftest import ExactRotation, RotationDataModule, fast_trainer
@@ -69,7 +70,7 @@ def rotation_dm(tmp):
     return RotationDataModule(data_dir=str(tmp / "data"), seq_len=12, batch_size=4, val_trajectories=2)
 
 
-class Oracle(ForecastModule):
+class Oracle(SSMForecaster):
     """Infers the true states (read from the batch), and records what it was given."""
 
     method_kind = "oracle"
@@ -106,7 +107,7 @@ def test_protocol_bookkeeping_with_the_exact_model(exact_ssm):
     expected_noisy = (noisy[:, 8:] - clean[:, 8:]).pow(2).mean((1, 2))
     assert saved["oracle/noisy/mse"]["mean"] == pytest.approx(expected_noisy.mean().item(), rel=1e-4)
     report = (tmp / "results" / "rot.md").read_text()
-    assert "| oracle |" in report and "| last (reference, with oracle) |" in report
+    assert "| SSM (ExactRotation) + oracle |" in report and "| last (reference, with SSM (ExactRotation) + oracle) |" in report
 
 
 def test_encoder_stage_on_a_tiny_trained_checkpoint(exact_ssm):
@@ -158,8 +159,8 @@ def test_ukf_stage_tracks_the_exact_model(exact_ssm):
     runs = json.loads((tmp / "results" / "rot_ukf.json").read_text())["runs"]
     assert set(runs) == {"ukf", "ukf_fast"}
     assert runs["ukf_fast"]["summary"]["ukf_fast/clean/mse"]["mean"] < 0.01
-    assert runs["ukf"]["info"]["inference"].endswith("alpha=1, beta=2, kappa=0; full precision")
-    assert runs["ukf_fast"]["info"]["inference"].endswith("alpha=1, beta=0, kappa=0; f and g under autocast(bfloat16)")
+    assert runs["ukf"]["info"]["inference_settings"].endswith("alpha=1, beta=2, kappa=0; full precision")
+    assert runs["ukf_fast"]["info"]["inference_settings"].endswith("alpha=1, beta=0, kappa=0; f and g under autocast(bfloat16)")
     assert "f and g under autocast(bfloat16)" in (tmp / "results" / "rot_ukf.md").read_text()
     with pytest.raises(ValueError, match=r"unscented takes alpha, beta and kappa, got \['gamma'\]"):
         FilterForecaster(str(ckpt), n_filter=8, unscented={"gamma": 1.0})

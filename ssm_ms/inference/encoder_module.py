@@ -15,12 +15,12 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from ssm_ms.evaluation import ForecastModule
+from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.nets.encoder import StateEncoder
 from ssm_ms.shooting import rollout
 
 
-class StateEncoderModule(ForecastModule):
+class StateEncoderModule(SSMForecaster):
     """Trains a :class:`~ssm_ms.nets.encoder.StateEncoder` on the SSM's latent trajectories.
 
     Args:

@@ -13,12 +13,12 @@ from typing import Any
 
 import torch
 
-from ssm_ms.evaluation import ForecastModule
 from ssm_ms.inference.particle import ParticleFilter
+from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 
 
-class FilterForecaster(ForecastModule):
+class FilterForecaster(SSMForecaster):
     """The forecasting protocol with states inferred by a UKF or a particle filter.
 
     Args:
@@ -74,6 +74,7 @@ class FilterForecaster(ForecastModule):
         if unscented and method != "ukf":
             raise ValueError("unscented sets the UKF's sigma points: it has no effect with method 'pf', remove it")
         super().__init__(ssm_checkpoint, n_filter, metrics=metrics, method_name=method_name or method, **kwargs)
+        self.method_kind = method
         f, g = self.ssm.f, self.ssm.g
         if method == "ukf":
             self.filter = UnscentedKalmanFilter(f, g, process_var=process_var, measurement_var=measurement_var,

@@ -1,0 +1,184 @@
+"""Forecasting with a trained SSM: infer the state from the first ``k`` measurements, iterate ``f`` from
+the last inferred state, decode with ``g``.
+
+:class:`SSMForecaster` is the :class:`~ssm_ms.evaluation.ForecastModule` of every inference method
+over a frozen ``MultipleShootingModule`` checkpoint; subclasses implement :meth:`SSMForecaster.infer`
+(:class:`~ssm_ms.inference.StateEncoderModule`: a trained CNN-LSTM; :class:`~ssm_ms.inference.FilterForecaster`:
+UKF or particle filter). It also checks that the test data are the data the SSM learned, and uses the
+SSM's normalisation statistics.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ssm_ms.evaluation import Forecast, ForecastModule
+from ssm_ms.module import MultipleShootingModule
+from ssm_ms.shooting import decode, rollout
+
+# Paper names of the transition models.
+MODEL_NAMES = {"LocallyLinearTransition": "SSM-LL", "FullyConnectedTransition": "SSM-FC"}
+# How the results tables name the inference methods (a custom method_name is shown as it is).
+INFERENCE_LABELS = {"encoder": "CNN-LSTM encoder", "ukf": "UKF", "pf": "particle filter"}
+
+
+# ---------------------------------------------------------------------------- checkpoints
+def load_ssm(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[MultipleShootingModule, dict]:
+    """Load a trained ``MultipleShootingModule`` (and the raw checkpoint, for its data statistics)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"the SSM checkpoint {path} does not exist: train the model first (python cli.py fit --config "
+            "configs/<experiment>.yaml) and set model.init_args.ssm_checkpoint to its checkpoints/last.ckpt"
+        )
+    checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+    if "state_dict" not in checkpoint or "nodes.weight" not in checkpoint["state_dict"]:
+        raise ValueError(f"{path} is not a checkpoint of a MultipleShootingModule (no shooting nodes in it)")
+    # LightningCLI hands a module it builds its hyperparameters through a context variable; the SSM loaded
+    # here, during that construction, must not pick them up: load it in an empty context.
+    model = contextvars.Context().run(
+        MultipleShootingModule.load_from_checkpoint, path, map_location=map_location, weights_only=False
+    )
+    model.freeze()
+    return model, checkpoint
+
+
+def datamodule_state(checkpoint: Mapping[str, Any]) -> tuple[str, dict] | None:
+    """``(key, state)`` of the DataModule saved in a checkpoint (normalisation and data identity)."""
+    for key, value in checkpoint.items():
+        if isinstance(value, dict) and "generator_params" in value and "name" in value:
+            return key, value
+    return None
+
+
+def check_same_data(checkpoint: Mapping[str, Any], dm: Any, ssm: MultipleShootingModule) -> None:
+    """Refuse to evaluate or train an encoder on another data set than the one the SSM learned."""
+    saved = datamodule_state(checkpoint)
+    if saved is None or dm is None:
+        return
+    _, state = saved
+    current = dm.state_dict() if hasattr(dm, "state_dict") else {}
+    problems = []
+    if current.get("name") is not None and state["name"] != current.get("name"):
+        problems.append(f"data set {state['name']!r} in the checkpoint, {current.get('name')!r} here")
+    elif state.get("generator_params") and current.get("generator_params") and state["generator_params"] != current["generator_params"]:
+        diff = {
+            k: (state["generator_params"].get(k), current["generator_params"].get(k))
+            for k in set(state["generator_params"]) | set(current["generator_params"])
+            if state["generator_params"].get(k) != current["generator_params"].get(k)
+        }
+        problems.append(f"data parameters differ (checkpoint, here): {diff}")
+    n = getattr(dm, "num_train_trajectories", None)
+    if n is not None and n != ssm.nodes.num_embeddings:
+        problems.append(f"the SSM has nodes for {ssm.nodes.num_embeddings} training trajectories, the data have {n}")
+    if problems:
+        raise ValueError(
+            "the SSM checkpoint was trained on other data: " + "; ".join(problems)
+            + ". Use the data section of the config the SSM was trained with."
+        )
+
+
+# ---------------------------------------------------------------------------- the protocol
+
+
+def predict_states(f, x_last: torch.Tensor, steps: int) -> torch.Tensor:
+    """States at the ``steps`` times after ``x_last [B, d]``: ``[B, steps, d]`` (the first is ``f(x_last)``)."""
+    return rollout(f, f(x_last), steps)
+
+
+# ---------------------------------------------------------------------------- the forecaster
+class SSMForecaster(ForecastModule):
+    """A frozen trained SSM plus an inference method; ``test`` runs the protocol.
+
+    Subclasses implement :meth:`infer`. The prediction of ``y[k + j]`` is ``g(f^{j+1}(x[k-1]))``.
+
+    Args:
+        ssm_checkpoint: checkpoint of the trained ``MultipleShootingModule``.
+        n_filter: measurements given to the inference method.
+        **kwargs: the protocol's other arguments (``n_predict``, ``metrics``, ``bce_reduction``,
+            ``original_units``, ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``), see
+            :class:`~ssm_ms.evaluation.ForecastModule`.
+    """
+
+    # figures of the SSM alone: written once per experiment, whatever the inference method
+    shared_figures = ("attractor", "ssm_training")
+
+    def __init__(self, ssm_checkpoint: str, n_filter: int, **kwargs: Any):
+        super().__init__(n_filter, **kwargs)
+        self.ssm, self._ssm_checkpoint = load_ssm(ssm_checkpoint)
+        self.ssm_checkpoint = str(ssm_checkpoint)
+
+    # ------------------------------------------------------------------ to implement
+    def infer(self, y_filter: torch.Tensor) -> torch.Tensor:
+        """Inferred states ``[B, k, d]`` from measurements ``[B, k, *obs_shape]``."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------------ the protocol's hooks
+    def forecast(self, y_filter: torch.Tensor, n_predict: int) -> Forecast:
+        states = self.infer(y_filter)  # [B, k, d]
+        pred_states = predict_states(self.ssm.f, states[:, -1], n_predict)  # [B, p, d]
+        return Forecast(
+            filtered=decode(self.ssm.g, states),
+            predicted=decode(self.ssm.g, pred_states),
+            states=torch.cat([states, pred_states], 1),
+        )
+
+    def describe(self) -> dict[str, Any]:
+        name = type(self.ssm.f).__name__
+        model = MODEL_NAMES.get(name, f"SSM ({name})")
+        how = INFERENCE_LABELS.get(self.method_name, self.method_name)
+        return {"model": model, "inference": self.method_kind, "label": f"{model} + {how}",
+                "ssm_checkpoint": self.ssm_checkpoint}
+
+    def setup(self, stage: str) -> None:
+        dm = self.datamodule
+        check_same_data(self._ssm_checkpoint, dm, self.ssm)
+        saved = datamodule_state(self._ssm_checkpoint)
+        if dm is not None and saved is not None and hasattr(dm, "load_state_dict"):
+            dm.load_state_dict(saved[1])  # the SSM's normalisation statistics, not recomputed ones
+        if dm is not None and hasattr(dm, "obs_shape"):
+            if tuple(dm.obs_shape) != tuple(self.ssm.obs_shape()):
+                raise ValueError(
+                    f"g outputs measurements of shape {tuple(self.ssm.obs_shape())}, the data have {tuple(dm.obs_shape)}"
+                )
+
+    def forecast_figures(self, first: dict[str, torch.Tensor]) -> dict[str, Any]:
+        """The Lorenz-style plot of the inferred and predicted states, the attractor of ``f`` iterated
+        10,000 times from a shooting node, and the SSM's training curves."""
+        from ssm_ms import viz
+
+        figures: dict[str, Any] = {}
+        y = first["y"]
+        if y.dim() == 3:  # vectors
+            norm = self.normalizer()
+            to_units = (lambda t: norm.denormalize(t)) if norm is not None else (lambda t: t)
+            states = first["states"][0].clone()
+            obs_index = 0
+            mapping = self.ssm.hparams.get("node_init_map") or {}
+            measured = {int(s): int(o) for s, o in mapping.items()}
+            for s_i, o_i in measured.items():  # latent components that read a measurement: in its units
+                if norm is not None:
+                    states[:, s_i] = states[:, s_i] * norm.std[o_i] + norm.mean[o_i]
+                obs_index = s_i
+            if states.shape[-1] == 3:
+                figures["lorenz_prediction"] = viz.lorenz_prediction_figure(
+                    to_units(y[0]), to_units(first["y_clean"][0]) if "y_clean" in first else to_units(y[0]),
+                    states, self.n_filter, true_state=first["state"][0] if "state" in first else None,
+                    measured_index=obs_index, window=min(y.shape[1], 400),
+                )
+            x0 = self.ssm.nodes.weight[:1].view(self.ssm.n_nodes, self.ssm.state_dim)[:1]
+            attractor = rollout(self.ssm.f, x0, 10_000)[0]
+            if attractor.shape[-1] >= 3:
+                figures["attractor"] = viz.attractor_figure(attractor[:, :3], title="f iterated 10,000 times from a node")
+        log_dir = Path(self.ssm_checkpoint).parent.parent
+        try:
+            figures["ssm_training"] = viz.loss_curves_figure(log_dir)
+        except (FileNotFoundError, ValueError):
+            pass  # the SSM's TensorBoard logs are not beside its checkpoint
+        return figures

@@ -1,0 +1,94 @@
+"""The paper's tables in ssm_ms.results, against the transcription beside the paper (../shared/paper/tables.md,
+read by this test only: the project itself never reads ../shared), and the table a results file renders."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from ssm_ms.results import PAPER, paper_key, paper_row, render_markdown
+
+TABLES = Path(__file__).resolve().parents[2] / "shared" / "paper" / "tables.md"
+NUMBER = r"-?\d+(?:\.\d+)?"
+
+
+def transcribed_tables() -> dict[str, list[list[str]]]:
+    """``{"Table 1": [[cell, ...], ...]}``: the rows of each table of tables.md, header excluded."""
+    if not TABLES.is_file():
+        pytest.skip(f"the paper's transcription is not at {TABLES}")
+    tables: dict[str, list[list[str]]] = {}
+    current = None
+    for line in TABLES.read_text().splitlines():
+        heading = re.match(r"## (Table \d)", line)
+        if heading:
+            current = heading.group(1)
+            tables[current] = []
+        elif line.startswith("## "):
+            current = None
+        elif current and line.startswith("|") and not line.startswith("|---"):
+            tables[current].append([c.strip() for c in line.strip("|").split("|")])
+    return {name: rows[1:] for name, rows in tables.items()}  # without the header row
+
+
+def cell(text: str):
+    """``"0.0154 ± 0.0026"`` -> ``(0.0154, 0.0026)``, ``"3592.273"`` -> ``(3592.273, None)``, words stay words."""
+    numbers = re.findall(NUMBER, text.replace(",", ""))
+    if not numbers:
+        return text
+    return (float(numbers[0]), float(numbers[1]) if len(numbers) > 1 else None)
+
+
+def short(name: str) -> str:
+    return name.split(" ")[0]  # "LSTM (seq2seq CNN-LSTM)" -> "LSTM", "SSM-RNN (...)" -> "SSM-RNN"
+
+
+@pytest.mark.parametrize("table,key", [("Table 1", "pendulum"), ("Table 2", "quad")])
+def test_image_tables_match_the_transcription(table, key):
+    rows = transcribed_tables()[table]
+    assert len(rows) == 4
+    for name, mse, bce in rows:
+        ours = PAPER[key]["rows"][short(name)]
+        assert ours == {"noisy/mse": cell(mse), "noisy/bce": cell(bce)}, name
+
+
+def test_moving_mnist_table_matches_the_transcription():
+    rows = transcribed_tables()["Table 3"]
+    assert sorted(cell(bce)[0] for _, bce in rows) == sorted(v["noisy/bce"][0] for v in PAPER["mnist"]["rows"].values())
+    ssm = next(bce for name, bce in rows if name.startswith("SSM-LL"))
+    assert PAPER["mnist"]["rows"]["SSM-LL"]["noisy/bce"] == cell(ssm)
+
+
+def test_lorenz_table_matches_the_transcription():
+    rows = transcribed_tables()["Table 4"]
+    assert [short(r[0]) for r in rows] == ["SSM-RNN", "SSM-UKF", "LSTM", "RKN"]
+    for name, *values in rows:
+        for t, text in zip((10, 100, 1000, 10000), values):
+            assert PAPER[f"lorenz_T{t}"]["rows"][short(name)]["clean/mse"] == cell(text), (name, t)
+
+
+def test_each_run_meets_the_paper_row_of_its_method():
+    assert paper_key("pendulum_fc_cpu") == "pendulum" and paper_key("lorenz_T1000_cpu") == "lorenz_T1000"
+    assert paper_key("lorenz_T10") == "lorenz_T10" and paper_key("oscillator") is None
+    assert paper_row("pendulum", {"model": "SSM-FC", "inference": "encoder"}) == "SSM-FC"
+    assert paper_row("pendulum", {"model": "SSM-LL", "inference": "pf"}) is None  # the paper has no such row
+    assert paper_row("lorenz_T1000", {"model": "SSM-LL", "inference": "encoder"}) == "SSM-RNN"
+    assert paper_row("lorenz_T1000", {"model": "SSM-LL", "inference": "ukf"}) == "SSM-UKF"
+    assert paper_row("quad", {"model": "RKN", "inference": None}) == "RKN"
+    assert paper_row("mnist", {"model": "RKN", "inference": None}) is None
+
+
+def test_rendered_table_puts_the_paper_beside_each_method():
+    runs = {
+        "ukf": {"info": {"model": "SSM-LL", "inference": "ukf", "label": "SSM-LL + UKF"},
+                "summary": {"ukf/clean/mse": {"mean": 0.8, "std": 1.0}, "last/clean/mse": {"mean": 2.0, "std": 1.0}}},
+        "rkn": {"info": {"model": "RKN", "inference": None, "label": "RKN"},
+                "summary": {"rkn/clean/mse": {"mean": 50.0, "std": 9.0}}},
+    }
+    report = render_markdown("lorenz_T1000_cpu", runs)
+    assert "| SSM-LL + UKF | 0.8 ± 1 | SSM-UKF | 0.67 |" in report
+    assert "| RKN | 50 ± 9 | RKN | 67.76 |" in report
+    assert "| last (reference, with SSM-LL + UKF) | 2 ± 1 |  |  |" in report
+    assert "| RKN | did not converge | did not converge | 67.76 | out of memory |" in report  # the whole Table 4
+    assert "CPU-sized twin" in report
