@@ -10,9 +10,12 @@ holds the uncut set once and the pieces are a reshaped view of it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
+import torch
 from tqdm.auto import tqdm
 
 from datamodules.base import TrajectoryDataModule, TrajectoryDataset
@@ -83,6 +86,31 @@ def lorenz_rk4(
         x += k1
         out[t] = x
     return np.ascontiguousarray(out.transpose(2, 0, 1))
+
+
+def lorenz_rk4_step(
+    x: torch.Tensor, dt: float = 0.005, sigma: float = 10.0, beta: float = 8.0 / 3.0, rho: float = 28.0
+) -> torch.Tensor:
+    """One classical RK4 step of the Lorenz system in torch: ``[N, 3] -> [N, 3]``.
+
+    The same scheme, with the same order of operations, as :func:`lorenz_rk4`, so iterating it
+    reproduces that integrator to float64 rounding; it runs in ``x``'s dtype and device and is
+    differentiable (the true system's Jacobians, e.g. for :func:`ssm_ms.analysis.lyapunov_spectrum`).
+    Any leading batch shape ``[..., 3]`` works.
+    """
+    if x.dim() < 1 or x.shape[-1] != 3:
+        raise ValueError(f"x must have shape [N, 3] (Lorenz states), got {tuple(x.shape)}")
+
+    def rhs(s: torch.Tensor) -> torch.Tensor:
+        a, b, c = s.unbind(-1)
+        return torch.stack([sigma * (b - a), (rho - c) * a - b, a * b - beta * c], dim=-1)
+
+    half = 0.5 * dt
+    k1 = rhs(x)
+    k2 = rhs(x + k1 * half)
+    k3 = rhs(x + k2 * half)
+    k4 = rhs(x + k3 * dt)
+    return x + ((k1 + k4) + (k2 + k3) * 2.0) * (dt / 6.0)
 
 
 class LorenzDataModule(TrajectoryDataModule):
@@ -190,6 +218,14 @@ class LorenzDataModule(TrajectoryDataModule):
         noise = rng.standard_normal(y_clean.shape, dtype=np.float32)
         noise *= np.float32(self.noise_std)
         return {"y": y_clean + noise, "y_clean": y_clean, "state": state}
+
+    def true_transition(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        """The data's own transition ``x[t+1] = RK4(x[t])``, ``[N, 3] -> [N, 3]`` in original units.
+
+        :func:`lorenz_rk4_step` with this data set's ``dt``, ``sigma``, ``beta``, ``rho``: the reference
+        against which a learned ``f`` is compared (e.g. the true Lyapunov exponents from the equations).
+        """
+        return partial(lorenz_rk4_step, dt=self.dt, sigma=self.sigma, beta=self.beta, rho=self.rho)
 
     def load_split(self, split: str) -> TrajectoryDataset:
         """The cached split; training trajectories are cut into pieces by a reshape (a view, no copy).
