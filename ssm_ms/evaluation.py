@@ -173,6 +173,13 @@ class ForecastModule(pl.LightningModule):
     def datamodule(self):
         return getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
 
+    def setup(self, stage: str) -> None:
+        """Refuse, before any work, a split that does not fit the test sequences."""
+        test = getattr(self.datamodule, "datasets", {}).get("test") if stage == "test" else None
+        seq_len = getattr(test, "seq_len", None)
+        if seq_len is not None:
+            split_sequence(torch.zeros(1, seq_len, 1), self.n_filter, self.n_predict)
+
     def normalizer(self):
         dm = self.datamodule
         return getattr(dm, "normalizer", None)

@@ -255,6 +255,11 @@ class MultipleShootingModule(pl.LightningModule):
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse a checkpoint of another configuration with a message that says what differs."""
+        if checkpoint.get("forecaster"):
+            raise ValueError(
+                f"the checkpoint is a {checkpoint['forecaster']}'s (a baseline), not an SSM's: resume an SSM from "
+                "the last.ckpt of its own run (python cli.py fit --config configs/<experiment>.yaml)"
+            )
         state = checkpoint.get("state_dict", {})
         if self.nodes is None and "nodes.weight" in state:
             self._make_nodes(int(state["nodes.weight"].shape[0]))

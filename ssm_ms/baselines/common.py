@@ -1,11 +1,19 @@
 """What the baselines share: their networks map a measurement sequence and an "observed" mask to an
-estimate of every measurement, filtering where the mask is set and predicting where it is not."""
+estimate of every measurement, filtering where the mask is set and predicting where it is not; images
+are read by the paper's per-frame CNN and written by its transposed-convolution decoders, chosen by
+image size unless a config names them."""
 
 from __future__ import annotations
 
 from typing import NamedTuple, Optional
 
 from torch import Tensor
+
+from ssm_ms.nets.observation import PRESETS as DECODER_PRESETS
+from ssm_ms.nets.observation import ConvDecoder
+
+# Image side -> preset of both the encoder and the decoder (the paper's three image experiments).
+PRESET_BY_IMAGE_SIZE = {24: "pendulum", 48: "quad", 64: "mnist"}
 
 
 class SequenceOutput(NamedTuple):
@@ -17,3 +25,39 @@ class SequenceOutput(NamedTuple):
 
     mean: Tensor
     var: Optional[Tensor] = None
+
+
+def preset_for(obs_shape: tuple[int, ...], argument: str) -> str:
+    """The encoder / decoder preset of an image size (24 -> pendulum, 48 -> quad, 64 -> mnist)."""
+    c, h, w = obs_shape
+    if h != w or h not in PRESET_BY_IMAGE_SIZE:
+        sizes = ", ".join(f"{s}x{s} -> {p!r}" for s, p in PRESET_BY_IMAGE_SIZE.items())
+        raise ValueError(
+            f"no default {argument} for images of shape {list(obs_shape)} (defaults by size: {sizes}): give {argument}"
+        )
+    return PRESET_BY_IMAGE_SIZE[h]
+
+
+def decoder_preset_shape(preset: str) -> tuple[int, int, int]:
+    """Output shape of a ConvDecoder preset, from its spec (without building it)."""
+    _, size, layers = DECODER_PRESETS[preset]
+    channels = 0
+    for channels, kernel, stride in layers:
+        size = (size - 1) * stride + kernel
+    return (channels, size, size)
+
+
+def image_decoder(in_features: int, obs_shape: tuple[int, ...], preset: Optional[str], output: str) -> ConvDecoder:
+    """The paper's transposed-convolution decoder from ``in_features`` to images of ``obs_shape``
+    (``preset=None``: by image size), refusing a preset that draws another image size."""
+    if preset is None:
+        preset = preset_for(obs_shape, "decoder_preset")
+    decoder = ConvDecoder(in_features, preset=preset, output=output)
+    if tuple(decoder.out_shape) != tuple(obs_shape):
+        good = [name for name in DECODER_PRESETS if decoder_preset_shape(name) == tuple(obs_shape)]
+        hint = f"use decoder_preset={good[0]!r}" if good else "no ConvDecoder preset produces it"
+        raise ValueError(
+            f"the decoder preset {preset!r} produces images of shape {list(decoder.out_shape)} "
+            f"but obs_shape is {list(obs_shape)}: {hint}"
+        )
+    return decoder

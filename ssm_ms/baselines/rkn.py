@@ -41,13 +41,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ssm_ms.baselines.common import SequenceOutput
+from ssm_ms.baselines.common import SequenceOutput, image_decoder, preset_for
 from ssm_ms.nets.encoder import FrameEncoder
-from ssm_ms.nets.observation import PRESETS as DECODER_PRESETS
-from ssm_ms.nets.observation import ConvDecoder
-
-# Image side -> preset of both the encoder and the decoder (the paper's three image experiments).
-PRESET_BY_IMAGE_SIZE = {24: "pendulum", 48: "quad", 64: "mnist"}
 
 
 class FactorizedCovariance(NamedTuple):
@@ -355,7 +350,7 @@ class RecurrentKalmanNetwork(nn.Module):
 
         # --- encoder: frame -> (w, s)
         if encoder_preset is None:
-            encoder_preset = _preset_for(obs_shape, "encoder_preset") if is_image else "vector"
+            encoder_preset = preset_for(obs_shape, "encoder_preset") if is_image else "vector"
         self.encoder = FrameEncoder(obs_shape, preset=encoder_preset)
         if any(int(h) < 1 for h in encoder_hidden):
             raise ValueError(f"encoder_hidden widths must be >= 1, got {list(encoder_hidden)}")
@@ -374,16 +369,7 @@ class RecurrentKalmanNetwork(nn.Module):
         # --- decoder
         self.decoder_var: Optional[nn.Module] = None
         if is_image:
-            if decoder_preset is None:
-                decoder_preset = _preset_for(obs_shape, "decoder_preset")
-            self.decoder: nn.Module = ConvDecoder(n, preset=decoder_preset, output=output)
-            if tuple(self.decoder.out_shape) != obs_shape:
-                good = [name for name in DECODER_PRESETS if _decoder_preset_shape(name) == obs_shape]
-                hint = f"use decoder_preset={good[0]!r}" if good else "no ConvDecoder preset produces it"
-                raise ValueError(
-                    f"the decoder preset {decoder_preset!r} produces images of shape {list(self.decoder.out_shape)} "
-                    f"but obs_shape is {list(obs_shape)}: {hint}"
-                )
+            self.decoder: nn.Module = image_decoder(n, obs_shape, decoder_preset, output)
         else:
             if any(int(h) < 1 for h in decoder_hidden):
                 raise ValueError(f"decoder_hidden widths must be >= 1, got {list(decoder_hidden)}")
@@ -468,22 +454,3 @@ class RecurrentKalmanNetwork(nn.Module):
         """``y [B, T, *obs_shape]``, ``observed [B, T]`` -> estimates ``mean [B, T, *obs_shape]`` (and ``var``)."""
         result = self.filter(y, observed)
         return self.decode(result.means, result.covs)
-
-
-def _preset_for(obs_shape: tuple[int, ...], argument: str) -> str:
-    c, h, w = obs_shape
-    if h != w or h not in PRESET_BY_IMAGE_SIZE:
-        sizes = ", ".join(f"{s}x{s} -> {p!r}" for s, p in PRESET_BY_IMAGE_SIZE.items())
-        raise ValueError(
-            f"no default {argument} for images of shape {list(obs_shape)} (defaults by size: {sizes}): give {argument}"
-        )
-    return PRESET_BY_IMAGE_SIZE[h]
-
-
-def _decoder_preset_shape(preset: str) -> tuple[int, int, int]:
-    """Output shape of a ConvDecoder preset, from its spec (without building it)."""
-    _, size, layers = DECODER_PRESETS[preset]
-    channels = 0
-    for channels, kernel, stride in layers:
-        size = (size - 1) * stride + kernel
-    return (channels, size, size)

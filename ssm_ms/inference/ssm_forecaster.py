@@ -39,7 +39,13 @@ def load_ssm(path: str | os.PathLike, map_location: str | torch.device = "cpu") 
         )
     checkpoint = torch.load(path, map_location=map_location, weights_only=False)
     if "state_dict" not in checkpoint or "nodes.weight" not in checkpoint["state_dict"]:
-        raise ValueError(f"{path} is not a checkpoint of a MultipleShootingModule (no shooting nodes in it)")
+        kind = checkpoint.get("forecaster") if isinstance(checkpoint, dict) else None
+        what = f"a checkpoint of the {kind} baseline" if kind else \
+            "not a checkpoint of a MultipleShootingModule (no shooting nodes in it)"
+        raise ValueError(
+            f"{path} is {what}: ssm_checkpoint takes the last.ckpt of an SSM run "
+            "(python cli.py fit --config configs/<experiment>.yaml)"
+        )
     # LightningCLI hands a module it builds its hyperparameters through a context variable; the SSM loaded
     # here, during that construction, must not pick them up: load it in an empty context.
     model = contextvars.Context().run(
@@ -137,6 +143,7 @@ class SSMForecaster(ForecastModule):
                 "ssm_checkpoint": self.ssm_checkpoint}
 
     def setup(self, stage: str) -> None:
+        super().setup(stage)
         dm = self.datamodule
         check_same_data(self._ssm_checkpoint, dm, self.ssm)
         saved = datamodule_state(self._ssm_checkpoint)

@@ -1,0 +1,166 @@
+"""The baselines (sequence-to-sequence CNN-LSTM, RKN) as forecasters: what the LSTM sees while predicting,
+training on a DataModule, the shared protocol's numbers against a hand computation, checkpoints, bad input."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
+
+from ssm_ms.baselines import LSTMBaseline, RKNBaseline, Seq2SeqLSTM
+from ssm_ms.inference.encoder_module import StateEncoderModule
+from ssm_ms.module import MultipleShootingModule
+from ssm_ms.nets import Projection
+from tests.conftest import ExactRotation, RotationDataModule, fast_trainer
+
+LSTM_NET = {"hidden": 16}
+RKN_NET = {"latent_state_dim": 4, "n_basis": 3, "bandwidth": 1, "decoder_hidden": [16]}
+
+
+def rotation(tmp, **kwargs):
+    return RotationDataModule(data_dir=str(tmp / "data"), seq_len=12, batch_size=4, val_trajectories=2, **kwargs)
+
+
+# ---------------------------------------------------------------------------- the LSTM's inputs
+def test_lstm_reads_zeros_and_the_flag_while_predicting():
+    torch.manual_seed(0)
+    net = Seq2SeqLSTM([1, 24, 24], hidden=8)
+    y = torch.rand(2, 6, 1, 24, 24)
+    observed = torch.tensor([[True] * 4 + [False] * 2] * 2)
+    seen = []
+    net.lstm.register_forward_hook(lambda module, args, out: seen.append(args[0].detach().clone()))
+    out = net(y, observed).mean
+    lstm_in = seen[-1]  # [B, T, features + 1]
+    zero_frame = net.frames(torch.zeros(1, 1, 24, 24))[0]
+    for t in range(6):
+        expected = net.frames(y[:, t]) if t < 4 else zero_frame.expand(2, -1)
+        torch.testing.assert_close(lstm_in[:, t, :-1], expected)
+        assert (lstm_in[:, t, -1] == (1.0 if t < 4 else 0.0)).all()
+    # whatever the frames to predict hold, the outputs are the same: the network does not see them
+    y2 = y.clone()
+    y2[:, 4:] = torch.rand(2, 2, 1, 24, 24)
+    torch.testing.assert_close(net(y2, observed).mean, out)
+    # and they do matter where observed (the check above could not pass by ignoring every frame)
+    y3 = y.clone()
+    y3[:, 1] = torch.rand(2, 1, 24, 24)
+    assert not torch.allclose(net(y3, observed).mean[:, 4:], out[:, 4:])
+    assert out.shape == y.shape and 0 <= out.min() and out.max() <= 1
+
+
+def test_lstm_decoder_must_draw_the_data_image_size():
+    with pytest.raises(ValueError, match=r"preset 'quad' produces images of shape \[1, 48, 48\] but obs_shape is "
+                                         r"\[1, 24, 24\]: use decoder_preset='pendulum'"):
+        Seq2SeqLSTM([1, 24, 24], hidden=8, decoder_preset="quad")
+    with pytest.raises(ValueError, match=r"no default encoder_preset for images of shape \[1, 30, 30\]"):
+        Seq2SeqLSTM([1, 30, 30], hidden=8)
+
+
+# ---------------------------------------------------------------------------- training and the protocol
+@pytest.fixture(scope="module", params=["lstm", "rkn"])
+def trained(request, tmp_path_factory):
+    """A baseline trained on the rotation data (12 steps; 8 filtered, 4 predicted), and its checkpoint."""
+    tmp = tmp_path_factory.mktemp(request.param)
+    torch.manual_seed(0)
+    cls, net, loss = (LSTMBaseline, LSTM_NET, "mse") if request.param == "lstm" else (RKNBaseline, RKN_NET, "gaussian_nll")
+    model = cls(n_filter=8, network=net, loss=loss, lr=1e-2, metrics=["mse"], results_dir=str(tmp / "results"),
+                experiment="rot")
+    dm = rotation(tmp)
+    dm.prepare_data()
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    model.build(dm.obs_shape)
+    with torch.no_grad():
+        before = model.loss(model.run(batch["y"], 8), batch["y"]).item()
+    ckpt = ModelCheckpoint(dirpath=tmp / "ckpt", save_last=True)
+    fast_trainer(tmp, max_epochs=40, callbacks=[ckpt], gradient_clip_val=5.0).fit(model, dm)
+    with torch.no_grad():
+        after = model.loss(model.run(batch["y"], 8), batch["y"]).item()
+    return request.param, cls, model, tmp, before, after
+
+
+def test_baselines_reduce_their_training_loss(trained):
+    name, _, _, _, before, after = trained
+    assert after < before - 0.3 * abs(before), (name, before, after)
+
+
+def test_the_protocol_scores_a_baseline_like_any_forecaster(trained):
+    """The numbers in the results file, recomputed here: the network run on each test sequence with the first
+    8 steps observed, its last 4 outputs against the clean and noisy frames, its 8th output as `last`."""
+    name, _, model, tmp, _, _ = trained
+    dm = rotation(tmp)
+    fast_trainer(tmp, max_epochs=1).test(model, dm)
+    saved = json.loads((tmp / "results" / "rot.json").read_text())["runs"][name]
+    test = dm.load_arrays("test")
+    y, clean = torch.from_numpy(test["y"].copy()), torch.from_numpy(test["y_clean"].copy())
+    observed = torch.arange(12).expand(len(y), 12) < 8
+    with torch.no_grad():
+        out = model.net(torch.where(observed[..., None], y, torch.zeros(())), observed).mean
+    for target_name, target in (("clean", clean), ("noisy", y)):
+        per_seq = [((out[b, 8:] - target[b, 8:]) ** 2).mean().item() for b in range(len(y))]
+        last = [((out[b, 7] - target[b, 8:]) ** 2).mean().item() for b in range(len(y))]
+        assert saved["summary"][f"{name}/{target_name}/mse"]["mean"] == pytest.approx(sum(per_seq) / len(y), rel=1e-5)
+        assert saved["summary"][f"last/{target_name}/mse"]["mean"] == pytest.approx(sum(last) / len(y), rel=1e-5)
+    label = {"lstm": "LSTM", "rkn": "RKN"}[name]
+    assert saved["info"]["model"] == label and saved["info"]["inference"] is None
+    assert f"| {label} |" in (tmp / "results" / "rot.md").read_text()
+
+
+def test_baseline_checkpoint_reloads_on_its_own(trained):
+    name, cls, model, tmp, _, _ = trained
+    loaded = cls.load_from_checkpoint(tmp / "ckpt" / "last.ckpt")  # built from the recorded obs_shape
+    y = torch.randn(3, 12, 1)
+    observed = torch.arange(12).expand(3, 12) < 8
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.net(y, observed).mean, model.net(y, observed).mean)
+    # and the trainer restores it into a fresh module built from the config alone (network built in setup)
+    fresh = cls(n_filter=8, network=LSTM_NET if name == "lstm" else RKN_NET, metrics=["mse"],
+                results_dir=str(tmp / "results2"), experiment="rot")
+    fast_trainer(tmp, max_epochs=1).test(fresh, rotation(tmp), ckpt_path=str(tmp / "ckpt" / "last.ckpt"))
+    fast_trainer(tmp, max_epochs=1).test(model, rotation(tmp))
+    first = json.loads((tmp / "results" / "rot.json").read_text())["runs"][name]["summary"]
+    again = json.loads((tmp / "results2" / "rot.json").read_text())["runs"][name]["summary"]
+    assert again[f"{name}/clean/mse"]["mean"] == pytest.approx(first[f"{name}/clean/mse"]["mean"], rel=1e-6)
+
+
+# ---------------------------------------------------------------------------- bad input
+def test_checkpoints_of_the_other_kind_are_refused(trained, tmp_path):
+    name, cls, _, tmp, _, _ = trained
+    # a baseline checkpoint given to an SSM stage
+    with pytest.raises(ValueError, match=rf"is a checkpoint of the {cls.__name__} baseline: ssm_checkpoint takes"):
+        StateEncoderModule(str(tmp / "ckpt" / "last.ckpt"), n_filter=8)
+    # ... or to an SSM fit's --ckpt_path
+    ssm = MultipleShootingModule(ExactRotation(), Projection([0]), state_dim=2, n_nodes=3)
+    with pytest.raises(ValueError, match=rf"the checkpoint is a {cls.__name__}'s \(a baseline\), not an SSM's"):
+        fast_trainer(tmp_path, max_epochs=1).fit(ssm, rotation(tmp_path), ckpt_path=str(tmp / "ckpt" / "last.ckpt"))
+    # an SSM checkpoint given to a baseline
+    ssm_ckpt = ModelCheckpoint(dirpath=tmp_path / "ssm", save_last=True)
+    fast_trainer(tmp_path, max_epochs=1, callbacks=[ssm_ckpt]).fit(ssm, rotation(tmp_path))
+    baseline = cls(n_filter=8, network=LSTM_NET if name == "lstm" else RKN_NET, metrics=["mse"],
+                   results_dir=str(tmp_path / "results"))
+    with pytest.raises(ValueError, match=rf"the checkpoint is an SSM \(or one of its encoder stages\), not a {cls.__name__}"):
+        fast_trainer(tmp_path, max_epochs=1).test(baseline, rotation(tmp_path), ckpt_path=str(tmp_path / "ssm" / "last.ckpt"))
+
+
+def test_bad_baseline_settings_are_refused_before_any_work(tmp_path):
+    with pytest.raises(ValueError, match="latent_state_dim must be even .* got 5: use 4 or 6"):
+        RKNBaseline(n_filter=8, network={"latent_state_dim": 5}, obs_shape=[1])
+    with pytest.raises(ValueError, match="unknown loss 'l1'"):
+        LSTMBaseline(n_filter=8, loss="l1")
+    with pytest.raises(ValueError, match="gaussian_nll needs a network with a variance output; this LSTM has none"):
+        LSTMBaseline(n_filter=8, loss="gaussian_nll", obs_shape=[1])
+    with pytest.raises(ValueError, match="network.obs_shape comes from the data"):
+        LSTMBaseline(n_filter=8, network={"obs_shape": [1]})
+    # a prediction phase longer than the test sequences (12 steps)
+    lstm = LSTMBaseline(n_filter=8, n_predict=10, network=LSTM_NET, metrics=["mse"], results_dir=str(tmp_path))
+    with pytest.raises(ValueError, match="cannot filter 8 and predict 10 frames of sequences of length 12"):
+        fast_trainer(tmp_path, max_epochs=1).test(lstm, rotation(tmp_path))
+    # training pieces that leave nothing to predict
+    lstm = LSTMBaseline(n_filter=20, network=LSTM_NET, metrics=["mse"])
+    with pytest.raises(ValueError, match="training sequences have 12 steps: giving 12 of them leaves nothing"):
+        fast_trainer(tmp_path, max_epochs=1).fit(lstm, rotation(tmp_path))
+    # a model built for other data
+    lstm = LSTMBaseline(n_filter=8, network=LSTM_NET, obs_shape=[3], metrics=["mse"])
+    with pytest.raises(ValueError, match=r"built for measurements of shape \[3\], the data have \[1\]"):
+        fast_trainer(tmp_path, max_epochs=1).fit(lstm, rotation(tmp_path))
