@@ -54,7 +54,7 @@ Fn = Callable[[torch.Tensor], torch.Tensor]
 
 __all__ = [
     "LyapunovResult", "amplitude_ratio", "attractor_statistics", "both_wings_share", "dominant_period", "free_run",
-    "jacobian", "linearize", "lorenz_wing_level", "lyapunov_spectrum", "lyapunov_time", "summarize_valid_time",
+    "dynamics_report", "jacobian", "linearize", "lorenz_wing_level", "lyapunov_spectrum", "lyapunov_time", "summarize_valid_time",
     "valid_prediction_time", "wasserstein_1d",
 ]
 
@@ -470,3 +470,79 @@ def amplitude_ratio(x: torch.Tensor, window: int) -> torch.Tensor:
         return part.var(dim=1, correction=0).mean(dim=1).sqrt()
 
     return amplitude(x[:, -int(window):]) / amplitude(x[:, : int(window)])
+
+
+# ---------------------------------------------------------------------------- one report of a learned SSM
+def dynamics_report(
+    f: Fn,
+    g: Fn,
+    starts: torch.Tensor,
+    dt: float,
+    *,
+    to_units: Fn | None = None,
+    reference: torch.Tensor | None = None,
+    lyapunov_steps: int = 4000,
+    transient: int = 2000,
+    align: int = 600,
+    free_steps: int = 20_000,
+    wing_level: float | None = None,
+    true_f: Fn | None = None,
+    true_starts: torch.Tensor | None = None,
+) -> dict:
+    """What ``f`` and ``g`` do on their own, from the states ``starts [R, d]`` (e.g. shooting nodes).
+
+    - ``lyapunov``: the spectrum of ``f`` per time unit (float64, ``transient`` then ``align`` steps
+      before ``lyapunov_steps`` accumulated ones), its largest exponent and the Lyapunov time; with
+      ``true_f`` (and ``true_starts``, states of the true system) the same for the true system;
+    - ``free_run``: ``f`` iterated ``free_steps`` steps after the transient and decoded by ``g`` (in
+      original units through ``to_units``): per measured component its mean and std, and with
+      ``reference [M, D]`` (noiseless measurements of the data, original units) the 1-Wasserstein
+      distance to them (:func:`attractor_statistics`); with ``wing_level`` the share of runs visiting
+      both Lorenz wings in the first measured component.
+
+    Returns a JSON-ready dict (lists and floats).
+    """
+    _check_states(starts, "starts")
+    _check_positive(dt, "dt")
+
+    def spectrum(fn: Fn, x0: torch.Tensor) -> dict:
+        res = lyapunov_spectrum(fn, x0.double(), lyapunov_steps, dt, transient, align=align)
+        largest = float(res.exponents[0])
+        return {"exponents": res.exponents.tolist(), "std_over_runs": res.std.tolist(), "largest": largest,
+                "lyapunov_time": lyapunov_time(largest), "runs": len(x0), "steps": lyapunov_steps, "dt": dt}
+
+    f64 = _in_float64(f)
+    report: dict = {"lyapunov": spectrum(f64, starts)}
+    if true_f is not None:
+        if true_starts is None:
+            raise ValueError("true_f needs true_starts: states of the true system to start its runs from")
+        report["lyapunov_true"] = spectrum(true_f, true_starts)
+    with torch.no_grad():
+        run = free_run(f, starts, free_steps, transient)  # [R, S, d]
+        y = g(run.reshape(-1, run.shape[-1]))
+        if to_units is not None:
+            y = to_units(y)
+    y = y.reshape(run.shape[0], run.shape[1], -1).double()  # [R, S, D]
+    stats = {"runs": run.shape[0], "steps": free_steps, "transient": transient,
+             "finite_share": float(torch.isfinite(y).all(dim=(1, 2)).double().mean())}
+    if reference is not None:
+        reference = reference.reshape(len(reference), -1).double()
+        if reference.shape[1] != y.shape[-1]:
+            raise ValueError(f"reference has {reference.shape[1]} components per sample, g gives {y.shape[-1]}")
+        finite = y[torch.isfinite(y).all(dim=(1, 2))]
+        if len(finite):
+            stats.update(attractor_statistics(finite.reshape(-1, y.shape[-1]), reference))
+    if wing_level is not None:
+        stats["both_wings_share"] = both_wings_share(y[..., 0], wing_level)
+        stats["wing_level"] = wing_level
+    report["free_run"] = stats
+    return report
+
+
+def _in_float64(f: Fn) -> Fn:
+    """``f`` evaluated in float64: a copy of an ``nn.Module`` converted to double, else the function itself."""
+    if isinstance(f, torch.nn.Module):
+        import copy
+
+        return copy.deepcopy(f).double()
+    return f

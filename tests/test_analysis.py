@@ -15,6 +15,7 @@ from ssm_ms.analysis import (
     attractor_statistics,
     both_wings_share,
     dominant_period,
+    dynamics_report,
     free_run,
     jacobian,
     linearize,
@@ -323,3 +324,26 @@ def test_bad_input_says_what_to_change():
         dominant_period(torch.zeros(1, 10, 1), dt=0.0)
     with pytest.raises(ValueError, match="window"):
         amplitude_ratio(torch.zeros(1, 10, 1), window=11)
+
+
+# ---------------------------------------------------------------------------- the composite report
+def test_dynamics_report_of_the_true_lorenz_system_recovers_its_attractor(one_thread):
+    """The true equations as f, a projection on x as g: the model's statistics are the system's own
+    (exponent near 0.9 like the true one, both wings on every run, x distribution close to the data's)."""
+    f = LorenzDataModule(data_dir="unused").true_transition()
+    starts = torch.from_numpy(lorenz_states(8, 1, seed=1)[:, 0]).double()
+    reference = torch.from_numpy(lorenz_states(32, 10_000, seed=2)[..., :1]).reshape(-1, 1)  # long runs: the invariant measure
+    report = dynamics_report(f, Projection([0]), starts, DT, reference=reference, lyapunov_steps=2000,
+                             transient=1000, align=600, free_steps=20_000, wing_level=lorenz_wing_level(),
+                             true_f=f, true_starts=starts)
+    assert 0.7 < report["lyapunov"]["largest"] < 1.1
+    assert report["lyapunov"]["exponents"] == report["lyapunov_true"]["exponents"]
+    free = report["free_run"]
+    assert free["both_wings_share"] == 1.0 and free["finite_share"] == 1.0
+    assert free["wasserstein"][0] < 1.0  # a point at the mean is ~6.8 away
+    assert free["model_std"][0] == pytest.approx(free["reference_std"][0], rel=0.1)
+    # a contracting map instead: no chaos, both runs collapse to the origin, far from the data
+    report = dynamics_report(lambda x: 0.9 * x, Projection([0]), starts, DT, reference=reference,
+                             lyapunov_steps=100, transient=10, align=0, free_steps=100, wing_level=lorenz_wing_level())
+    assert report["lyapunov"]["largest"] == pytest.approx(math.log(0.9) / DT, rel=1e-6)
+    assert report["free_run"]["both_wings_share"] == 0.0 and report["free_run"]["wasserstein"][0] > 5
