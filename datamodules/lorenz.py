@@ -219,6 +219,17 @@ class LorenzDataModule(TrajectoryDataModule):
         noise *= np.float32(self.noise_std)
         return {"y": y_clean + noise, "y_clean": y_clean, "state": state}
 
+    @property
+    def sample_period(self) -> float:
+        """Seconds (time units) between samples."""
+        return self.dt
+
+    def wing_level(self) -> float:
+        """Level of ``x`` beyond which a run is on a wing of the butterfly: half the fixed points' ``|x|``."""
+        from ssm_ms.analysis import lorenz_wing_level
+
+        return lorenz_wing_level(self.beta, self.rho)
+
     def true_transition(self) -> Callable[[torch.Tensor], torch.Tensor]:
         """The data's own transition ``x[t+1] = RK4(x[t])``, ``[N, 3] -> [N, 3]`` in original units.
 

@@ -236,6 +236,16 @@ def _init_worker(n_links: int) -> None:
     _WORKER.update(n_links=n_links, model=model, data=model.createData())
 
 
+def initial_states(params: dict[str, Any], split_id: int, indices) -> tuple[list, np.ndarray, np.ndarray]:
+    """The random streams and initial angles / velocities ``[len(indices), n]`` of trajectories ``indices``
+    (each trajectory's stream is seeded by ``(seed, split, index)``, so any one can be regenerated alone)."""
+    n = params["n_links"]
+    rngs = [np.random.default_rng([params["seed"], split_id, int(i)]) for i in indices]
+    q0 = np.stack([r.uniform(-params["max_angle"], params["max_angle"], n) for r in rngs])
+    v0 = np.stack([r.uniform(-params["max_velocity"], params["max_velocity"], n) for r in rngs])
+    return rngs, q0, v0
+
+
 def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int) -> dict[str, np.ndarray]:
     """Trajectories ``start..stop-1`` of a split: ``{"y", "y_clean", "state"}`` (see the module doc).
 
@@ -247,9 +257,7 @@ def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int)
     n, size = params["n_links"], params["image_size"]
     n_frames = int(round(params["duration"] / params["frame_dt"]))
     steps = int(round(params["frame_dt"] / params["dt"]))
-    rngs = [np.random.default_rng([params["seed"], split_id, i]) for i in range(start, stop)]
-    q0 = np.stack([r.uniform(-params["max_angle"], params["max_angle"], n) for r in rngs])
-    v0 = np.stack([r.uniform(-params["max_velocity"], params["max_velocity"], n) for r in rngs])
+    rngs, q0, v0 = initial_states(params, split_id, range(start, stop))
     q, v = simulate(_WORKER["model"], _WORKER["data"], q0, v0, n_frames, steps, params["dt"], params["damping"])
     count = stop - start
     y = np.empty((count, n_frames, 1, size, size), np.uint8)
@@ -405,6 +413,31 @@ class PendulumDataModule(TrajectoryDataModule):
             "gravity": GRAVITY,
             "seed": self.seed,
         }
+
+    @property
+    def sample_period(self) -> float:
+        """Seconds between frames."""
+        return self.frame_dt
+
+    @property
+    def known_largest_exponent(self) -> float | None:
+        """0 for the undamped simple pendulum (integrable: no exponential divergence); unknown otherwise."""
+        return 0.0 if self.n_links == 1 and self.damping == 0.0 else None
+
+    def true_measurements(self, split: str, index, n_frames: int) -> torch.Tensor:
+        """Noiseless frames ``[len(index), n_frames, 1, H, W]`` in [0, 1] of trajectories ``index`` of a split,
+        simulated from their exact initial states for ``n_frames`` frames (any horizon, e.g. beyond the data's)."""
+        import torch
+
+        if split not in SPLIT_IDS:
+            raise ValueError(f"unknown split {split!r}: the pendulum data set has splits {sorted(SPLIT_IDS)}")
+        params = self.generator_params()
+        _, q0, v0 = initial_states(params, SPLIT_IDS[split], index)
+        model = pendulum_model(self.n_links)
+        steps = int(round(self.frame_dt / self.dt))
+        q, _ = simulate(model, model.createData(), q0, v0, int(n_frames), steps, self.dt, self.damping)
+        frames = np.stack([quantize(render(q[j], self.image_size, self.line_width)) for j in range(len(q))])
+        return torch.from_numpy(frames).float().div_(255.0)
 
     def generate(self, split: str) -> dict[str, np.ndarray]:
         if split not in SPLIT_IDS:

@@ -55,7 +55,7 @@ Fn = Callable[[torch.Tensor], torch.Tensor]
 __all__ = [
     "LyapunovResult", "amplitude_ratio", "attractor_statistics", "both_wings_share", "dominant_period", "free_run",
     "dynamics_report", "jacobian", "linearize", "lorenz_wing_level", "lyapunov_spectrum", "lyapunov_time", "summarize_valid_time",
-    "valid_prediction_time", "wasserstein_1d",
+    "valid_prediction_time", "valid_steps", "wasserstein_1d",
 ]
 
 
@@ -354,8 +354,15 @@ def valid_prediction_time(
         )
     if not (scale > 0).all():
         raise ValueError("scale must be > 0 everywhere: a constant component has no scale, leave it out")
+    return valid_steps(((pred - truth) / scale.to(pred)).pow(2).mean(dim=2).sqrt(), threshold)
+
+
+def valid_steps(error: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+    """``[B]``: the leading steps of each row of normalised errors ``[B, p]`` that stay ``<= threshold``
+    (``inf`` when none exceeds it; NaN counts as invalid). :func:`valid_prediction_time` from the errors."""
     _check_positive(threshold, "threshold")
-    error = ((pred - truth) / scale.to(pred)).pow(2).mean(dim=2).sqrt()  # [B, p]
+    if error.dim() != 2:
+        raise ValueError(f"error must be [B, p] (one normalised error per sequence and step), got {tuple(error.shape)}")
     invalid = ~(error <= threshold)
     first = invalid.to(torch.int8).argmax(dim=1).to(torch.float64)  # first invalid step (0 if none)
     return torch.where(invalid.any(dim=1), first, torch.full_like(first, math.inf))

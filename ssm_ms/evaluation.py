@@ -24,6 +24,11 @@ Metrics (per test sequence, then mean and std over sequences):
 Two references are computed by the same code so the numbers can be read: ``last`` repeats the
 forecaster's estimate of the last given frame (``g(x[k-1])`` for an SSM); ``mean`` predicts the mean
 training frame.
+
+Beyond the score (``analysis`` argument, :mod:`ssm_ms.analysis`): the *valid prediction time* of every
+forecaster (how many steps its forecast stays within a normalised error of 0.5 of the noiseless truth,
+in steps, seconds and Lyapunov times of the true system), and for an SSM what ``f`` is on its own
+(:meth:`ssm_ms.inference.SSMForecaster.analyze`: Lyapunov exponents, long free runs against the data).
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from pathlib import Path
 from typing import Any, NamedTuple, Optional
 
 import lightning.pytorch as pl
+import numpy as np
 import torch
 from torchmetrics import CatMetric
 
@@ -43,6 +49,42 @@ from ssm_ms.machine import describe
 
 BCE_EPS = 1e-12
 METRICS = ("mse", "bce")
+# analysis: {section: {key: default}}; a section absent from the config is not computed
+ANALYSIS_DEFAULTS: dict[str, dict[str, Any]] = {
+    # forecast `horizon` steps after `n_filter` given ones (None: the protocol's split), valid while the
+    # normalised error <= threshold (the reservoir-computing convention, Vlachas et al. 2020)
+    "valid_time": {"n_filter": None, "horizon": None, "threshold": 0.5},
+    # SSMs only: f from `runs` shooting nodes: Lyapunov spectrum and long free runs (ssm_ms.analysis.dynamics_report)
+    "dynamics": {"runs": 16, "lyapunov_steps": 4000, "transient": 2000, "align": 600, "free_steps": 20_000,
+                 "seed": 0},
+}
+
+
+def check_analysis(analysis: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The ``analysis`` setting with defaults filled in; unknown sections or keys are refused."""
+    if not analysis:
+        return {}
+    out: dict[str, Any] = {}
+    for section, values in analysis.items():
+        if section == "dt":
+            if values is not None and not float(values) > 0:
+                raise ValueError(f"analysis.dt must be > 0 (seconds per step), got {values!r}")
+            out["dt"] = None if values is None else float(values)
+            continue
+        if section not in ANALYSIS_DEFAULTS:
+            raise ValueError(f"unknown analysis section {section!r}: choose among {sorted(ANALYSIS_DEFAULTS) + ['dt']}")
+        values = dict(values or {})
+        unknown = set(values) - set(ANALYSIS_DEFAULTS[section])
+        if unknown:
+            raise ValueError(f"analysis.{section} takes {sorted(ANALYSIS_DEFAULTS[section])}, got {sorted(unknown)}")
+        merged = {**ANALYSIS_DEFAULTS[section], **values}
+        for key, value in merged.items():
+            if value is not None and key != "threshold" and (int(value) != value or value < (0 if key in ("transient", "align", "seed") else 1)):
+                raise ValueError(f"analysis.{section}.{key} must be a whole number >= 1, got {value!r}")
+        if section == "valid_time" and not merged["threshold"] > 0:
+            raise ValueError(f"analysis.valid_time.threshold must be > 0, got {merged['threshold']!r}")
+        out[section] = merged
+    return out
 
 
 # ---------------------------------------------------------------------------- pure functions
@@ -113,6 +155,9 @@ class ForecastModule(pl.LightningModule):
         results_dir: where the results files go.
         figures_dir: if set, PNG / GIF figures are written there too.
         method_name: the key of this forecaster in the results files (default: :attr:`method_kind`).
+        analysis: what to compute beyond the score (default: nothing): ``valid_time`` (any forecaster),
+            ``dynamics`` (SSMs), ``dt`` (seconds per step, default the data set's ``sample_period``); see
+            :data:`ANALYSIS_DEFAULTS`, e.g. ``{valid_time: {n_filter: 1000, horizon: 1000}, dynamics: {}}``.
     """
 
     method_kind = "model"
@@ -128,6 +173,7 @@ class ForecastModule(pl.LightningModule):
         results_dir: str = "results",
         figures_dir: str | None = None,
         method_name: str | None = None,
+        analysis: dict[str, Any] | None = None,
     ):
         super().__init__()
         self.save_hyperparameters()  # with the subclass's arguments too
@@ -146,6 +192,7 @@ class ForecastModule(pl.LightningModule):
         self.experiment, self.results_dir, self.figures_dir = experiment, results_dir, figures_dir
         self.metric_names = list(metrics)
         self.method_name = method_name or self.method_kind
+        self.analysis_settings = check_analysis(analysis)
         self._metrics = torch.nn.ModuleDict()
         self._first_batch: dict[str, torch.Tensor] | None = None
         self._mean_frame: torch.Tensor | None = None
@@ -179,6 +226,8 @@ class ForecastModule(pl.LightningModule):
         seq_len = getattr(test, "seq_len", None)
         if seq_len is not None:
             split_sequence(torch.zeros(1, seq_len, 1), self.n_filter, self.n_predict)
+            if "valid_time" in self.analysis_settings:
+                split_sequence(torch.zeros(1, seq_len, 1), *self._valid_time_split(seq_len))
 
     def normalizer(self):
         dm = self.datamodule
@@ -209,6 +258,7 @@ class ForecastModule(pl.LightningModule):
         self._start_time = time.time()
         self._metrics = torch.nn.ModuleDict()
         self._first_batch = None
+        self._valid_time = ValidTimeAccumulator() if "valid_time" in self.analysis_settings else None
 
     @torch.no_grad()
     def test_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> None:
@@ -238,6 +288,13 @@ class ForecastModule(pl.LightningModule):
                 scores = sequence_metrics(pred, target, self.metric_names, self.bce_reduction)
                 for metric, values in scores.items():
                     self._record(f"{method}/{target_name}/{metric}", values)
+        if self._valid_time is not None:
+            k_v, h = self._valid_time_split(batch["y"].shape[1])
+            pred = out.predicted if (k_v, h) == (k, p) else self.forecast(batch["y"][:, :k_v], h).predicted
+            truth = batch["y_clean" if "y_clean" in batch else "y"][:, k_v : k_v + h]
+            if self.original_units and norm is not None:
+                pred, truth = norm.denormalize(pred), norm.denormalize(truth)
+            self._valid_time.update(pred, truth)
         if self._first_batch is None:  # kept for the figures
             self._first_batch = {key: batch[key][:, : k + p] for key in ("y", "y_clean", "state") if key in batch}
             self._first_batch["y_model"] = torch.cat([out.filtered, out.predicted], 1)
@@ -251,9 +308,44 @@ class ForecastModule(pl.LightningModule):
             values = metric.compute().flatten().double()
             summary[key] = {"mean": values.mean().item(), "std": values.std(unbiased=False).item(), "n": values.numel()}
             self.log(f"test/{key}", summary[key]["mean"])
+        analysis = self.analyze() if self.trainer.is_global_zero and self.analysis_settings else {}
+        for name, value in flat_scalars(analysis).items():
+            self.log(f"analysis/{name}", value, rank_zero_only=True)
         if self.trainer.is_global_zero:
-            self.write_results(summary)
+            self.write_results(summary, analysis)
             self.log_figures()
+
+    # ------------------------------------------------------------------ analysis
+    def _valid_time_split(self, seq_len: int) -> tuple[int, int]:
+        vt = self.analysis_settings["valid_time"]
+        k = vt["n_filter"] or self.n_filter
+        return k, vt["horizon"] or self.n_predict or seq_len - k
+
+    def sample_period(self) -> float | None:
+        """Seconds per step: ``analysis.dt``, else the data set's ``sample_period`` (``None``: unknown)."""
+        dt = self.analysis_settings.get("dt") or getattr(self.datamodule, "sample_period", None)
+        return None if dt is None else float(dt)
+
+    def analyze(self) -> dict[str, Any]:
+        """What the ``analysis`` setting asks for, as a JSON-ready dict (written beside the scores)."""
+        from ssm_ms.analysis import summarize_valid_time
+
+        out: dict[str, Any] = {}
+        reference = reference_exponents(self.datamodule)
+        if reference is not None:
+            out["true_system"] = reference
+        if self._valid_time is not None and self._valid_time.count:
+            settings = self.analysis_settings["valid_time"]
+            steps, horizon = self._valid_time.steps(settings["threshold"])
+            dt = self.sample_period()
+            largest = reference["largest"] if reference else None
+            vt = summarize_valid_time(steps, horizon, dt or 1.0, largest)
+            if dt is None:
+                vt = {k: v for k, v in vt.items() if "seconds" not in k and "lyapunov" not in k}
+            vt.update(threshold=settings["threshold"], n_filter=settings["n_filter"] or self.n_filter,
+                      truth="noiseless" if self._valid_time.clean else "noisy", dt=dt)
+            out["valid_time"] = vt
+        return out
 
     # ------------------------------------------------------------------ output
     def experiment_name(self) -> str:
@@ -262,7 +354,7 @@ class ForecastModule(pl.LightningModule):
         dm = self.datamodule
         return getattr(dm, "name", "experiment")
 
-    def write_results(self, summary: dict[str, dict[str, float]]) -> None:
+    def write_results(self, summary: dict[str, dict[str, float]], analysis: dict[str, Any] | None = None) -> None:
         from ssm_ms.results import write_results  # the tables of the paper live there
 
         info = {
@@ -281,11 +373,89 @@ class ForecastModule(pl.LightningModule):
             "machine": describe(),
             "test_seconds": round(time.time() - getattr(self, "_start_time", time.time()), 1),
         }
-        write_results(Path(self.results_dir), info, summary)
+        write_results(Path(self.results_dir), info, summary, analysis or None)
 
     def log_figures(self) -> None:
         if self._first_batch is not None:
             log_forecast_figures(self, self._first_batch)
+
+
+class ValidTimeAccumulator:
+    """Squared forecast errors per sequence and step, and the truth's statistics, over the test batches.
+
+    The valid time needs the scale of the truth over the whole test set, known only at the end: errors are
+    kept per step (vectors: per component ``[B, h, D]``; images: mean over the pixels ``[B, h, 1]``, scaled
+    by one std over all pixels) and thresholded in :meth:`steps`.
+    """
+
+    def __init__(self) -> None:
+        self.errors: list[torch.Tensor] = []
+        self.total = self.total_sq = None
+        self.count = 0
+        self.clean = True
+
+    def update(self, pred: torch.Tensor, truth: torch.Tensor) -> None:
+        pred, truth = pred.double(), truth.double()
+        if truth.dim() > 3:  # images: one group of all pixels
+            sq = (pred - truth).pow(2).flatten(2).mean(2, keepdim=True)
+            values = truth.reshape(-1, 1)
+        else:
+            sq, values = (pred - truth).pow(2), truth.reshape(-1, truth.shape[-1])
+        self.errors.append(sq.cpu())
+        total, total_sq = values.sum(0).cpu(), values.pow(2).sum(0).cpu()
+        self.total = total if self.total is None else self.total + total
+        self.total_sq = total_sq if self.total_sq is None else self.total_sq + total_sq
+        self.count += len(values)
+
+    def steps(self, threshold: float) -> tuple[torch.Tensor, int]:
+        """Valid steps per test sequence ``[N]`` (``inf``: valid over the whole horizon) and the horizon."""
+        from ssm_ms.analysis import valid_steps
+
+        mean = self.total / self.count
+        var = (self.total_sq / self.count - mean.pow(2)).clamp_min(1e-30)
+        errors = torch.cat(self.errors)  # [N, h, G]
+        return valid_steps((errors / var).mean(-1).sqrt(), threshold), errors.shape[1]
+
+
+def reference_exponents(dm: Any, runs: int = 16) -> dict[str, Any] | None:
+    """The true system's Lyapunov exponents per time unit, where the data set can give them: computed from
+    its own equations (``true_transition`` and the test split's initial states) or stated
+    (``known_largest_exponent``, e.g. 0 for the undamped simple pendulum). Computed once per DataModule."""
+    if dm is None:
+        return None
+    if getattr(dm, "_reference_exponents", None) is not None:
+        return dm._reference_exponents
+    result = None
+    if callable(getattr(dm, "true_transition", None)) and getattr(dm, "sample_period", None):
+        from ssm_ms.analysis import lyapunov_spectrum
+
+        test = dm.datasets.get("test") if hasattr(dm, "datasets") else None
+        states = getattr(test, "arrays", {}).get("state") if test is not None else None
+        if states is not None:
+            x0 = torch.from_numpy(np.array(states[:runs, 0], dtype=np.float64))
+            dt = float(dm.sample_period)
+            res = lyapunov_spectrum(dm.true_transition(), x0, steps=4000, dt=dt, transient=2000, align=600)
+            result = {"exponents": res.exponents.tolist(), "largest": float(res.exponents[0]),
+                      "source": f"the data set's equations, Benettin QR over {runs} runs of 4000 steps"}
+    elif getattr(dm, "known_largest_exponent", None) is not None:
+        result = {"largest": float(dm.known_largest_exponent), "source": "known for this system"}
+    if result is not None:
+        dm._reference_exponents = result
+    return result
+
+
+def flat_scalars(tree: Mapping[str, Any], prefix: str = "") -> dict[str, float]:
+    """Numeric leaves of a nested dict as ``{"a/b": value}`` (lists give ``a/b/0``, ...), for TensorBoard."""
+    out: dict[str, float] = {}
+    for key, value in tree.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(flat_scalars(value, name + "/"))
+        elif isinstance(value, (list, tuple)):
+            out.update({f"{name}/{i}": float(v) for i, v in enumerate(value) if isinstance(v, (int, float))})
+        elif isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value):
+            out[name] = float(value)
+    return out
 
 
 def log_forecast_figures(module: ForecastModule, first: dict[str, torch.Tensor], n_sequences: int = 4) -> None:

@@ -159,6 +159,7 @@ def render_markdown(experiment: str, runs: dict[str, dict[str, Any]], pipeline: 
         lines.append("")
         if paper.get("notes"):
             lines += [*paper["notes"], ""]
+    lines += render_analysis(ordered)
     lines += ["## Runs", ""]
     for method, run in ordered:
         info = run["info"]
@@ -175,6 +176,75 @@ def render_markdown(experiment: str, runs: dict[str, dict[str, Any]], pipeline: 
         lines += [f"| `{st['command']}` | {st['seconds']} |" for st in pipeline.get("stages", [])]
         lines.append("")
     return "\n".join(lines)
+
+
+def _num(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return "—"
+    if isinstance(value, float) and value == float("inf"):
+        return "inf"
+    return f"{value:.{digits}g}" if isinstance(value, (int, float)) else str(value)
+
+
+def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
+    """The ``## Analysis`` section: valid prediction times of every method, then what each SSM's ``f`` does alone."""
+    runs = [(run["info"].get("label", method), run["analysis"]) for method, run in ordered if run.get("analysis")]
+    if not runs:
+        return []
+    lines = ["## Analysis", ""]
+    true = next((a["true_system"] for _, a in runs if a.get("true_system")), None)
+    timed = [(label, a["valid_time"]) for label, a in runs if a.get("valid_time")]
+    if timed:
+        vt0 = timed[0][1]
+        lines.append(
+            f"**Valid prediction time**: steps until the forecast's normalised error "
+            f"`sqrt(mean((pred - truth)^2 / std^2))` exceeds {vt0['threshold']} (the reservoir-computing convention), "
+            f"against the {vt0['truth']} measurements, after {vt0['n_filter']} given steps, over a horizon of "
+            f"{vt0['horizon']} steps; `censored`: share of sequences still valid at the horizon (their time is "
+            f"counted as the horizon: a lower bound). Lyapunov times use the true system's largest exponent"
+            + (f" ({true['largest']:.3g} per time unit, {true['source']})." if true else " (not known here).")
+        )
+        lines += ["", "| method | mean ± std (steps) | median (steps) | mean (s) | mean (Lyapunov times) | censored |",
+                  "|---|---|---|---|---|---|"]
+        for label, vt in timed:
+            lines.append(f"| {label} | {_num(vt['mean_steps'])} ± {_num(vt['std_steps'], 2)} | {_num(vt['median_steps'])} | "
+                         f"{_num(vt.get('mean_seconds'))} | {_num(vt.get('mean_lyapunov_times'))} | "
+                         f"{_num(vt['censored_share'], 2)} |")
+        lines.append("")
+    dyn = [(label, a["dynamics"]) for label, a in runs if a.get("dynamics")]
+    if dyn:
+        lines.append("**The learned f on its own**, iterated from shooting nodes (the same for every inference method "
+                     "of one SSM): Lyapunov exponents per time unit (Benettin QR on the Jacobians of f), and long free "
+                     "runs decoded by g against the data's noiseless training measurements.")
+        lines += ["", "| SSM (via) | Lyapunov exponents | largest (true) | free runs | x: model mean ± std | "
+                  "x: data mean ± std | W1 (x) | both wings |", "|---|---|---|---|---|---|---|---|"]
+        for label, d in dyn:
+            ly, fr = d["lyapunov"], d.get("free_run", {})
+            truth = d.get("lyapunov_true", true) or {}
+            exps = ", ".join(_num(e) for e in ly["exponents"])
+            lines.append(
+                f"| {label} | {exps} | {_num(ly['largest'])} ({_num(truth.get('largest'))}) | "
+                f"{fr.get('runs', '—')} x {fr.get('steps', '—')} | "
+                f"{_num(fr['model_mean'][0]) + ' ± ' + _num(fr['model_std'][0]) if 'model_mean' in fr else '—'} | "
+                f"{_num(fr['reference_mean'][0]) + ' ± ' + _num(fr['reference_std'][0]) if 'reference_mean' in fr else '—'} | "
+                f"{_num(fr['wasserstein'][0]) if 'wasserstein' in fr else '—'} | "
+                f"{_num(fr.get('both_wings_share'), 2)} |"
+            )
+        lines.append("")
+        periodic = [(label, d["oscillation"]) for label, d in dyn if d.get("oscillation")]
+        if periodic:
+            lines += ["**Period and amplitude** of the free runs of f from the nodes of training trajectories, decoded, "
+                      "against the data generator simulated from the same initial states over the same horizon "
+                      "(amplitude ratio: std of the last window over the first; 1 = energy kept).", "",
+                      "| SSM (via) | runs | horizon (steps) | period error, median | within 5% | amplitude ratio, model "
+                      "(median) | amplitude ratio, truth (median) | valid steps from the node (median) |",
+                      "|---|---|---|---|---|---|---|---|"]
+            for label, o in periodic:
+                lines.append(f"| {label} | {o['runs']} | {o['horizon']} | {_num(o['median_period_error'])} | "
+                             f"{_num(o['share_within_5_percent'], 2)} | {_num(o['median_amplitude_ratio_model'])} | "
+                             f"{_num(o['median_amplitude_ratio_truth'])} | {_num(o['median_valid_steps'])} |")
+            lines.append("")
+    return lines
 
 
 def _load(json_path: Path) -> dict[str, Any]:
@@ -196,12 +266,17 @@ def _save(results_dir: Path, experiment: str, data: dict[str, Any]) -> Path:
     return md_path
 
 
-def write_results(results_dir: Path, info: dict[str, Any], summary: dict[str, dict[str, float]]) -> Path:
+def write_results(
+    results_dir: Path, info: dict[str, Any], summary: dict[str, dict[str, float]], analysis: dict[str, Any] | None = None
+) -> Path:
     """Merge one test run into ``<results_dir>/<experiment>.json`` and rewrite ``<experiment>.md``."""
     results_dir.mkdir(parents=True, exist_ok=True)
     experiment = info["experiment"]
     data = _load(results_dir / f"{experiment}.json")
-    data.setdefault("runs", {})[info["method"]] = {"info": info, "summary": summary}
+    run: dict[str, Any] = {"info": info, "summary": summary}
+    if analysis:
+        run["analysis"] = analysis
+    data.setdefault("runs", {})[info["method"]] = run
     return _save(results_dir, experiment, data)
 
 

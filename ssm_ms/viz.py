@@ -437,19 +437,28 @@ def lorenz_prediction_figure(
     return fig
 
 
-def attractor_figure(states: torch.Tensor, title: str = "") -> Figure:
-    """A thin 3-D line through ``states [N, 3]`` (e.g. f iterated from a shooting node)."""
+def attractor_figure(states: torch.Tensor, title: str = "", true_states: torch.Tensor | None = None) -> Figure:
+    """A thin 3-D line through ``states [N, 3]`` (e.g. f iterated from a shooting node); with
+    ``true_states [M, 3]`` (or ``[R, M, 3]``: several runs) the true system's attractor beside it."""
     s = _numpy(states)
     if s.ndim != 2 or s.shape[1] != 3:
         raise ValueError(f"attractor_figure draws states [N, 3], got {tuple(states.shape)}")
-    fig = Figure(figsize=(6, 6), constrained_layout=True)
-    ax = fig.add_subplot(projection="3d")
-    ax.plot(s[:, 0], s[:, 1], s[:, 2], lw=0.3, color="C0", gid="attractor")
-    ax.set_xlabel("state 0")
-    ax.set_ylabel("state 1")
-    ax.set_zlabel("state 2")
-    if title:
-        ax.set_title(title)
+    panels = [(s[None], title or "model", "C0", "attractor", "state")]
+    if true_states is not None:
+        t = _numpy(true_states)
+        t = t[None] if t.ndim == 2 else t
+        if t.ndim != 3 or t.shape[-1] != 3:
+            raise ValueError(f"true_states must be [M, 3] or [R, M, 3], got {tuple(true_states.shape)}")
+        panels.append((t, "the true system (test sequences)", "0.3", "true_attractor", "true state"))
+    fig = Figure(figsize=(6 * len(panels), 6), constrained_layout=True)
+    for i, (runs, name, color, gid, axis) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), i + 1, projection="3d")
+        for run in runs:
+            ax.plot(run[:, 0], run[:, 1], run[:, 2], lw=0.3, color=color, gid=gid)
+        ax.set_xlabel(f"{axis} 0")
+        ax.set_ylabel(f"{axis} 1")
+        ax.set_zlabel(f"{axis} 2")
+        ax.set_title(name)
     return fig
 
 

@@ -65,7 +65,7 @@ def trained(request, tmp_path_factory):
     torch.manual_seed(0)
     cls, net, loss = (LSTMBaseline, LSTM_NET, "mse") if request.param == "lstm" else (RKNBaseline, RKN_NET, "gaussian_nll")
     model = cls(n_filter=8, network=net, loss=loss, lr=1e-2, metrics=["mse"], results_dir=str(tmp / "results"),
-                experiment="rot")
+                experiment="rot", analysis={"valid_time": {"threshold": 0.3}, "dt": 0.1})
     dm = rotation(tmp)
     dm.prepare_data()
     dm.setup("fit")
@@ -102,6 +102,17 @@ def test_the_protocol_scores_a_baseline_like_any_forecaster(trained):
         last = [((out[b, 7] - target[b, 8:]) ** 2).mean().item() for b in range(len(y))]
         assert saved["summary"][f"{name}/{target_name}/mse"]["mean"] == pytest.approx(sum(per_seq) / len(y), rel=1e-5)
         assert saved["summary"][f"last/{target_name}/mse"]["mean"] == pytest.approx(sum(last) / len(y), rel=1e-5)
+    # the valid prediction time: leading predicted steps whose error, over the std of the noiseless truth in
+    # the predicted windows, stays <= 0.3 (4 steps if it never exceeds it: censored)
+    scale = clean[:, 8:].double().std(unbiased=False)
+    steps = []
+    for b in range(len(y)):
+        err = (out[b, 8:, 0].double() - clean[b, 8:, 0].double()).abs() / scale
+        steps.append(next((t for t in range(4) if err[t] > 0.3), 4))
+    vt = saved["analysis"]["valid_time"]
+    assert vt["mean_steps"] == pytest.approx(sum(steps) / len(steps))
+    assert vt["censored_share"] == pytest.approx(sum(s == 4 for s in steps) / len(steps))
+    assert vt["mean_seconds"] == pytest.approx(0.1 * sum(steps) / len(steps))
     label = {"lstm": "LSTM", "rkn": "RKN"}[name]
     assert saved["info"]["model"] == label and saved["info"]["inference"] is None
     assert f"| {label} |" in (tmp / "results" / "rot.md").read_text()

@@ -79,7 +79,7 @@ class Oracle(SSMForecaster):
         self.batch = batch
 
     def infer(self, y_filter):
-        k = self.hparams.n_filter
+        k = y_filter.shape[1]
         assert torch.equal(y_filter, self.batch["y"][:, :k])  # exactly the first k measurements
         return self.batch["state"][:, :k]
 
@@ -108,6 +108,33 @@ def test_protocol_bookkeeping_with_the_exact_model(exact_ssm):
     assert saved["oracle/noisy/mse"]["mean"] == pytest.approx(expected_noisy.mean().item(), rel=1e-4)
     report = (tmp / "results" / "rot.md").read_text()
     assert "| SSM (ExactRotation) + oracle |" in report and "| last (reference, with SSM (ExactRotation) + oracle) |" in report
+
+
+def test_analysis_of_the_exact_model(exact_ssm):
+    """The exact rotation as f: forecasts from exact states never leave the truth (valid time infinite: censored
+    at the horizon), f is neither expanding nor contracting (exponents 0), and its free runs decoded have the
+    data's distribution (x = cos of a uniform phase)."""
+    tmp, ckpt = exact_ssm
+    dm = rotation_dm(tmp)
+    analysis = {"valid_time": {"n_filter": 4, "horizon": 8}, "dt": 0.1,
+                "dynamics": {"runs": 4, "lyapunov_steps": 300, "transient": 10, "align": 10, "free_steps": 2000}}
+    oracle = Oracle(str(ckpt), n_filter=8, metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot_an",
+                    analysis=analysis)
+    fast_trainer(tmp, max_epochs=1).test(oracle, dm)
+    run = json.loads((tmp / "results" / "rot_an.json").read_text())["runs"]["oracle"]
+    vt = run["analysis"]["valid_time"]
+    assert vt["censored_share"] == 1.0 and vt["mean_steps"] == 8 and vt["mean_seconds"] == pytest.approx(0.8)
+    assert vt["mean_lyapunov_times"] is None  # no true exponent known for this data set
+    dyn = run["analysis"]["dynamics"]
+    assert dyn["lyapunov"]["exponents"] == pytest.approx([0.0, 0.0], abs=1e-6)
+    free = dyn["free_run"]
+    assert free["model_std"][0] == pytest.approx(math.sqrt(0.5), rel=0.05)  # nodes trained briefly: radius ~1
+    assert free["reference_std"][0] == pytest.approx(math.sqrt(0.5), rel=0.1)
+    assert "## Analysis" in (tmp / "results" / "rot_an.md").read_text()
+    with pytest.raises(ValueError, match=r"analysis.valid_time takes \['horizon', 'n_filter', 'threshold'\], got \['steps'\]"):
+        Oracle(str(ckpt), n_filter=8, analysis={"valid_time": {"steps": 3}})
+    with pytest.raises(ValueError, match="unknown analysis section 'chaos'"):
+        Oracle(str(ckpt), n_filter=8, analysis={"chaos": {}})
 
 
 def test_encoder_stage_on_a_tiny_trained_checkpoint(exact_ssm):

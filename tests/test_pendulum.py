@@ -302,3 +302,21 @@ def test_paper_defaults():
 def test_bad_arguments(kw, match):
     with pytest.raises(ValueError, match=match):
         PendulumDataModule(**kw)
+
+
+def test_true_measurements_continue_the_stored_trajectories(simple_data):
+    """The generator's own continuation from a trajectory's initial state: over the stored 100 frames it is the
+    stored clean frames bit for bit; beyond them, the closed-form ODE's angle drawn by the same renderer."""
+    dm, train, _ = simple_data
+    frames = dm.true_measurements("train", [2, 0], 150)
+    assert frames.shape == (2, 150, 1, 24, 24)
+    stored = torch.from_numpy(np.asarray(train["y_clean"])[[2, 0]]).float() / 255
+    torch.testing.assert_close(frames[:, :100], stored, rtol=0, atol=0)
+    s0 = np.asarray(train["state"], dtype=np.float64)[0, 0]
+    t = np.arange(150) * 0.1
+    ref = solve_ivp(lambda _t, x: [x[1], -G * np.sin(x[0])], (0, t[-1]), s0, t_eval=t, rtol=1e-11, atol=1e-11)
+    expected = P.quantize(P.render(ref.y[0][:, None], 24)) / 255.0
+    # float32 initial state: the angle agrees to ~1e-6 rad, a pixel to a grey level at most
+    assert np.abs(frames[1].numpy() - expected).max() <= 1.5 / 255
+    assert dm.known_largest_exponent == 0.0 and dm.sample_period == 0.1
+    assert small_module(dm.data_dir, damping=0.1).known_largest_exponent is None

@@ -157,6 +157,15 @@ def test_attractor_figure():
     np.testing.assert_array_equal(np.stack([xs, ys, zs], 1), states.numpy())
     with pytest.raises(ValueError, match=r"\[N, 3\]"):
         attractor_figure(torch.randn(10, 2))
+    # the true system beside it: one line per run, drawn from the data given
+    true = torch.randn(2, 40, 3, dtype=torch.float64)
+    fig = attractor_figure(states, true_states=true)
+    model_ax, true_ax = fig.axes
+    assert [ln.get_gid() for ln in model_ax.get_lines()] == ["attractor"]
+    lines = true_ax.get_lines()
+    assert [ln.get_gid() for ln in lines] == ["true_attractor"] * 2
+    for line, run in zip(lines, true):
+        np.testing.assert_array_equal(np.stack(line.get_data_3d(), 1), run.numpy())
 
 
 # ---------------------------------------------------------------------- loss curves

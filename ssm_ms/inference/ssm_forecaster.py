@@ -16,6 +16,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from ssm_ms.evaluation import Forecast, ForecastModule
@@ -93,6 +94,19 @@ def check_same_data(checkpoint: Mapping[str, Any], dm: Any, ssm: MultipleShootin
 # ---------------------------------------------------------------------------- the protocol
 
 
+def training_measurements(dm: Any, max_values: int = 2_000_000) -> torch.Tensor | None:
+    """Noiseless training measurements ``[M, D]`` in original units (the cache's arrays; noisy ones if the data
+    set has no noiseless copy), evenly subsampled to at most ``max_values`` numbers."""
+    train = getattr(dm, "datasets", {}).get("train")
+    arrays = getattr(train, "arrays", None)
+    if arrays is None:
+        return None
+    y = arrays.get("y_clean", arrays["y"])
+    every = max(1, -(-y.size // max_values))
+    flat = np.asarray(y).reshape(-1, int(np.prod(y.shape[2:])))
+    return torch.from_numpy(np.array(flat[::every], dtype=np.float64))
+
+
 def predict_states(f, x_last: torch.Tensor, steps: int) -> torch.Tensor:
     """States at the ``steps`` times after ``x_last [B, d]``: ``[B, steps, d]`` (the first is ``f(x_last)``)."""
     return rollout(f, f(x_last), steps)
@@ -155,6 +169,67 @@ class SSMForecaster(ForecastModule):
                     f"g outputs measurements of shape {tuple(self.ssm.obs_shape())}, the data have {tuple(dm.obs_shape)}"
                 )
 
+    def analyze(self) -> dict[str, Any]:
+        """The protocol's analysis, plus (``analysis.dynamics``) what ``f`` does on its own from shooting nodes:
+        :func:`ssm_ms.analysis.dynamics_report` (Lyapunov spectrum; free runs decoded in original units against
+        the training split's noiseless measurements, for vector data; the Lorenz wing share where the data set
+        defines wings), and, where the data set can simulate its truth from a trajectory's initial state
+        (``true_measurements``), the period, amplitude and valid time of free runs from first nodes."""
+        from ssm_ms.analysis import dynamics_report
+
+        out = super().analyze()
+        settings = self.analysis_settings.get("dynamics")
+        if settings is None:
+            return out
+        dm, norm = self.datamodule, self.normalizer()
+        to_units = norm.denormalize if norm is not None else None
+        nodes = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim)
+        generator = torch.Generator().manual_seed(settings["seed"])
+        starts = nodes[torch.randperm(len(nodes), generator=generator)[: settings["runs"]]]
+        vector = len(self.ssm.obs_shape()) == 1
+        report = dynamics_report(
+            self.ssm.f, self.ssm.g, starts, self.sample_period() or 1.0, to_units=to_units,
+            reference=training_measurements(dm) if vector else None,
+            lyapunov_steps=settings["lyapunov_steps"], transient=settings["transient"], align=settings["align"],
+            free_steps=settings["free_steps"], wing_level=dm.wing_level() if hasattr(dm, "wing_level") else None,
+        )
+        if callable(getattr(dm, "true_measurements", None)):
+            report["oscillation"] = self.oscillation(settings, generator)
+        out["dynamics"] = report
+        return out
+
+    @torch.no_grad()
+    def oscillation(self, settings: dict[str, Any], generator: torch.Generator) -> dict[str, Any]:
+        """Free runs of ``f`` from the first node of training trajectories against the data generator's own
+        continuation from their initial states, over ``free_steps`` steps: period, amplitude, valid time."""
+        from ssm_ms.analysis import amplitude_ratio, dominant_period, valid_steps
+
+        dm = self.datamodule
+        n_traj = self.ssm.nodes.num_embeddings
+        index = torch.randperm(n_traj, generator=generator)[: settings["runs"]].sort().values
+        horizon = settings["free_steps"]
+        states = rollout(self.ssm.f, self.ssm.node_states(index.to(self.device))[:, 0], horizon)
+        model = decode(self.ssm.g, states).cpu().double()
+        truth = dm.true_measurements("train", index.tolist(), horizon).double()
+        dt = self.sample_period() or 1.0
+        flat_m, flat_t = model.flatten(2), truth.flatten(2)
+        period_m, period_t = dominant_period(flat_m, dt), dominant_period(flat_t, dt)
+        error = (period_m - period_t).abs() / period_t
+        window = max(2, horizon // 10)
+        amp_m, amp_t = amplitude_ratio(flat_m, window), amplitude_ratio(flat_t, window)
+        nrmse = ((flat_m - flat_t).pow(2).mean(-1) / flat_t.var()).sqrt()
+        valid = valid_steps(nrmse, self.analysis_settings.get("valid_time", {}).get("threshold", 0.5))
+        valid = torch.where(torch.isinf(valid), torch.full_like(valid, float(horizon)), valid)
+        finite = torch.isfinite(error)
+        return {
+            "runs": len(index), "horizon": horizon, "dt": dt,
+            "period_model": period_m.tolist(), "period_truth": period_t.tolist(),
+            "median_period_error": float(error[finite].median()) if finite.any() else None,
+            "share_within_5_percent": float((error[finite] < 0.05).double().mean()) if finite.any() else None,
+            "median_amplitude_ratio_model": float(amp_m.median()), "median_amplitude_ratio_truth": float(amp_t.median()),
+            "median_valid_steps": float(valid.median()),
+        }
+
     def forecast_figures(self, first: dict[str, torch.Tensor]) -> dict[str, Any]:
         """The Lorenz-style plot of the inferred and predicted states, the attractor of ``f`` iterated
         10,000 times from a shooting node, and the SSM's training curves."""
@@ -182,7 +257,10 @@ class SSMForecaster(ForecastModule):
             x0 = self.ssm.nodes.weight[:1].view(self.ssm.n_nodes, self.ssm.state_dim)[:1]
             attractor = rollout(self.ssm.f, x0, 10_000)[0]
             if attractor.shape[-1] >= 3:
-                figures["attractor"] = viz.attractor_figure(attractor[:, :3], title="f iterated 10,000 times from a node")
+                true = first["state"][:4] if "state" in first and first["state"].shape[-1] == 3 else None
+                figures["attractor"] = viz.attractor_figure(
+                    attractor[:, :3], title="f iterated 10,000 times from a node", true_states=true
+                )
         log_dir = Path(self.ssm_checkpoint).parent.parent
         try:
             figures["ssm_training"] = viz.loss_curves_figure(log_dir)
