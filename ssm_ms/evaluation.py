@@ -33,6 +33,7 @@ in steps, seconds and Lyapunov times of the true system), and for an SSM what ``
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -57,6 +58,9 @@ ANALYSIS_DEFAULTS: dict[str, dict[str, Any]] = {
     # SSMs only: f from `runs` shooting nodes: Lyapunov spectrum and long free runs (ssm_ms.analysis.dynamics_report)
     "dynamics": {"runs": 16, "lyapunov_steps": 4000, "transient": 2000, "align": 600, "free_steps": 20_000,
                  "seed": 0},
+    # the true system's exponents, where the data set has its equations (true_transition): from the first
+    # states of `runs` test sequences; computed once per data set and settings, cached beside the data
+    "true_system": {"runs": 16, "lyapunov_steps": 4000, "transient": 2000, "align": 600},
 }
 
 
@@ -331,7 +335,9 @@ class ForecastModule(pl.LightningModule):
         from ssm_ms.analysis import summarize_valid_time
 
         out: dict[str, Any] = {}
-        reference = reference_exponents(self.datamodule)
+        reference = reference_exponents(
+            self.datamodule, self.analysis_settings.get("true_system", ANALYSIS_DEFAULTS["true_system"])
+        )
         if reference is not None:
             out["true_system"] = reference
         if self._valid_time is not None and self._valid_time.count:
@@ -417,31 +423,36 @@ class ValidTimeAccumulator:
         return valid_steps((errors / var).mean(-1).sqrt(), threshold), errors.shape[1]
 
 
-def reference_exponents(dm: Any, runs: int = 16) -> dict[str, Any] | None:
+def reference_exponents(dm: Any, settings: Mapping[str, int] | None = None) -> dict[str, Any] | None:
     """The true system's Lyapunov exponents per time unit, where the data set can give them: computed from
-    its own equations (``true_transition`` and the test split's initial states) or stated
-    (``known_largest_exponent``, e.g. 0 for the undamped simple pendulum). Computed once per DataModule."""
+    its own equations (``true_transition``, from the first states of the test sequences; ``settings`` as
+    ``ANALYSIS_DEFAULTS["true_system"]``) and cached in the data set's cache folder, or stated
+    (``known_largest_exponent``, e.g. 0 for the undamped simple pendulum)."""
     if dm is None:
         return None
-    if getattr(dm, "_reference_exponents", None) is not None:
-        return dm._reference_exponents
-    result = None
     if callable(getattr(dm, "true_transition", None)) and getattr(dm, "sample_period", None):
         from ssm_ms.analysis import lyapunov_spectrum
 
+        settings = dict(settings or ANALYSIS_DEFAULTS["true_system"])
+        name = "true_exponents_" + "_".join(f"{k}{v}" for k, v in sorted(settings.items())) + ".json"
+        cache = Path(dm.cache_dir) / name if hasattr(dm, "cache_dir") else None
+        if cache is not None and cache.is_file():
+            return json.loads(cache.read_text())
         test = dm.datasets.get("test") if hasattr(dm, "datasets") else None
         states = getattr(test, "arrays", {}).get("state") if test is not None else None
-        if states is not None:
-            x0 = torch.from_numpy(np.array(states[:runs, 0], dtype=np.float64))
-            dt = float(dm.sample_period)
-            res = lyapunov_spectrum(dm.true_transition(), x0, steps=4000, dt=dt, transient=2000, align=600)
-            result = {"exponents": res.exponents.tolist(), "largest": float(res.exponents[0]),
-                      "source": f"the data set's equations, Benettin QR over {runs} runs of 4000 steps"}
-    elif getattr(dm, "known_largest_exponent", None) is not None:
-        result = {"largest": float(dm.known_largest_exponent), "source": "known for this system"}
-    if result is not None:
-        dm._reference_exponents = result
-    return result
+        if states is None:
+            return None
+        x0 = torch.from_numpy(np.array(states[: settings["runs"], 0], dtype=np.float64))
+        res = lyapunov_spectrum(dm.true_transition(), x0, steps=settings["lyapunov_steps"], dt=float(dm.sample_period),
+                                transient=settings["transient"], align=settings["align"])
+        result = {"exponents": res.exponents.tolist(), "largest": float(res.exponents[0]),
+                  "source": f"the data set's equations, Benettin QR over {len(x0)} runs of {settings['lyapunov_steps']} steps"}
+        if cache is not None:
+            cache.write_text(json.dumps(result))
+        return result
+    if getattr(dm, "known_largest_exponent", None) is not None:
+        return {"largest": float(dm.known_largest_exponent), "source": "known for this system"}
+    return None
 
 
 def flat_scalars(tree: Mapping[str, Any], prefix: str = "") -> dict[str, float]:

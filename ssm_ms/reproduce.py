@@ -1,11 +1,15 @@
-"""One command per experiment: SSM fit -> encoder fit -> test (-> UKF test where a config exists).
+"""One command per experiment: SSM fit -> encoder fit -> test (-> UKF test where a config exists), then
+every baseline of the experiment (fit -> test); or one baseline alone.
 
-    python -m ssm_ms.reproduce pendulum            # configs/pendulum*.yaml, the paper's sizes
-    python -m ssm_ms.reproduce pendulum --size cpu # configs/cpu/pendulum*.yaml, CPU-sized twins
+    python -m ssm_ms.reproduce pendulum            # configs/pendulum*.yaml + configs/baselines/pendulum_*.yaml
+    python -m ssm_ms.reproduce pendulum --size cpu # the CPU-sized twins under configs/cpu/
+    python -m ssm_ms.reproduce pendulum_lstm       # configs/baselines/pendulum_lstm.yaml alone
+    python -m ssm_ms.reproduce pendulum --no-baselines
 
 (``make reproduce EXP=pendulum [SIZE=cpu]``.) Each stage is ``python cli.py ...`` in its own process,
 logged under ``runs/<name>/reproduce-<stamp>/``, so the checkpoints each stage hands to the next are
-known. The results table ``results/<experiment>.md`` ends with the commands and their durations.
+known. Every method lands in the same ``results/<experiment>.md``, which ends with the commands and
+their durations.
 """
 
 from __future__ import annotations
@@ -49,38 +53,52 @@ def run_stage(args: list[str], stages: list[dict]) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("experiment", help="e.g. pendulum, pendulum_fc, quad, quad_fc, mnist, lorenz_T1000")
+    parser.add_argument("experiment", help="e.g. pendulum, quad, lorenz_T1000, or a baseline: pendulum_lstm")
     parser.add_argument("--size", choices=["paper", "cpu"], default="paper")
+    parser.add_argument("--no-baselines", action="store_true", help="only the SSM and its inference stages")
     opts = parser.parse_args(argv)
     folder = ROOT / "configs" / ("cpu" if opts.size == "cpu" else "")
     ssm_cfg = folder / f"{opts.experiment}.yaml"
     enc_cfg = folder / f"{opts.experiment}_encoder.yaml"
     ukf_cfg = folder / f"{opts.experiment}_ukf.yaml"
-    if not ssm_cfg.exists() or not enc_cfg.exists():
-        known = sorted(p.stem for p in folder.glob("*_encoder.yaml"))
-        raise SystemExit(
-            f"no {ssm_cfg.relative_to(ROOT)} / {enc_cfg.relative_to(ROOT)}: experiments with both configs "
-            f"here are {[k[: -len('_encoder')] for k in known]}"
-        )
+    alone = folder / "baselines" / f"{opts.experiment}.yaml"
+    if alone.exists():
+        baselines, ssm_stages = [alone], False
+    elif ssm_cfg.exists() and enc_cfg.exists():
+        baselines = [] if opts.no_baselines else sorted((folder / "baselines").glob(f"{opts.experiment}_*.yaml"))
+        ssm_stages = True
+    else:
+        known = sorted(p.stem[: -len("_encoder")] for p in folder.glob("*_encoder.yaml"))
+        known += sorted(p.stem for p in (folder / "baselines").glob("*.yaml"))
+        raise SystemExit(f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {known}")
     version = "reproduce-" + datetime.now().strftime("%Y%m%d-%H%M%S")
-    ssm_ckpt = logger_dir(ssm_cfg) / version / "checkpoints" / "last.ckpt"
-    enc_ckpt = logger_dir(enc_cfg) / version / "checkpoints" / "last.ckpt"
-    stages: list[dict] = []
     v = ["--trainer.logger.init_args.version", version]
-    run_stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v], stages)
-    with_ssm = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt)]
-    run_stage(["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *v], stages)
-    run_stage(["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt), *v], stages)
-    if ukf_cfg.exists():
-        run_stage(["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *v], stages)
-    experiment = experiment_name(enc_cfg)
-    results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(enc_cfg), "model.init_args.results_dir", default="results"))
-    md = write_pipeline(results_dir, experiment, {
+    stages: list[dict] = []
+    configs = []
+    if ssm_stages:
+        ssm_ckpt = logger_dir(ssm_cfg) / version / "checkpoints" / "last.ckpt"
+        enc_ckpt = logger_dir(enc_cfg) / version / "checkpoints" / "last.ckpt"
+        run_stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v], stages)
+        with_ssm = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt)]
+        run_stage(["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *v], stages)
+        run_stage(["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt), *v], stages)
+        if ukf_cfg.exists():
+            run_stage(["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *v], stages)
+        configs.append(enc_cfg)
+    for cfg in baselines:
+        ckpt = logger_dir(cfg) / version / "checkpoints" / "last.ckpt"
+        run_stage(["fit", "--config", str(cfg.relative_to(ROOT)), *v], stages)
+        run_stage(["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *v], stages)
+        configs.append(cfg)
+    experiment = experiment_name(configs[0])
+    results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(configs[0]), "model.init_args.results_dir", default="results"))
+    command = f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
+    md = write_pipeline(results_dir, experiment, command, {
         "stages": stages,
         "total_seconds": round(sum(s["seconds"] for s in stages), 1),
         "machine": describe(),
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "command": f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else ""),
+        "command": command,
     })
     print(f"\nresults: {md.relative_to(ROOT)}\n")
     print(md.read_text())

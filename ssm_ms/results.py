@@ -114,7 +114,9 @@ def _cell(entry: dict[str, float] | None) -> str:
     return f"{entry['mean']:.4g} ± {entry['std']:.2g}"
 
 
-def render_markdown(experiment: str, runs: dict[str, dict[str, Any]], pipeline: dict[str, Any] | None = None) -> str:
+def render_markdown(
+    experiment: str, runs: dict[str, dict[str, Any]], pipelines: dict[str, dict[str, Any]] | None = None
+) -> str:
     """The markdown report of an experiment from its runs ``{method: {"info": ..., "summary": ...}}``."""
     lines = [f"# Forecasting results: {experiment}", ""]
     key = paper_key(experiment)
@@ -169,12 +171,14 @@ def render_markdown(experiment: str, runs: dict[str, dict[str, Any]], pipeline: 
             if info.get(field) is not None:
                 lines.append(f"  - {field}: {info[field]}")
     lines.append("")
-    if pipeline:
-        lines += ["## How this was produced", "", f"`{pipeline.get('command', '')}` on {pipeline.get('machine', '?')}, "
-                  f"{pipeline.get('date', '?')}: {pipeline.get('total_seconds', '?')} s in all.", ""]
-        lines += ["| stage | seconds |", "|---|---|"]
-        lines += [f"| `{st['command']}` | {st['seconds']} |" for st in pipeline.get("stages", [])]
-        lines.append("")
+    if pipelines:
+        lines += ["## How this was produced", ""]
+        for pipeline in sorted(pipelines.values(), key=lambda p: p.get("date", "")):
+            lines += [f"`{pipeline.get('command', '')}` on {pipeline.get('machine', '?')}, "
+                      f"{pipeline.get('date', '?')}: {pipeline.get('total_seconds', '?')} s in all.", ""]
+            lines += ["| stage | seconds |", "|---|---|"]
+            lines += [f"| `{st['command']}` | {st['seconds']} |" for st in pipeline.get("stages", [])]
+            lines.append("")
     return "\n".join(lines)
 
 
@@ -262,7 +266,7 @@ def _save(results_dir: Path, experiment: str, data: dict[str, Any]) -> Path:
     data["experiment"] = experiment
     (results_dir / f"{experiment}.json").write_text(json.dumps(data, indent=2, sort_keys=True))
     md_path = results_dir / f"{experiment}.md"
-    md_path.write_text(render_markdown(experiment, data.get("runs", {}), data.get("pipeline")))
+    md_path.write_text(render_markdown(experiment, data.get("runs", {}), data.get("pipelines")))
     return md_path
 
 
@@ -280,9 +284,11 @@ def write_results(
     return _save(results_dir, experiment, data)
 
 
-def write_pipeline(results_dir: Path, experiment: str, pipeline: dict[str, Any]) -> Path:
-    """Record how the whole experiment was produced (commands, durations, machine) and rewrite the table."""
+def write_pipeline(results_dir: Path, experiment: str, command: str, pipeline: dict[str, Any]) -> Path:
+    """Record how (part of) the experiment was produced -- the stages of one ``make reproduce`` command, their
+    durations, the machine -- and rewrite the table. Each command keeps its own record."""
     results_dir.mkdir(parents=True, exist_ok=True)
     data = _load(results_dir / f"{experiment}.json")
-    data["pipeline"] = pipeline
+    data.pop("pipeline", None)  # the single record of earlier versions
+    data.setdefault("pipelines", {})[command] = pipeline
     return _save(results_dir, experiment, data)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import warnings
 
 import lightning.pytorch as pl
@@ -14,7 +15,8 @@ from datamodules.base import TrajectoryDataModule
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import LocallyLinearTransition, Projection
 
-torch.set_num_threads(2)
+if "OMP_NUM_THREADS" not in os.environ:  # the CI machine's 2 cores; OMP_NUM_THREADS=1 on a shared machine
+    torch.set_num_threads(2)
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
 warnings.filterwarnings("ignore", ".*GPU available but not used.*")
 warnings.filterwarnings("ignore", ".*LeafSpec.*")

@@ -333,10 +333,10 @@ def test_dynamics_report_of_the_true_lorenz_system_recovers_its_attractor(one_th
     f = LorenzDataModule(data_dir="unused").true_transition()
     starts = torch.from_numpy(lorenz_states(8, 1, seed=1)[:, 0]).double()
     reference = torch.from_numpy(lorenz_states(32, 10_000, seed=2)[..., :1]).reshape(-1, 1)  # long runs: the invariant measure
-    report = dynamics_report(f, Projection([0]), starts, DT, reference=reference, lyapunov_steps=2000,
-                             transient=1000, align=600, free_steps=20_000, wing_level=lorenz_wing_level(),
+    report = dynamics_report(f, Projection([0]), starts, DT, reference=reference, lyapunov_steps=1000,
+                             transient=500, align=600, free_steps=20_000, wing_level=lorenz_wing_level(),
                              true_f=f, true_starts=starts)
-    assert 0.7 < report["lyapunov"]["largest"] < 1.1
+    assert 0.6 < report["lyapunov"]["largest"] < 1.2  # 8 runs of 5 time units: a coarse estimate of 0.906
     assert report["lyapunov"]["exponents"] == report["lyapunov_true"]["exponents"]
     free = report["free_run"]
     assert free["both_wings_share"] == 1.0 and free["finite_share"] == 1.0

@@ -154,6 +154,22 @@ def test_checkpoints_of_the_other_kind_are_refused(trained, tmp_path):
         fast_trainer(tmp_path, max_epochs=1).test(baseline, rotation(tmp_path), ckpt_path=str(tmp_path / "ssm" / "last.ckpt"))
 
 
+def test_training_windows_are_consecutive_steps_of_each_sequence():
+    lstm = LSTMBaseline(n_filter=8, n_predict=2, network=LSTM_NET, train_window=5, obs_shape=[1])
+    y = torch.arange(6 * 12, dtype=torch.float32).view(6, 12, 1)
+    torch.manual_seed(0)
+    crops = lstm.window(y, random=True)
+    assert crops.shape == (6, 5, 1)
+    starts = []
+    for b in range(6):  # a run of 5 consecutive steps of sequence b
+        start = int(crops[b, 0, 0]) - 12 * b
+        assert 0 <= start <= 7 and torch.equal(crops[b, :, 0], y[b, start : start + 5, 0])
+        starts.append(start)
+    assert len(set(starts)) > 1  # drawn per sequence
+    assert torch.equal(lstm.window(y, random=False), y[:, -5:])
+    assert lstm.training_split(5) == 3  # n_filter 8 does not fit a 5-step window: 5 - n_predict given
+
+
 def test_bad_baseline_settings_are_refused_before_any_work(tmp_path):
     with pytest.raises(ValueError, match="latent_state_dim must be even .* got 5: use 4 or 6"):
         RKNBaseline(n_filter=8, network={"latent_state_dim": 5}, obs_shape=[1])
@@ -170,6 +186,9 @@ def test_bad_baseline_settings_are_refused_before_any_work(tmp_path):
     # training pieces that leave nothing to predict
     lstm = LSTMBaseline(n_filter=20, network=LSTM_NET, metrics=["mse"])
     with pytest.raises(ValueError, match="training sequences have 12 steps: giving 12 of them leaves nothing"):
+        fast_trainer(tmp_path, max_epochs=1).fit(lstm, rotation(tmp_path))
+    lstm = LSTMBaseline(n_filter=8, n_predict=2, network=LSTM_NET, train_window=20, metrics=["mse"])
+    with pytest.raises(ValueError, match=r"train_window=20 is longer than the training sequences \(12 steps\)"):
         fast_trainer(tmp_path, max_epochs=1).fit(lstm, rotation(tmp_path))
     # a model built for other data
     lstm = LSTMBaseline(n_filter=8, network=LSTM_NET, obs_shape=[3], metrics=["mse"])

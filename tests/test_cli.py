@@ -5,12 +5,14 @@ instantiates as written; stage configs share their SSM config's data section."""
 from __future__ import annotations
 
 import importlib.util
+import json
 from pathlib import Path
 
 import pytest
 import torch
 from omegaconf import OmegaConf
 
+from ssm_ms.baselines import BaselineForecaster
 from ssm_ms.cli import main
 from ssm_ms.module import MultipleShootingModule
 
@@ -25,6 +27,12 @@ TINY = {  # data overrides that make each data set a handful of short trajectori
     "lorenz": ["--data.init_args.n_train", "4", "--data.init_args.n_test", "4", "--data.init_args.train_steps", "10000"],
     "mnist": ["--data.init_args.n_train", "8", "--data.init_args.n_test", "4", "--data.init_args.batch_size", "4"],
 }
+
+
+# The analysis of the Lorenz stages at a size for tests (the shipped configs compute it at full length).
+CHEAP_ANALYSIS = ["--model.init_args.analysis", '{"valid_time": {"n_filter": 1000, "horizon": 1000}, '
+                  '"dynamics": {"runs": 2, "lyapunov_steps": 50, "transient": 10, "align": 10, "free_steps": 200}, '
+                  '"true_system": {"runs": 2, "lyapunov_steps": 50, "transient": 10, "align": 10}}']
 
 
 def family(name: str) -> str:
@@ -101,12 +109,38 @@ def test_ukf_stage_from_the_cli(tmp_path):
     ssm_ckpt = outputs(tmp_path, ssm) / "checkpoints" / "last.ckpt"
     cli = run(tmp_path, "test", CPU / "lorenz_T1000_ukf.yaml", "--model.init_args.ssm_checkpoint", str(ssm_ckpt),
         "--model.init_args.results_dir", str(tmp_path / "results"), "--model.init_args.figures_dir",
-        str(tmp_path / "figures"), "--trainer.limit_test_batches", "1", *TINY["lorenz"])
+        str(tmp_path / "figures"), "--trainer.limit_test_batches", "1", *TINY["lorenz"], *CHEAP_ANALYSIS)
     # the SSM loaded inside the CLI-built forecaster keeps its own hyperparameters, not the forecaster's
     assert cli.model.ssm.hparams["node_init_map"] == {0: 0} and "n_filter" not in cli.model.ssm.hparams
-    saved = (tmp_path / "results" / "lorenz_T1000_cpu.json").read_text()
-    assert '"ukf/clean/mse"' in saved
+    saved = json.loads((tmp_path / "results" / "lorenz_T1000_cpu.json").read_text())["runs"]["ukf"]
+    assert "ukf/clean/mse" in saved["summary"]
+    # the analysis ran with the settings given on the command line, and the true system's exponents were cached
+    assert saved["analysis"]["dynamics"]["lyapunov"]["steps"] == 50 and saved["analysis"]["valid_time"]["horizon"] == 1000
+    assert saved["analysis"]["true_system"]["largest"] > 0
+    assert list((tmp_path / "data").glob("lorenz-*/true_exponents_*.json"))
     assert (tmp_path / "figures" / "lorenz_T1000_cpu_ukf_lorenz_prediction.png").is_file()
+
+
+BASELINE_CONFIGS = sorted((CPU / "baselines").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("config", BASELINE_CONFIGS, ids=[p.stem for p in BASELINE_CONFIGS])
+def test_cpu_baseline_config_fits_and_tests(tmp_path, config):
+    """Each CPU-sized baseline trains a few batches, then the test protocol writes its row beside the paper's."""
+    extra = [*TINY[family(config.stem)], "--model.init_args.results_dir", str(tmp_path / "results"),
+             "--model.init_args.figures_dir", str(tmp_path / "figures")]
+    if family(config.stem) == "lorenz":  # 1000-step test forecasts on two sequences are enough here
+        extra += ["--data.init_args.n_test", "2", *CHEAP_ANALYSIS]
+    run(tmp_path, "fit", config, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
+        "--trainer.limit_val_batches", "1", *extra)
+    ckpt = outputs(tmp_path, config) / "checkpoints" / "last.ckpt"
+    run(tmp_path, "test", config, "--ckpt_path", str(ckpt), "--trainer.limit_test_batches", "1", *extra)
+    model = "LSTM" if config.stem.endswith("lstm") else "RKN"
+    experiment = OmegaConf.load(config).model.init_args.experiment
+    report = (tmp_path / "results" / f"{experiment}.md").read_text()
+    assert f"| {model} |" in report and f"| {model} | " in report.split("## The paper")[1]
+    assert "Valid prediction time" in report
+    assert list((tmp_path / "figures").glob(f"{experiment}_{model.lower()}_*"))
 
 
 def oscillator_file(tmp: Path) -> Path:
@@ -127,7 +161,7 @@ def test_own_data_example_config(tmp_path):
     assert (outputs(tmp_path, config) / "checkpoints" / "last.ckpt").is_file()
 
 
-PAPER_CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
+PAPER_CONFIGS = sorted((ROOT / "configs").glob("*.yaml")) + sorted((ROOT / "configs" / "baselines").glob("*.yaml"))
 
 
 @pytest.mark.parametrize("config", PAPER_CONFIGS, ids=[p.stem for p in PAPER_CONFIGS])
@@ -136,7 +170,7 @@ def test_paper_configs_parse_and_instantiate(tmp_path, config):
         pytest.skip("stage configs need a trained SSM checkpoint (covered above on CPU twins)")
     extra = ["--data.init_args.train_path", str(oscillator_file(tmp_path))] if config.stem == "oscillator" else []
     cli = main(["--config", str(config), "--trainer.logger.init_args.save_dir", str(tmp_path), *extra], run=False)
-    assert isinstance(cli.model, MultipleShootingModule)
+    assert isinstance(cli.model, BaselineForecaster if config.parent.name == "baselines" else MultipleShootingModule)
     assert cli.datamodule.num_train_trajectories > 0
 
 
@@ -147,7 +181,8 @@ def data_section(config: Path) -> dict:
 @pytest.mark.parametrize("folder", ["configs", "configs/cpu"])
 def test_stage_configs_use_their_ssm_data(folder):
     stages = sorted((ROOT / folder).glob("*_encoder.yaml")) + sorted((ROOT / folder).glob("*_ukf.yaml"))
-    assert stages
-    for stage in stages:
-        ssm = stage.with_name(stage.stem.rsplit("_", 1)[0] + ".yaml")
+    baselines = sorted((ROOT / folder / "baselines").glob("*.yaml"))
+    assert stages and baselines
+    for stage in stages + baselines:
+        ssm = (ROOT / folder / stage.stem.rsplit("_", 1)[0]).with_suffix(".yaml")
         assert data_section(stage) == data_section(ssm), f"{stage.name} and {ssm.name} differ in their data section"

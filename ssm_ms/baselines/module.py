@@ -43,6 +43,9 @@ class BaselineForecaster(ForecastModule):
             ``n_filter`` when it leaves something to predict in a training sequence, else the training
             length minus ``n_predict`` (Lorenz T=1000 with 1990 filtered / 10 predicted at test: 990 given, 10
             predicted per training piece).
+        train_window: train on a random window of this many consecutive steps of each training sequence
+            (validation: its last window) instead of the whole sequence: cheaper steps for long sequences
+            (a CPU-sized Lorenz twin: 200 of 1000); ``None`` (default, the paper's setting): whole sequences.
         obs_shape: shape of one measurement; ``None``: taken from the DataModule (recorded in the checkpoint).
         metrics, n_predict, **kwargs: the protocol's arguments, see :class:`~ssm_ms.evaluation.ForecastModule`.
     """
@@ -56,6 +59,7 @@ class BaselineForecaster(ForecastModule):
         loss: str = "mse",
         lr: float = 1e-3,
         train_n_filter: int | None = None,
+        train_window: int | None = None,
         obs_shape: list[int] | None = None,
         n_predict: int | None = None,
         metrics: list[str] = ["mse", "bce"],
@@ -68,6 +72,9 @@ class BaselineForecaster(ForecastModule):
             raise ValueError(f"lr must be > 0, got {lr}")
         if train_n_filter is not None and train_n_filter < 1:
             raise ValueError(f"train_n_filter must be >= 1, got {train_n_filter}")
+        if train_window is not None and train_window < 2:
+            raise ValueError(f"train_window must be >= 2 steps (or unset: whole sequences), got {train_window}")
+        self.train_window = train_window
         if "obs_shape" in (network or {}):
             raise ValueError("network.obs_shape comes from the data: remove it from the config")
         self.network_kwargs = dict(network or {})
@@ -107,7 +114,12 @@ class BaselineForecaster(ForecastModule):
                 f"the data have {list(shape)}: use the data section it was trained with"
             )
         if stage == "fit":
-            self.training_split(dm.seq_len)  # fail now on lengths that leave nothing to predict
+            if self.train_window is not None and self.train_window > dm.seq_len:
+                raise ValueError(
+                    f"train_window={self.train_window} is longer than the training sequences ({dm.seq_len} steps): "
+                    f"choose at most {dm.seq_len}, or unset it"
+                )
+            self.training_split(min(dm.seq_len, self.train_window or dm.seq_len))  # fail now if nothing to predict
         if self.loss_name == "bce" and len(shape) == 1:
             raise ValueError("loss bce is for images in [0, 1]; these measurements are vectors: use mse or gaussian_nll")
 
@@ -138,8 +150,18 @@ class BaselineForecaster(ForecastModule):
             return F.binary_cross_entropy(out.mean, y)
         return F.gaussian_nll_loss(out.mean, y, out.var)
 
+    def window(self, y: torch.Tensor, random: bool) -> torch.Tensor:
+        """``train_window`` consecutive steps of each sequence ``y [B, T, ...]``: at random starts, or the last ones."""
+        w = self.train_window
+        if w is None or w >= y.shape[1]:
+            return y
+        if not random:
+            return y[:, -w:]
+        start = torch.randint(0, y.shape[1] - w + 1, (len(y), 1), device=y.device)
+        return y[torch.arange(len(y), device=y.device)[:, None], start + torch.arange(w, device=y.device)]
+
     def _step(self, batch: Mapping[str, torch.Tensor], stage: str) -> torch.Tensor:
-        y = batch["y"]
+        y = self.window(batch["y"], random=stage == "train")
         k = self.training_split(y.shape[1])
         out = self.run(y, k)
         loss = self.loss(out, y)

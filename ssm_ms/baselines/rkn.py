@@ -167,17 +167,18 @@ def rkn_predict(
     m = a11.shape[-1]
     if mean.shape[-1] != 2 * m:
         raise ValueError(f"the state mean has {mean.shape[-1]} components but the transition blocks are {m} x {m}")
-    upper, lower, side = cov
-    mu, ml = mean[..., :m], mean[..., m:]
-    new_mean = torch.cat([_matvec(a11, mu) + _matvec(a12, ml), _matvec(a21, mu) + _matvec(a22, ml)], dim=-1)
-    new_upper = (
-        _matvec(a11 * a11, upper) + 2.0 * _matvec(a11 * a12, side) + _matvec(a12 * a12, lower) + noise_upper
-    )
-    new_lower = (
-        _matvec(a21 * a21, upper) + 2.0 * _matvec(a21 * a22, side) + _matvec(a22 * a22, lower) + noise_lower
-    )
-    new_side = _matvec(a21 * a11, upper) + _matvec(a22 * a11 + a21 * a12, side) + _matvec(a22 * a12, lower)
-    return new_mean, FactorizedCovariance(new_upper, new_lower, new_side)
+    # All of it in two batched products (the filter runs this once per time step: few large ops beat many
+    # small ones): rows [a11 a12; a21 a22] give the mean; the coefficients of (u, s, l) in the three
+    # diagonals, stacked as one [3m, 3m] matrix per sample, give the covariance.
+    left = torch.cat([a11, a21], dim=-2)  # [B, 2m, m]: the columns acting on the upper half
+    right = torch.cat([a12, a22], dim=-2)  # [B, 2m, m]: on the lower half
+    new_mean = _matvec(torch.cat([left, right], dim=-1), mean)
+    diagonals = torch.cat([left * left, 2.0 * left * right, right * right], dim=-1)  # [B, 2m, 3m]
+    sides = torch.cat([a21 * a11, a22 * a11 + a21 * a12, a22 * a12], dim=-1)  # [B, m, 3m]
+    moments = _matvec(torch.cat([diagonals, sides], dim=-2), torch.cat([cov.upper, cov.side, cov.lower], dim=-1))
+    noise = torch.cat([noise_upper.expand_as(cov.upper), noise_lower.expand_as(cov.lower)], dim=-1)
+    new_diag = moments[..., : 2 * m] + noise
+    return new_mean, FactorizedCovariance(new_diag[..., :m], new_diag[..., m:], moments[..., 2 * m :])
 
 
 def _mlp(in_features: int, hidden: Sequence[int], out_features: int, activation: type[nn.Module]) -> nn.Sequential:
