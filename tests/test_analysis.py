@@ -347,3 +347,15 @@ def test_dynamics_report_of_the_true_lorenz_system_recovers_its_attractor(one_th
     assert report["lyapunov"]["largest"] == pytest.approx(math.log(0.9) / DT, rel=1e-6)
     assert report["lyapunov_true"]["exponents"] == pytest.approx([math.log(0.5) / DT] * 3, rel=1e-6)
     assert report["free_run"]["both_wings_share"] == 0.0 and report["free_run"]["wasserstein"][0] > 5
+
+
+def test_short_sequences_from_off_attractor_starts_are_not_the_attractors_distribution():
+    """Why the free runs are compared with the long training trajectories, not the 10-s test sequences: the
+    true system's own long runs are far from 64 test-like sequences (2000 steps from uniform starts) in
+    W1, and close to 100 training-like trajectories of 10,000 steps (the README states both figures)."""
+    x0 = np.random.default_rng(3).uniform(-10, 10, size=(16, 3))
+    long_runs = torch.from_numpy(lorenz_rk4(x0, 22_000, DT)[:, 2000:, 0].reshape(-1))
+    test_like = torch.from_numpy(lorenz_states(64, 2000, seed=5, transient=0)[..., 0].reshape(-1))
+    train_like = torch.from_numpy(lorenz_states(100, 10_000, seed=7, transient=0)[..., 0].reshape(-1))
+    assert 1.5 < wasserstein_1d(long_runs, test_like) < 2.3
+    assert wasserstein_1d(long_runs, train_like) < 0.6
