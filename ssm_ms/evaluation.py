@@ -83,8 +83,10 @@ def check_analysis(analysis: Mapping[str, Any] | None) -> dict[str, Any]:
             raise ValueError(f"analysis.{section} takes {sorted(ANALYSIS_DEFAULTS[section])}, got {sorted(unknown)}")
         merged = {**ANALYSIS_DEFAULTS[section], **values}
         for key, value in merged.items():
-            if value is not None and key != "threshold" and (int(value) != value or value < (0 if key in ("transient", "align", "seed") else 1)):
-                raise ValueError(f"analysis.{section}.{key} must be a whole number >= 1, got {value!r}")
+            least = 0 if key in ("transient", "align", "seed") else 1
+            whole = isinstance(value, (int, float)) and not isinstance(value, bool) and int(value) == value
+            if value is not None and key != "threshold" and not (whole and value >= least):
+                raise ValueError(f"analysis.{section}.{key} must be a whole number >= {least}, got {value!r}")
         if section == "valid_time" and not merged["threshold"] > 0:
             raise ValueError(f"analysis.valid_time.threshold must be > 0, got {merged['threshold']!r}")
         out[section] = merged
@@ -298,7 +300,7 @@ class ForecastModule(pl.LightningModule):
             truth = batch["y_clean" if "y_clean" in batch else "y"][:, k_v : k_v + h]
             if self.original_units and norm is not None:
                 pred, truth = norm.denormalize(pred), norm.denormalize(truth)
-            self._valid_time.update(pred, truth)
+            self._valid_time.update(pred, truth, clean="y_clean" in batch)
         if self._first_batch is None:  # kept for the figures
             self._first_batch = {key: batch[key][:, : k + p] for key in ("y", "y_clean", "state") if key in batch}
             self._first_batch["y_model"] = torch.cat([out.filtered, out.predicted], 1)
@@ -400,7 +402,9 @@ class ValidTimeAccumulator:
         self.count = 0
         self.clean = True
 
-    def update(self, pred: torch.Tensor, truth: torch.Tensor) -> None:
+    def update(self, pred: torch.Tensor, truth: torch.Tensor, clean: bool = True) -> None:
+        """Add a batch: predictions and truth ``[B, h, *obs_shape]``; ``clean``: the truth is noiseless."""
+        self.clean = self.clean and clean
         pred, truth = pred.double(), truth.double()
         if truth.dim() > 3:  # images: one group of all pixels
             sq = (pred - truth).pow(2).flatten(2).mean(2, keepdim=True)

@@ -177,6 +177,10 @@ def test_bad_baseline_settings_are_refused_before_any_work(tmp_path):
         LSTMBaseline(n_filter=8, loss="l1")
     with pytest.raises(ValueError, match="gaussian_nll needs a network with a variance output; this LSTM has none"):
         LSTMBaseline(n_filter=8, loss="gaussian_nll", obs_shape=[1])
+    with pytest.raises(ValueError, match="analysis.dynamics studies an SSM's f; a baseline has none"):
+        LSTMBaseline(n_filter=8, analysis={"valid_time": {}, "dynamics": {}})
+    with pytest.raises(ValueError, match=r"analysis.valid_time.horizon must be a whole number >= 1, got 0"):
+        LSTMBaseline(n_filter=8, analysis={"valid_time": {"horizon": 0}})
     with pytest.raises(ValueError, match="network.obs_shape comes from the data"):
         LSTMBaseline(n_filter=8, network={"obs_shape": [1]})
     # a prediction phase longer than the test sequences (12 steps)

@@ -77,6 +77,8 @@ class BaselineForecaster(ForecastModule):
         self.train_window = train_window
         if "obs_shape" in (network or {}):
             raise ValueError("network.obs_shape comes from the data: remove it from the config")
+        if "dynamics" in self.analysis_settings:
+            raise ValueError("analysis.dynamics studies an SSM's f; a baseline has none: keep valid_time, drop dynamics")
         self.network_kwargs = dict(network or {})
         self.loss_name, self.lr, self.train_n_filter = loss, float(lr), train_n_filter
         self.net: nn.Module | None = None
