@@ -392,8 +392,10 @@ class ValidTimeAccumulator:
     """Squared forecast errors per sequence and step, and the truth's statistics, over the test batches.
 
     The valid time needs the scale of the truth over the whole test set, known only at the end: errors are
-    kept per step (vectors: per component ``[B, h, D]``; images: mean over the pixels ``[B, h, 1]``, scaled
-    by one std over all pixels) and thresholded in :meth:`steps`.
+    kept per step and thresholded in :meth:`steps`. Vectors: per component ``[B, h, D]``, each scaled by its
+    std. Images: pooled, the mean squared error over the pixels ``[B, h, 1]`` scaled by the mean per-pixel
+    variance, so that, as for vectors, a normalised error of 1 is as bad as predicting the mean frame (and
+    background pixels that never change divide nothing).
     """
 
     def __init__(self) -> None:
@@ -401,17 +403,18 @@ class ValidTimeAccumulator:
         self.total = self.total_sq = None
         self.count = 0
         self.clean = True
+        self.pooled = False
 
     def update(self, pred: torch.Tensor, truth: torch.Tensor, clean: bool = True) -> None:
         """Add a batch: predictions and truth ``[B, h, *obs_shape]``; ``clean``: the truth is noiseless."""
         self.clean = self.clean and clean
         pred, truth = pred.double(), truth.double()
-        if truth.dim() > 3:  # images: one group of all pixels
-            sq = (pred - truth).pow(2).flatten(2).mean(2, keepdim=True)
-            values = truth.reshape(-1, 1)
-        else:
-            sq, values = (pred - truth).pow(2), truth.reshape(-1, truth.shape[-1])
+        self.pooled = truth.dim() > 3
+        sq = (pred - truth).pow(2)
+        if self.pooled:  # images
+            sq = sq.flatten(2).mean(2, keepdim=True)
         self.errors.append(sq.cpu())
+        values = truth.flatten(2).reshape(-1, truth[0, 0].numel())
         total, total_sq = values.sum(0).cpu(), values.pow(2).sum(0).cpu()
         self.total = total if self.total is None else self.total + total
         self.total_sq = total_sq if self.total_sq is None else self.total_sq + total_sq
@@ -422,9 +425,10 @@ class ValidTimeAccumulator:
         from ssm_ms.analysis import valid_steps
 
         mean = self.total / self.count
-        var = (self.total_sq / self.count - mean.pow(2)).clamp_min(1e-30)
-        errors = torch.cat(self.errors)  # [N, h, G]
-        return valid_steps((errors / var).mean(-1).sqrt(), threshold), errors.shape[1]
+        var = (self.total_sq / self.count - mean.pow(2)).clamp_min(0)
+        var = var.mean(0, keepdim=True) if self.pooled else var
+        errors = torch.cat(self.errors)  # [N, h, D or 1]
+        return valid_steps((errors / var.clamp_min(1e-30)).mean(-1).sqrt(), threshold), errors.shape[1]
 
 
 def reference_exponents(dm: Any, settings: Mapping[str, int] | None = None) -> dict[str, Any] | None:

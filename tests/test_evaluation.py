@@ -8,7 +8,7 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from ssm_ms.evaluation import bce_per_sequence, mse_per_sequence, split_sequence
+from ssm_ms.evaluation import ValidTimeAccumulator, bce_per_sequence, mse_per_sequence, split_sequence
 from ssm_ms.inference.encoder_module import StateEncoderModule
 from ssm_ms.inference.filter_module import FilterForecaster
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
@@ -42,6 +42,29 @@ def test_bce_of_saturated_predictions_is_finite():
     pred = torch.tensor([[[0.0, 1.0]]])
     target = torch.tensor([[[1.0, 0.0]]])
     assert bce_per_sequence(pred, target).item() == pytest.approx(-math.log(1e-12))
+
+
+def test_valid_time_of_images_scales_by_the_mean_per_pixel_variance():
+    """Images pool their pixels: mean squared error over the mean per-pixel variance of the truth, so a
+    forecast as bad as the mean frame has normalised error 1; constant background pixels divide nothing."""
+    torch.manual_seed(0)
+    truth = torch.rand(2, 3, 6, 1, 2, 2, dtype=torch.float64)  # two batches of 3 sequences, 6 steps
+    truth[..., 0, 0] = 0.0  # a background pixel
+    growth = torch.linspace(0.0, 1.0, 6, dtype=torch.float64).view(1, 1, 6, 1, 1, 1)  # errors grow over time,
+    size = torch.tensor([0.02, 0.1, 0.2, 0.3, 0.4, 0.6], dtype=torch.float64).view(2, 3, 1, 1, 1, 1)  # more or less
+    pred = truth + torch.randn_like(truth) * growth * size
+    acc = ValidTimeAccumulator()
+    for b in range(2):
+        acc.update(pred[b], truth[b])
+    steps, horizon = acc.steps(0.5)
+    all_truth = truth.reshape(6, 6, 4)  # [sequence, step, pixel]
+    pixel_var = all_truth.reshape(-1, 4).var(0, unbiased=False).mean()
+    expected = []
+    for seq_pred, seq_truth in zip(pred.reshape(6, 6, 4), all_truth):
+        err = ((seq_pred - seq_truth) ** 2).mean(1) / pixel_var
+        expected.append(next((t for t in range(6) if err[t].sqrt() > 0.5), math.inf))
+    assert horizon == 6 and steps.tolist() == expected
+    assert 0 < sum(e != math.inf for e in expected) < 6  # the case is not trivial
 
 
 def test_filter_lengths_longer_than_the_sequences_are_refused():

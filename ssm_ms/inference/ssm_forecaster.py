@@ -217,7 +217,8 @@ class SSMForecaster(ForecastModule):
         error = (period_m - period_t).abs() / period_t
         window = max(2, horizon // 10)
         amp_m, amp_t = amplitude_ratio(flat_m, window), amplitude_ratio(flat_t, window)
-        nrmse = ((flat_m - flat_t).pow(2).mean(-1) / flat_t.var()).sqrt()
+        pixel_var = flat_t.flatten(0, 1).var(0, unbiased=False).mean()  # as the protocol's valid time: 1 = the mean frame
+        nrmse = ((flat_m - flat_t).pow(2).mean(-1) / pixel_var).sqrt()
         valid = valid_steps(nrmse, self.analysis_settings.get("valid_time", {}).get("threshold", 0.5))
         valid = torch.where(torch.isinf(valid), torch.full_like(valid, float(horizon)), valid)
         finite = torch.isfinite(error)
