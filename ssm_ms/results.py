@@ -134,7 +134,9 @@ def render_markdown(
     head = ["method", *columns] + (["paper row", *(f"paper {c}" for c in pcols)] if paper else [])
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|---" * len(head) + "|")
-    ordered = sorted(runs.items(), key=lambda item: item[1]["info"].get("label", item[0]))
+    # the SSMs first, then the baselines (the paper's order), each group by label
+    ordered = sorted(runs.items(), key=lambda item: (item[1]["info"].get("model") in ("LSTM", "RKN"),
+                                                     item[1]["info"].get("label", item[0])))
     for method, run in ordered:
         info = run["info"]
         per_row: dict[str, dict[str, dict[str, float]]] = {}

@@ -92,3 +92,4 @@ def test_rendered_table_puts_the_paper_beside_each_method():
     assert "| last (reference, with SSM-LL + UKF) | 2 ± 1 |  |  |" in report
     assert "| RKN | did not converge | did not converge | 67.76 | out of memory |" in report  # the whole Table 4
     assert "CPU-sized twin" in report
+    assert report.index("| SSM-LL + UKF |") < report.index("| RKN | 50")  # the SSMs first, as in the paper
