@@ -351,7 +351,8 @@ class ForecastModule(pl.LightningModule):
             if dt is None:
                 vt = {k: v for k, v in vt.items() if "seconds" not in k and "lyapunov" not in k}
             vt.update(threshold=settings["threshold"], n_filter=settings["n_filter"] or self.n_filter,
-                      truth="noiseless" if self._valid_time.clean else "noisy", dt=dt)
+                      truth="noiseless" if self._valid_time.clean else "noisy", dt=dt,
+                      error_at_step=self._valid_time.growth())
             out["valid_time"] = vt
         return out
 
@@ -420,15 +421,25 @@ class ValidTimeAccumulator:
         self.total_sq = total_sq if self.total_sq is None else self.total_sq + total_sq
         self.count += len(values)
 
+    def normalised_errors(self) -> torch.Tensor:
+        """``[N, h]``: each test sequence's normalised error at each forecast step."""
+        mean = self.total / self.count
+        var = (self.total_sq / self.count - mean.pow(2)).clamp_min(0)
+        var = var.mean(0, keepdim=True) if self.pooled else var
+        return (torch.cat(self.errors) / var.clamp_min(1e-30)).mean(-1).sqrt()  # errors: [N, h, D or 1]
+
     def steps(self, threshold: float) -> tuple[torch.Tensor, int]:
         """Valid steps per test sequence ``[N]`` (``inf``: valid over the whole horizon) and the horizon."""
         from ssm_ms.analysis import valid_steps
 
-        mean = self.total / self.count
-        var = (self.total_sq / self.count - mean.pow(2)).clamp_min(0)
-        var = var.mean(0, keepdim=True) if self.pooled else var
-        errors = torch.cat(self.errors)  # [N, h, D or 1]
-        return valid_steps((errors / var.clamp_min(1e-30)).mean(-1).sqrt(), threshold), errors.shape[1]
+        errors = self.normalised_errors()
+        return valid_steps(errors, threshold), errors.shape[1]
+
+    def growth(self) -> dict[str, float]:
+        """The mean normalised error at the first, a quarter, half and last forecast step: how errors grow."""
+        curve = self.normalised_errors().mean(0)
+        h = len(curve)
+        return {str(step): float(curve[step - 1]) for step in sorted({1, max(1, h // 4), max(1, h // 2), h})}
 
 
 def reference_exponents(dm: Any, settings: Mapping[str, int] | None = None) -> dict[str, Any] | None:

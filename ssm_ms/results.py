@@ -210,12 +210,14 @@ def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
             f"counted as the horizon: a lower bound). Lyapunov times use the true system's largest exponent"
             + (f" ({true['largest']:.3g} per time unit, {true['source']})." if true else " (not known here).")
         )
-        lines += ["", "| method | mean ± std (steps) | median (steps) | mean (s) | mean (Lyapunov times) | censored |",
-                  "|---|---|---|---|---|---|"]
+        lines.append(" `error at step`: the normalised error averaged over sequences at those forecast steps (how it grows).")
+        lines += ["", "| method | mean ± std (steps) | median (steps) | mean (s) | mean (Lyapunov times) | censored | "
+                  "error at step |", "|---|---|---|---|---|---|---|"]
         for label, vt in timed:
+            growth = ", ".join(f"{k}: {_num(v, 2)}" for k, v in (vt.get("error_at_step") or {}).items())
             lines.append(f"| {label} | {_num(vt['mean_steps'])} ± {_num(vt['std_steps'], 2)} | {_num(vt['median_steps'])} | "
                          f"{_num(vt.get('mean_seconds'))} | {_num(vt.get('mean_lyapunov_times'))} | "
-                         f"{_num(vt['censored_share'], 2)} |")
+                         f"{_num(vt['censored_share'], 2)} | {growth or '—'} |")
         lines.append("")
     dyn = [(label, a["dynamics"]) for label, a in runs if a.get("dynamics")]
     if dyn:

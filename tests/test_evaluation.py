@@ -64,6 +64,8 @@ def test_valid_time_of_images_scales_by_the_mean_per_pixel_variance():
         err = ((seq_pred - seq_truth) ** 2).mean(1) / pixel_var
         expected.append(next((t for t in range(6) if err[t].sqrt() > 0.5), math.inf))
     assert horizon == 6 and steps.tolist() == expected
+    curve = torch.stack([(((sp - st) ** 2).mean(1) / pixel_var).sqrt() for sp, st in zip(pred.reshape(6, 6, 4), all_truth)])
+    assert acc.growth() == pytest.approx({"1": 0.0, "3": curve[:, 2].mean().item(), "6": curve[:, 5].mean().item()})
     assert 0 < sum(e != math.inf for e in expected) < 6  # the case is not trivial
 
 
