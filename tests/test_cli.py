@@ -121,6 +121,18 @@ def test_ukf_stage_from_the_cli(tmp_path):
     assert saved["analysis"]["true_system"]["largest"] > 0
     assert list((tmp_path / "data").glob("lorenz-*/true_exponents_*.json"))
     assert (tmp_path / "figures" / "lorenz_T1000_cpu_ukf_lorenz_prediction.png").is_file()
+    # the study script of benchmarks/results/lorenz_cpu_study.md, on this checkpoint at a small size
+    spec = importlib.util.spec_from_file_location("study", ROOT / "benchmarks" / "lorenz_cpu_study.py")
+    study = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(study)
+    row = study.main([str(ssm_ckpt), "--data-dir", str(tmp_path / "data"), "--results", str(tmp_path / "results" / "lorenz_T1000_cpu.json"),
+                      "--ukf", "ukf", "--lyapunov-steps", "20", "--free-steps", "100", "--transient", "10",
+                      "--out", str(tmp_path / "rows.jsonl")])
+    ckpt = torch.load(ssm_ckpt, weights_only=False)
+    assert (row["epochs"], row["steps"]) == (ckpt["epoch"] + 1, ckpt["global_step"])
+    assert row["ukf_mse"] == saved["summary"]["ukf/clean/mse"]["mean"]
+    assert 0.0 <= row["both_wings"] <= 1.0 and row["largest_true"] > 0 and len(row["exponents"]) == 3
+    assert json.loads((tmp_path / "rows.jsonl").read_text()) == row
 
 
 BASELINE_CONFIGS = sorted((CPU / "baselines").glob("*.yaml"))
