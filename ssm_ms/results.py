@@ -83,11 +83,18 @@ PAPER: dict[str, dict[str, Any]] = {
 }
 
 
+# what may follow a paper table's key in an experiment's name and keep it the paper's setting: the other
+# transition model, the CPU-sized twin (a variant such as lorenz_T1000_noiseless has no table in the paper)
+SAME_SETTING = {"fc", "cpu"}
+
+
 def paper_key(experiment: str) -> str | None:
-    """Which paper table an experiment belongs to (``pendulum_fc_cpu`` -> ``pendulum``, ``lorenz_T1000`` -> ``lorenz_T1000``)."""
+    """Which paper table an experiment belongs to (``pendulum_fc_cpu`` -> ``pendulum``, ``lorenz_T1000`` ->
+    ``lorenz_T1000``, ``lorenz_T1000_noiseless_cpu`` -> None)."""
     for key in sorted(PAPER, key=len, reverse=True):
         if experiment == key or experiment.startswith(key + "_"):
-            return key
+            rest = experiment[len(key) + 1:]
+            return key if not rest or set(rest.split("_")) <= SAME_SETTING else None
     return None
 
 
@@ -189,6 +196,8 @@ def _num(value: Any, digits: int = 3) -> str:
         return "—"
     if isinstance(value, float) and value == float("inf"):
         return "inf"
+    if isinstance(value, (int, float)) and 10 ** digits <= abs(value) < 1e9:
+        return f"{value:.0f}"  # whole steps read better than 1e+03
     return f"{value:.{digits}g}" if isinstance(value, (int, float)) else str(value)
 
 
@@ -214,7 +223,8 @@ def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
         lines += ["", "| method | mean ± std (steps) | median (steps) | mean (s) | mean (Lyapunov times) | censored | "
                   "error at step |", "|---|---|---|---|---|---|---|"]
         for label, vt in timed:
-            growth = ", ".join(f"{k}: {_num(v, 2)}" for k, v in (vt.get("error_at_step") or {}).items())
+            steps = sorted((vt.get("error_at_step") or {}).items(), key=lambda kv: int(kv[0]))  # JSON keys are strings
+            growth = ", ".join(f"{k}: {_num(v, 2)}" for k, v in steps)
             lines.append(f"| {label} | {_num(vt['mean_steps'])} ± {_num(vt['std_steps'], 2)} | {_num(vt['median_steps'])} | "
                          f"{_num(vt.get('mean_seconds'))} | {_num(vt.get('mean_lyapunov_times'))} | "
                          f"{_num(vt['censored_share'], 2)} | {growth or '—'} |")

@@ -71,6 +71,7 @@ def test_lorenz_table_matches_the_transcription():
 def test_each_run_meets_the_paper_row_of_its_method():
     assert paper_key("pendulum_fc_cpu") == "pendulum" and paper_key("lorenz_T1000_cpu") == "lorenz_T1000"
     assert paper_key("lorenz_T10") == "lorenz_T10" and paper_key("oscillator") is None
+    assert paper_key("lorenz_T1000_noiseless_cpu") is None  # a variant the paper has no table for
     assert paper_row("pendulum", {"model": "SSM-FC", "inference": "encoder"}) == "SSM-FC"
     assert paper_row("pendulum", {"model": "SSM-LL", "inference": "pf"}) is None  # the paper has no such row
     assert paper_row("lorenz_T1000", {"model": "SSM-LL", "inference": "encoder"}) == "SSM-RNN"
@@ -93,3 +94,24 @@ def test_rendered_table_puts_the_paper_beside_each_method():
     assert "| RKN | did not converge | did not converge | 67.76 | out of memory |" in report  # the whole Table 4
     assert "CPU-sized twin" in report
     assert report.index("| SSM-LL + UKF |") < report.index("| RKN | 50")  # the SSMs first, as in the paper
+
+
+def test_analysis_numbers_read_as_steps_not_exponents():
+    from ssm_ms.results import _num
+
+    assert [_num(1000.0), _num(285.4, 2), _num(811.25), _num(0.0123), _num(3.5613), _num(float("inf")), _num(None)] == \
+        ["1000", "285", "811", "0.0123", "3.56", "inf", "—"]
+
+
+def test_valid_time_row_after_a_json_round_trip():
+    """Error growth keeps forecast-step order once JSON has made its keys strings ("1000" sorts before "250")."""
+    import json
+
+    vt = {"threshold": 0.5, "truth": "noiseless", "n_filter": 1000, "horizon": 1000, "mean_steps": 811.25,
+          "std_steps": 281.0, "median_steps": 1000.0, "mean_seconds": 4.06, "mean_lyapunov_times": 3.56,
+          "censored_share": 0.61, "error_at_step": {1: 0.0014, 250: 0.062, 500: 0.21, 1000: 0.32}}
+    runs = json.loads(json.dumps({"ukf": {"info": {"label": "SSM-LL + UKF"}, "summary": {},
+                                          "analysis": {"valid_time": vt}}}, sort_keys=True))
+    report = render_markdown("lorenz_T1000_noiseless_cpu", runs)
+    assert "| SSM-LL + UKF | 811 ± 281 | 1000 | 4.06 | 3.56 | 0.61 | 1: 0.0014, 250: 0.062, 500: 0.21, 1000: 0.32 |" in report
+    assert "## The paper" not in report  # no paper table for the noise-free variant
