@@ -52,7 +52,7 @@ def test_quadruple_pendulum_paper_config_starts_and_trains(tmp_path):
 def test_lorenz_cpu_twin_recovers_the_attractor(tmp_path):
     """`make reproduce EXP=lorenz_T1000 SIZE=cpu`'s SSM stage, as shipped, then its UKF test with the analysis:
     the learned f, iterated alone, has the Lorenz attractor's statistics (the targets of issue 12; figures
-    from the shipped run: results/lorenz_T1000_cpu.md). ~45 minutes on 2 cores."""
+    from the shipped run: results/lorenz_T1000_cpu.md). ~55 minutes on 2 cores."""
     import json
 
     common = ["--trainer.logger.init_args.save_dir", str(tmp_path / "runs"), "--trainer.logger.init_args.version", "slow",
