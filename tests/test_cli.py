@@ -125,13 +125,14 @@ def test_ukf_stage_from_the_cli(tmp_path):
     spec = importlib.util.spec_from_file_location("study", ROOT / "benchmarks" / "lorenz_cpu_study.py")
     study = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(study)
-    row = study.main([str(ssm_ckpt), "--data-dir", str(tmp_path / "data"), "--results", str(tmp_path / "results" / "lorenz_T1000_cpu.json"),
-                      "--ukf", "ukf", "--lyapunov-steps", "20", "--free-steps", "100", "--transient", "10",
+    row = study.main([str(ssm_ckpt), "--results", str(tmp_path / "results" / "lorenz_T1000_cpu.json"), "--ukf", "ukf",
                       "--out", str(tmp_path / "rows.jsonl")])
     ckpt = torch.load(ssm_ckpt, weights_only=False)
     assert (row["epochs"], row["steps"]) == (ckpt["epoch"] + 1, ckpt["global_step"])
+    assert row["data"] == {"n_train": 4, "train_steps": 10000, "noise_std": 2.5}  # the TINY data of this test
     assert row["ukf_mse"] == saved["summary"]["ukf/clean/mse"]["mean"]
-    assert 0.0 <= row["both_wings"] <= 1.0 and row["largest_true"] > 0 and len(row["exponents"]) == 3
+    assert row["largest"] == saved["analysis"]["dynamics"]["lyapunov"]["largest"] and len(row["exponents"]) == 3
+    assert row["largest_true"] == saved["analysis"]["true_system"]["largest"]
     assert json.loads((tmp_path / "rows.jsonl").read_text()) == row
 
 
