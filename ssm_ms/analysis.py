@@ -495,13 +495,15 @@ def dynamics_report(
     wing_level: float | None = None,
     true_f: Fn | None = None,
     true_starts: torch.Tensor | None = None,
+    free_starts: torch.Tensor | None = None,
 ) -> dict:
     """What ``f`` and ``g`` do on their own, from the states ``starts [R, d]`` (e.g. shooting nodes).
 
     - ``lyapunov``: the spectrum of ``f`` per time unit (float64, ``transient`` then ``align`` steps
       before ``lyapunov_steps`` accumulated ones), its largest exponent and the Lyapunov time; with
       ``true_f`` (and ``true_starts``, states of the true system) the same for the true system;
-    - ``free_run``: ``f`` iterated ``free_steps`` steps after the transient and decoded by ``g`` (in
+    - ``free_run``: ``f`` iterated ``free_steps`` steps after the transient from ``free_starts [R', d]``
+      (default: ``starts``; more runs than the spectrum's steady the statistics) and decoded by ``g`` (in
       original units through ``to_units``): per measured component its mean and std, and with
       ``reference [M, D]`` (noiseless measurements of the data, original units) the 1-Wasserstein
       distance to them (:func:`attractor_statistics`); with ``wing_level`` the share of runs visiting
@@ -525,7 +527,9 @@ def dynamics_report(
             raise ValueError("true_f needs true_starts: states of the true system to start its runs from")
         report["lyapunov_true"] = spectrum(true_f, true_starts)
     with torch.no_grad():
-        run = free_run(f, starts, free_steps, transient)  # [R, S, d]
+        if free_starts is not None:
+            _check_states(free_starts, "free_starts")
+        run = free_run(f, starts if free_starts is None else free_starts, free_steps, transient)  # [R, S, d]
         y = g(run.reshape(-1, run.shape[-1]))
         if to_units is not None:
             y = to_units(y)

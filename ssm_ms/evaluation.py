@@ -55,9 +55,10 @@ ANALYSIS_DEFAULTS: dict[str, dict[str, Any]] = {
     # forecast `horizon` steps after `n_filter` given ones (None: the protocol's split), valid while the
     # normalised error <= threshold (the reservoir-computing convention, Vlachas et al. 2020)
     "valid_time": {"n_filter": None, "horizon": None, "threshold": 0.5},
-    # SSMs only: f from `runs` shooting nodes: Lyapunov spectrum and long free runs (ssm_ms.analysis.dynamics_report)
-    "dynamics": {"runs": 16, "lyapunov_steps": 4000, "transient": 2000, "align": 600, "free_steps": 20_000,
-                 "seed": 0},
+    # SSMs only: f from `runs` shooting nodes: Lyapunov spectrum, and long free runs from `free_runs` nodes
+    # (None: the same `runs`; more runs steady the attractor statistics) (ssm_ms.analysis.dynamics_report)
+    "dynamics": {"runs": 16, "free_runs": None, "lyapunov_steps": 4000, "transient": 2000, "align": 600,
+                 "free_steps": 20_000, "seed": 0},
     # the true system's exponents, where the data set has its equations (true_transition): from the first
     # states of `runs` test sequences; computed once per data set and settings, cached beside the data
     "true_system": {"runs": 16, "lyapunov_steps": 4000, "transient": 2000, "align": 600},

@@ -347,6 +347,12 @@ def test_dynamics_report_of_the_true_lorenz_system_recovers_its_attractor(one_th
     assert report["lyapunov"]["largest"] == pytest.approx(math.log(0.9) / DT, rel=1e-6)
     assert report["lyapunov_true"]["exponents"] == pytest.approx([math.log(0.5) / DT] * 3, rel=1e-6)
     assert report["free_run"]["both_wings_share"] == 0.0 and report["free_run"]["wasserstein"][0] > 5
+    # free runs from their own starts (more than the spectrum's): the identity map stays where it starts
+    free_starts = torch.arange(30.0, dtype=torch.float64).view(10, 3)
+    report = dynamics_report(lambda x: x, Projection([0]), starts, DT, reference=reference, lyapunov_steps=10, transient=0,
+                             align=0, free_steps=5, free_starts=free_starts)
+    assert report["lyapunov"]["runs"] == 8 and report["free_run"]["runs"] == 10
+    assert report["free_run"]["model_mean"][0] == pytest.approx(free_starts[:, 0].mean().item())
 
 
 def test_short_sequences_from_off_attractor_starts_are_not_the_attractors_distribution():

@@ -142,7 +142,8 @@ def test_analysis_of_the_exact_model(exact_ssm):
     tmp, ckpt = exact_ssm
     dm = rotation_dm(tmp)
     analysis = {"valid_time": {"n_filter": 4, "horizon": 8}, "dt": 0.1,
-                "dynamics": {"runs": 4, "lyapunov_steps": 300, "transient": 10, "align": 10, "free_steps": 2000}}
+                "dynamics": {"runs": 4, "free_runs": 6, "lyapunov_steps": 300, "transient": 10, "align": 10,
+                             "free_steps": 2000}}
     oracle = Oracle(str(ckpt), n_filter=8, metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot_an",
                     analysis=analysis)
     fast_trainer(tmp, max_epochs=1).test(oracle, dm)
@@ -153,6 +154,7 @@ def test_analysis_of_the_exact_model(exact_ssm):
     dyn = run["analysis"]["dynamics"]
     assert dyn["lyapunov"]["exponents"] == pytest.approx([0.0, 0.0], abs=1e-6)
     free = dyn["free_run"]
+    assert dyn["lyapunov"]["runs"] == 4 and free["runs"] == 6
     assert free["model_std"][0] == pytest.approx(math.sqrt(0.5), rel=0.05)  # nodes trained briefly: radius ~1
     assert free["reference_std"][0] == pytest.approx(math.sqrt(0.5), rel=0.1)
     assert "## Analysis" in (tmp / "results" / "rot_an.md").read_text()

@@ -185,10 +185,15 @@ class SSMForecaster(ForecastModule):
         to_units = norm.denormalize if norm is not None else None
         nodes = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim)
         generator = torch.Generator().manual_seed(settings["seed"])
-        starts = nodes[torch.randperm(len(nodes), generator=generator)[: settings["runs"]]]
+        free_runs = settings["free_runs"] or settings["runs"]
+        if max(settings["runs"], free_runs) > len(nodes):
+            raise ValueError(f"analysis.dynamics asks for {max(settings['runs'], free_runs)} runs from shooting nodes but "
+                             f"the model has {len(nodes)}: lower analysis.dynamics.runs / free_runs")
+        drawn = nodes[torch.randperm(len(nodes), generator=generator)[: max(settings["runs"], free_runs)]]
         vector = len(self.ssm.obs_shape()) == 1
         report = dynamics_report(
-            self.ssm.f, self.ssm.g, starts, self.sample_period() or 1.0, to_units=to_units,
+            self.ssm.f, self.ssm.g, drawn[: settings["runs"]], self.sample_period() or 1.0, to_units=to_units,
+            free_starts=drawn[:free_runs],
             reference=training_measurements(dm) if vector else None,
             lyapunov_steps=settings["lyapunov_steps"], transient=settings["transient"], align=settings["align"],
             free_steps=settings["free_steps"], wing_level=dm.wing_level() if hasattr(dm, "wing_level") else None,
