@@ -130,12 +130,15 @@ def jacobian(fn: Fn, x: torch.Tensor) -> torch.Tensor:
     return _jacobian_and_value(fn, x)[0]
 
 
-def linearize(f: Fn, g: Fn, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Local linear model ``x[t+1] ~ A x[t]``, ``y ~ C x`` around the states ``x [N, d]``.
+def linearize(f: Fn, g: Fn, x: torch.Tensor, flatten: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """Local linear model ``x[t+1] ~ A x[t]``, ``y ~ C x`` around the states ``x [N, d]`` (for LQR, an EKF;
+    :mod:`ssm_ms.control` exports it with ``f`` and ``g``).
 
     Returns:
         ``(A, C)``: ``A = df/dx [N, d, d]`` and ``C = dg/dx [N, p, d]`` with ``g``'s output
-        flattened to ``p`` values (an image ``[1, 24, 24]`` gives ``p = 576``).
+        flattened to ``p`` values (an image ``[1, 24, 24]`` gives ``p = 576``), or, with
+        ``flatten=False``, ``[N, *obs_shape, d]``. In ``x``'s dtype; ``f`` and ``g`` must be of the
+        same dtype (``f.double()`` for float64).
     """
     _check_states(x, "x")
     a = jacobian(f, x)
@@ -144,7 +147,7 @@ def linearize(f: Fn, g: Fn, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
             f"f must map states [N, {x.shape[1]}] to [N, {x.shape[1]}]; its Jacobian has shape {tuple(a.shape)}"
         )
     c = jacobian(g, x)
-    return a, c.reshape(x.shape[0], -1, x.shape[1])
+    return a, (c.reshape(x.shape[0], -1, x.shape[1]) if flatten else c)
 
 
 # ---------------------------------------------------------------------------- Lyapunov exponents
