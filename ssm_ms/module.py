@@ -11,10 +11,21 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ssm_ms import distributed
+from ssm_ms.constraints import (
+    AugmentedLagrangianOptions,
+    augmented_lagrangian,
+    check_constraint,
+    raised_factor,
+    shooting_residuals,
+    update_multipliers,
+)
+from ssm_ms.nodes import node_group, row_adam_
 from ssm_ms.shooting import decode, loss_function, multiple_shooting_loss, rollout
 
 # Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
-STRUCTURAL_HPARAMS = ("state_dim", "num_trajectories", "n_nodes", "f", "g")
+STRUCTURAL_HPARAMS = ("state_dim", "num_trajectories", "n_nodes", "f", "g", "node_optimizer", "constraint")
+NODE_OPTIMIZERS = ("dense", "sparse")
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -59,6 +70,15 @@ class MultipleShootingModule(pl.LightningModule):
             start those state components at the (flattened) measurement at each node's time, the
             others at zero (Lorenz: ``{0: 0}``).
         decode_chunk: decode at most this many states per call of ``g`` (``None``: all at once).
+        node_optimizer: ``"dense"`` (the paper: one Adam over all parameters, so momentum moves every
+            node at every step) or ``"sparse"`` (only the batch's nodes change: a row-wise Adam, see
+            :mod:`ssm_ms.nodes`; also what keeps the node table out of DDP's all-reduce).
+        node_lr: learning rate of the nodes (``None``: ``lr``); the schedule scales it like ``lr``.
+        constraint: ``"penalty"`` (the paper's ``fit + alpha * gap``) or ``"augmented_lagrangian"``
+            (multipliers per gap, in the buffer ``multipliers``; see :mod:`ssm_ms.constraints`).
+        constraint_options: settings of the augmented Lagrangian
+            (:class:`ssm_ms.constraints.AugmentedLagrangianOptions`: ``every_n_epochs``, ``growth``,
+            ``shrink``, ``max_factor``).
     """
 
     def __init__(
@@ -73,6 +93,10 @@ class MultipleShootingModule(pl.LightningModule):
         alpha: float = 1.0,
         node_init_map: dict[int, int] | None = None,
         decode_chunk: int | None = None,
+        node_optimizer: str = "dense",
+        node_lr: float | None = None,
+        constraint: str = "penalty",
+        constraint_options: dict[str, float] | None = None,
     ):
         super().__init__()
         # Built by LightningCLI, f and g are recorded as their config (class_path + init_args), so
@@ -91,6 +115,20 @@ class MultipleShootingModule(pl.LightningModule):
         self.f, self.g = f, g
         self.state_dim, self.n_nodes = state_dim, n_nodes
         self.register_buffer("alpha", torch.tensor(float(alpha)))
+        if node_optimizer not in NODE_OPTIMIZERS:
+            raise ValueError(f"unknown node_optimizer {node_optimizer!r}: choose one of {list(NODE_OPTIMIZERS)}")
+        if node_lr is not None and node_lr <= 0:
+            raise ValueError(f"node_lr must be > 0 (or unset to use lr), got {node_lr}")
+        check_constraint(constraint, n_nodes)
+        self.al_options: AugmentedLagrangianOptions | None = None
+        if constraint == "augmented_lagrangian":
+            self.al_options = AugmentedLagrangianOptions.from_mapping(constraint_options)
+            self.register_buffer("alpha_factor", torch.tensor(1.0))  # raised when the gaps stop shrinking
+            self.register_buffer("last_gap_rms", torch.tensor(float("inf")))
+        elif constraint_options:
+            raise ValueError("constraint_options apply to constraint: augmented_lagrangian only: remove them")
+        self._pending: list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]] = []
+        self._gap_sums = [0.0, 0]
         self._check_transition()
         self.nodes: nn.Embedding | None = None
         if num_trajectories is not None:
@@ -117,6 +155,13 @@ class MultipleShootingModule(pl.LightningModule):
         self.nodes = nn.Embedding(num_trajectories, self.n_nodes * self.state_dim)
         nn.init.zeros_(self.nodes.weight)
         self.hparams["num_trajectories"] = num_trajectories
+        if self.hparams.get("node_optimizer") == "sparse":  # updated row by row, outside autograd and DDP
+            self.nodes.weight.requires_grad_(False)
+        if self.al_options is not None:
+            gaps = (self.n_nodes - 1) * self.state_dim
+            self.register_buffer("multipliers", torch.zeros(num_trajectories, gaps, device=self.nodes.weight.device))
+            # identical on every rank (updated from the gathered batch): DDP need not broadcast them
+            self._ddp_params_and_buffers_to_ignore = ["multipliers"]
 
     def obs_shape(self) -> tuple[int, ...]:
         """The shape of one measurement produced by g."""
@@ -198,13 +243,33 @@ class MultipleShootingModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ training
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
-        fit, gap = self.shooting_loss(batch)
-        loss = fit + self.alpha * gap
+        index = batch["index"]
+        rows = None
+        if self.hparams.node_optimizer == "sparse":  # the batch's rows as a leaf: their gradient alone
+            rows = self.nodes.weight.detach()[index].requires_grad_()
+        if self.al_options is None:
+            nodes = None if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
+            fit, gap = self.shooting_loss(batch) if nodes is None else multiple_shooting_loss(
+                self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk)
+            loss = fit + self.alpha * gap
+            residual = None
+        else:
+            nodes = self.node_states(index) if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
+            fit, residual = shooting_residuals(self.f, self.g, nodes, batch["y"], self.hparams.loss,
+                                               self.hparams.decode_chunk)
+            gap = residual.pow(2).mean()
+            lam = self.multipliers[index].view_as(residual)
+            loss = augmented_lagrangian(fit, residual, lam, self.alpha * self.alpha_factor)
+            residual = residual.detach().flatten(1)
         if not torch.isfinite(loss):
             raise NonFiniteLossError(self._nan_message(fit, gap))
-        bs = len(batch["index"])
+        if rows is not None or residual is not None:
+            self._pending.append((index, rows, residual))
+        if distributed.world_size() > 1:  # shards of unequal size: weight so DDP's average is the global mean
+            loss = loss * distributed.shard_weight(len(index), loss.device)
+        bs = len(index)
         self.log_dict({"train/fit": fit, "train/gap": gap, "train/loss": loss}, batch_size=bs, prog_bar=True)
-        self.log("alpha", self.alpha, batch_size=bs)
+        self.log("alpha", self.alpha if self.al_options is None else self.alpha * self.alpha_factor, batch_size=bs)
         self.log("lr", self.optimizers().param_groups[0]["lr"], batch_size=bs)
         return loss
 
@@ -232,7 +297,73 @@ class MultipleShootingModule(pl.LightningModule):
         return out
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
-        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        node_lr = self.hparams.get("node_lr")
+        if self.hparams.get("node_optimizer", "dense") == "dense" and node_lr is None:
+            return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        # the nodes in a group of their own (their lr; in sparse mode Adam skips them: no .grad)
+        others = [p for p in self.parameters() if p is not self.nodes.weight]
+        groups = [{"params": others}, {"params": [self.nodes.weight], "lr": node_lr or self.hparams.lr}]
+        return torch.optim.Adam(groups, lr=self.hparams.lr)
+
+    # ------------------------------------------------------------------ sparse nodes, multipliers, DDP
+    def on_fit_start(self) -> None:
+        if self.hparams.node_optimizer == "sparse":
+            for optimizer in self.trainer.optimizers:
+                node_group(optimizer, self.nodes.weight)  # a clear error for an optimizer that cannot
+        if distributed.world_size() > 1:
+            self._check_replicated_tables()
+
+    def _check_replicated_tables(self) -> None:
+        """Under DDP every rank must hold the same node table, sized for the same data set."""
+        n_data = getattr(getattr(self.trainer, "datamodule", None), "num_train_trajectories", None)
+        signatures = distributed.table_signature(self.nodes.weight)
+        rows = [int(s[0]) for s in signatures]
+        if n_data is not None and any(r != n_data for r in rows):
+            raise ValueError(
+                f"DDP: the node tables of the ranks have {rows} rows but the training set has {n_data} trajectories: "
+                f"set model.num_trajectories to {n_data} (or leave it unset) on every rank"
+            )
+        if any(not torch.equal(s, signatures[0]) for s in signatures):
+            raise ValueError(
+                "DDP: the ranks hold different node tables (or data sets): every rank must build the same "
+                "training set (same data config and seed) and start from the same checkpoint"
+            )
+
+    def on_train_epoch_start(self) -> None:
+        self._pending.clear()
+        self._gap_sums = [0.0, 0]
+
+    def _multiplier_epoch(self) -> bool:
+        return self.al_options is not None and (self.current_epoch + 1) % self.al_options.every_n_epochs == 0
+
+    @torch.no_grad()
+    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        """Sparse node rows and multipliers, from every rank's batch (the same update on every rank)."""
+        if not self._pending:
+            return
+        index = torch.cat([p[0] for p in self._pending])
+        sparse = self.hparams.node_optimizer == "sparse"
+        grads = torch.cat([p[1].grad.flatten(1) for p in self._pending]) if sparse else index.new_zeros(len(index), 0)
+        residual = torch.cat([p[2] for p in self._pending]) if self.al_options is not None else grads[:, :0]
+        self._pending.clear()
+        w = distributed.world_size()
+        index, grads, residual = distributed.all_gather_rows(index, grads, residual)
+        if sparse:
+            group = node_group(optimizer, self.nodes.weight)
+            row_adam_(self.nodes.weight, optimizer.state[self.nodes.weight], index, grads / w if w > 1 else grads,
+                      group["lr"], group["betas"], group["eps"])
+        if self._multiplier_epoch():
+            alpha = self.alpha * self.alpha_factor
+            self.multipliers[index] = update_multipliers(self.multipliers[index], residual, alpha)
+            self._gap_sums[0] += float(residual.pow(2).sum())
+            self._gap_sums[1] += residual.numel()
+
+    def on_train_epoch_end(self) -> None:
+        if self._multiplier_epoch() and self._gap_sums[1] > 0 and self.al_options.growth > 1:
+            rms = (self._gap_sums[0] / self._gap_sums[1]) ** 0.5
+            factor = raised_factor(float(self.alpha_factor), rms, float(self.last_gap_rms), self.al_options)
+            self.alpha_factor.fill_(factor)
+            self.last_gap_rms.fill_(rms)
 
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
