@@ -21,7 +21,8 @@ from ssm_ms.constraints import (
     update_multipliers,
 )
 from ssm_ms.nodes import node_group, row_adam_
-from ssm_ms.shooting import decode, loss_function, multiple_shooting_loss, rollout
+from ssm_ms.perf import check_precision
+from ssm_ms.shooting import CompiledRollout, decode, loss_function, multiple_shooting_loss, rollout
 
 # Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
 STRUCTURAL_HPARAMS = ("state_dim", "num_trajectories", "n_nodes", "f", "g", "node_optimizer", "constraint")
@@ -79,6 +80,9 @@ class MultipleShootingModule(pl.LightningModule):
         constraint_options: settings of the augmented Lagrangian
             (:class:`ssm_ms.constraints.AugmentedLagrangianOptions`: ``every_n_epochs``, ``growth``,
             ``shrink``, ``max_factor``).
+        compile_rollout: ``None`` (eager) or a ``torch.compile`` mode (``"default"``, ``"reduce-overhead"``
+            = CUDA graphs on a GPU, ...): the rollout of ``f`` over a sub-trajectory runs as one compiled
+            graph (:class:`ssm_ms.shooting.CompiledRollout`); penalty constraint only.
     """
 
     def __init__(
@@ -97,6 +101,7 @@ class MultipleShootingModule(pl.LightningModule):
         node_lr: float | None = None,
         constraint: str = "penalty",
         constraint_options: dict[str, float] | None = None,
+        compile_rollout: str | None = None,
     ):
         super().__init__()
         # Built by LightningCLI, f and g are recorded as their config (class_path + init_args), so
@@ -130,6 +135,14 @@ class MultipleShootingModule(pl.LightningModule):
         self._pending: list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]] = []
         self._gap_sums = [0.0, 0]
         self._check_transition()
+        self._rollout_fn: CompiledRollout | None = None
+        if compile_rollout is not None:
+            if constraint != "penalty":
+                raise ValueError("compile_rollout applies to constraint: penalty only: remove it or use the penalty")
+            try:
+                self._rollout_fn = CompiledRollout(f, compile_rollout)
+            except RuntimeError as err:
+                raise ValueError(str(err)) from None
         self.nodes: nn.Embedding | None = None
         if num_trajectories is not None:
             self._make_nodes(num_trajectories)
@@ -177,6 +190,8 @@ class MultipleShootingModule(pl.LightningModule):
 
     def setup(self, stage: str) -> None:
         dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if self._trainer is not None:
+            check_precision(self.trainer.precision, self.trainer.strategy.root_device)
         if self.nodes is None:
             n = getattr(dm, "num_train_trajectories", None)
             if n is None:
@@ -227,7 +242,7 @@ class MultipleShootingModule(pl.LightningModule):
     # ------------------------------------------------------------------ model
     def forward(self, x0: torch.Tensor, steps: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Roll ``f`` out ``steps`` states from ``x0 [B, d]`` and decode: ``(states [B, steps, d], y [B, steps, ...])``."""
-        states = rollout(self.f, x0, steps)
+        states = rollout(self.f, x0, steps) if self._rollout_fn is None else self._rollout_fn(x0, steps)
         return states, decode(self.g, states, self.hparams.decode_chunk)
 
     def node_states(self, index: torch.Tensor) -> torch.Tensor:
@@ -238,7 +253,8 @@ class MultipleShootingModule(pl.LightningModule):
 
     def shooting_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         return multiple_shooting_loss(
-            self.f, self.g, self.node_states(batch["index"]), batch["y"], self.hparams.loss, self.hparams.decode_chunk
+            self.f, self.g, self.node_states(batch["index"]), batch["y"], self.hparams.loss, self.hparams.decode_chunk,
+            self._rollout_fn,
         )
 
     # ------------------------------------------------------------------ training
@@ -250,7 +266,7 @@ class MultipleShootingModule(pl.LightningModule):
         if self.al_options is None:
             nodes = None if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
             fit, gap = self.shooting_loss(batch) if nodes is None else multiple_shooting_loss(
-                self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk)
+                self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn)
             loss = fit + self.alpha * gap
             residual = None
         else:

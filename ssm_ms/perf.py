@@ -40,3 +40,40 @@ def configure_allocator(mmap_threshold: int = 1 << 30, trim_threshold: int = (1 
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     _configured = bool(mallopt(M_MMAP_THRESHOLD, mmap_threshold)) and bool(mallopt(M_TRIM_THRESHOLD, trim_threshold))
     return _configured
+
+
+def bf16_support(device: "str | object" = "cpu") -> tuple[bool, str]:
+    """Whether ``device`` runs bfloat16 natively, and if not, why (one sentence for an error message).
+
+    CPU: the AVX512-BF16 or AMX instructions (without them PyTorch emulates bfloat16 through float32,
+    slower than float32 itself). CUDA: ``torch.cuda.is_bf16_supported()`` (compute capability >= 8.0).
+    """
+    import torch
+
+    device = torch.device(device)
+    if device.type == "cuda":
+        if torch.cuda.is_available() and torch.cuda.is_bf16_supported(including_emulation=False):
+            return True, ""
+        return False, "this GPU has no native bfloat16 support (it needs compute capability 8.0 or newer)"
+    if device.type == "cpu":
+        native = torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()
+        if native:
+            return True, ""
+        return False, (
+            "this CPU has no native bfloat16 instructions (AVX512-BF16 or AMX): PyTorch would emulate "
+            "bfloat16 through float32, slower than float32 itself"
+        )
+    return False, f"bfloat16 support on {device.type!r} devices is not known to ssm-ms"
+
+
+def check_precision(precision: "str | int", device: "str | object") -> None:
+    """Refuse ``trainer.precision`` in bfloat16 (``bf16-mixed``, ``bf16-true``) where ``device`` lacks it natively.
+
+    Raises ``ValueError`` naming the machine's problem and the fix (``trainer.precision: 32``): a bfloat16
+    run on such a device would be slower than float32, for no gain in memory that matters here.
+    """
+    if not str(precision).startswith("bf16"):
+        return
+    ok, why = bf16_support(device)
+    if not ok:
+        raise ValueError(f"trainer.precision={precision} asks for bfloat16, but {why}: use trainer.precision: 32")

@@ -8,6 +8,8 @@ the model predicts its measurements ``g(f^k(s[b, i]))``, ``k = 0..n-1``, and the
 
 from __future__ import annotations
 
+import shutil
+import sys
 from collections.abc import Callable
 
 import torch
@@ -26,12 +28,56 @@ def loss_function(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Ten
     return LOSSES[name]
 
 
+Rollout = Callable[[torch.Tensor, int], torch.Tensor]
+
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+
+
 def rollout(f: Callable[[torch.Tensor], torch.Tensor], x0: torch.Tensor, steps: int) -> torch.Tensor:
     """States ``x0, f(x0), ..., f^{steps-1}(x0)``: ``[N, d] -> [N, steps, d]``."""
     xs = [x0]
     for _ in range(steps - 1):
         xs.append(f(xs[-1]))
     return torch.stack(xs, dim=1)
+
+
+def compile_unavailable_reason(mode: str) -> str | None:
+    """Why ``torch.compile`` cannot build a rollout here (``None``: it can)."""
+    if mode not in COMPILE_MODES:
+        return f"unknown torch.compile mode {mode!r}: choose one of {list(COMPILE_MODES)}"
+    try:
+        import torch._dynamo
+    except ImportError as err:  # pragma: no cover - depends on the installation
+        return f"torch.compile is not part of this PyTorch build ({err})"
+    if not torch._dynamo.is_dynamo_supported():
+        return f"torch.compile does not support this Python ({sys.version.split()[0]}) or platform"
+    if not torch.cuda.is_available() and not any(shutil.which(c) for c in ("g++", "c++", "clang++")):
+        return "torch.compile on CPU needs a C++ compiler (g++ or clang++) on PATH, and none was found"
+    return None
+
+
+class CompiledRollout:
+    """``rollout(f, x0, steps)`` through ``torch.compile``: the ``steps - 1`` calls of ``f`` become one graph.
+
+    On a GPU the rollout is many small sequential kernels; compiled, inductor fuses each step's
+    elementwise work, and ``mode="reduce-overhead"`` also replays the whole rollout (forward and
+    backward) as CUDA graphs, removing the per-kernel launch cost. The graph is specialised to
+    ``steps`` and to the input's shape, dtype and device (a new value compiles once more; torch's
+    recompile limit applies). Same values as :func:`rollout` up to floating-point reassociation.
+    Unavailable (no ``torch.compile``, or on CPU no C++ compiler): :class:`RuntimeError` naming why.
+    """
+
+    def __init__(self, f: Callable[[torch.Tensor], torch.Tensor], mode: str = "default"):
+        reason = compile_unavailable_reason(mode)
+        if reason is not None:
+            raise RuntimeError(f"compiled rollout unavailable: {reason}; use the eager rollout (compile_rollout: null)")
+        self.f, self.mode = f, mode
+        self._compiled = torch.compile(rollout, mode=mode, dynamic=False)
+
+    def __call__(self, x0: torch.Tensor, steps: int) -> torch.Tensor:
+        if self.mode == "reduce-overhead" and x0.is_cuda:
+            torch.compiler.cudagraph_mark_step_begin()  # each call is a new step: earlier outputs may be reused
+        return self._compiled(self.f, x0, steps)
 
 
 def decode(g: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
@@ -71,6 +117,7 @@ def multiple_shooting_loss(
     y: torch.Tensor,
     loss: str = "mse",
     decode_chunk: int | None = None,
+    rollout_fn: Rollout | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The two terms of the multiple-shooting objective.
 
@@ -81,6 +128,8 @@ def multiple_shooting_loss(
         y: measurements ``[B, T, *obs_shape]`` with ``T = m * n``.
         loss: ``"mse"`` or ``"bce"`` (then ``g`` must output values in [0, 1]).
         decode_chunk: decode at most this many states per call of ``g`` (``None``: all at once).
+        rollout_fn: ``(x0 [N, d], steps) -> [N, steps, d]`` states of ``f`` (``None``: :func:`rollout`
+            with ``f``; a :class:`CompiledRollout` of ``f`` gives the same values).
 
     Returns:
         ``(fit, gap)``: ``fit`` is the mean over all elements of ``loss(g(f^k(s_i)), y[(i-1)n + k])``;
@@ -90,12 +139,10 @@ def multiple_shooting_loss(
     n = check_shapes(nodes, y)
     loss_fn = loss_function(loss)
     b, m, d = nodes.shape
-    x = nodes.reshape(b * m, d)
-    states = [x]
-    for _ in range(n):  # n + 1 states: f^0 .. f^{n-1} are decoded, f^n closes the gap
-        x = f(x)
-        states.append(x)
-    traj = torch.stack(states[:n], dim=1)  # [B*m, n, d]
+    # n + 1 states: f^0 .. f^{n-1} are decoded, f^n closes the gap
+    x0 = nodes.reshape(b * m, d)
+    states = rollout(f, x0, n + 1) if rollout_fn is None else rollout_fn(x0, n + 1)
+    traj = states[:, :n]  # [B*m, n, d]
     y_hat = decode(g, traj, decode_chunk)  # [B*m, n, *obs]
     if y_hat.shape[2:] != y.shape[2:]:
         raise ValueError(
@@ -106,6 +153,6 @@ def multiple_shooting_loss(
     if m == 1:
         gap = fit.new_zeros(())
     else:
-        end = states[n].view(b, m, d)
+        end = states[:, n].view(b, m, d)
         gap = (nodes[:, 1:] - end[:, :-1]).pow(2).mean()
     return fit, gap
