@@ -209,6 +209,15 @@ class TrajectoryDataModule(pl.LightningDataModule):
             of the training set (they are saved in checkpoints with the DataModule's state).
         shuffle: shuffle the training set every epoch (order fixed by ``seed`` and the epoch).
         seed: seed of the generator and of the shuffling.
+        predict_path: a ``.npy`` / ``.npz`` file (or a list, concatenated) of new sequences for
+            ``python cli.py predict``, in the layouts of :mod:`datamodules.files` (``[N, T, D]``,
+            ``[N, T, H, W]``, ``[N, T, C, H, W]``) and in the measurements' original units: they are
+            normalised with the statistics the model was trained with.
+        predict_key: the array's name inside ``.npz`` files.
+        predict_given: how many of each sequence's first samples the forecaster sees (``k``; default
+            all of them: forecast what comes after the recording).
+        predict_steps: how many steps to forecast after them (``p``; default the forecaster's
+            ``n_predict``).
     """
 
     name = "trajectories"
@@ -224,10 +233,19 @@ class TrajectoryDataModule(pl.LightningDataModule):
         normalize: bool = False,
         shuffle: bool = True,
         seed: int = 0,
+        predict_path: str | list[str] | None = None,
+        predict_key: str = "y",
+        predict_given: int | None = None,
+        predict_steps: int | None = None,
     ):
         super().__init__()
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        for name, value in (("predict_given", predict_given), ("predict_steps", predict_steps)):
+            if value is not None and value < 1:
+                raise ValueError(f"{name} must be >= 1 (or unset), got {value}")
+        self.predict_path = [predict_path] if isinstance(predict_path, (str, Path)) else predict_path
+        self.predict_key, self.predict_given, self.predict_steps = predict_key, predict_given, predict_steps
         self.data_dir = Path(data_dir)
         self.batch_size = batch_size
         self.eval_batch_size = eval_batch_size or batch_size
@@ -320,9 +338,43 @@ class TrajectoryDataModule(pl.LightningDataModule):
                     f"says {self.num_train_trajectories}"
                 )
         for split in self.splits:
-            if split != "train" and split not in self.datasets and stage in (None, "test", "predict", split):
+            if split != "train" and split not in self.datasets and stage in (None, "test", split):
                 self.datasets[split] = self.load_split(split)
                 self._set_normalizer(self.datasets[split])
+        if stage == "predict" and "predict" not in self.datasets:
+            self.datasets["predict"] = self.load_predict()
+            self._set_normalizer(self.datasets["predict"])
+
+    def load_predict(self) -> TrajectoryDataset:
+        """The sequences of ``predict_path`` (checked like a user's training files), whole: the forecaster
+        reads the first ``predict_given`` samples and the rest, if any, is what followed them."""
+        from datamodules.files import FileDataModule, _check_header, read_header  # files.py builds on this module
+
+        if not self.predict_path:
+            raise ValueError(
+                "nothing to predict: give the sequences to forecast with --data.init_args.predict_path FILE "
+                "(.npy or .npz, the layouts of training data)"
+            )
+        heads = [read_header(path, self.predict_key, "predict_path") for path in self.predict_path]
+        for h in heads:
+            _check_header(h, "predict_path")
+        shape = FileDataModule._concat_shape(heads, "predict_path")  # served [N, T, *obs]
+        if tuple(shape[2:]) != tuple(self.obs_shape):
+            raise ValueError(
+                f"predict_path: the sequences hold measurements of shape {tuple(shape[2:])} but the model was "
+                f"trained on {tuple(self.obs_shape)} (served layout [N, T, *obs]): give recordings of the same sensors"
+            )
+        if self.predict_given is not None and self.predict_given > shape[1]:
+            raise ValueError(
+                f"predict_given={self.predict_given} but the sequences of predict_path have T={shape[1]} samples: "
+                f"give at most {shape[1]} (or leave predict_given unset to use all of them)"
+            )
+        return TrajectoryDataset({"y": FileDataModule._load_files(heads)})
+
+    def predict_dataloader(self) -> DataLoader:
+        if "predict" not in self.datasets:
+            self.setup("predict")
+        return self._loader(self.datasets["predict"], self.eval_batch_size)
 
     def _set_normalizer(self, ds: Dataset) -> None:
         if isinstance(ds, TrajectoryDataset):

@@ -136,16 +136,21 @@ class Forecast(NamedTuple):
     ``filtered [B, k, *obs_shape]``: its estimate of the given measurements (what it believes while
     filtering; the ``last`` reference repeats ``filtered[:, -1]``); ``predicted [B, p, *obs_shape]``: its
     prediction of ``y[k..k+p-1]``; ``states [B, k + p, d]``: latent states behind them, where the
-    forecaster has states it can show (the SSM's inferred then predicted states), else ``None``.
+    forecaster has states it can show (the SSM's inferred then predicted states), else ``None``;
+    ``state_covs [B, k + p, d, d]``: their covariances, where the forecaster has them (the filters, from
+    :meth:`ForecastModule.forecast_distribution` only), else ``None``.
     """
 
     filtered: torch.Tensor
     predicted: torch.Tensor
     states: Optional[torch.Tensor] = None
+    state_covs: Optional[torch.Tensor] = None
 
 
 class ForecastModule(pl.LightningModule):
-    """Base of every forecaster: ``test`` runs the protocol on the DataModule's test split.
+    """Base of every forecaster: ``test`` runs the protocol on the DataModule's test split; ``predict``
+    forecasts a user's own sequences (the DataModule's ``predict_path``) with the same :meth:`forecast`,
+    in original units, written by :class:`ssm_ms.predict.ForecastWriter` (see :meth:`predict_step`).
 
     Subclasses implement :meth:`forecast` (and :meth:`describe` to say what they are). Results go to
     TensorBoard (``test/...``), to ``<results_dir>/<experiment>.json`` and to a markdown table
@@ -209,6 +214,11 @@ class ForecastModule(pl.LightningModule):
         """Estimate of ``y_filter [B, k, *obs_shape]`` and prediction of the ``n_predict`` frames after it."""
         raise NotImplementedError
 
+    def forecast_distribution(self, y_filter: torch.Tensor, n_predict: int) -> Forecast:
+        """:meth:`forecast` with the states' covariances where the forecaster has them (``predict`` calls
+        this one; the test protocol, which needs no covariances, calls :meth:`forecast`)."""
+        return self.forecast(y_filter, n_predict)
+
     def describe(self) -> dict[str, Any]:
         """What this forecaster is, for the results: ``model`` (e.g. ``"SSM-LL"``, ``"LSTM"``), ``inference``
         (e.g. ``"encoder"``, ``"ukf"``, or ``None``), ``label`` (its row in the table) and any checkpoint it reads."""
@@ -229,6 +239,8 @@ class ForecastModule(pl.LightningModule):
 
     def setup(self, stage: str) -> None:
         """Refuse, before any work, a split that does not fit the test sequences."""
+        if stage == "predict":
+            self.prediction_split()
         test = getattr(self.datamodule, "datasets", {}).get("test") if stage == "test" else None
         seq_len = getattr(test, "seq_len", None)
         if seq_len is not None:
@@ -307,6 +319,58 @@ class ForecastModule(pl.LightningModule):
             self._first_batch["y_model"] = torch.cat([out.filtered, out.predicted], 1)
             if out.states is not None:
                 self._first_batch["states"] = out.states
+
+    # ------------------------------------------------------------------ predict
+    def prediction_split(self, seq_len: int | None = None) -> tuple[int | None, int]:
+        """``(k, p)`` of ``predict``: the DataModule's ``predict_given`` (``None``: all ``seq_len`` samples)
+        and ``predict_steps``, else this forecaster's ``n_predict``."""
+        dm = self.datamodule
+        k = getattr(dm, "predict_given", None)
+        p = getattr(dm, "predict_steps", None) or self.n_predict
+        if p is None:
+            raise ValueError(
+                "how many steps to forecast? set --data.init_args.predict_steps P (this forecaster has no n_predict)"
+            )
+        return (k or seq_len), int(p)
+
+    @torch.no_grad()
+    def predict_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
+        """Forecast a batch of a user's sequences: the first ``k`` samples are given, ``p`` steps are predicted
+        (:meth:`prediction_split`), by the same :meth:`forecast` as the test protocol. Measurements come back
+        in original units (the data normalisation undone); states and their covariances in the model's.
+
+        Returns ``{"index" [B], "measured" [B, T, *obs] (the sequence as given, original units), "filtered"
+        [B, k, *obs], "predicted" [B, p, *obs]}``, plus ``"states" [B, k, d]``, ``"predicted_states" [B, p,
+        d]`` where the forecaster has states and ``"state_cov" [B, k, d, d]``, ``"predicted_state_cov" [B, p,
+        d, d]`` where it has covariances.
+        """
+        y = batch["y"]
+        k, p = self.prediction_split(y.shape[1])
+        out = self.forecast_distribution(y[:, :k], p)
+        expected = (tuple(y[:, :k].shape), (len(y), p, *y.shape[2:]))
+        if (tuple(out.filtered.shape), tuple(out.predicted.shape)) != expected:
+            raise RuntimeError(
+                f"{type(self).__name__}.forecast returned frames of shapes {list(out.filtered.shape)} and "
+                f"{list(out.predicted.shape)} for {list(expected[0])} given and {list(expected[1])} to predict"
+            )
+        norm = self.normalizer()
+        to_units = norm.denormalize if norm is not None else (lambda t: t)
+        result = {"index": batch["index"], "measured": to_units(y), "filtered": to_units(out.filtered),
+                  "predicted": to_units(out.predicted)}
+        if out.states is not None:
+            result["states"], result["predicted_states"] = out.states[:, :k], out.states[:, k:]
+        if out.state_covs is not None:
+            result["state_cov"], result["predicted_state_cov"] = out.state_covs[:, :k], out.state_covs[:, k:]
+        return result
+
+    def configure_callbacks(self):
+        """``predict`` without a :class:`~ssm_ms.predict.ForecastWriter` among the trainer's callbacks gets one
+        writing ``predictions/<experiment>_<method>.npz``."""
+        from ssm_ms.predict import ForecastWriter
+
+        if self.trainer.state.fn != "predict" or any(isinstance(c, ForecastWriter) for c in self.trainer.callbacks):
+            return []
+        return [ForecastWriter(f"predictions/{self.experiment_name()}_{self.method_name}.npz")]
 
     def on_test_epoch_end(self) -> None:
         summary: dict[str, dict[str, float]] = {}

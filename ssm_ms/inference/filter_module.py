@@ -113,3 +113,21 @@ class FilterForecaster(SSMForecaster):
         x0 = self.prior_mean(y_filter)
         out = self.filter.filter(y_filter, x0)
         return out if isinstance(out, torch.Tensor) else out.means
+
+    def infer_distribution(self, y_filter: torch.Tensor, n_predict: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Filtered means ``[B, k, d]`` (as :meth:`infer`) and covariances ``[B, k + p, d, d]``: the posterior ones
+        over the ``k`` given steps, then the filter's own prediction without measurements for ``p`` steps (UKF:
+        unscented time updates with the process noise; particle filter: the last posterior's weighted particles
+        moved through ``f`` with the process noise). These describe the spread around the filter's predicted
+        mean, which differs from the point forecast ``f^j(x[k-1])`` only by the nonlinearity of ``f``."""
+        x0 = self.prior_mean(y_filter)
+        if isinstance(self.filter, UnscentedKalmanFilter):
+            result = self.filter.filter(y_filter, x0)
+            mean, cov, ahead = result.means[:, -1], result.covs[:, -1], []
+            for _ in range(n_predict):
+                mean, cov = self.filter.predict(mean, cov)
+                ahead.append(cov)
+            return result.means, torch.cat([result.covs, torch.stack(ahead, 1)], 1)
+        result = self.filter.filter(y_filter, x0, return_particles=True)
+        ahead = self.filter.propagate(result.particles, result.weights, n_predict)
+        return result.means, torch.cat([result.covs, ahead], 1)

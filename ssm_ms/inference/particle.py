@@ -25,12 +25,21 @@ from ssm_ms.inference.shared import call_model, check_autocast, check_measuremen
 
 class ParticleFilterResult(NamedTuple):
     """Weighted posterior means ``[B, T, d]``; effective sample size before resampling ``[B, T]``;
-    the particles ``[B, P, d]`` and normalised weights ``[B, P]`` of the last step's posterior."""
+    the particles ``[B, P, d]`` and normalised weights ``[B, P]`` of the last step's posterior; the
+    weighted posterior covariances ``[B, T, d, d]``."""
 
     means: Tensor
     ess: Tensor
     particles: Tensor
     weights: Tensor
+    covs: Tensor
+
+
+def weighted_covariance(weights: Tensor, particles: Tensor, mean: Tensor) -> Tensor:
+    """``sum_i w_i (x_i - m)(x_i - m)^T``: ``[B, d, d]`` from normalised ``weights [B, P]``, ``particles [B, P, d]``
+    and their weighted ``mean [B, d]``."""
+    dev = particles - mean.unsqueeze(1)
+    return (dev * weights.unsqueeze(-1)).transpose(1, 2) @ dev
 
 
 def systematic_resample(weights: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
@@ -149,7 +158,8 @@ class ParticleFilter:
 
         ``x0``: centre of the initial cloud, ``[d]`` or ``[B, d]`` (default zeros). ``generator``: a
         ``torch.Generator`` on ``y``'s device for reproducible runs. With ``return_particles`` a
-        :class:`ParticleFilterResult` comes back instead (means, ESS, last posterior particles/weights).
+        :class:`ParticleFilterResult` comes back instead (means, ESS, last posterior particles/weights,
+        posterior covariances).
         Runs without autograd graphs: the filter is for inference (resampling is not differentiable).
         """
         bsz, steps = check_measurements(y)
@@ -192,7 +202,7 @@ class ParticleFilter:
             noise = torch.randn(bsz, n, d, dtype=dtype, device=device, generator=generator)
             particles = centre.unsqueeze(1) + init_std * noise
             log_w = torch.full((bsz, n), -log_n, dtype=dtype, device=device)
-            means, ess_all = [], []
+            means, ess_all, covs = [], [], []
             for t in range(steps):
                 obs = call_model(self.g, particles.reshape(bsz * n, d), self.autocast)
                 if t == 0:
@@ -202,6 +212,8 @@ class ParticleFilter:
                 log_w = log_w - torch.logsumexp(log_w, dim=-1, keepdim=True)
                 w = log_w.exp()
                 means.append(torch.einsum("bp,bpd->bd", w, particles))
+                if return_particles:
+                    covs.append(weighted_covariance(w, particles, means[-1]))
                 ess = 1.0 / (w * w).sum(-1)
                 ess_all.append(ess)
                 if t + 1 == steps:
@@ -220,7 +232,24 @@ class ParticleFilter:
             means_t = torch.stack(means, dim=1)
         if not return_particles:
             return means_t
-        return ParticleFilterResult(means_t, torch.stack(ess_all, dim=1), particles, log_w.exp())
+        return ParticleFilterResult(means_t, torch.stack(ess_all, dim=1), particles, log_w.exp(), torch.stack(covs, dim=1))
+
+    @torch.no_grad()
+    def propagate(self, particles: Tensor, weights: Tensor, steps: int,
+                  generator: Optional[torch.Generator] = None) -> Tensor:
+        """Covariances ``[B, steps, d, d]`` of the weighted cloud ``particles [B, P, d]``, ``weights [B, P]`` moved
+        ``steps`` times through ``f`` with the process noise and no measurement (the filter's prediction)."""
+        bsz, n, d = particles.shape
+        if generator is None and self.seed is not None:
+            generator = torch.Generator(device=particles.device).manual_seed(self.seed)
+        proc_std = self.process_std.to(dtype=particles.dtype, device=particles.device)
+        covs = []
+        for _ in range(steps):
+            noise = torch.randn(bsz, n, d, dtype=particles.dtype, device=particles.device, generator=generator)
+            particles = call_model(self.f, particles.reshape(bsz * n, d), self.autocast).reshape(bsz, n, d)
+            particles = particles + proc_std * noise
+            covs.append(weighted_covariance(weights, particles, torch.einsum("bp,bpd->bd", weights, particles)))
+        return torch.stack(covs, dim=1)
 
     def _check_obs(self, obs: Tensor, y: Tensor, rows: int) -> None:
         if not isinstance(obs, Tensor) or obs.ndim < 1 or obs.shape[0] != rows:

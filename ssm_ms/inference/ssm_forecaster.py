@@ -139,9 +139,21 @@ class SSMForecaster(ForecastModule):
         """Inferred states ``[B, k, d]`` from measurements ``[B, k, *obs_shape]``."""
         raise NotImplementedError
 
+    def infer_distribution(self, y_filter: torch.Tensor, n_predict: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Inferred states ``[B, k, d]`` and the covariances ``[B, k + p, d, d]`` of the inferred and the
+        ``p = n_predict`` predicted states, where the method has them (default: :meth:`infer`, ``None``)."""
+        return self.infer(y_filter), None
+
     # ------------------------------------------------------------------ the protocol's hooks
     def forecast(self, y_filter: torch.Tensor, n_predict: int) -> Forecast:
-        states = self.infer(y_filter)  # [B, k, d]
+        return self._forecast_from(self.infer(y_filter), n_predict)
+
+    def forecast_distribution(self, y_filter: torch.Tensor, n_predict: int) -> Forecast:
+        states, covs = self.infer_distribution(y_filter, n_predict)
+        return self._forecast_from(states, n_predict)._replace(state_covs=covs)
+
+    def _forecast_from(self, states: torch.Tensor, n_predict: int) -> Forecast:
+        """The prediction of ``y[k + j]`` is ``g(f^{j+1}(x[k-1]))`` from the inferred ``states [B, k, d]``."""
         pred_states = predict_states(self.ssm.f, states[:, -1], n_predict)  # [B, p, d]
         return Forecast(
             filtered=decode(self.ssm.g, states),
