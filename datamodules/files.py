@@ -143,10 +143,13 @@ class FileDataModule(TrajectoryDataModule):
 
     Args:
         train_path: a file or a list of files (concatenated along N) of training trajectories.
-        val_path: optional validation files. Lightning's validation loop keeps using the subset of
-            *training* trajectories (the model validates rollouts from their shooting nodes); the val
-            files are loaded, checked and normalised as ``datasets["val"]``, served by
-            :meth:`split_dataloader`.
+        val_path: optional validation files (checked and normalised with the training statistics).
+            Lightning's validation loop runs on them for every model that forecasts from measurements
+            (the baselines). A model whose validation needs the training trajectories' own states
+            (class attribute ``validates_on_training_trajectories``: the SSM, which rolls out from
+            its shooting nodes and has none for an unseen trajectory, and the encoder stage, whose
+            targets are those rollouts) keeps the evenly spaced subset of training trajectories.
+            :meth:`split_dataloader` serves the val files to any code.
         test_path: optional test files (trajectories may have another length T than training).
         key: array name inside ``.npz`` files.
         clean_key: optional name of the noiseless targets (``y_clean``) inside the same ``.npz`` files.
@@ -341,6 +344,15 @@ class FileDataModule(TrajectoryDataModule):
             self.setup(None)
         ds: Dataset = self.datasets[split]
         return self._loader(ds, self.eval_batch_size)
+
+    def val_dataloader(self) -> DataLoader | list:
+        """The val files, unless the model validates on training trajectories (see ``val_path``)."""
+        model = self.trainer.lightning_module if self.trainer is not None else None
+        if "val" not in self.splits or getattr(model, "validates_on_training_trajectories", False):
+            return super().val_dataloader()
+        if "val" not in self.datasets:
+            self.setup("validate")
+        return self._loader(self.datasets["val"], self.eval_batch_size)
 
     def test_dataloader(self) -> DataLoader:
         if "test" not in self.splits:

@@ -6,6 +6,7 @@ import importlib.util
 import re
 from pathlib import Path
 
+import lightning.pytorch as pl
 import numpy as np
 import pytest
 import torch
@@ -13,6 +14,7 @@ from scipy.integrate import solve_ivp
 
 import datamodules.files as files_mod
 from datamodules.files import FileDataModule
+from tests.conftest import fast_trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -144,6 +146,18 @@ def test_test_fraction_holds_out_last_trajectories(tmp_path):
         FileDataModule(train_path=save(tmp_path / "one.npy", y=y[:1]), test_fraction=0.5)
 
 
+class ValidationRecorder(pl.LightningModule):
+    """Records the trajectories Lightning's validation loop gives it."""
+
+    def __init__(self):
+        super().__init__()
+        self.y, self.index = [], []
+
+    def validation_step(self, batch, batch_idx):
+        self.y.append(batch["y"].numpy())
+        self.index.append(batch["index"].numpy())
+
+
 def test_val_and_test_files(tmp_path):
     tr = rng(0).normal(size=(6, 10, 2)).astype(np.float32)
     va = rng(1).normal(size=(2, 10, 2)).astype(np.float32)
@@ -162,10 +176,16 @@ def test_val_and_test_files(tmp_path):
     np.testing.assert_array_equal(all_items(dm.datasets["val"]), va)
     val_batch = next(iter(dm.split_dataloader("val")))
     np.testing.assert_array_equal(val_batch["y"].numpy(), va)
-    # Lightning's validation loop still runs on the evenly spaced subset of training trajectories.
-    vb = next(iter(dm.val_dataloader()))
-    assert vb["index"].tolist() == [0, 2, 5]  # np.linspace(0, 5, 3).round()
-    np.testing.assert_array_equal(vb["y"].numpy(), tr[[0, 2, 5]])
+    # Lightning's validation loop runs on the val files; a model that validates from the training
+    # trajectories' own states (the SSM's shooting nodes) gets the evenly spaced training subset.
+    seen = ValidationRecorder()
+    fast_trainer(tmp_path, max_epochs=1).validate(seen, dm)
+    np.testing.assert_array_equal(np.concatenate(seen.y), va)
+    ssm_like = ValidationRecorder()
+    ssm_like.validates_on_training_trajectories = True
+    fast_trainer(tmp_path, max_epochs=1).validate(ssm_like, dm)
+    assert np.concatenate(seen.index).tolist() == [0, 1] and np.concatenate(ssm_like.index).tolist() == [0, 2, 5]
+    np.testing.assert_array_equal(np.concatenate(ssm_like.y), tr[[0, 2, 5]])  # np.linspace(0, 5, 3).round()
     dm.setup("test")
     np.testing.assert_array_equal(all_items(dm.datasets["test"]), te)
     np.testing.assert_array_equal(all_items(dm.datasets["test"], "y_clean"), te_clean)
