@@ -427,6 +427,33 @@ class TrajectoryDataModule(pl.LightningDataModule):
         k = min(self.val_trajectories, n)
         return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64)) if k > 0 else np.zeros(0, np.int64)
 
+    def check_range(self, low: float, high: float, why: str) -> None:
+        """Refuse training measurements outside ``[low, high]`` (after normalisation), before training.
+
+        ``why`` says what needs the range (e.g. ``"loss: bce"``). Checked in chunks on the served values;
+        data sets that are not arrays are not checked.
+        """
+        train = self._train()
+        if not isinstance(train, TrajectoryDataset):
+            return
+        if train.normalizer is not None:
+            raise ValueError(
+                f"{why} needs measurements in [{low}, {high}], but data.normalize is on (zero mean, unit std): "
+                "set data.init_args.normalize to false, or use loss: mse"
+            )
+        y = train.arrays["y"]
+        if y.dtype == np.uint8:  # served as y / 255
+            return
+        lo, hi = np.inf, -np.inf
+        for start in range(0, len(y), 256):
+            block = np.asarray(y[start : start + 256])
+            lo, hi = min(lo, float(block.min())), max(hi, float(block.max()))
+        if lo < low or hi > high:
+            raise ValueError(
+                f"{why} needs measurements in [{low}, {high}], but the training data range from {lo:.4g} to "
+                f"{hi:.4g}: rescale the data to [{low}, {high}] (images: divide by their maximum), or use loss: mse"
+            )
+
     def node_measurements(self, n_nodes: int) -> torch.Tensor:
         """Training measurements at the shooting nodes' times: ``[N, n_nodes, *obs_shape]`` (normalised).
 

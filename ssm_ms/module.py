@@ -12,6 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ssm_ms import distributed
+from ssm_ms.checkpointing import read_checkpoint
 from ssm_ms.constraints import (
     AugmentedLagrangianOptions,
     augmented_lagrangian,
@@ -85,6 +86,9 @@ class MultipleShootingModule(pl.LightningModule):
             graph (:class:`ssm_ms.shooting.CompiledRollout`); penalty constraint only.
     """
 
+    # validation rolls out from the shooting nodes, which only training trajectories have
+    validates_on_training_trajectories = True
+
     def __init__(
         self,
         f: nn.Module,
@@ -110,7 +114,12 @@ class MultipleShootingModule(pl.LightningModule):
         self.save_hyperparameters(ignore=[] if _given_by_cli() else ["f", "g"])
         loss_function(loss)  # unknown loss name: fail now, not at the first step
         if state_dim < 1 or n_nodes < 1:
-            raise ValueError(f"state_dim and n_nodes must be >= 1, got {state_dim} and {n_nodes}")
+            raise ValueError(
+                f"state_dim and n_nodes must be >= 1, got {state_dim} and {n_nodes}: set model.init_args.state_dim "
+                "to the latent size and n_nodes to a divisor of the trajectory length"
+            )
+        if not lr > 0:
+            raise ValueError(f"the learning rate must be > 0, got {lr}: set model.init_args.lr (the paper: 1e-3)")
         if num_trajectories is not None and num_trajectories < 1:
             raise ValueError(f"num_trajectories must be >= 1, got {num_trajectories}")
         if node_init_map is not None:
@@ -202,6 +211,8 @@ class MultipleShootingModule(pl.LightningModule):
             self._make_nodes(int(n))
         if dm is not None and hasattr(dm, "seq_len"):
             self.check_data(dm.seq_len, dm.obs_shape, getattr(dm, "num_train_trajectories", None))
+            if stage == "fit" and self.hparams.loss == "bce" and hasattr(dm, "check_range"):
+                dm.check_range(0.0, 1.0, "loss: bce")  # else torch fails mid-training
             if stage == "fit" and self.hparams.get("node_init_map"):
                 self.init_nodes_from_measurements(dm.node_measurements(self.n_nodes))
 
@@ -392,13 +403,21 @@ class MultipleShootingModule(pl.LightningModule):
     def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> MultipleShootingModule:
         """Lightning's loader; for a model built in Python (f and g not in its config), the networks
         pickled in the checkpoint are used unless ``f=`` and ``g=`` are given (trust the file)."""
+        checkpoint = read_checkpoint(checkpoint_path)
         if "f" not in kwargs or "g" not in kwargs:
-            checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=True)
             if "networks" in checkpoint:
                 networks = torch.load(io.BytesIO(checkpoint["networks"]), map_location="cpu", weights_only=False)
                 kwargs.setdefault("f", networks["f"])
                 kwargs.setdefault("g", networks["g"])
-        return super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
+        model = super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
+        # Built by the CLI, f and g are in the saved config: keep it (Lightning rebuilds the module outside
+        # the CLI, where they would be dropped), so that a re-saved checkpoint still describes them.
+        saved = checkpoint.get("hyper_parameters", {})
+        if "f" not in kwargs and "g" not in kwargs and isinstance(saved.get("f"), Mapping) and "f" not in model.hparams:
+            for key in ("_class_path", "_instantiator", "f", "g"):
+                if key in saved:
+                    model.hparams[key] = saved[key]
+        return model
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse a checkpoint of another configuration with a message that says what differs."""

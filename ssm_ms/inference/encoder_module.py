@@ -36,6 +36,7 @@ class StateEncoderModule(SSMForecaster):
     """
 
     method_kind = "encoder"
+    validates_on_training_trajectories = True  # its targets are the SSM's rollouts from training nodes
 
     def __init__(
         self,
@@ -46,6 +47,8 @@ class StateEncoderModule(SSMForecaster):
         metrics: list[str] = ["mse", "bce"],
         **kwargs: Any,
     ):
+        if not lr > 0:
+            raise ValueError(f"the learning rate must be > 0, got {lr}: set model.init_args.lr (e.g. 1e-3)")
         super().__init__(ssm_checkpoint, n_filter, metrics=metrics, **kwargs)
         kwargs = dict(encoder or {"preset": "vector" if len(self.ssm.obs_shape()) == 1 else None})
         for reserved in ("state_dim", "obs_shape"):

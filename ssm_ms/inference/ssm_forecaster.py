@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ssm_ms.checkpointing import read_checkpoint
 from ssm_ms.evaluation import Forecast, ForecastModule
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.shooting import decode, rollout
@@ -38,7 +39,7 @@ def load_ssm(path: str | os.PathLike, map_location: str | torch.device = "cpu") 
             f"the SSM checkpoint {path} does not exist: train the model first (python cli.py fit --config "
             "configs/<experiment>.yaml) and set model.init_args.ssm_checkpoint to its checkpoints/last.ckpt"
         )
-    checkpoint = torch.load(path, map_location=map_location, weights_only=False)
+    checkpoint = read_checkpoint(path, "the SSM checkpoint")  # weights_only: a foreign file runs no code
     if "state_dict" not in checkpoint or "nodes.weight" not in checkpoint["state_dict"]:
         kind = checkpoint.get("forecaster") if isinstance(checkpoint, dict) else None
         what = f"a checkpoint of the {kind} baseline" if kind else \
