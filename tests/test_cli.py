@@ -8,8 +8,10 @@ import importlib.util
 import json
 from pathlib import Path
 
+import lightning.pytorch as pl
 import pytest
 import torch
+from lightning.pytorch.callbacks import Callback
 from omegaconf import OmegaConf
 
 from ssm_ms.baselines import BaselineForecaster
@@ -201,3 +203,165 @@ def test_stage_configs_use_their_ssm_data(folder):
     for stage in stages + baselines:
         ssm = (ROOT / folder / stage.stem.rsplit("_", 1)[0]).with_suffix(".yaml")
         assert data_section(stage) == data_section(ssm), f"{stage.name} and {ssm.name} differ in their data section"
+
+
+# ---------------------------------------------------------------------------- checkpoints, Ctrl-C, overrides
+ROTATION = """\
+seed_everything: 0
+trainer:
+  max_epochs: 4
+  accelerator: cpu
+  check_val_every_n_epoch: 10     # validates rarely: checkpoints must not wait for it
+  enable_progress_bar: false
+  enable_model_summary: false
+  num_sanity_val_steps: 0
+  deterministic: true
+  logger:
+    class_path: lightning.pytorch.loggers.TensorBoardLogger
+    init_args: {{save_dir: {root}/runs, name: rot}}
+  callbacks:
+    - class_path: ssm_ms.schedule.ShootingSchedule
+      init_args: {{alpha: 50.0, alpha_epoch: 2, lr_milestones: [2], lr_factor: 0.1}}
+    - class_path: ssm_ms.checkpointing.EpochCheckpoint
+model:
+  class_path: ssm_ms.module.MultipleShootingModule
+  init_args:
+    state_dim: 2
+    n_nodes: 3
+    lr: 0.01
+    f:
+      class_path: ssm_ms.nets.LocallyLinearTransition
+      init_args: {{state_dim: "${{model.init_args.state_dim}}", n_matrices: 4, hidden: 16}}
+    g:
+      class_path: ssm_ms.nets.Projection
+      init_args: {{indices: [0]}}
+data:
+  class_path: tests.conftest.RotationDataModule
+  init_args: {{data_dir: {root}/data, batch_size: 3, val_trajectories: 2}}
+"""
+
+
+class StopAt(Callback):
+    """Ctrl-C (KeyboardInterrupt, as SIGINT raises it) or a diverging f (NaN parameters) in the middle of an epoch."""
+
+    def __init__(self, epoch: int, how: str = "interrupt"):
+        self.epoch, self.how = epoch, how
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if trainer.current_epoch == self.epoch and batch_idx == 1:
+            if self.how == "interrupt":
+                raise KeyboardInterrupt
+            with torch.no_grad():
+                for p in pl_module.f.parameters():
+                    p.fill_(float("nan"))
+
+
+class Saves(Callback):
+    """The epoch of last.ckpt as it is on disk at the start of every epoch."""
+
+    def __init__(self):
+        self.seen = {}
+
+    def on_train_epoch_start(self, trainer, pl_module):
+        path = Path(trainer.log_dir) / "checkpoints" / "last.ckpt"
+        self.seen[trainer.current_epoch] = torch.load(path, weights_only=True)["epoch"] if path.is_file() else None
+
+
+@pytest.fixture
+def rotation(tmp_path):
+    (tmp_path / "rot.yaml").write_text(ROTATION.format(root=tmp_path))
+    return tmp_path, ["fit", "--config", str(tmp_path / "rot.yaml")]
+
+
+def last_ckpt(root: Path, version: str) -> Path:
+    return root / "runs" / "rot" / version / "checkpoints" / "last.ckpt"
+
+
+def test_checkpoint_every_epoch_with_rare_validation(rotation):
+    root, fit = rotation
+    cli = main([*fit, "--trainer.logger.init_args.version", "a", "--trainer.callbacks+=tests.test_cli.Saves"])
+    saves = next(c for c in cli.trainer.callbacks if isinstance(c, Saves))
+    assert saves.seen == {0: None, 1: 0, 2: 1, 3: 2}  # last.ckpt holds the previous epoch at every epoch start
+    assert torch.load(last_ckpt(root, "a"), weights_only=True)["epoch"] == 3
+
+
+def test_every_shipped_training_config_checkpoints_every_epoch():
+    configs = sorted((ROOT / "configs").rglob("*.yaml"))
+    trained = [c for c in configs if "max_epochs" in OmegaConf.load(c).get("trainer", {})]
+    assert len(trained) > 40
+    for config in trained:
+        callbacks = [c["class_path"] for c in OmegaConf.load(config).trainer.get("callbacks", [])]
+        assert "ssm_ms.checkpointing.EpochCheckpoint" in callbacks, config
+        assert "lightning.pytorch.callbacks.ModelCheckpoint" not in callbacks, config
+
+
+def test_nan_stop_names_the_last_good_epoch(rotation, capsys):
+    root, fit = rotation
+    with pytest.raises(SystemExit) as stop:
+        main([*fit, "--trainer.logger.init_args.version", "n", "--trainer.callbacks+=tests.test_cli.StopAt",
+              "--trainer.callbacks.epoch=2", "--trainer.callbacks.how=nan"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 1 and "Traceback" not in err
+    assert "not finite at epoch 2" in err and f"the last good checkpoint is {last_ckpt(root, 'n')}" in err
+    saved = torch.load(last_ckpt(root, "n"), weights_only=True)
+    assert saved["epoch"] == 1 and all(torch.isfinite(v).all() for v in saved["state_dict"].values())
+
+
+def test_ctrl_c_then_resume_equals_an_uninterrupted_run(rotation, capsys):
+    root, fit = rotation
+    main([*fit, "--trainer.logger.init_args.version", "full"])
+    interrupted = [*fit, "--trainer.logger.init_args.version", "cut", "--trainer.callbacks+=tests.test_cli.StopAt",
+                   "--trainer.callbacks.epoch=2"]
+    with pytest.raises(SystemExit) as stop:
+        main(interrupted)
+    err = capsys.readouterr().err
+    assert stop.value.code == 130 and "Traceback" not in err
+    ckpt = last_ckpt(root, "cut")
+    assert torch.load(ckpt, weights_only=True)["epoch"] == 1  # the last completed epoch, not the half one
+    command = err.split("Resume with:")[1].strip()
+    assert command == "python cli.py " + " ".join(interrupted) + f" --ckpt_path {ckpt}"
+    main([*fit, "--trainer.logger.init_args.version", "cut", "--ckpt_path", str(ckpt)])  # the command, less the Ctrl-C
+    full = torch.load(last_ckpt(root, "full"), weights_only=True)
+    resumed = torch.load(ckpt, weights_only=True)
+    assert resumed["epoch"] == full["epoch"] == 3 and resumed["global_step"] == full["global_step"]
+    for key, value in full["state_dict"].items():
+        torch.testing.assert_close(resumed["state_dict"][key], value, rtol=0, atol=0)
+
+
+def test_state_dim_override_reaches_f_and_print_config(rotation, capsys):
+    root, fit = rotation
+    with pytest.raises(SystemExit):
+        main([*fit, "--model.init_args.state_dim", "5", "--print_config"])
+    printed = OmegaConf.create(capsys.readouterr().out).model.init_args
+    assert printed.state_dim == 5 and printed.f.init_args.state_dim == 5
+    cli = main([*fit, "--model.init_args.state_dim", "5", "--trainer.max_epochs", "1",
+                "--trainer.logger.init_args.version", "d5"])
+    assert cli.model.f.matrices.shape[-1] == 5 and cli.model.nodes.weight.shape[1] == 3 * 5
+    # the shipped configs interpolate every f/g state size from model.init_args.state_dim
+    for config in sorted((ROOT / "configs").rglob("*.yaml")):
+        text = config.read_text()
+        for network in ("f", "g"):
+            args = OmegaConf.load(config).model.init_args.get(network, {}).get("init_args", {}) or {}
+            for key in ("state_dim", "in_features"):
+                if key in args:
+                    assert OmegaConf.to_container(args, resolve=False)[key] == "${model.init_args.state_dim}", (config, text)
+
+
+def test_cli_model_reloads_in_python_with_its_config(rotation):
+    root, fit = rotation
+    cli = main([*fit, "--trainer.max_epochs", "1", "--trainer.logger.init_args.version", "r"])
+    model = MultipleShootingModule.load_from_checkpoint(last_ckpt(root, "r"))
+    assert model.hparams["f"] == {"class_path": "ssm_ms.nets.LocallyLinearTransition",
+                                  "init_args": {"state_dim": 2, "n_matrices": 4, "hidden": 16}}
+    assert model.hparams["g"]["class_path"] == "ssm_ms.nets.Projection"
+    x0 = torch.randn(5, 2)
+    trained = cli.model.cpu().eval()
+    with torch.no_grad():
+        for a, b in zip(model(x0, 7), trained(x0, 7)):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # saved again, it still describes f and g by their config (no pickled networks)
+    trainer = pl.Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False)
+    trainer.strategy.connect(model)
+    trainer.save_checkpoint(root / "again.ckpt")
+    again = torch.load(root / "again.ckpt", weights_only=True)
+    assert "networks" not in again and again["hyper_parameters"]["f"] == model.hparams["f"]
