@@ -71,8 +71,12 @@ FRESH = textwrap.dedent("""
         if name not in loaded:
             path = f"{folder}/{name}"
             loaded[name] = torch.export.load(path).module() if name.endswith(".pt2") else torch.jit.load(path)
-        with torch.no_grad():
-            out[case] = loaded[name](x)
+        fn = loaded[name]
+        if case.endswith(":jacobian"):  # the exported program is differentiable: A = df/dx without ssm_ms
+            out[case] = torch.func.vmap(torch.func.jacrev(lambda v: fn(v[None])[0]))(x).detach()
+        else:
+            with torch.no_grad():
+                out[case] = fn(x)
     torch.save(out, sys.argv[3])
 """)
 
@@ -130,10 +134,12 @@ def test_export_from_a_checkpoint_on_the_command_line(tmp_path, capsys):
     assert info["normalization"]["mean"] == pytest.approx([y.mean().item()], rel=1e-5)
     assert info["normalization"]["std"] == pytest.approx([y.std(unbiased=False).item()], rel=1e-4)
     x = torch.randn(3, 2)
-    got = run_fresh(tmp_path / "exported", {"f": ("f.pt2", x), "g": ("g.pt2", x)}, tmp_path)
+    got = run_fresh(tmp_path / "exported", {"f": ("f.pt2", x), "g": ("g.pt2", x), "f:jacobian": ("f.pt2", x)},
+                    tmp_path)
     with torch.no_grad():
         torch.testing.assert_close(got["f"], model.f(x))
         torch.testing.assert_close(got["g"], model.g(x))
+    torch.testing.assert_close(got["f:jacobian"], control.linearize(model.f, model.g, x)[0])
 
 
 def test_export_refuses_bad_inputs(tmp_path, capsys):
