@@ -1,17 +1,23 @@
-"""Seconds per optimizer step of the paper's simple-pendulum configurations (batch 40, m = 4, n = 25).
+"""Seconds per optimizer step: ssm-ms beside the reference implementation's structure, in one run.
 
-    python benchmarks/bench_train_step.py [--steps 20] [--repeats 3] [--threads 2]
+    python benchmarks/bench_train_step.py [--rounds 6] [--steps 3] [--threads 2] [--models SSM-LL SSM-FC]
+    python benchmarks/bench_train_step.py --tiny --out /tmp/x.md      # seconds, for `make test`
 
-Each variant runs in its own process (the allocator setting is process-wide), ``--repeats`` times;
-the figure is the median over all timed steps of all repeats. Variants:
+The paper's simple-pendulum step: batch 40, m = 4 shooting nodes, n = 25 steps per sub-trajectory,
+state 10, 24x24 images, SSM-LL with K = 32 and 1024 hidden (or SSM-FC, 3 x 512), Adam, alpha 1000.
+Each implementation runs in its own worker process (the allocator setting is process-wide: the
+reference's process uses glibc's defaults, ours calls ``ssm_ms.perf.configure_allocator`` as
+``cli.py`` does). The workers wait on a pipe; the parent asks each in turn for ``--steps`` timed steps,
+``--rounds`` times, so that a shared machine's load falls on all of them alike. Reported: median seconds
+per step of each, and the median over rounds of the same-round ratio ``reference / ours``.
 
-* ``ours``: ``multiple_shooting_loss`` (all sub-trajectories rolled out at once, one call of g),
-  with ``ssm_ms.perf.configure_allocator`` as ``cli.py`` does;
-* ``ours, decoder in NCHW layout``: ``ConvDecoder(channels_last=False)``;
-* ``ours, default allocator``: the same code without it;
-* ``ours, decode_chunk=N``: decoding in chunks of N states;
-* ``per-step decoding``: the reference implementation's structure (g called once per time step on
-  the B*m states, loss accumulated per step), same networks, with the allocator setting.
+Implementations:
+
+* ``reference``: :mod:`benchmarks.reference_structure` (its networks, its per-step ``loss_function``,
+  a dense node tensor, default allocator);
+* ``ours``: ``MultipleShootingModule.shooting_loss`` + its Adam, float32;
+* ``ours-bf16``: the same under ``torch.autocast(cpu, bfloat16)``, what ``trainer.precision: bf16-mixed``
+  does (only where the CPU has native bfloat16 instructions; else it is reported as skipped).
 
 Results go to benchmarks/results/train_step.md with the machine, command and date.
 """
@@ -21,8 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import resource
+import shlex
 import statistics
 import subprocess
 import sys
@@ -31,123 +36,194 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
 
-from ssm_ms.machine import cpu_model  # noqa: E402
+FULL = {"batch": 40, "m": 4, "n": 25, "d": 10, "k": 32, "hidden": 1024, "fc": 512, "n_train": 1000}
+TINY = {"batch": 2, "m": 2, "n": 3, "d": 4, "k": 4, "hidden": 16, "fc": 16, "n_train": 4}
+LABELS = {
+    "reference": "reference structure (NCHW decoder, g per time step, default allocator)",
+    "ours": "ssm-ms, float32",
+    "ours-bf16": "ssm-ms, bf16-mixed (autocast bfloat16)",
+}
 
 
-def worker(model: str, variant: str, steps: int, threads: int) -> dict:
-    if variant != "default-allocator":
+def build(impl: str, model: str, size: dict):
+    """A ``step()`` closure of one implementation on a fixed random batch."""
+    import torch
+
+    torch.manual_seed(0)
+    b, m, n, d = size["batch"], size["m"], size["n"], size["d"]
+    gen = torch.Generator().manual_seed(1)
+    y = torch.rand(b, m * n, 1, 24, 24, generator=gen)
+    index = torch.arange(b)
+    if impl == "reference":
+        from benchmarks.reference_structure import RefDecoder, RefFullyConnected, RefLocallyLinear, RefTrainer
+
+        f = RefLocallyLinear(d, size["k"], size["hidden"]) if model == "SSM-LL" else RefFullyConnected(d, size["fc"])
+        trainer = RefTrainer(f, RefDecoder(d), size["n_train"], m, d)
+        y_flat, idx = y.view(b, m * n, -1), index.numpy()
+        return lambda: trainer.step(idx, y_flat)
+
+    from ssm_ms.module import MultipleShootingModule
+    from ssm_ms.nets import ConvDecoder, FullyConnectedTransition, LocallyLinearTransition
+
+    f = LocallyLinearTransition(d, size["k"], size["hidden"]) if model == "SSM-LL" else \
+        FullyConnectedTransition(d, (size["fc"],) * 3)
+    module = MultipleShootingModule(f, ConvDecoder(d, "pendulum"), d, num_trajectories=size["n_train"], n_nodes=m)
+    with torch.no_grad():
+        module.nodes.weight.normal_(0.0, 0.1)
+    opt = module.configure_optimizers()
+    batch = {"index": index, "y": y}
+    bf16 = impl == "ours-bf16"
+
+    def step() -> float:
+        opt.zero_grad()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            fit, gap = module.shooting_loss(batch)
+            loss = fit + 1000.0 * gap
+        loss.backward()
+        opt.step()
+        return float(loss.detach())
+
+    return step
+
+
+def worker(impl: str, model: str, tiny: bool, threads: int) -> None:
+    """Build, warm up, then answer ``run K`` lines with the seconds of K steps (JSON), until EOF."""
+    if impl != "reference":
         from ssm_ms.perf import configure_allocator
 
         configure_allocator()
     import torch
-    import torch.nn.functional as F
-
-    from ssm_ms.nets import ConvDecoder, FullyConnectedTransition, LocallyLinearTransition
-    from ssm_ms.shooting import multiple_shooting_loss
 
     torch.set_num_threads(threads)
-    torch.manual_seed(0)
-    d, b, m, n = 10, 40, 4, 25
-    f = LocallyLinearTransition(d) if model == "SSM-LL" else FullyConnectedTransition(d)
-    g = ConvDecoder(d, "pendulum", channels_last=variant != "nchw")
-    nodes = torch.nn.Parameter(0.1 * torch.randn(b, m, d))
-    y = torch.rand(b, m * n, 1, 24, 24)
-    opt = torch.optim.Adam([*f.parameters(), *g.parameters(), nodes], lr=1e-3)
-    chunk = int(variant.split("=")[1]) if variant.startswith("chunk=") else None
-
-    def per_step_loss():
-        x = nodes.reshape(b * m, d)
-        yw = y.view(b, m, n, 1, 24, 24).reshape(b * m, n, 1, 24, 24)
-        fit = 0.0
-        for k in range(n):
-            fit = fit + F.mse_loss(g(x), yw[:, k])
-            x = f(x)
-        gap = (nodes[:, 1:] - x.view(b, m, d)[:, :-1]).pow(2).mean()
-        return fit / n, gap
-
-    def step():
-        opt.zero_grad()
-        if variant == "per-step":
-            fit, gap = per_step_loss()
-        else:
-            fit, gap = multiple_shooting_loss(f, g, nodes, y, decode_chunk=chunk)
-        (fit + 1000.0 * gap).backward()
-        opt.step()
-
-    for _ in range(5):
+    step = build(impl, model, TINY if tiny else FULL)
+    for _ in range(1 if tiny else 3):
         step()
-    faults0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-    times = []
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        step()
-        times.append(time.perf_counter() - t0)
-    faults = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults0) / steps
-    return {"times": times, "faults_per_step": faults}
+    print(json.dumps({"ready": True}), flush=True)
+    for line in sys.stdin:
+        k = int(line.split()[1])
+        times, losses = [], []
+        for _ in range(k):
+            t0 = time.perf_counter()
+            losses.append(step())
+            times.append(time.perf_counter() - t0)
+        print(json.dumps({"times": times, "loss": losses[-1]}), flush=True)
 
 
-VARIANTS = [
-    ("ours", "ours"),
-    ("nchw", "ours, decoder in NCHW layout"),
-    ("default-allocator", "ours, default allocator"),
-    ("chunk=1000", "ours, decode_chunk=1000"),
-    ("per-step", "per-step decoding (reference structure)"),
-]
+class Worker:
+    def __init__(self, impl: str, model: str, tiny: bool, threads: int):
+        self.impl = impl
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", impl, model, "--threads", str(threads)]
+        self.proc = subprocess.Popen(
+            cmd + (["--tiny"] if tiny else []), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT,
+        )
+        self._read()
+
+    def _read(self) -> dict:
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"benchmark worker {self.impl!r} died (exit code {self.proc.wait()})")
+        return json.loads(line)
+
+    def run(self, k: int) -> list[float]:
+        self.proc.stdin.write(f"run {k}\n")
+        self.proc.stdin.flush()
+        return self._read()["times"]
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait()
 
 
-def main() -> None:
+def bf16_native() -> bool:
+    from ssm_ms.perf import bf16_support
+
+    return bf16_support("cpu")[0]
+
+
+def measure(model: str, impls: list[str], rounds: int, steps: int, threads: int, tiny: bool) -> dict:
+    workers = [Worker(impl, model, tiny, threads) for impl in impls]
+    times: dict[str, list[float]] = {impl: [] for impl in impls}
+    per_round: dict[str, list[float]] = {impl: [] for impl in impls}
+    try:
+        for r in range(rounds):
+            order = workers if r % 2 == 0 else workers[::-1]  # alternate who goes first
+            for w in order:
+                ts = w.run(steps)
+                times[w.impl] += ts
+                per_round[w.impl].append(statistics.median(ts))
+            print(f"{model} round {r + 1}: " + "  ".join(f"{k} {v[-1]:.3f}" for k, v in per_round.items()), flush=True)
+    finally:
+        for w in workers:
+            w.close()
+    return {"times": times, "per_round": per_round}
+
+
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--steps", type=int, default=20)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--rounds", type=int, default=6)
+    parser.add_argument("--steps", type=int, default=3, help="timed steps per implementation per round")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--models", nargs="+", default=["SSM-LL", "SSM-FC"])
+    parser.add_argument("--models", nargs="+", default=["SSM-LL", "SSM-FC"], choices=["SSM-LL", "SSM-FC"])
+    parser.add_argument("--no-bf16", action="store_true", help="leave out the bf16-mixed variant")
+    parser.add_argument("--tiny", action="store_true", help="tiny sizes, to check that the script runs")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "train_step.md"))
-    parser.add_argument("--worker", nargs=2, metavar=("MODEL", "VARIANT"), help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    parser.add_argument("--worker", nargs=2, metavar=("IMPL", "MODEL"), help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
     if args.worker:
-        print(json.dumps(worker(args.worker[0], args.worker[1], args.steps, args.threads)))
+        worker(args.worker[0], args.worker[1], args.tiny, args.threads)
         return
-    import torch
+    from ssm_ms.machine import describe
 
-    rows = []
-    for model in args.models:
-        for key, label in VARIANTS:
-            times, faults = [], []
-            for _ in range(args.repeats):
-                out = subprocess.run(
-                    [sys.executable, __file__, "--worker", model, key, "--steps", str(args.steps),
-                     "--threads", str(args.threads)],
-                    check=True, capture_output=True, text=True, cwd=ROOT,
-                )
-                res = json.loads(out.stdout.strip().splitlines()[-1])
-                times += res["times"]
-                faults.append(res["faults_per_step"])
-            med = statistics.median(times)
-            rows.append((model, label, med, min(times), max(times), statistics.median(faults)))
-            print(f"{model:7s} {label:42s} median {med:.3f} s  min {min(times):.3f}  max {max(times):.3f}  "
-                  f"faults/step {statistics.median(faults):,.0f}", flush=True)
-    load = os.getloadavg()
+    impls = ["reference", "ours"]
+    bf16_note = ""
+    if not args.no_bf16:
+        if bf16_native():
+            impls.append("ours-bf16")
+        else:
+            bf16_note = "bf16-mixed not measured: this CPU has no native bfloat16 instructions"
+    start = datetime.now(timezone.utc)
+    load0 = os.getloadavg()
+    results = {model: measure(model, impls, args.rounds, args.steps, args.threads, args.tiny) for model in args.models}
+    load1 = os.getloadavg()
+    size = TINY if args.tiny else FULL
+    cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *(argv or sys.argv[1:])])
     lines = [
-        "# Training step: paper simple-pendulum configuration (batch 40, m = 4, n = 25, 24x24 frames)",
+        "# Training step: ssm-ms beside the reference implementation's structure, one run, interleaved",
         "",
-        f"- machine: {os.cpu_count()} cores, {cpu_model()}, Python {platform.python_version()}, torch {torch.__version__}, {args.threads} threads",
-        f"- command: `python benchmarks/bench_train_step.py {' '.join(sys.argv[1:])}`".replace("  ", " "),
-        f"- date: {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
-        f"- load average at the end (1, 5, 15 min): {load[0]:.2f}, {load[1]:.2f}, {load[2]:.2f}",
-        f"- {args.repeats} processes x {args.steps} timed steps per variant (after 5 warm-up steps); "
-        "seconds per optimizer step (forward, backward, Adam)",
-        "- paper's reference code on this machine (2 threads), as quoted in the issue: SSM-LL 0.64 s, SSM-FC 0.78 s",
-        "",
-        "| model | variant | median s | min s | max s | minor page faults / step | median vs ours |",
-        "|---|---|---|---|---|---|---|",
+        f"- machine: {describe()}, Python {sys.version.split()[0]}, "
+        f"{args.threads} torch threads per worker",
+        f"- command: `{cmd}`",
+        f"- date: {start.isoformat(timespec='seconds')}",
+        f"- load average (1/5/15 min) before: {'/'.join(f'{v:.2f}' for v in load0)}, after: "
+        f"{'/'.join(f'{v:.2f}' for v in load1)}. The machine was shared with other jobs: absolute figures "
+        "are slower than on a quiet machine; the same-round ratios are the comparison.",
+        f"- set-up: {'TINY sizes (smoke test) ' if args.tiny else ''}batch {size['batch']}, m {size['m']}, "
+        f"n {size['n']}, state {size['d']}, SSM-LL K {size['k']} hidden {size['hidden']}, SSM-FC 3 x {size['fc']}, "
+        "24x24 images, Adam, loss fit + 1000 gap",
+        f"- {args.rounds} rounds; in each, every implementation (its own process, waiting while the others run) "
+        f"makes {args.steps} timed steps after 3 warm-up steps; seconds per optimizer step (forward, backward, Adam)",
+        "- ratio = reference / this implementation, per round (medians of that round), median over rounds",
     ]
-    ours = {m: med for m, label, med, *_ in rows if label == "ours"}
-    for model, label, med, lo, hi, faults in rows:
-        lines.append(f"| {model} | {label} | {med:.3f} | {lo:.3f} | {hi:.3f} | {faults:,.0f} | {med / ours[model]:.2f} |")
+    if bf16_note:
+        lines.append(f"- {bf16_note}")
+    lines += ["", "| model | implementation | median s / step | min s | ratio reference / this (per-round median) | "
+              "per-round ratios |", "|---|---|---:|---:|---:|---|"]
+    for model, res in results.items():
+        ref = res["per_round"]["reference"]
+        for impl in impls:
+            ts = res["times"][impl]
+            ratios = [a / b for a, b in zip(ref, res["per_round"][impl])]
+            lines.append(
+                f"| {model} | {LABELS[impl]} | {statistics.median(ts):.3f} | {min(ts):.3f} | "
+                f"{statistics.median(ratios):.2f} | {', '.join(f'{r:.2f}' for r in ratios)} |"
+            )
+    text = "\n".join(lines) + "\n"
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines) + "\n")
+    Path(args.out).write_text(text)
+    print(text)
     print(f"wrote {args.out}")
 
 

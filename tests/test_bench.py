@@ -1,0 +1,77 @@
+"""The benchmark scripts run (tiny sizes), and the reference structure they time is the same model as ours."""
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks import bench_train_step, bench_ukf
+from benchmarks.reference_structure import RefDecoder, RefLocallyLinear, RefTrainer, ref_ukf
+from ssm_ms.inference.ukf import UnscentedKalmanFilter
+from ssm_ms.nets import ConvDecoder, LocallyLinearTransition
+from ssm_ms.shooting import multiple_shooting_loss
+
+
+def reference_copy_of(f: LocallyLinearTransition, g: ConvDecoder) -> tuple[RefLocallyLinear, RefDecoder]:
+    """The reference networks holding our networks' weights (its Linear(K d -> d) is our A_k rearranged)."""
+    d, k = f.state_dim, f.n_matrices
+    rf = RefLocallyLinear(d, k, f.beta[0].out_features).double()
+    rg = RefDecoder(d).double()
+    with torch.no_grad():
+        rf.alpha.load_state_dict(f.beta.state_dict())
+        a = f.matrices.view(k, d, d)  # A_k[j, i]
+        rf.matrix.weight.copy_(a.permute(1, 2, 0).reshape(d, d * k))  # column i*K + k holds A_k[:, i]
+        rg.fc_obs.load_state_dict(g.stem[0].state_dict())
+        own = {k: v for k, v in g.deconv.state_dict().items()}
+        rg.conv_layers.load_state_dict(own)
+    return rf, rg
+
+
+def test_reference_structure_computes_our_loss():
+    torch.manual_seed(0)
+    f = LocallyLinearTransition(3, n_matrices=4, hidden=16).double()
+    g = ConvDecoder(3, "pendulum").double()
+    with torch.no_grad():
+        for p in g.parameters():
+            p.add_(0.05 * torch.randn_like(p))  # non-trivial LayerNorm affine parameters
+    rf, rg = reference_copy_of(f, g)
+    b, m, n, d = 2, 3, 4, 3
+    index = np.array([1, 3])
+    trainer = RefTrainer(rf, rg, n_train=5, m=m, d=d)
+    trainer.nodes = trainer.nodes.double()
+    y = torch.rand(b, m * n, 1, 24, 24, dtype=torch.float64)
+    ref_fit, ref_gap = trainer.loss_function(index, y.view(b, m * n, -1))
+    fit, gap = multiple_shooting_loss(f, g, trainer.nodes[index], y)
+    torch.testing.assert_close(ref_fit, fit)
+    torch.testing.assert_close(ref_gap, gap)
+
+
+def test_reference_ukf_agrees_with_ours_on_a_linear_system():
+    """With a linear f and no process noise both filters are exact Kalman filters, whatever their sigma
+    points: same means. (With process noise they differ by design: the reference adds Q to P_xx only,
+    not to the covariances of the predicted measurement.)"""
+    torch.manual_seed(0)
+    a = torch.tensor([[0.9, 0.2, 0.0], [-0.2, 0.9, 0.1], [0.0, -0.1, 0.95]], dtype=torch.float64)
+    f = lambda x: x @ a.T  # noqa: E731
+    g = lambda x: x[:, :1]  # noqa: E731
+    y = torch.randn(4, 15, 1, dtype=torch.float64)
+    ref = ref_ukf(f, g, y, 0.1, 0.5, 0.0)  # predicts through f first, then updates with y[:, t]
+    x0 = torch.zeros(4, 3, dtype=torch.float64)
+    x0[:, 0] = y[:, 0, 0]
+    # ours updates first: give it the reference's prior for time 0, f of (x0, 0.1 I)
+    ours = UnscentedKalmanFilter(f, g, 0.0, 0.5, 0.1, state_dim=3).filter(y, f(x0), 0.1 * a @ a.T)
+    torch.testing.assert_close(ours.means, ref)
+
+
+@pytest.mark.parametrize("script", ["train_step", "ukf"])
+def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
+    out = tmp_path / f"{script}.md"
+    if script == "train_step":
+        bench_train_step.main(["--tiny", "--rounds", "1", "--steps", "1", "--threads", "1", "--models", "SSM-LL",
+                               "--out", str(out)])
+        rows = [line for line in out.read_text().splitlines() if line.startswith("| SSM-LL")]
+        assert len(rows) >= 2 and "reference structure" in rows[0] and "ssm-ms, float32" in rows[1]
+    else:
+        bench_ukf.main(["--tiny", "--threads", "1", "--out", str(out)])
+        text = out.read_text()
+        assert "| reference UKF structure" in text and "| **UKF, float32 (default)** |" in text
+    assert "TINY sizes" in out.read_text()
