@@ -215,6 +215,8 @@ class MultipleShootingModule(pl.LightningModule):
                 dm.check_range(0.0, 1.0, "loss: bce")  # else torch fails mid-training
             if stage == "fit" and self.hparams.get("node_init_map"):
                 self.init_nodes_from_measurements(dm.node_measurements(self.n_nodes))
+        if stage == "fit" and distributed.world_size() > 1:  # before DDP compares the ranks' models
+            self._check_replicated_tables()
 
     def check_data(self, seq_len: int, obs_shape: tuple[int, ...], num_train: int | None = None) -> None:
         """Fail before training when the data and the model disagree (shapes, T, trajectory count)."""
@@ -336,24 +338,16 @@ class MultipleShootingModule(pl.LightningModule):
     def on_fit_start(self) -> None:
         if self.hparams.node_optimizer == "sparse":
             for optimizer in self.trainer.optimizers:
-                node_group(optimizer, self.nodes.weight)  # a clear error for an optimizer that cannot
-        if distributed.world_size() > 1:
-            self._check_replicated_tables()
+                node_group(optimizer, self.nodes.weight)  # a clear error for an optimizer replaced by the config
 
     def _check_replicated_tables(self) -> None:
         """Under DDP every rank must hold the same node table, sized for the same data set."""
-        n_data = getattr(getattr(self.trainer, "datamodule", None), "num_train_trajectories", None)
         signatures = distributed.table_signature(self.nodes.weight)
-        rows = [int(s[0]) for s in signatures]
-        if n_data is not None and any(r != n_data for r in rows):
-            raise ValueError(
-                f"DDP: the node tables of the ranks have {rows} rows but the training set has {n_data} trajectories: "
-                f"set model.num_trajectories to {n_data} (or leave it unset) on every rank"
-            )
         if any(not torch.equal(s, signatures[0]) for s in signatures):
             raise ValueError(
-                "DDP: the ranks hold different node tables (or data sets): every rank must build the same "
-                "training set (same data config and seed) and start from the same checkpoint"
+                f"DDP: the ranks hold different node tables (rows per rank: {[int(s[0]) for s in signatures]}), "
+                "so their training sets differ: every rank must build the same training set (same data config, "
+                "files and seed) with the same model.num_trajectories, and resume from the same checkpoint"
             )
 
     def on_train_epoch_start(self) -> None:
