@@ -88,3 +88,33 @@ def test_encoder_presets(preset, shape, features):
     y2 = y.clone()
     y2[:, 3:] = torch.rand_like(y2[:, 3:])
     torch.testing.assert_close(enc(y2)[:, :3], out[:, :3])
+
+
+@pytest.mark.parametrize("c_in, c_out, kernel, stride, size", [(16, 12, 3, 2, (11, 11)), (32, 16, 5, 3, (3, 3)),
+                                                              (3, 5, 4, 2, (4, 6)), (2, 3, 2, 3, (5, 2)),
+                                                              (4, 2, 3, 1, (5, 5))])
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_fast_conv_transpose_equals_torch_with_gradients_and_jvp(c_in, c_out, kernel, stride, size, channels_last):
+    from torch.func import jvp
+
+    from ssm_ms.nets.observation import conv_transpose2d
+
+    torch.manual_seed(0)
+    w = torch.randn(c_in, c_out, kernel, kernel, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(c_out, dtype=torch.float64, requires_grad=True)
+    x = torch.randn(3, c_in, *size, dtype=torch.float64)
+    if channels_last:
+        x = x.contiguous(memory_format=torch.channels_last)
+    x.requires_grad_()
+    got = conv_transpose2d(x, w, b, stride)
+    want = torch.nn.functional.conv_transpose2d(x, w, b, stride)
+    torch.testing.assert_close(got, want)
+    weight = torch.randn_like(want)
+    for u, v in zip(torch.autograd.grad((got * weight).sum(), [x, w, b]),
+                    torch.autograd.grad((want * weight).sum(), [x, w, b])):
+        torch.testing.assert_close(u, v)
+    tangents = (torch.randn_like(x), torch.randn_like(w), torch.randn_like(b))
+    _, t_got = jvp(lambda *a: conv_transpose2d(*a, stride), (x.detach(), w.detach(), b.detach()), tangents)
+    _, t_want = jvp(lambda *a: torch.nn.functional.conv_transpose2d(*a, stride=stride),
+                    (x.detach(), w.detach(), b.detach()), tangents)
+    torch.testing.assert_close(t_got, t_want)
