@@ -2,7 +2,10 @@
 
 LightningCLI in subclass mode with the omegaconf parser: a config names the model and the data by
 ``class_path`` and may interpolate (``${model.init_args.state_dim}``). ``python cli.py fit --help``
-lists every option; ``--print_config`` shows the resolved configuration.
+lists every option; ``--print_config`` shows the resolved configuration (interpolations resolved after
+the command line). A user's mistake prints one ``error: ...`` line and exits non-zero without a
+traceback; ``SSM_MS_TRACEBACK=1`` shows the full traceback. Ctrl-C prints the command that resumes the
+run from its last completed epoch. See ``ssm_ms/cli.py``.
 """
 
 from ssm_ms.cli import main

@@ -108,10 +108,11 @@ class SSMCLI(LightningCLI):
             raise
 
     def _resume_message(self) -> str:
-        last = next((c.last_model_path for c in self.trainer.callbacks if isinstance(c, EpochCheckpoint)), "")
+        savers = sorted(self.trainer.checkpoint_callbacks, key=lambda c: not isinstance(c, EpochCheckpoint))
+        last = next((c.last_model_path for c in savers if getattr(c, "last_model_path", "")), "")
         epoch = self.trainer.current_epoch
         if not last or not Path(last).is_file():
-            return f"interrupted during epoch {epoch} before any epoch was completed: nothing to resume, start again"
+            return f"interrupted during epoch {epoch}; no checkpoint was written yet: nothing to resume, start again"
         argv, skip = [], False
         for arg in self._argv:  # the same command with --ckpt_path replaced
             if skip:
