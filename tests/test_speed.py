@@ -57,6 +57,8 @@ def test_bf16_mixed_loss_is_within_the_stated_tolerance_of_float32():
     assert abs(fit16.item() - fit32.item()) <= BF16_RTOL * fit32.item()
     assert abs(gap16.item() - gap32.item()) <= BF16_RTOL * gap32.item()
     assert fit16.item() != fit32.item()  # bfloat16 really ran
+    grads = torch.autograd.grad(fit16 + gap16, [*f.parameters(), *g.parameters()])  # as Lightning: outside autocast
+    assert all(gr.dtype == torch.float32 and torch.isfinite(gr).all() for gr in grads)
 
 
 @pytest.mark.skipif(not NATIVE_BF16, reason="this CPU has no native bfloat16")

@@ -188,6 +188,10 @@ def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
     """
     if x.device.type != "cpu" or stride == 1:
         return F.conv_transpose2d(x, weight, bias, stride)
+    if torch.is_autocast_enabled("cpu"):  # as autocast runs a convolution: in its dtype, forward and backward
+        dtype = torch.get_autocast_dtype("cpu")
+        with torch.autocast("cpu", enabled=False):
+            return _ConvTranspose.apply(x.to(dtype), weight.to(dtype), None if bias is None else bias.to(dtype), stride)
     return _ConvTranspose.apply(x, weight, bias, stride)
 
 
