@@ -6,6 +6,8 @@ STAMP   = $(VENV)/.installed
 LOGDIR ?= runs
 EXP    ?= pendulum
 SIZE   ?= paper
+# share of each CPU config's epochs for the penalty / augmented-Lagrangian benchmark (1 = as shipped, ~12 h)
+CONSTRAINTS_FRACTION ?= 0.1
 
 .PHONY: install demo test test-slow tensorboard bench reproduce
 
@@ -39,6 +41,8 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_lorenz_data.py
 	$(PY) benchmarks/bench_moving_mnist.py
 	$(PY) benchmarks/bench_ukf.py
+	$(PY) benchmarks/bench_ddp_nodes.py
+	$(PY) benchmarks/bench_constraints.py --fraction $(CONSTRAINTS_FRACTION)
 
 ## One experiment end to end: SSM fit -> encoder fit -> test (-> UKF), results in results/$(EXP).md.
 ## make reproduce EXP=pendulum [SIZE=cpu]; EXP among pendulum pendulum_fc quad quad_fc mnist lorenz_T10 ... oscillator

@@ -167,3 +167,25 @@ def test_bad_constraint_settings_are_refused():
         rotation_model(constraint_options={"growth": 10.0})
     with pytest.raises(ValueError, match="every_n_epochs must be a whole number >= 1"):
         rotation_model(constraint="augmented_lagrangian", constraint_options={"every_n_epochs": 0})
+
+
+def test_constraint_benchmark_runs_at_a_tiny_size(tmp_path):
+    """benchmarks/bench_constraints.py --tiny: every row it promises, the TINY note, the AL's final alpha."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_constraints.py"
+    spec = importlib.util.spec_from_file_location("bench_constraints", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "constraints.md"
+    rows = bench.main(["--tiny", "--experiments", "lorenz_T1000", "--variants", "penalty, alpha x0.1",
+                       "augmented Lagrangian, alpha x0.1", "penalty, sparse nodes", "--data-dir", str(tmp_path / "data"),
+                       "--workdir", str(tmp_path / "runs"), "--out", str(out)])
+    text = out.read_text()
+    assert "TINY sizes" in text and "## lorenz_T1000" in text
+    assert [r["variant"] for r in rows] == ["penalty, alpha x0.1", "augmented Lagrangian, alpha x0.1", "penalty, sparse nodes"]
+    assert rows[0]["final_alpha"] == 10.0  # the config's alpha 100, times 0.1, raised at the scaled milestone
+    for r in rows:
+        assert r["epochs"] == 2 and r["gap"] > 0 and r["fit"] > 0 and r["rollout_mse"] > 0
+        assert f"| {r['variant']} | 2 |" in text
