@@ -92,6 +92,8 @@ class ConvDecoder(nn.Module):
                 h = layer_norm_channels_last(layer, h)
             elif isinstance(layer, nn.ConvTranspose2d):
                 h = conv_transpose2d(h, layer.weight, layer.bias, layer.stride[0])
+            elif isinstance(layer, nn.ReLU):  # in place: h is a fresh tensor no backward needs (no 100 MB copy)
+                h = torch.relu_(h)
             else:
                 h = layer(h)
         return h.reshape(*lead, *self.out_shape)  # a view for one output channel, else a copy
@@ -112,20 +114,32 @@ def layer_norm_channels_last(ln: nn.LayerNorm, h: torch.Tensor) -> torch.Tensor:
 
 
 def _phase_forward(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
-    """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding) as one stride-1 convolution and a pixel shuffle.
+    """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding) as one stride-1 convolution and one copy.
 
     Output pixel ``s j + p`` (phase ``p < s``) sums the taps ``k = p + s t`` over the inputs ``j - t``,
     ``t < T = ceil(kernel / s)``: per phase a ``T x T`` convolution. The ``s^2`` phases are the output
     channels of one ``Conv2d(C_in, s^2 C_out, T, padding=T-1)`` (its weight gathered from ``weight``,
-    taps beyond the kernel zero), interleaved by ``pixel_shuffle`` and cropped to ``(H - 1) s + kernel``.
+    taps beyond the kernel zero), then copied, interleaved and cropped to ``(H - 1) s + kernel``, into
+    a channels-last result.
     """
     c_in, c_out, k, _ = weight.shape
-    t = -(-k // stride)
-    w = F.pad(weight, (0, stride * t - k, 0, stride * t - k)).view(c_in, c_out, t, stride, t, stride).flip(2, 4)
-    w = w.permute(1, 3, 5, 0, 2, 4).reshape(c_out * stride * stride, c_in, t, t)  # channel (c_out, p_y, p_x)
-    b = None if bias is None else bias.repeat_interleave(stride * stride)
-    y = F.pixel_shuffle(F.conv2d(x, w, b, padding=t - 1), stride)
-    return y[:, :, : (x.shape[2] - 1) * stride + k, : (x.shape[3] - 1) * stride + k]
+    s, t = stride, -(-k // stride)
+    w = F.pad(weight, (0, s * t - k, 0, s * t - k)).view(c_in, c_out, t, s, t, s).flip(2, 4)
+    w = w.permute(3, 5, 1, 0, 2, 4).reshape(s * s * c_out, c_in, t, t)  # output channel (p_y, p_x, c_out)
+    b = None if bias is None else bias.repeat(s * s)
+    y = F.conv2d(x, w, b, padding=t - 1)
+    n, _, rows_in, cols_in = y.shape
+    phases = y.permute(0, 2, 3, 1).reshape(n, rows_in, cols_in, s, s, c_out)  # a view when channels-last
+    height, width = (x.shape[2] - 1) * s + k, (x.shape[3] - 1) * s + k
+    out = y.new_empty(n, height, width, c_out)
+    whole, rest = divmod(width, s)
+    for p in range(s):
+        dst = out[:, p::s]  # the output rows of phase p
+        rows = dst.shape[1]
+        dst[:, :, : whole * s].view(n, rows, whole, s, c_out).copy_(phases[:, :rows, :whole, p])
+        if rest:
+            dst[:, :, whole * s :].copy_(phases[:, :rows, whole, p, :rest])
+    return out.permute(0, 3, 1, 2)
 
 
 class _ConvTranspose(torch.autograd.Function):
