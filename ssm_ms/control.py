@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import pickle
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -150,11 +149,7 @@ def export_checkpoint(checkpoint: str | Path, out_dir: str | Path, formats: Sequ
     ``null`` when the data were not normalised)."""
     from ssm_ms.inference.ssm_forecaster import datamodule_state, load_ssm
 
-    try:
-        model, saved = load_ssm(checkpoint)
-    except (RuntimeError, EOFError, pickle.UnpicklingError) as err:  # torch.load on a truncated or foreign file
-        raise ValueError(f"{checkpoint} is not a readable checkpoint ({type(err).__name__}): give the last.ckpt of "
-                         "an SSM run (python cli.py fit --config configs/<experiment>.yaml)") from err
+    model, saved = load_ssm(checkpoint)  # a missing, truncated or foreign file: ValueError / OSError naming it
     data = datamodule_state(saved)
     norm = data[1].get("normalizer") if data is not None else None
     normalization = None
