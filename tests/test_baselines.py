@@ -49,12 +49,17 @@ def test_lstm_reads_zeros_and_the_flag_while_predicting():
     assert out.shape == y.shape and 0 <= out.min() and out.max() <= 1
 
 
-def test_lstm_decoder_must_draw_the_data_image_size():
-    with pytest.raises(ValueError, match=r"preset 'quad' produces images of shape \[1, 48, 48\] but obs_shape is "
-                                         r"\[1, 24, 24\]: use decoder_preset='pendulum'"):
-        Seq2SeqLSTM([1, 24, 24], hidden=8, decoder_preset="quad")
-    with pytest.raises(ValueError, match=r"no default encoder_preset for images of shape \[1, 30, 30\]"):
-        Seq2SeqLSTM([1, 30, 30], hidden=8)
+def test_lstm_decoder_draws_the_data_image_size():
+    # a named preset keeps its layers (quad: 4 transposed convolutions) and draws the data's size
+    net = Seq2SeqLSTM([1, 24, 24], hidden=8, decoder_preset="quad")
+    assert sum(isinstance(m, torch.nn.ConvTranspose2d) for m in net.decoder.deconv) == 4
+    # a size of none of the paper's experiments: the nearest one's presets (30 -> pendulum), drawn at 30
+    net = Seq2SeqLSTM([1, 30, 30], hidden=8)
+    assert sum(isinstance(m, torch.nn.ConvTranspose2d) for m in net.decoder.deconv) == 3
+    y = torch.rand(2, 3, 1, 30, 30)
+    assert net(y, torch.ones(2, 3, dtype=torch.bool)).mean.shape == y.shape
+    with pytest.raises(ValueError, match=r"no default encoder_preset for non-square images of shape \[1, 24, 30\]"):
+        Seq2SeqLSTM([1, 24, 30], hidden=8)
 
 
 # ---------------------------------------------------------------------------- training and the protocol

@@ -366,10 +366,10 @@ def test_learns_moving_blob_images_with_bce():
 def test_bad_input():
     with pytest.raises(ValueError, match=r"latent_state_dim must be even.*use 14 or 16"):
         RecurrentKalmanNetwork([3], latent_state_dim=15)
-    with pytest.raises(ValueError, match=r"'quad'.*\[1, 48, 48\].*\[1, 24, 24\].*decoder_preset='pendulum'"):
-        RecurrentKalmanNetwork([1, 24, 24], latent_state_dim=8, n_basis=2, decoder_preset="quad")
+    with pytest.raises(ValueError, match=r"'quad'.*\[1, 24, 24\].*\[3, 24, 24\].*no ConvDecoder preset"):
+        RecurrentKalmanNetwork([3, 24, 24], latent_state_dim=8, n_basis=2, decoder_preset="quad")
     with pytest.raises(ValueError, match="give encoder_preset"):
-        RecurrentKalmanNetwork([1, 30, 30], latent_state_dim=8)
+        RecurrentKalmanNetwork([1, 24, 30], latent_state_dim=8)
     with pytest.raises(ValueError, match="obs_shape"):
         RecurrentKalmanNetwork([4, 4])
     net = RecurrentKalmanNetwork([3], latent_state_dim=4, n_basis=2)

@@ -1,7 +1,7 @@
 """What the baselines share: their networks map a measurement sequence and an "observed" mask to an
 estimate of every measurement, filtering where the mask is set and predicting where it is not; images
 are read by the paper's per-frame CNN and written by its transposed-convolution decoders, chosen by
-image size unless a config names them."""
+image size unless a config names them (the decoder drawn at the data's image size)."""
 
 from __future__ import annotations
 
@@ -28,14 +28,16 @@ class SequenceOutput(NamedTuple):
 
 
 def preset_for(obs_shape: tuple[int, ...], argument: str) -> str:
-    """The encoder / decoder preset of an image size (24 -> pendulum, 48 -> quad, 64 -> mnist)."""
+    """The encoder / decoder preset of an image size: that of the nearest of the paper's sizes (24 ->
+    pendulum, 48 -> quad, 64 -> mnist; a tie goes to the smaller); the decoder is then drawn at the
+    data's size (``ConvDecoder(image_size=...)``), the encoder's CNN reads any size."""
     c, h, w = obs_shape
-    if h != w or h not in PRESET_BY_IMAGE_SIZE:
-        sizes = ", ".join(f"{s}x{s} -> {p!r}" for s, p in PRESET_BY_IMAGE_SIZE.items())
+    if h != w:
         raise ValueError(
-            f"no default {argument} for images of shape {list(obs_shape)} (defaults by size: {sizes}): give {argument}"
+            f"no default {argument} for non-square images of shape {list(obs_shape)}: the decoders draw square "
+            f"images; give {argument} and square frames"
         )
-    return PRESET_BY_IMAGE_SIZE[h]
+    return PRESET_BY_IMAGE_SIZE[min(PRESET_BY_IMAGE_SIZE, key=lambda size: (abs(size - h), size))]
 
 
 def decoder_preset_shape(preset: str) -> tuple[int, int, int]:
@@ -52,10 +54,11 @@ def image_decoder(in_features: int, obs_shape: tuple[int, ...], preset: Optional
     (``preset=None``: by image size), refusing a preset that draws another image size."""
     if preset is None:
         preset = preset_for(obs_shape, "decoder_preset")
-    decoder = ConvDecoder(in_features, preset=preset, output=output)
+    square = len(obs_shape) == 3 and obs_shape[1] == obs_shape[2]
+    decoder = ConvDecoder(in_features, preset=preset, output=output, image_size=obs_shape[-1] if square else None)
     if tuple(decoder.out_shape) != tuple(obs_shape):
-        good = [name for name in DECODER_PRESETS if decoder_preset_shape(name) == tuple(obs_shape)]
-        hint = f"use decoder_preset={good[0]!r}" if good else "no ConvDecoder preset produces it"
+        good = [name for name in DECODER_PRESETS if decoder_preset_shape(name)[0] == obs_shape[0]]
+        hint = f"use decoder_preset={good[0]!r}" if good and square else "no ConvDecoder preset produces it"
         raise ValueError(
             f"the decoder preset {preset!r} produces images of shape {list(decoder.out_shape)} "
             f"but obs_shape is {list(obs_shape)}: {hint}"

@@ -30,9 +30,10 @@ class Seq2SeqLSTM(nn.Module):
         obs_shape: one measurement: ``[C, H, W]`` images or ``[D]`` vectors.
         hidden: LSTM hidden size (paper: 1024).
         encoder_preset: preset of the per-frame CNN; ``None``: ``"vector"`` for vectors, by image size for
-            images (24 -> ``"pendulum"``, 48 -> ``"quad"``, 64 -> ``"mnist"``: the SSM encoders' CNNs).
-        decoder_preset: images only: the ``ConvDecoder`` preset (``None``: by image size); its output
-            shape must be ``obs_shape``.
+            images (24 -> ``"pendulum"``, 48 -> ``"quad"``, 64 -> ``"mnist"``: the SSM encoders' CNNs; other
+            sizes: the nearest of these).
+        decoder_preset: images only: the ``ConvDecoder`` preset (``None``: by image size, as the encoder's),
+            drawn at the image size of ``obs_shape`` (``ConvDecoder(image_size=...)``).
         output: images: ``"sigmoid"`` (default) or ``"linear"``; vectors are always linear.
     """
 

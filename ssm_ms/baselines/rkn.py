@@ -292,11 +292,12 @@ class RecurrentKalmanNetwork(nn.Module):
             :class:`RKNTransition` (defaults of the RKN code: 15, 3, ``()``, tanh, 0.1).
         encoder_preset: preset of the per-frame CNN (:class:`~ssm_ms.nets.encoder.FrameEncoder`):
             ``None`` picks ``"vector"`` for vectors and, for images, by size (ours): 24 -> ``"pendulum"``,
-            48 -> ``"quad"``, 64 -> ``"mnist"`` (other sizes must name one).
+            48 -> ``"quad"``, 64 -> ``"mnist"`` (other square sizes: the nearest of these).
         encoder_hidden: widths of Linear + ReLU layers between the CNN features and the two heads of
             ``w`` (``m``) and ``s`` (``m``, ``elu + 1``); ``()`` by default (ours).
         decoder_preset: images only: the :class:`~ssm_ms.nets.observation.ConvDecoder` preset; ``None``
-            picks it by size like the encoder. Its output shape must equal ``obs_shape`` (checked here).
+            picks it by size like the encoder. It draws the image size of ``obs_shape``; its channels must
+            match (checked here).
         decoder_hidden: vectors only: ReLU hidden widths of the mean MLP (of the posterior mean) and of the
             variance MLP (of ``[upper, lower, side]``); ``(64,)`` by default (ours).
         initial_cov: initial ``upper`` and ``lower`` variances (10, the RKN code's ``initial_state_covar``);

@@ -35,6 +35,13 @@ class ConvDecoder(nn.Module):
         layers: ``[out_channels, kernel, stride]`` of each transposed convolution; the last one
             produces the image channels.
         output: ``"sigmoid"`` (pixels in [0, 1]) or ``"linear"``.
+        image_size: side of the square images to draw (``None``: what ``stem_size`` gives, e.g. the
+            preset's size). The layers stay; the stem size is chosen as the smallest whose stack draws at
+            least ``image_size`` (each transposed convolution maps ``s -> (s - 1) * stride + kernel``), and
+            the centre ``image_size x image_size`` of that is kept (a margin narrower than the product of
+            the strides; none at the sizes the stack draws exactly, e.g. the presets' 24, 48, 64). Sizes
+            below what a 1x1 stem draws are refused with the sizes that work. Give ``stem_size`` or
+            ``image_size``, not both.
         channels_last: run the feature maps in channels-last memory layout (same results, same
             parameters), the layout oneDNN's CPU convolutions are fastest in; strided transposed
             convolutions then run through :func:`conv_transpose2d`. LayerNorm is applied to the
@@ -50,17 +57,27 @@ class ConvDecoder(nn.Module):
         layers: Sequence[Sequence[int]] | None = None,
         output: str = "sigmoid",
         channels_last: bool = True,
+        image_size: int | None = None,
     ):
         super().__init__()
+        if image_size is not None and stem_size is not None:
+            raise ValueError(
+                f"ConvDecoder got stem_size={stem_size} and image_size={image_size}: give one (image_size chooses "
+                "the stem size)"
+            )
         if preset is not None:
             if preset not in PRESETS:
                 raise ValueError(f"unknown ConvDecoder preset {preset!r}; choose one of {sorted(PRESETS)} or None")
             c0, s0, spec = PRESETS[preset]
             stem_channels = stem_channels or c0
-            stem_size = stem_size or s0
+            stem_size = stem_size or (None if image_size is not None else s0)
             layers = layers or spec
-        if stem_channels is None or stem_size is None or not layers:
-            raise ValueError("ConvDecoder needs a preset, or stem_channels, stem_size and layers")
+        if stem_channels is None or (stem_size is None and image_size is None) or not layers:
+            raise ValueError("ConvDecoder needs a preset, or stem_channels, stem_size (or image_size) and layers")
+        layers = [tuple(int(v) for v in layer) for layer in layers]
+        self.crop = 0
+        if image_size is not None:
+            stem_size, self.crop = stem_for_image_size(int(image_size), layers, preset)
         if output not in ("sigmoid", "linear"):
             raise ValueError(f"ConvDecoder output must be 'sigmoid' or 'linear', got {output!r}")
         self.state_dim = state_dim
@@ -76,6 +93,8 @@ class ConvDecoder(nn.Module):
         if output == "sigmoid":
             blocks.append(nn.Sigmoid())
         self.deconv = nn.Sequential(*blocks)
+        self.drawn_size = s  # before the crop
+        s = s if image_size is None else int(image_size)
         self.out_shape = (c, s, s)
         self.channels_last = channels_last
         if channels_last:
@@ -85,7 +104,7 @@ class ConvDecoder(nn.Module):
         lead = x.shape[:-1]
         h = self.stem(x.reshape(-1, self.state_dim)).view(-1, *self.stem_shape)
         if not self.channels_last:
-            return self.deconv(h).view(*lead, *self.out_shape)
+            return self._centre(self.deconv(h)).reshape(*lead, *self.out_shape)
         h = h.contiguous(memory_format=torch.channels_last)
         for layer in self.deconv:
             if isinstance(layer, nn.LayerNorm):
@@ -96,7 +115,42 @@ class ConvDecoder(nn.Module):
                 h = torch.relu_(h)
             else:
                 h = layer(h)
-        return h.reshape(*lead, *self.out_shape)  # a view for one output channel, else a copy
+        return self._centre(h).reshape(*lead, *self.out_shape)  # a view for one uncropped channel, else a copy
+
+    def _centre(self, h: torch.Tensor) -> torch.Tensor:
+        """The centre ``out_shape`` of the drawn images (a view; ``h`` itself when nothing is cropped)."""
+        size = self.out_shape[-1]
+        if size == self.drawn_size:
+            return h
+        return h[..., self.crop : self.crop + size, self.crop : self.crop + size]
+
+
+def drawn_size(stem_size: int, layers: Sequence[Sequence[int]]) -> int:
+    """Side of the images a transposed-convolution stack draws from a ``stem_size`` stem."""
+    s = stem_size
+    for _, kernel, stride in layers:
+        s = (s - 1) * stride + kernel
+    return s
+
+
+def stem_for_image_size(image_size: int, layers: Sequence[Sequence[int]], preset: str | None = None) -> tuple[int, int]:
+    """``(stem_size, crop)``: the smallest stem whose stack draws ``>= image_size``, and the margin cut per side.
+
+    The drawn side grows by the product of the strides per stem pixel, so the margin (split between the
+    sides, the odd pixel at the end) is narrower than that product.
+    """
+    name = f"the {preset!r} preset" if preset else "these layers"
+    smallest = drawn_size(1, layers)
+    step = drawn_size(2, layers) - smallest
+    if image_size < smallest:
+        exact = ", ".join(str(smallest + k * step) for k in range(4))
+        raise ValueError(
+            f"ConvDecoder: {name} cannot draw {image_size}x{image_size} images: the smallest it draws is "
+            f"{smallest}x{smallest} (exactly {exact}, ...; sizes in between are cropped from the next one): "
+            f"choose an image_size of at least {smallest}"
+        )
+    stem = 1 + -(-(image_size - smallest) // step)
+    return stem, (drawn_size(stem, layers) - image_size) // 2
 
 
 def layer_norm_channels_last(ln: nn.LayerNorm, h: torch.Tensor) -> torch.Tensor:
