@@ -210,6 +210,7 @@ class MultipleShootingModule(pl.LightningModule):
                 )
             self._make_nodes(int(n))
         if dm is not None and hasattr(dm, "seq_len"):
+            self.adopt_measurement_shape(tuple(dm.obs_shape))
             self.check_data(dm.seq_len, dm.obs_shape, getattr(dm, "num_train_trajectories", None))
             if stage == "fit" and self.hparams.loss == "bce" and hasattr(dm, "check_range"):
                 dm.check_range(0.0, 1.0, "loss: bce")  # else torch fails mid-training
@@ -217,6 +218,15 @@ class MultipleShootingModule(pl.LightningModule):
                 self.init_nodes_from_measurements(dm.node_measurements(self.n_nodes))
         if stage == "fit" and distributed.world_size() > 1:  # before DDP compares the ranks' models
             self._check_replicated_tables()
+
+    def adopt_measurement_shape(self, obs_shape: tuple[int, ...]) -> None:
+        """Hand the data's measurement shape to a g that takes its size from the data (e.g.
+        ``LinearReadout(out_features=None)``), and record the size it fixed in g's config."""
+        adopt = getattr(self.g, "adopt_measurement_shape", None)
+        fixed = adopt(obs_shape) if callable(adopt) else {}
+        g = self.hparams.get("g")
+        if fixed and isinstance(g, Mapping) and isinstance(g.get("init_args"), dict):
+            g["init_args"].update(fixed)  # hparams.yaml and checkpoints rebuild g at this size
 
     def check_data(self, seq_len: int, obs_shape: tuple[int, ...], num_train: int | None = None) -> None:
         """Fail before training when the data and the model disagree (shapes, T, trajectory count)."""
