@@ -240,8 +240,8 @@ class MultipleShootingModule(pl.LightningModule):
         if tuple(out) != tuple(obs_shape):
             raise ValueError(
                 f"the observation model g outputs measurements of shape {out} but the data have shape "
-                f"{tuple(obs_shape)}: adapt g (e.g. the ConvDecoder preset to the image size, or the "
-                "Projection indices to the measured components)"
+                f"{tuple(obs_shape)}: adapt g (e.g. ConvDecoder's image_size to the data's, "
+                "a linear g's out_features to the channel count, or the Projection indices to the measured components)"
             )
         if num_train is not None and self.nodes is not None and self.nodes.num_embeddings != num_train:
             raise ValueError(
