@@ -93,8 +93,15 @@ def test_image_size_override_fits_one_batch_and_print_config_shows_it(tmp_path, 
     assert batch["y"].shape[-2:] == (32, 32)
     with torch.no_grad():
         assert cli.model.g(torch.zeros(2, 10)).shape == (2, 1, 32, 32)
-    model = MultipleShootingModule.load_from_checkpoint(outputs(tmp_path, config) / "checkpoints" / "last.ckpt")
+    ssm_ckpt = outputs(tmp_path, config) / "checkpoints" / "last.ckpt"
+    model = MultipleShootingModule.load_from_checkpoint(ssm_ckpt)
     assert model.obs_shape() == (1, 32, 32)
+    # the encoder stage, given the same option, reads the 32x32 frames
+    stage = run(tmp_path, "fit", CPU / "pendulum_encoder.yaml", *override, "--trainer.max_epochs", "1",
+                "--trainer.limit_val_batches", "0", "--model.init_args.ssm_checkpoint", str(ssm_ckpt),
+                "--model.init_args.results_dir", str(tmp_path / "results"))
+    assert stage.model.encoder.obs_shape == (1, 32, 32)
+    assert stage.trainer.fit_loop.epoch_loop.batch_progress.total.completed == 1
 
 
 def test_a_size_the_decoder_cannot_draw_is_one_message(tmp_path, capsys):
