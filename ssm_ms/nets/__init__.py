@@ -1,9 +1,10 @@
 """Networks: residual transitions ``f``, observation models ``g``, state encoders."""
 
 from ssm_ms.nets.encoder import FrameEncoder, StateEncoder
-from ssm_ms.nets.observation import ConvDecoder, Projection
+from ssm_ms.nets.observation import ConvDecoder, LinearReadout, Projection
 from ssm_ms.nets.transition import FullyConnectedTransition, LocallyLinearTransition
 
 __all__ = [
-    "ConvDecoder", "FrameEncoder", "FullyConnectedTransition", "LocallyLinearTransition", "Projection", "StateEncoder",
+    "ConvDecoder", "FrameEncoder", "FullyConnectedTransition", "LinearReadout", "LocallyLinearTransition", "Projection",
+    "StateEncoder",
 ]
