@@ -199,8 +199,9 @@ def _phase_forward(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | N
 class _ConvTranspose(torch.autograd.Function):
     """A transposed convolution whose forward is a stride-1 convolution (:func:`_phase_forward`).
 
-    On CPU, oneDNN's transposed-convolution forward is the slow direction (10x its adjoint, a strided
-    convolution, for the pendulum decoder's 16 -> 12 layer). The backward is that of the transposed
+    On CPU, oneDNN's transposed-convolution forward is the slow direction (several times slower than its
+    adjoint, a strided convolution, for the pendulum decoder's layers: see ``ONEDNN_VERBOSE=1``). The
+    backward is that of the transposed
     convolution itself: the input gradient is ``conv2d(grad, weight, stride)`` (the fast direction), the
     weight gradient that convolution's weight gradient with the roles of ``x`` and ``grad`` swapped.
     Forward-mode AD (``jvp``) is supported, so ``ssm_ms.analysis.jacobian`` works through it.
@@ -250,8 +251,7 @@ def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
     """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding, square stride), fast on CPU.
 
     Strided layers on CPU go through :class:`_ConvTranspose` (same values up to float rounding, the same
-    gradient kernels): the pendulum decoder's forward and backward measured 1.3-1.6x faster, interleaved
-    on a shared 2-core Xeon. Stride 1 (a plain convolution with a flipped kernel: no gain measured) and
+    gradient kernels). Stride 1 (a plain convolution with a flipped kernel: no gain measured) and
     other devices (cuDNN's transposed convolutions are fine) use ``F.conv_transpose2d`` itself.
     """
     if x.device.type != "cpu" or stride == 1:
