@@ -31,8 +31,6 @@ from typing import Any
 
 import torch
 
-from ssm_ms.shooting import check_shapes, decode, loss_function
-
 CONSTRAINTS = ("penalty", "augmented_lagrangian")
 
 
@@ -80,34 +78,6 @@ def check_constraint(constraint: str, n_nodes: int) -> None:
             f"constraint='augmented_lagrangian' needs continuity gaps, but n_nodes={n_nodes} has none (the "
             "initial value problem): use n_nodes >= 2, or constraint: penalty"
         )
-
-
-def shooting_residuals(
-    f: Callable[[torch.Tensor], torch.Tensor],
-    g: Callable[[torch.Tensor], torch.Tensor],
-    nodes: torch.Tensor,
-    y: torch.Tensor,
-    loss: str = "mse",
-    decode_chunk: int | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(fit, c)``: the fit term of :func:`ssm_ms.shooting.multiple_shooting_loss` and the gaps
-    themselves, ``c[b, i] = s[b, i+1] - f^n(s[b, i])``, shape ``[B, m-1, d]`` (``mean(c^2)`` is its gap)."""
-    n = check_shapes(nodes, y)
-    b, m, d = nodes.shape
-    x = nodes.reshape(b * m, d)
-    states = [x]
-    for _ in range(n):
-        x = f(x)
-        states.append(x)
-    y_hat = decode(g, torch.stack(states[:n], dim=1), decode_chunk)
-    if y_hat.shape[2:] != y.shape[2:]:
-        raise ValueError(
-            f"the observation model outputs measurements of shape {tuple(y_hat.shape[2:])} but the data "
-            f"have shape {tuple(y.shape[2:])}: make g's output match the data"
-        )
-    fit = loss_function(loss)(y_hat.reshape(y.shape), y)
-    residual = nodes[:, 1:] - states[n].view(b, m, d)[:, :-1]
-    return fit, residual
 
 
 def augmented_lagrangian(fit: torch.Tensor, residual: torch.Tensor, multipliers: torch.Tensor,

@@ -18,12 +18,11 @@ from ssm_ms.constraints import (
     augmented_lagrangian,
     check_constraint,
     raised_factor,
-    shooting_residuals,
     update_multipliers,
 )
 from ssm_ms.nodes import node_group, row_adam_
 from ssm_ms.perf import check_precision
-from ssm_ms.shooting import CompiledRollout, decode, loss_function, multiple_shooting_loss, rollout
+from ssm_ms.shooting import CompiledRollout, decode, loss_function, multiple_shooting_loss, rollout, shooting_residuals
 
 # Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
 STRUCTURAL_HPARAMS = ("state_dim", "num_trajectories", "n_nodes", "f", "g", "node_optimizer", "constraint")
@@ -83,7 +82,7 @@ class MultipleShootingModule(pl.LightningModule):
             ``shrink``, ``max_factor``).
         compile_rollout: ``None`` (eager) or a ``torch.compile`` mode (``"default"``, ``"reduce-overhead"``
             = CUDA graphs on a GPU, ...): the rollout of ``f`` over a sub-trajectory runs as one compiled
-            graph (:class:`ssm_ms.shooting.CompiledRollout`); penalty constraint only.
+            graph (:class:`ssm_ms.shooting.CompiledRollout`).
     """
 
     # validation rolls out from the shooting nodes, which only training trajectories have
@@ -146,8 +145,6 @@ class MultipleShootingModule(pl.LightningModule):
         self._check_transition()
         self._rollout_fn: CompiledRollout | None = None
         if compile_rollout is not None:
-            if constraint != "penalty":
-                raise ValueError("compile_rollout applies to constraint: penalty only: remove it or use the penalty")
             try:
                 self._rollout_fn = CompiledRollout(f, compile_rollout)
             except RuntimeError as err:
@@ -295,7 +292,7 @@ class MultipleShootingModule(pl.LightningModule):
         else:
             nodes = self.node_states(index) if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
             fit, residual = shooting_residuals(self.f, self.g, nodes, batch["y"], self.hparams.loss,
-                                               self.hparams.decode_chunk)
+                                               self.hparams.decode_chunk, self._rollout_fn)
             gap = residual.pow(2).mean()
             lam = self.multipliers[index].view_as(residual)
             loss = augmented_lagrangian(fit, residual, lam, self.alpha * self.alpha_factor)

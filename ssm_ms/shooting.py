@@ -110,6 +110,36 @@ def check_shapes(nodes: torch.Tensor, y: torch.Tensor) -> int:
     return t // m
 
 
+def shooting_residuals(
+    f: Callable[[torch.Tensor], torch.Tensor],
+    g: Callable[[torch.Tensor], torch.Tensor],
+    nodes: torch.Tensor,
+    y: torch.Tensor,
+    loss: str = "mse",
+    decode_chunk: int | None = None,
+    rollout_fn: Rollout | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(fit, c)``: the fit term of :func:`multiple_shooting_loss` and the continuity gaps themselves,
+    ``c[b, i] = s[b, i+1] - f^n(s[b, i])``, shape ``[B, m-1, d]`` (empty when ``m = 1``). Arguments as
+    :func:`multiple_shooting_loss`."""
+    n = check_shapes(nodes, y)
+    loss_fn = loss_function(loss)
+    b, m, d = nodes.shape
+    # n + 1 states: f^0 .. f^{n-1} are decoded, f^n closes the gap
+    x0 = nodes.reshape(b * m, d)
+    states = rollout(f, x0, n + 1) if rollout_fn is None else rollout_fn(x0, n + 1)
+    traj = states[:, :n]  # [B*m, n, d]
+    y_hat = decode(g, traj, decode_chunk)  # [B*m, n, *obs]
+    if y_hat.shape[2:] != y.shape[2:]:
+        raise ValueError(
+            f"the observation model outputs measurements of shape {tuple(y_hat.shape[2:])} but the data "
+            f"have shape {tuple(y.shape[2:])}: make g's output match the data (e.g. decoder preset / image size)"
+        )
+    fit = loss_fn(y_hat.reshape(y.shape), y)
+    end = states[:, n].view(b, m, d)
+    return fit, nodes[:, 1:] - end[:, :-1]
+
+
 def multiple_shooting_loss(
     f: Callable[[torch.Tensor], torch.Tensor],
     g: Callable[[torch.Tensor], torch.Tensor],
@@ -136,23 +166,6 @@ def multiple_shooting_loss(
         ``gap`` is the mean over all elements of ``(s_{i+1} - f^n(s_i))^2``, ``i = 1..m-1``, and exactly
         zero when ``m = 1`` (the initial value problem).
     """
-    n = check_shapes(nodes, y)
-    loss_fn = loss_function(loss)
-    b, m, d = nodes.shape
-    # n + 1 states: f^0 .. f^{n-1} are decoded, f^n closes the gap
-    x0 = nodes.reshape(b * m, d)
-    states = rollout(f, x0, n + 1) if rollout_fn is None else rollout_fn(x0, n + 1)
-    traj = states[:, :n]  # [B*m, n, d]
-    y_hat = decode(g, traj, decode_chunk)  # [B*m, n, *obs]
-    if y_hat.shape[2:] != y.shape[2:]:
-        raise ValueError(
-            f"the observation model outputs measurements of shape {tuple(y_hat.shape[2:])} but the data "
-            f"have shape {tuple(y.shape[2:])}: make g's output match the data (e.g. decoder preset / image size)"
-        )
-    fit = loss_fn(y_hat.reshape(y.shape), y)
-    if m == 1:
-        gap = fit.new_zeros(())
-    else:
-        end = states[:, n].view(b, m, d)
-        gap = (nodes[:, 1:] - end[:, :-1]).pow(2).mean()
+    fit, residual = shooting_residuals(f, g, nodes, y, loss, decode_chunk, rollout_fn)
+    gap = fit.new_zeros(()) if residual.numel() == 0 else residual.pow(2).mean()
     return fit, gap

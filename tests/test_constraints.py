@@ -9,11 +9,10 @@ from ssm_ms.constraints import (
     AugmentedLagrangianOptions,
     augmented_lagrangian,
     raised_factor,
-    shooting_residuals,
     update_multipliers,
 )
 from ssm_ms.nets import LocallyLinearTransition, Projection
-from ssm_ms.shooting import multiple_shooting_loss
+from ssm_ms.shooting import multiple_shooting_loss, shooting_residuals
 from tests.conftest import RotationDataModule, fast_trainer, rotation_model
 
 

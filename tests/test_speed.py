@@ -8,7 +8,7 @@ import torch
 from ssm_ms import perf
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, Projection
-from ssm_ms.shooting import CompiledRollout, compile_unavailable_reason, multiple_shooting_loss
+from ssm_ms.shooting import CompiledRollout, compile_unavailable_reason, multiple_shooting_loss, shooting_residuals
 from tests.conftest import fast_trainer, rotation_model
 
 NATIVE_BF16 = perf.bf16_support("cpu")[0]
@@ -36,8 +36,6 @@ def test_compiled_rollout_matches_a_plain_loop_with_gradients():
 def test_compile_rollout_bad_mode_and_missing_compiler(monkeypatch):
     with pytest.raises(ValueError, match="unknown torch.compile mode 'fastest'"):
         rotation_model(compile_rollout="fastest")
-    with pytest.raises(ValueError, match="penalty only"):
-        rotation_model(compile_rollout="default", constraint="augmented_lagrangian")
     monkeypatch.setattr(shutil, "which", lambda name: None)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(ValueError, match="needs a C\\+\\+ compiler .* use the eager rollout"):
@@ -96,3 +94,10 @@ def test_module_rollout_uses_the_compiled_function_when_asked():
     model(torch.zeros(2, 2), 5)
     assert calls == [4, 5]
     assert plain[1].item() == routed[1].item()  # same nodes, same f: same gap
+    # the augmented Lagrangian's gaps come from the same rollout
+    calls.clear()
+    nodes, y = torch.randn(3, 3, 2), torch.randn(3, 6, 1)
+    fit, residual = shooting_residuals(model.f, model.g, nodes, y, rollout_fn=counting)
+    assert calls == [3]
+    naive = torch.stack([nodes[:, i + 1] - model.f(model.f(nodes[:, i])) for i in range(2)], dim=1)
+    torch.testing.assert_close(residual, naive)
