@@ -283,14 +283,13 @@ class MultipleShootingModule(pl.LightningModule):
         rows = None
         if self.hparams.node_optimizer == "sparse":  # the batch's rows as a leaf: their gradient alone
             rows = self.nodes.weight.detach()[index].requires_grad_()
+        nodes = self.node_states(index) if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
         if self.al_options is None:
-            nodes = None if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
-            fit, gap = self.shooting_loss(batch) if nodes is None else multiple_shooting_loss(
-                self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn)
+            fit, gap = multiple_shooting_loss(self.f, self.g, nodes, batch["y"], self.hparams.loss,
+                                              self.hparams.decode_chunk, self._rollout_fn)
             loss = fit + self.alpha * gap
             residual = None
         else:
-            nodes = self.node_states(index) if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
             fit, residual = shooting_residuals(self.f, self.g, nodes, batch["y"], self.hparams.loss,
                                                self.hparams.decode_chunk, self._rollout_fn)
             gap = residual.pow(2).mean()
