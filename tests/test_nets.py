@@ -118,3 +118,30 @@ def test_fast_conv_transpose_equals_torch_with_gradients_and_jvp(c_in, c_out, ke
     _, t_want = jvp(lambda *a: torch.nn.functional.conv_transpose2d(*a, stride=stride),
                     (x.detach(), w.detach(), b.detach()), tangents)
     torch.testing.assert_close(t_got, t_want)
+
+
+def test_channels_last_decoder_never_converts_a_feature_map_to_nchw():
+    """Forward and backward keep every multi-channel feature map channels-last: one NCHW copy of the pendulum
+    decoder's 12 x 23 x 23 maps (e.g. autograd rebuilding the gradient of an in-place ReLU on a permuted view)
+    made its ReLU backward run across two layouts, half the decoder's step time on CPU."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    produced = []
+
+    class Record(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            out = func(*args, **(kwargs or {}))
+            for t in out if isinstance(out, (tuple, list)) else (out,):
+                if not func.is_view and isinstance(t, torch.Tensor) and tuple(t.shape) in maps:
+                    produced.append((str(func), tuple(t.shape), t.stride()))
+            return out
+
+    torch.manual_seed(0)
+    g = ConvDecoder(4, "pendulum")
+    maps = {(6, 16, 11, 11), (6, 12, 23, 23)}  # the hidden feature maps of 6 images
+    x = torch.randn(6, 4, requires_grad=True)
+    with Record():
+        g(x).square().sum().backward()
+    assert {p[1] for p in produced} == maps  # both layers' maps were seen
+    nchw = [p for p in produced if not torch.empty_strided(p[1], p[2]).is_contiguous(memory_format=torch.channels_last)]
+    assert not nchw, nchw

@@ -106,15 +106,19 @@ class ConvDecoder(nn.Module):
         if not self.channels_last:
             return self._centre(self.deconv(h)).reshape(*lead, *self.out_shape)
         h = h.contiguous(memory_format=torch.channels_last)
-        for layer in self.deconv:
+        layers = list(self.deconv)
+        i = 0
+        while i < len(layers):
+            layer = layers[i]
             if isinstance(layer, nn.LayerNorm):
-                h = layer_norm_channels_last(layer, h)
+                relu = i + 1 < len(layers) and isinstance(layers[i + 1], nn.ReLU)
+                h = layer_norm_channels_last(layer, h, relu=relu)
+                i += relu  # the ReLU ran inside
             elif isinstance(layer, nn.ConvTranspose2d):
                 h = conv_transpose2d(h, layer.weight, layer.bias, layer.stride[0])
-            elif isinstance(layer, nn.ReLU):  # in place: h is a fresh tensor no backward needs (no 100 MB copy)
-                h = torch.relu_(h)
             else:
                 h = layer(h)
+            i += 1
         return self._centre(h).reshape(*lead, *self.out_shape)  # a view for one uncropped channel, else a copy
 
     def _centre(self, h: torch.Tensor) -> torch.Tensor:
@@ -153,17 +157,23 @@ def stem_for_image_size(image_size: int, layers: Sequence[Sequence[int]], preset
     return stem, (drawn_size(stem, layers) - image_size) // 2
 
 
-def layer_norm_channels_last(ln: nn.LayerNorm, h: torch.Tensor) -> torch.Tensor:
+def layer_norm_channels_last(ln: nn.LayerNorm, h: torch.Tensor, relu: bool = False) -> torch.Tensor:
     """``ln`` over ``(C, H, W)`` of a channels-last ``h [N, C, H, W]``, without a layout conversion.
 
     The statistics of a sample do not depend on the order of its elements, so the sample is
     normalised as its ``(H, W, C)`` memory order (a view) with the affine parameters permuted alike.
+    ``relu=True`` applies a ReLU to the result, in place on the flat ``[N, H W C]`` layer-norm output
+    (which the layer norm's backward does not need): in place on the ``[N, C, H, W]`` *view* instead,
+    autograd would rebuild the view's gradient as a contiguous NCHW copy and run the ReLU's backward
+    across two memory layouts (the pendulum decoder's step: 0.34 s of its 0.67 s on one core).
     """
     n, c, height, width = h.shape
     flat = h.permute(0, 2, 3, 1).reshape(n, height * width * c)
     weight = ln.weight.permute(1, 2, 0).reshape(-1) if ln.weight is not None else None
     bias = ln.bias.permute(1, 2, 0).reshape(-1) if ln.bias is not None else None
     out = F.layer_norm(flat, (flat.shape[1],), weight, bias, ln.eps)
+    if relu:
+        out = torch.relu_(out)
     return out.view(n, height, width, c).permute(0, 3, 1, 2)
 
 
@@ -230,7 +240,7 @@ class _ConvTranspose(torch.autograd.Function):
                 x, grad, weight, None, [s, s], [0, 0], [1, 1], False, [0, 0], 1, [False, True, False]
             )[1]
         if ctx.has_bias and ctx.needs_input_grad[2]:
-            grad_b = grad.sum((0, 2, 3))
+            grad_b = channel_sum(grad)
         return grad_x, grad_w, grad_b, None
 
     @staticmethod
@@ -245,6 +255,16 @@ class _ConvTranspose(torch.autograd.Function):
         if bias_t is not None:
             out = out + bias_t.view(1, -1, 1, 1)
         return out
+
+
+def channel_sum(grad: torch.Tensor) -> torch.Tensor:
+    """``grad.sum((0, 2, 3))`` of ``[N, C, H, W]``; for a channels-last ``grad`` as a sum over the batch of its
+    ``[N, H W C]`` rows, then over pixels: contiguous column sums, ~2.5x faster on CPU than the reduction
+    over the strided dimensions (the pendulum decoder's 100 MB bias gradient: 7 ms instead of 17-25 ms)."""
+    n, c = grad.shape[:2]
+    if grad.dim() != 4 or not grad.is_contiguous(memory_format=torch.channels_last) or c == 1:
+        return grad.sum((0, 2, 3))
+    return grad.permute(0, 2, 3, 1).reshape(n, -1).sum(0).view(-1, c).sum(0)
 
 
 def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
