@@ -132,6 +132,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for experiment in args.experiments:
         for name in args.variants:
             rows.append(run_variant(experiment, name, args, Path(args.workdir) / experiment / name.replace(" ", "_")))
+            print(json.dumps(rows[-1]), flush=True)  # progress, and what a cut-off run leaves
     command = "python benchmarks/bench_constraints.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     lines = ["# Penalty against augmented Lagrangian, dense against sparse nodes (CPU-sized configs)", "",
              f"Machine: {describe()}. Date: {datetime.date.today()}. Command: `{command}`."]
