@@ -245,16 +245,7 @@ class _ConvTranspose(torch.autograd.Function):
 
     @staticmethod
     def jvp(ctx, x_t, weight_t, bias_t, _):
-        x, weight = ctx.saved_tensors
-        out = None
-        if x_t is not None:
-            out = _phase_forward(x_t, weight, None, ctx.stride)
-        if weight_t is not None:
-            part = _phase_forward(x, weight_t, None, ctx.stride)
-            out = part if out is None else out + part
-        if bias_t is not None:
-            out = out + bias_t.view(1, -1, 1, 1)
-        return out
+        return _linear_jvp(_phase_forward, ctx, x_t, weight_t, bias_t)
 
 
 def channel_sum(grad: torch.Tensor) -> torch.Tensor:
@@ -267,20 +258,109 @@ def channel_sum(grad: torch.Tensor) -> torch.Tensor:
     return grad.permute(0, 2, 3, 1).reshape(n, -1).sum(0).view(-1, c).sum(0)
 
 
+def _gemm_forward(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
+    """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding) as one matrix product and ``k^2`` shifted adds.
+
+    Every input pixel ``(i, j)`` contributes ``x[:, :, i, j] @ weight[:, :, a, b]`` to output pixel
+    ``(s i + a, s j + b)``: the product ``[N H W, C_in] @ [C_in, k k C_out]`` gives all of them at once, and
+    each tap ``(a, b)`` is added, as a strided slice, into a channels-last result. Worth it where those
+    products are no larger than the input (``k^2 C_out <= C_in``, e.g. a decoder's last, image-drawing layer).
+    """
+    n, c_in, h, w = x.shape
+    _, c_out, k, _ = weight.shape
+    s = stride
+    cols = x.permute(0, 2, 3, 1).reshape(n * h * w, c_in) @ weight.permute(0, 2, 3, 1).reshape(c_in, k * k * c_out)
+    cols = cols.view(n, h, w, k, k, c_out)
+    out = cols.new_zeros(n, (h - 1) * s + k, (w - 1) * s + k, c_out)
+    if bias is not None:
+        out += bias
+    for a in range(k):
+        for b in range(k):
+            out[:, a : a + s * (h - 1) + 1 : s, b : b + s * (w - 1) + 1 : s] += cols[:, :, :, a, b]
+    return out.permute(0, 3, 1, 2)
+
+
+class _ConvTransposeGemm(torch.autograd.Function):
+    """A transposed convolution computed by :func:`_gemm_forward`, with the matching backward: the output
+    gradient's ``k^2`` tap slices gathered into contiguous planes, then two matrix products (input and weight
+    gradients). On the pendulum decoder's last layer (12 -> 1 channels, kernel 2, 4000 images of 23x23):
+    forward 24 ms instead of oneDNN's 45 ms, backward 29 ms instead of 32 ms, one core."""
+
+    @staticmethod
+    def forward(x, weight, bias, stride):
+        return _gemm_forward(x, weight, bias, stride)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output):
+        x, weight, bias, stride = inputs
+        ctx.save_for_backward(x, weight)
+        ctx.save_for_forward(x, weight)
+        ctx.stride, ctx.has_bias = stride, bias is not None
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, weight = ctx.saved_tensors
+        n, c_in, h, w = x.shape
+        _, c_out, k, _ = weight.shape
+        s, rows = ctx.stride, n * h * w
+        g = grad.permute(0, 2, 3, 1)  # [N, H, W, C_out]
+        planes = grad.new_empty(k, k, n, h, w, c_out)
+        for a in range(k):
+            for b in range(k):
+                planes[a, b] = g[:, a : a + s * (h - 1) + 1 : s, b : b + s * (w - 1) + 1 : s]
+        cols = planes.view(k * k, rows, c_out).permute(1, 0, 2).reshape(rows, k * k * c_out)  # a view for C_out = 1
+        w_mat = weight.permute(0, 2, 3, 1).reshape(c_in, k * k * c_out)
+        grad_x = grad_w = grad_b = None
+        if ctx.needs_input_grad[0]:
+            grad_x = (cols @ w_mat.t()).view(n, h, w, c_in).permute(0, 3, 1, 2)
+        if ctx.needs_input_grad[1]:
+            x_mat = x.permute(0, 2, 3, 1).reshape(rows, c_in)
+            grad_w = (cols.t() @ x_mat).t().reshape(c_in, k, k, c_out).permute(0, 3, 1, 2)
+        if ctx.has_bias and ctx.needs_input_grad[2]:
+            grad_b = channel_sum(grad)
+        return grad_x, grad_w, grad_b, None
+
+    @staticmethod
+    def jvp(ctx, x_t, weight_t, bias_t, _):
+        return _linear_jvp(_gemm_forward, ctx, x_t, weight_t, bias_t)
+
+
+def _linear_jvp(forward, ctx, x_t, weight_t, bias_t):
+    """Tangent of ``forward(x, weight, bias, stride)``, bilinear in ``(x, weight)`` plus ``bias``."""
+    x, weight = ctx.saved_tensors
+    out = None
+    if x_t is not None:
+        out = forward(x_t, weight, None, ctx.stride)
+    if weight_t is not None:
+        part = forward(x, weight_t, None, ctx.stride)
+        out = part if out is None else out + part
+    if bias_t is not None:
+        out = out + bias_t.view(1, -1, 1, 1)
+    return out
+
+
 def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
     """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding, square stride), fast on CPU.
 
-    Strided layers on CPU go through :class:`_ConvTranspose` (same values up to float rounding, the same
-    gradient kernels). Stride 1 (a plain convolution with a flipped kernel: no gain measured) and
-    other devices (cuDNN's transposed convolutions are fine) use ``F.conv_transpose2d`` itself.
+    On CPU (same values up to float rounding): a layer whose taps are no larger than its input
+    (``k^2 C_out <= C_in``) goes through :class:`_ConvTransposeGemm`, other strided layers through
+    :class:`_ConvTranspose`; the rest (stride 1: a plain convolution with a flipped kernel, no gain measured)
+    and other devices (cuDNN's transposed convolutions are fine) use ``F.conv_transpose2d`` itself.
     """
-    if x.device.type != "cpu" or stride == 1:
+    c_in, c_out, k, _ = weight.shape
+    if x.device.type != "cpu":
+        return F.conv_transpose2d(x, weight, bias, stride)
+    if k * k * c_out <= c_in:
+        function = _ConvTransposeGemm
+    elif stride > 1:
+        function = _ConvTranspose
+    else:
         return F.conv_transpose2d(x, weight, bias, stride)
     if torch.is_autocast_enabled("cpu"):  # as autocast runs a convolution: in its dtype, forward and backward
         dtype = torch.get_autocast_dtype("cpu")
         with torch.autocast("cpu", enabled=False):
-            return _ConvTranspose.apply(x.to(dtype), weight.to(dtype), None if bias is None else bias.to(dtype), stride)
-    return _ConvTranspose.apply(x, weight, bias, stride)
+            return function.apply(x.to(dtype), weight.to(dtype), None if bias is None else bias.to(dtype), stride)
+    return function.apply(x, weight, bias, stride)
 
 
 class Projection(nn.Module):
