@@ -185,6 +185,7 @@ def test_constraint_benchmark_runs_at_a_tiny_size(tmp_path):
     assert "TINY sizes" in text and "## lorenz_T1000" in text
     assert [r["variant"] for r in rows] == ["penalty, alpha x0.1", "augmented Lagrangian, alpha x0.1", "penalty, sparse nodes"]
     assert rows[0]["final_alpha"] == 10.0  # the config's alpha 100, times 0.1, raised at the scaled milestone
+    assert rows[0]["initial_alpha"] == pytest.approx(0.1)  # the model's initial alpha 1, times 0.1
     for r in rows:
         assert r["epochs"] == 2 and r["gap"] > 0 and r["fit"] > 0 and r["rollout_mse"] > 0
         assert f"| {r['variant']} | 2 |" in text
