@@ -2,6 +2,7 @@
 
     python benchmarks/bench_train_step.py [--rounds 6] [--steps 3] [--threads 2] [--models SSM-LL SSM-FC]
     python benchmarks/bench_train_step.py --tiny --out /tmp/x.md      # seconds, for `make test`
+    python benchmarks/bench_train_step.py --device cuda --compiled --out benchmarks/results/train_step_cuda.md
 
 The paper's simple-pendulum step: batch 40, m = 4 shooting nodes, n = 25 steps per sub-trajectory,
 state 10, 24x24 images, SSM-LL with K = 32 and 1024 hidden (or SSM-FC, 3 x 512), Adam, alpha 1000.
@@ -16,8 +17,12 @@ Implementations:
 * ``reference``: :mod:`benchmarks.reference_structure` (its networks, its per-step ``loss_function``,
   a dense node tensor, default allocator);
 * ``ours``: ``MultipleShootingModule.shooting_loss`` + its Adam, float32;
-* ``ours-bf16``: the same under ``torch.autocast(cpu, bfloat16)``, what ``trainer.precision: bf16-mixed``
-  does (only where the CPU has native bfloat16 instructions; else it is reported as skipped).
+* ``ours-bf16``: the same under ``torch.autocast(device, bfloat16)``, what ``trainer.precision: bf16-mixed``
+  does (only where the device has native bfloat16 instructions; else it is reported as skipped);
+* ``ours-compiled`` (``--compiled``): float32 with ``compile_rollout`` (``reduce-overhead`` on a GPU:
+  torch.compile and CUDA graphs; ``default`` on CPU); its first (compiling) steps are in the warm-up.
+
+``--device cuda`` runs every implementation on the GPU (the loss read back each step synchronises it).
 
 Results go to benchmarks/results/train_step.md with the machine, command and date.
 """
@@ -45,23 +50,24 @@ LABELS = {
     "reference": "reference structure (NCHW decoder, g per time step, default allocator)",
     "ours": "ssm-ms, float32",
     "ours-bf16": "ssm-ms, bf16-mixed (autocast bfloat16)",
+    "ours-compiled": "ssm-ms, float32, compiled rollout",
 }
 
 
-def build(impl: str, model: str, size: dict):
+def build(impl: str, model: str, size: dict, device: str = "cpu"):
     """A ``step()`` closure of one implementation on a fixed random batch."""
     import torch
 
     torch.manual_seed(0)
     b, m, n, d = size["batch"], size["m"], size["n"], size["d"]
     gen = torch.Generator().manual_seed(1)
-    y = torch.rand(b, m * n, 1, 24, 24, generator=gen)
+    y = torch.rand(b, m * n, 1, 24, 24, generator=gen).to(device)
     index = torch.arange(b)
     if impl == "reference":
         from benchmarks.reference_structure import RefDecoder, RefFullyConnected, RefLocallyLinear, RefTrainer
 
         f = RefLocallyLinear(d, size["k"], size["hidden"]) if model == "SSM-LL" else RefFullyConnected(d, size["fc"])
-        trainer = RefTrainer(f, RefDecoder(d), size["n_train"], m, d)
+        trainer = RefTrainer(f, RefDecoder(d), size["n_train"], m, d, device=device)
         y_flat, idx = y.view(b, m * n, -1), index.numpy()
         return lambda: trainer.step(idx, y_flat)
 
@@ -70,16 +76,18 @@ def build(impl: str, model: str, size: dict):
 
     f = LocallyLinearTransition(d, size["k"], size["hidden"]) if model == "SSM-LL" else \
         FullyConnectedTransition(d, (size["fc"],) * 3)
-    module = MultipleShootingModule(f, ConvDecoder(d, "pendulum"), d, num_trajectories=size["n_train"], n_nodes=m)
+    compiled = ("reduce-overhead" if device == "cuda" else "default") if impl == "ours-compiled" else None
+    module = MultipleShootingModule(f, ConvDecoder(d, "pendulum"), d, num_trajectories=size["n_train"], n_nodes=m,
+                                    compile_rollout=compiled).to(device)
     with torch.no_grad():
         module.nodes.weight.normal_(0.0, 0.1)
     opt = module.configure_optimizers()
-    batch = {"index": index, "y": y}
+    batch = {"index": index.to(device), "y": y}
     bf16 = impl == "ours-bf16"
 
     def step() -> float:
         opt.zero_grad()
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        with torch.autocast(device, dtype=torch.bfloat16, enabled=bf16):
             fit, gap = module.shooting_loss(batch)
             loss = fit + 1000.0 * gap
         loss.backward()
@@ -89,7 +97,7 @@ def build(impl: str, model: str, size: dict):
     return step
 
 
-def worker(impl: str, model: str, tiny: bool, threads: int) -> None:
+def worker(impl: str, model: str, tiny: bool, threads: int, device: str = "cpu") -> None:
     """Build, warm up, then answer ``run K`` lines with the seconds of K steps (JSON), until EOF."""
     if impl != "reference":
         from ssm_ms.perf import configure_allocator
@@ -98,7 +106,7 @@ def worker(impl: str, model: str, tiny: bool, threads: int) -> None:
     import torch
 
     torch.set_num_threads(threads)
-    step = build(impl, model, TINY if tiny else FULL)
+    step = build(impl, model, TINY if tiny else FULL, device)
     for _ in range(1 if tiny else 3):
         step()
     print(json.dumps({"ready": True}), flush=True)
@@ -113,9 +121,10 @@ def worker(impl: str, model: str, tiny: bool, threads: int) -> None:
 
 
 class Worker:
-    def __init__(self, impl: str, model: str, tiny: bool, threads: int):
+    def __init__(self, impl: str, model: str, tiny: bool, threads: int, device: str = "cpu"):
         self.impl = impl
-        cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", impl, model, "--threads", str(threads)]
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", impl, model, "--threads", str(threads),
+               "--device", device]
         self.proc = subprocess.Popen(
             cmd + (["--tiny"] if tiny else []), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT,
         )
@@ -137,14 +146,14 @@ class Worker:
         self.proc.wait()
 
 
-def bf16_native() -> bool:
+def bf16_native(device: str = "cpu") -> bool:
     from ssm_ms.perf import bf16_support
 
-    return bf16_support("cpu")[0]
+    return bf16_support(device)[0]
 
 
-def measure(model: str, impls: list[str], rounds: int, steps: int, threads: int, tiny: bool) -> dict:
-    workers = [Worker(impl, model, tiny, threads) for impl in impls]
+def measure(model: str, impls: list[str], rounds: int, steps: int, threads: int, tiny: bool, device: str = "cpu") -> dict:
+    workers = [Worker(impl, model, tiny, threads, device) for impl in impls]
     times: dict[str, list[float]] = {impl: [] for impl in impls}
     per_round: dict[str, list[float]] = {impl: [] for impl in impls}
     try:
@@ -168,25 +177,30 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--models", nargs="+", default=["SSM-LL", "SSM-FC"], choices=["SSM-LL", "SSM-FC"])
     parser.add_argument("--no-bf16", action="store_true", help="leave out the bf16-mixed variant")
+    parser.add_argument("--compiled", action="store_true", help="add the compiled-rollout variant")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--tiny", action="store_true", help="tiny sizes, to check that the script runs")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "train_step.md"))
     parser.add_argument("--worker", nargs=2, metavar=("IMPL", "MODEL"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
-        worker(args.worker[0], args.worker[1], args.tiny, args.threads)
+        worker(args.worker[0], args.worker[1], args.tiny, args.threads, args.device)
         return
     from ssm_ms.machine import describe
 
     impls = ["reference", "ours"]
     bf16_note = ""
     if not args.no_bf16:
-        if bf16_native():
+        if bf16_native(args.device):
             impls.append("ours-bf16")
         else:
-            bf16_note = "bf16-mixed not measured: this CPU has no native bfloat16 instructions"
+            bf16_note = f"bf16-mixed not measured: this {args.device} has no native bfloat16 instructions"
+    if args.compiled:
+        impls.append("ours-compiled")
     start = datetime.now(timezone.utc)
     load0 = os.getloadavg()
-    results = {model: measure(model, impls, args.rounds, args.steps, args.threads, args.tiny) for model in args.models}
+    results = {model: measure(model, impls, args.rounds, args.steps, args.threads, args.tiny, args.device)
+               for model in args.models}
     load1 = os.getloadavg()
     size = TINY if args.tiny else FULL
     cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *(argv or sys.argv[1:])])
@@ -194,7 +208,7 @@ def main(argv: list[str] | None = None) -> None:
         "# Training step: ssm-ms beside the reference implementation's structure, one run, interleaved",
         "",
         f"- machine: {describe()}, Python {sys.version.split()[0]}, "
-        f"{args.threads} torch threads per worker",
+        f"{args.threads} torch threads per worker, device {args.device}",
         f"- command: `{cmd}`",
         f"- date: {start.isoformat(timespec='seconds')}",
         f"- load average (1/5/15 min) before: {'/'.join(f'{v:.2f}' for v in load0)}, after: "

@@ -79,9 +79,9 @@ class RefDecoder(nn.Module):
 class RefTrainer:
     """One optimizer step of the reference ``SSM.loss_function`` + Adam on a fixed batch."""
 
-    def __init__(self, f: nn.Module, g: nn.Module, n_train: int, m: int, d: int, lr: float = 1e-3):
-        self.f, self.g, self.m = f, g, m
-        self.nodes = (0.1 * torch.randn(n_train, m, d)).requires_grad_(True)
+    def __init__(self, f: nn.Module, g: nn.Module, n_train: int, m: int, d: int, lr: float = 1e-3, device="cpu"):
+        self.f, self.g, self.m = f.to(device), g.to(device), m
+        self.nodes = (0.1 * torch.randn(n_train, m, d)).to(device).requires_grad_(True)
         self.optimizer = torch.optim.Adam([*f.parameters(), *g.parameters(), self.nodes], lr)
 
     def loss_function(self, index: np.ndarray, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

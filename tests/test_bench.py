@@ -8,7 +8,7 @@ from benchmarks import bench_train_step, bench_ukf
 from benchmarks.reference_structure import RefDecoder, RefLocallyLinear, RefTrainer, ref_ukf
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.nets import ConvDecoder, LocallyLinearTransition
-from ssm_ms.shooting import multiple_shooting_loss
+from ssm_ms.shooting import compile_unavailable_reason, multiple_shooting_loss
 
 
 def reference_copy_of(f: LocallyLinearTransition, g: ConvDecoder) -> tuple[RefLocallyLinear, RefDecoder]:
@@ -66,10 +66,12 @@ def test_reference_ukf_agrees_with_ours_on_a_linear_system():
 def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
     out = tmp_path / f"{script}.md"
     if script == "train_step":
+        compiled = compile_unavailable_reason("default") is None
         bench_train_step.main(["--tiny", "--rounds", "1", "--steps", "1", "--threads", "1", "--models", "SSM-LL",
-                               "--out", str(out)])
+                               "--out", str(out)] + (["--compiled"] if compiled else []))
         rows = [line for line in out.read_text().splitlines() if line.startswith("| SSM-LL")]
         assert len(rows) >= 2 and "reference structure" in rows[0] and "ssm-ms, float32" in rows[1]
+        assert ("compiled rollout" in rows[-1]) == compiled
     else:
         bench_ukf.main(["--tiny", "--threads", "1", "--out", str(out)])
         text = out.read_text()
