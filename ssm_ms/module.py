@@ -171,14 +171,16 @@ class MultipleShootingModule(pl.LightningModule):
             )
 
     def _make_nodes(self, num_trajectories: int) -> None:
-        self.nodes = nn.Embedding(num_trajectories, self.n_nodes * self.state_dim)
+        # in the module's dtype: Lightning restores a checkpoint into the module before converting its precision
+        # (``64-true``), so nodes made float32 here would round a float64 checkpoint's nodes
+        self.nodes = nn.Embedding(num_trajectories, self.n_nodes * self.state_dim, dtype=self.alpha.dtype)
         nn.init.zeros_(self.nodes.weight)
         self.hparams["num_trajectories"] = num_trajectories
         if self.hparams.get("node_optimizer") == "sparse":  # updated row by row, outside autograd and DDP
             self.nodes.weight.requires_grad_(False)
         if self.al_options is not None:
             gaps = (self.n_nodes - 1) * self.state_dim
-            self.register_buffer("multipliers", torch.zeros(num_trajectories, gaps, device=self.nodes.weight.device))
+            self.register_buffer("multipliers", self.nodes.weight.new_zeros(num_trajectories, gaps))
             # identical on every rank (updated from the gathered batch): DDP need not broadcast them
             self._ddp_params_and_buffers_to_ignore = ["multipliers"]
 

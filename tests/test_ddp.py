@@ -27,16 +27,24 @@ CONFIGS = {
 EPOCHS = 3
 
 
-def _fit(name: str, out: Path, devices: int, data_dir: Path) -> dict[str, torch.Tensor]:
+def _fit(name: str, out: Path, devices: int, data_dir: Path, resume: bool = False) -> dict[str, torch.Tensor]:
+    """``EPOCHS`` epochs; with ``resume``, ``EPOCHS - 1`` epochs, a checkpoint, and the last epoch resumed from
+    it by a new trainer, model and schedule (as after a crash)."""
+    from ssm_ms.checkpointing import EpochCheckpoint
     from ssm_ms.schedule import ShootingSchedule
     from tests.conftest import RotationDataModule, fast_trainer, rotation_model
 
-    dm = RotationDataModule(data_dir=str(data_dir), n_train=11, batch_size=4, val_trajectories=0)
-    model = rotation_model(lr=1e-2, **CONFIGS[name])
-    schedule = ShootingSchedule(alpha=10.0, alpha_epoch=1, lr_milestones=[2], lr_factor=0.1)
     extra = dict(strategy="ddp", devices=2) if devices == 2 else dict(devices=1)
-    trainer = fast_trainer(out, max_epochs=EPOCHS, callbacks=[schedule], precision="64-true", **extra)
-    trainer.fit(model, dm)
+    ckpt = None
+    for epochs in ([EPOCHS - 1, EPOCHS] if resume else [EPOCHS]):
+        dm = RotationDataModule(data_dir=str(data_dir), n_train=11, batch_size=4, val_trajectories=0)
+        # float64 from the start: Lightning restores a checkpoint before it converts the module to 64-true
+        model = rotation_model(lr=1e-2, **CONFIGS[name]).double()
+        callbacks = [ShootingSchedule(alpha=10.0, alpha_epoch=1, lr_milestones=[2], lr_factor=0.1),
+                     EpochCheckpoint(dirpath=str(out / "checkpoints"))]  # what the configs use
+        trainer = fast_trainer(out, max_epochs=epochs, callbacks=callbacks, precision="64-true", **extra)
+        trainer.fit(model, dm, ckpt_path=ckpt)
+        ckpt = out / "checkpoints" / "last.ckpt"
     result = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
     result["steps"] = torch.tensor(trainer.global_step)
     return result
@@ -54,10 +62,11 @@ def main(out: str, bad: bool = False) -> None:
         dm.prepare_data()  # the Trainer prepares data on local rank 0 only
         fast_trainer(out_dir, max_epochs=1, strategy="ddp", devices=2).fit(rotation_model(), dm)
         return
+    rank = int(os.environ.get("LOCAL_RANK", 0))
     for name in CONFIGS:
-        result = _fit(name, out_dir / name, 2, out_dir / "data")
-        rank = int(os.environ.get("LOCAL_RANK", 0))
-        torch.save(result, out_dir / f"{name}-rank{rank}.pt")
+        torch.save(_fit(name, out_dir / name, 2, out_dir / "data"), out_dir / f"{name}-rank{rank}.pt")
+        torch.save(_fit(name, out_dir / f"{name}-resumed", 2, out_dir / "data", resume=True),
+                   out_dir / f"{name}-resumed-rank{rank}.pt")
 
 
 @pytest.fixture(scope="module")
@@ -76,18 +85,19 @@ def ddp_run(tmp_path_factory):
 
 @pytest.mark.parametrize("name", list(CONFIGS))
 def test_two_processes_match_one_on_the_same_global_batches(ddp_run, name):
-    """f, g, nodes, multipliers and alpha after 3 epochs (9 steps, schedule milestones inside) agree
-    with the 1-process run to 1e-9 on both ranks (float64: the only difference is the order in which
+    """f, g, nodes, multipliers and alpha after 3 epochs (9 steps, schedule milestones inside), run through
+    or resumed from a checkpoint after epoch 2, agree with the 1-process run to 1e-9 on both ranks (float64: the only difference is the order in which
     the gradient of f and g is summed), and the ranks hold identical tables."""
     reference = _fit(name, ddp_run / f"{name}-single", 1, ddp_run / "data")
-    ranks = [torch.load(ddp_run / f"{name}-rank{r}.pt") for r in range(2)]
     assert int(reference["steps"]) == 9
-    for result in ranks:
-        assert result.keys() == reference.keys()
-        for key, value in reference.items():
-            torch.testing.assert_close(result[key], value, rtol=1e-9, atol=1e-12, msg=f"{name}: {key}")
-    for key in ranks[0]:
-        assert torch.equal(ranks[0][key], ranks[1][key]), key
+    for run in (name, f"{name}-resumed"):  # uninterrupted, and resumed from a checkpoint after epoch 2
+        ranks = [torch.load(ddp_run / f"{run}-rank{r}.pt") for r in range(2)]
+        for result in ranks:
+            assert result.keys() == reference.keys()
+            for key, value in reference.items():
+                torch.testing.assert_close(result[key], value, rtol=1e-9, atol=1e-12, msg=f"{run}: {key}")
+        for key in ranks[0]:
+            assert torch.equal(ranks[0][key], ranks[1][key]), key
     if name == "sparse-al":
         assert reference["alpha_factor"] > 1 and (reference["multipliers"] != 0).all()
 
