@@ -42,9 +42,9 @@ class ConvDecoder(nn.Module):
             the strides; none at the sizes the stack draws exactly, e.g. the presets' 24, 48, 64). Sizes
             below what a 1x1 stem draws are refused with the sizes that work. Give ``stem_size`` or
             ``image_size``, not both.
-        channels_last: run the feature maps in channels-last memory layout (same results, same
-            parameters), the layout oneDNN's CPU convolutions are fastest in; strided transposed
-            convolutions then run through :func:`conv_transpose2d`. LayerNorm is applied to the
+        channels_last: run the feature maps after the first transposed convolution in channels-last memory
+            layout (same results, same parameters), the layout oneDNN's CPU convolutions are fastest in;
+            the transposed convolutions then run through :func:`conv_transpose2d`. LayerNorm is applied to the
             ``(H, W, C)``-ordered sample, a view, never a copy.
     """
 
@@ -105,7 +105,9 @@ class ConvDecoder(nn.Module):
         h = self.stem(x.reshape(-1, self.state_dim)).view(-1, *self.stem_shape)
         if not self.channels_last:
             return self._centre(self.deconv(h)).reshape(*lead, *self.out_shape)
-        h = h.contiguous(memory_format=torch.channels_last)
+        # the stem's small map stays in the Linear's NCHW order, the layout in which oneDNN convolves a 3x3 map
+        # fastest (first layer forward+backward: pendulum 40 ms instead of 54, Moving MNIST 0.77 s instead of 1.1);
+        # the transposed convolutions return channels-last maps
         layers = list(self.deconv)
         i = 0
         while i < len(layers):
