@@ -6,8 +6,9 @@ STAMP   = $(VENV)/.installed
 LOGDIR ?= runs
 EXP    ?= pendulum
 SIZE   ?= paper
-# share of each CPU config's epochs for the penalty / augmented-Lagrangian benchmark (1 = as shipped, ~12 h)
-CONSTRAINTS_FRACTION ?= 0.1
+# share of the CPU configs' epochs for the penalty / augmented-Lagrangian benchmark (1 = as shipped, ~12 h)
+CONSTRAINTS_PENDULUM ?= 0.3
+CONSTRAINTS_LORENZ   ?= 0.2
 
 .PHONY: install demo test test-slow tensorboard bench reproduce
 
@@ -43,7 +44,10 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_moving_mnist.py
 	$(PY) benchmarks/bench_ukf.py
 	$(PY) benchmarks/bench_ddp_nodes.py
-	$(PY) benchmarks/bench_constraints.py --fraction $(CONSTRAINTS_FRACTION)
+	$(PY) benchmarks/bench_constraints.py --experiments pendulum --fraction $(CONSTRAINTS_PENDULUM) \
+		--out benchmarks/results/constraints_pendulum.md
+	$(PY) benchmarks/bench_constraints.py --experiments lorenz_T1000 --fraction $(CONSTRAINTS_LORENZ) \
+		--out benchmarks/results/constraints_lorenz_T1000.md
 
 ## One experiment end to end: SSM fit -> encoder fit -> test (-> UKF), results in results/$(EXP).md.
 ## make reproduce EXP=pendulum [SIZE=cpu]; EXP among pendulum pendulum_fc quad quad_fc mnist lorenz_T10 ... oscillator
