@@ -212,8 +212,10 @@ def main(argv: list[str] | None = None) -> None:
         f"- command: `{cmd}`",
         f"- date: {start.isoformat(timespec='seconds')}",
         f"- load average (1/5/15 min) before: {'/'.join(f'{v:.2f}' for v in load0)}, after: "
-        f"{'/'.join(f'{v:.2f}' for v in load1)}. The machine was shared with other jobs: absolute figures "
-        "are slower than on a quiet machine; the same-round ratios are the comparison.",
+        f"{'/'.join(f'{v:.2f}' for v in load1)}"
+        + (". The machine was shared with other jobs: absolute figures are slower than on a quiet machine; the "
+           "same-round ratios are the comparison." if max(load0[0], load1[0]) > args.threads + 0.5 else
+           " (one benchmark worker runs at a time: the machine was otherwise quiet)."),
         f"- set-up: {'TINY sizes (smoke test) ' if args.tiny else ''}batch {size['batch']}, m {size['m']}, "
         f"n {size['n']}, state {size['d']}, SSM-LL K {size['k']} hidden {size['hidden']}, SSM-FC 3 x {size['fc']}, "
         "24x24 images, Adam, loss fit + 1000 gap",
