@@ -6,7 +6,8 @@ STAMP   = $(VENV)/.installed
 LOGDIR ?= runs
 EXP    ?= pendulum
 SIZE   ?= paper
-# share of the CPU configs' epochs for the penalty / augmented-Lagrangian benchmark (1 = as shipped, ~12 h)
+# share of the CPU configs' epochs for the penalty / augmented-Lagrangian benchmark (13 variants each:
+# ~35 min for the pendulum at 0.3, ~65 min for Lorenz at 0.2 on 2 cores; 1 = the configs as shipped)
 CONSTRAINTS_PENDULUM ?= 0.3
 CONSTRAINTS_LORENZ   ?= 0.2
 
