@@ -365,3 +365,17 @@ def test_cli_model_reloads_in_python_with_its_config(rotation):
     trainer.save_checkpoint(root / "again.ckpt")
     again = torch.load(root / "again.ckpt", weights_only=True)
     assert "networks" not in again and again["hyper_parameters"]["f"] == model.hparams["f"]
+
+
+EXAMPLE_CONFIGS = sorted((ROOT / "configs" / "examples").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("config", EXAMPLE_CONFIGS, ids=[p.stem for p in EXAMPLE_CONFIGS])
+def test_example_configs_layer_on_an_ssm_config(tmp_path, config):
+    """configs/examples/*.yaml, added after a CPU config as the README shows, parse and set what they say."""
+    cli = main(["--config", str(CPU / "pendulum.yaml"), "--config", str(config), "--trainer.accelerator", "cpu",
+                "--trainer.logger.init_args.save_dir", str(tmp_path)], run=False)  # ddp.yaml asks for GPUs
+    wanted = OmegaConf.to_container(OmegaConf.load(config)).get("model", {}).get("init_args", {})
+    assert wanted
+    for key, value in wanted.items():
+        assert cli.model.hparams[key] == value, key
