@@ -186,7 +186,17 @@ def main(argv: list[str] | None = None) -> None:
     if args.worker:
         worker(args.worker[0], args.worker[1], args.tiny, args.threads, args.device)
         return
+    import torch
+
     from ssm_ms.machine import describe
+    from ssm_ms.shooting import compile_unavailable_reason
+
+    if args.device == "cuda" and not torch.cuda.is_available():  # before any worker starts (and dies)
+        parser.error("--device cuda: torch sees no CUDA device here; run on a machine with a GPU or leave --device out")
+    if args.compiled:
+        why = compile_unavailable_reason("reduce-overhead" if args.device == "cuda" else "default")
+        if why is not None:
+            parser.error(f"--compiled: {why}")
 
     impls = ["reference", "ours"]
     bf16_note = ""

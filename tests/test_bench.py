@@ -77,3 +77,11 @@ def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
         text = out.read_text()
         assert "| reference UKF structure" in text and "| **UKF, float32 (default)** |" in text
     assert "TINY sizes" in out.read_text()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has a GPU")
+def test_train_step_benchmark_refuses_cuda_without_a_gpu(capsys):
+    with pytest.raises(SystemExit) as stop:
+        bench_train_step.main(["--tiny", "--device", "cuda"])
+    assert stop.value.code == 2
+    assert "--device cuda: torch sees no CUDA device here" in capsys.readouterr().err
