@@ -16,7 +16,9 @@ Implementations:
 
 * ``reference``: :mod:`benchmarks.reference_structure` (its networks, its per-step ``loss_function``,
   a dense node tensor, default allocator);
-* ``ours``: ``MultipleShootingModule.shooting_loss`` + its Adam, float32;
+* ``ours``: ``MultipleShootingModule.shooting_loss`` + its Adam, float32 (the decoder's fused native kernels
+  where they compile: :mod:`ssm_ms.nets.native`);
+* ``ours-torch``: the same with ``ConvDecoder(native=False)``, the torch-only decoder;
 * ``ours-bf16``: the same under ``torch.autocast(device, bfloat16)``, what ``trainer.precision: bf16-mixed``
   does (only where the device has native bfloat16 instructions; else it is reported as skipped);
 * ``ours-compiled`` (``--compiled``): float32 with ``compile_rollout`` (``reduce-overhead`` on a GPU:
@@ -49,6 +51,7 @@ TINY = {"batch": 2, "m": 2, "n": 3, "d": 4, "k": 4, "hidden": 16, "fc": 16, "n_t
 LABELS = {
     "reference": "reference structure (NCHW decoder, g per time step, default allocator)",
     "ours": "ssm-ms, float32",
+    "ours-torch": "ssm-ms, float32, torch-only decoder (native kernels off)",
     "ours-bf16": "ssm-ms, bf16-mixed (autocast bfloat16)",
     "ours-compiled": "ssm-ms, float32, compiled rollout",
 }
@@ -77,7 +80,8 @@ def build(impl: str, model: str, size: dict, device: str = "cpu"):
     f = LocallyLinearTransition(d, size["k"], size["hidden"]) if model == "SSM-LL" else \
         FullyConnectedTransition(d, (size["fc"],) * 3)
     compiled = ("reduce-overhead" if device == "cuda" else "default") if impl == "ours-compiled" else None
-    module = MultipleShootingModule(f, ConvDecoder(d, "pendulum"), d, num_trajectories=size["n_train"], n_nodes=m,
+    g = ConvDecoder(d, "pendulum", native=impl != "ours-torch")
+    module = MultipleShootingModule(f, g, d, num_trajectories=size["n_train"], n_nodes=m,
                                     compile_rollout=compiled).to(device)
     with torch.no_grad():
         module.nodes.weight.normal_(0.0, 0.1)
@@ -198,7 +202,7 @@ def main(argv: list[str] | None = None) -> None:
         if why is not None:
             parser.error(f"--compiled: {why}")
 
-    impls = ["reference", "ours"]
+    impls = ["reference", "ours", "ours-torch"]
     bf16_note = ""
     if not args.no_bf16:
         if bf16_native(args.device):

@@ -5,11 +5,14 @@ Any ``nn.Module`` with that contract works as ``g``.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from ssm_ms.nets import native
 
 # (stem channels, stem size, [(out_channels, kernel, stride), ...]) of the paper's decoders.
 PRESETS: dict[str, tuple[int, int, list[tuple[int, int, int]]]] = {
@@ -46,6 +49,10 @@ class ConvDecoder(nn.Module):
             layout (same results, same parameters), the layout oneDNN's CPU convolutions are fastest in;
             the transposed convolutions then run through :func:`conv_transpose2d`. LayerNorm is applied to the
             ``(H, W, C)``-ordered sample, a view, never a copy.
+        native: with ``channels_last``, on CPU in float32 (no autocast, no forward-mode AD), run each
+            ``ConvTranspose2d, LayerNorm, ReLU`` block, and the matrix product of a last layer with
+            ``k^2 C_out <= C_in``, through the fused native kernels of :mod:`ssm_ms.nets.native` (compiled on first
+            use; same values up to float rounding). Where they cannot be compiled, the torch-only path runs.
     """
 
     def __init__(
@@ -58,6 +65,7 @@ class ConvDecoder(nn.Module):
         output: str = "sigmoid",
         channels_last: bool = True,
         image_size: int | None = None,
+        native: bool = True,
     ):
         super().__init__()
         if image_size is not None and stem_size is not None:
@@ -97,6 +105,7 @@ class ConvDecoder(nn.Module):
         s = s if image_size is None else int(image_size)
         self.out_shape = (c, s, s)
         self.channels_last = channels_last
+        self.native = native
         if channels_last:
             self.deconv.to(memory_format=torch.channels_last)
 
@@ -108,10 +117,22 @@ class ConvDecoder(nn.Module):
         # the stem's small map stays in the Linear's NCHW order, the layout in which oneDNN convolves a 3x3 map
         # fastest (first layer forward+backward: pendulum 40 ms instead of 54, Moving MNIST 0.77 s instead of 1.1);
         # the transposed convolutions return channels-last maps
+        fused = self.native and native_applies(h)
         layers = list(self.deconv)
         i = 0
         while i < len(layers):
             layer = layers[i]
+            if fused and self._fusable_block(layers, i):
+                norm, nxt = layers[i + 1], layers[i + 3] if i + 3 < len(layers) else None
+                if isinstance(nxt, nn.ConvTranspose2d) and _projects(nxt.weight):
+                    cols = _DeconvNorm.apply(h, layer.weight, layer.bias, norm.weight, norm.bias, nxt.weight,
+                                             layer.stride[0], norm.eps)
+                    h, i = _TapScatter.apply(cols, nxt.bias, nxt.stride[0]), i + 4
+                else:
+                    h = _DeconvNorm.apply(h, layer.weight, layer.bias, norm.weight, norm.bias, None, layer.stride[0],
+                                          norm.eps)
+                    i += 3
+                continue
             if isinstance(layer, nn.LayerNorm):
                 relu = i + 1 < len(layers) and isinstance(layers[i + 1], nn.ReLU)
                 h = layer_norm_channels_last(layer, h, relu=relu)
@@ -122,6 +143,14 @@ class ConvDecoder(nn.Module):
                 h = layer(h)
             i += 1
         return self._centre(h).reshape(*lead, *self.out_shape)  # a view for one uncropped channel, else a copy
+
+    @staticmethod
+    def _fusable_block(layers: list[nn.Module], i: int) -> bool:
+        """``layers[i:i + 3]`` is ``ConvTranspose2d, LayerNorm (with affine parameters), ReLU``."""
+        block = layers[i : i + 3]
+        return (len(block) == 3 and isinstance(block[0], nn.ConvTranspose2d) and isinstance(block[1], nn.LayerNorm)
+                and isinstance(block[2], nn.ReLU) and block[1].weight is not None and block[1].bias is not None
+                and block[0].padding == (0, 0) and block[0].stride[0] == block[0].stride[1])
 
     def _centre(self, h: torch.Tensor) -> torch.Tensor:
         """The centre ``out_shape`` of the drawn images (a view; ``h`` itself when nothing is cropped)."""
@@ -179,21 +208,29 @@ def layer_norm_channels_last(ln: nn.LayerNorm, h: torch.Tensor, relu: bool = Fal
     return out.view(n, height, width, c).permute(0, 3, 1, 2)
 
 
-def _phase_forward(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
-    """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding) as one stride-1 convolution and one copy.
+def _phase_conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
+    """The ``s^2`` output phases of ``F.conv_transpose2d(x, weight, bias, stride)`` (no padding) as the channels of
+    one stride-1 convolution: ``[N, s^2 C_out, H + T - 1, W + T - 1]``, channel ``(p_y, p_x, c_out)``.
 
     Output pixel ``s j + p`` (phase ``p < s``) sums the taps ``k = p + s t`` over the inputs ``j - t``,
-    ``t < T = ceil(kernel / s)``: per phase a ``T x T`` convolution. The ``s^2`` phases are the output
-    channels of one ``Conv2d(C_in, s^2 C_out, T, padding=T-1)`` (its weight gathered from ``weight``,
-    taps beyond the kernel zero), then copied, interleaved and cropped to ``(H - 1) s + kernel``, into
-    a channels-last result.
+    ``t < T = ceil(kernel / s)``: per phase a ``T x T`` convolution. The phases are the output channels of one
+    ``Conv2d(C_in, s^2 C_out, T, padding=T-1)``, its weight gathered from ``weight`` (taps beyond the kernel zero).
+    Pixel ``(s j + p_y, s i + p_x)`` of the transposed convolution, for the ``(H - 1) s + kernel`` rows and
+    columns it has, is element ``(p_y, p_x, c_out), j, i`` of the result.
     """
     c_in, c_out, k, _ = weight.shape
     s, t = stride, -(-k // stride)
     w = F.pad(weight, (0, s * t - k, 0, s * t - k)).view(c_in, c_out, t, s, t, s).flip(2, 4)
     w = w.permute(3, 5, 1, 0, 2, 4).reshape(s * s * c_out, c_in, t, t)  # output channel (p_y, p_x, c_out)
     b = None if bias is None else bias.repeat(s * s)
-    y = F.conv2d(x, w, b, padding=t - 1)
+    return F.conv2d(x, w, b, padding=t - 1)
+
+
+def _phase_forward(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
+    """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding) as :func:`_phase_conv` and one copy: the phases
+    interleaved and cropped to ``(H - 1) s + kernel`` into a channels-last result."""
+    c_out, k, s = weight.shape[1], weight.shape[2], stride
+    y = _phase_conv(x, weight, bias, stride)
     n, _, rows_in, cols_in = y.shape
     phases = y.permute(0, 2, 3, 1).reshape(n, rows_in, cols_in, s, s, c_out)  # a view when channels-last
     height, width = (x.shape[2] - 1) * s + k, (x.shape[3] - 1) * s + k
@@ -233,21 +270,27 @@ class _ConvTranspose(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         x, weight = ctx.saved_tensors
-        s = ctx.stride
-        grad_x = grad_w = grad_b = None
-        if ctx.needs_input_grad[0]:
-            grad_x = F.conv2d(grad, weight, stride=s)
-        if ctx.needs_input_grad[1]:
-            grad_w = torch.ops.aten.convolution_backward(
-                x, grad, weight, None, [s, s], [0, 0], [1, 1], False, [0, 0], 1, [False, True, False]
-            )[1]
-        if ctx.has_bias and ctx.needs_input_grad[2]:
-            grad_b = channel_sum(grad)
-        return grad_x, grad_w, grad_b, None
+        return (*_conv_transpose_backward(x, weight, grad, ctx.stride, ctx.has_bias, ctx.needs_input_grad), None)
 
     @staticmethod
     def jvp(ctx, x_t, weight_t, bias_t, _):
         return _linear_jvp(_phase_forward, ctx, x_t, weight_t, bias_t)
+
+
+def _conv_transpose_backward(x, weight, grad, stride, has_bias, needs):
+    """Gradients ``(x, weight, bias)`` of ``F.conv_transpose2d(x, weight, bias, stride)`` given the output's
+    gradient ``grad`` (``None`` where ``needs`` says not needed)."""
+    s = stride
+    grad_x = grad_w = grad_b = None
+    if needs[0]:
+        grad_x = F.conv2d(grad, weight, stride=s)
+    if needs[1]:
+        grad_w = torch.ops.aten.convolution_backward(
+            x, grad, weight, None, [s, s], [0, 0], [1, 1], False, [0, 0], 1, [False, True, False]
+        )[1]
+    if has_bias and needs[2]:
+        grad_b = channel_sum(grad)
+    return grad_x, grad_w, grad_b
 
 
 def channel_sum(grad: torch.Tensor) -> torch.Tensor:
@@ -335,6 +378,13 @@ def _linear_jvp(forward, ctx, x_t, weight_t, bias_t):
     return out
 
 
+def _projects(weight: torch.Tensor) -> bool:
+    """A transposed convolution whose per-pixel products ``k^2 C_out`` are no more than its input channels
+    ``C_in``: computed as a matrix product and shifted adds (e.g. a decoder's last, image-drawing layer)."""
+    c_in, c_out, k, _ = weight.shape
+    return k * k * c_out <= c_in
+
+
 def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
     """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding, square stride), fast on CPU.
 
@@ -343,10 +393,9 @@ def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
     :class:`_ConvTranspose`; the rest (stride 1: a plain convolution with a flipped kernel, no gain measured)
     and other devices (cuDNN's transposed convolutions are fine) use ``F.conv_transpose2d`` itself.
     """
-    c_in, c_out, k, _ = weight.shape
     if x.device.type != "cpu":
         return F.conv_transpose2d(x, weight, bias, stride)
-    if k * k * c_out <= c_in:
+    if _projects(weight):
         function = _ConvTransposeGemm
     elif stride > 1:
         function = _ConvTranspose
@@ -357,6 +406,136 @@ def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
         with torch.autocast("cpu", enabled=False):
             return function.apply(x.to(dtype), weight.to(dtype), None if bias is None else bias.to(dtype), stride)
     return function.apply(x, weight, bias, stride)
+
+
+@functools.lru_cache(maxsize=32)
+def _norm_index(c: int, height: int, width: int, stride: int, strides: tuple[int, ...]) -> tuple[torch.Tensor, ...]:
+    """Index maps of a ``(c, height, width)`` map, element ``k`` in C H W order: ``src[k]``, its offset in a sample
+    of the :func:`_phase_conv` output with ``strides``; ``dst[k]``, its offset in a channels-last sample."""
+    ch = torch.arange(c).view(c, 1, 1)
+    row, col = torch.arange(height).view(1, -1, 1), torch.arange(width).view(1, 1, -1)
+    phase = ((row % stride) * stride + col % stride) * c + ch
+    src = phase * strides[1] + (row // stride) * strides[2] + (col // stride) * strides[3]
+    dst = (row * width + col) * c + ch
+    return src.reshape(-1).to(torch.int32), dst.reshape(-1).to(torch.int32)
+
+
+class _DeconvNorm(torch.autograd.Function):
+    """``relu(LayerNorm((C, H, W))(conv_transpose2d(x, weight, bias, stride)))``, optionally followed by the
+    per-pixel matrix product of the next transposed convolution (``proj_weight``: its ``[C, C_next, k, k]``
+    weight), through the native kernels of :mod:`ssm_ms.nets.native` (float32, CPU).
+
+    The transposed convolution runs as :func:`_phase_conv`; the kernels read its phases in place (no interleaving
+    copy), normalise each sample in cache, and write the ReLU output as a channels-last map, or with
+    ``proj_weight`` only the products ``[N, k, k, C_next, H, W]`` that :class:`_TapScatter` adds into the next
+    layer's output (the normalised map is never stored). The backward recomputes the normalised sample from the
+    saved convolution output and writes the transposed convolution's output gradient in one pass; the
+    convolution's own gradients are then those of :class:`_ConvTranspose`. Same values as the torch-only path up
+    to float rounding; first-order gradients only (no forward-mode AD: the decoder takes the torch-only path there).
+    """
+
+    @staticmethod
+    def forward(ctx, x, weight, bias, gamma, beta, proj_weight, stride, eps):
+        lib = native.library()
+        c, k = weight.shape[1], weight.shape[2]
+        height, width = (x.shape[2] - 1) * stride + k, (x.shape[3] - 1) * stride + k
+        y = _phase_conv(x, weight, bias, stride)
+        n, size = y.shape[0], c * height * width
+        src, dst = _norm_index(c, height, width, stride, y.stride())
+        gamma, beta = gamma.contiguous(), beta.contiguous()
+        if proj_weight is None:
+            proj, q = None, 0
+            out = y.new_empty(n, height, width, c)
+        else:
+            k_next, c_next = proj_weight.shape[2], proj_weight.shape[1]
+            proj = proj_weight.permute(0, 2, 3, 1).reshape(c, k_next * k_next * c_next).contiguous()
+            q = proj.shape[1]
+            out = y.new_empty(n, q, height * width)
+        mean, rstd = y.new_empty(n), y.new_empty(n)
+        native.check(lib.fused_norm_forward(
+            y.data_ptr(), y.stride(0), src.data_ptr(), dst.data_ptr(), size, c, gamma.data_ptr(), beta.data_ptr(),
+            eps, None if proj is None else proj.data_ptr(), q, out.data_ptr(), out.stride(0), mean.data_ptr(),
+            rstd.data_ptr(), n))
+        ctx.save_for_backward(x, weight, y, gamma, beta, proj, mean, rstd)
+        ctx.stride, ctx.has_bias, ctx.shape = stride, bias is not None, (c, height, width)
+        if proj_weight is None:
+            return out.permute(0, 3, 1, 2)
+        ctx.proj_shape = (c, k_next, k_next, c_next)
+        return out.view(n, k_next, k_next, c_next, height, width)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        x, weight, y, gamma, beta, proj, mean, rstd = ctx.saved_tensors
+        lib = native.library()
+        (c, height, width), n = ctx.shape, y.shape[0]
+        size, pixels = c * height * width, height * width
+        if proj is None:
+            dout, q = grad.permute(0, 2, 3, 1).contiguous(), 0  # channels-last rows (a view when it is so)
+        else:
+            dout, q = grad.contiguous().view(n, -1), proj.shape[1]
+        count = max(1, min(native.threads(), n))
+        dz = y.new_empty(n, height, width, c)
+        dgamma, dbeta = y.new_zeros(count, size), y.new_zeros(count, size)
+        dproj, dsum = y.new_zeros(count, c * q), y.new_zeros(count, c)
+        src, dst = _norm_index(c, height, width, ctx.stride, y.stride())
+        native.check(lib.fused_norm_backward(
+            y.data_ptr(), y.stride(0), src.data_ptr(), dst.data_ptr(), size, c, gamma.data_ptr(), beta.data_ptr(),
+            mean.data_ptr(), rstd.data_ptr(), None if proj is None else proj.data_ptr(), q, dout.data_ptr(),
+            dout.stride(0), dz.data_ptr(), dgamma.data_ptr(), dbeta.data_ptr(), dproj.data_ptr(), dsum.data_ptr(), n,
+            count))
+        dz = dz.permute(0, 3, 1, 2)  # the transposed convolution's output gradient, channels-last
+        needs = ctx.needs_input_grad
+        grads = _conv_transpose_backward(x, weight, dz, ctx.stride, False, needs)[:2]  # bias: the kernel's sums
+        grads += (dsum.sum(0) if ctx.has_bias and needs[2] else None,)
+        grad_proj = None
+        if proj is not None:
+            grad_proj = dproj.sum(0).view(ctx.proj_shape).permute(0, 3, 1, 2)
+        return (*grads, dgamma.sum(0).view(c, height, width), dbeta.sum(0).view(c, height, width), grad_proj,
+                None, None)
+
+
+class _TapScatter(torch.autograd.Function):
+    """``out[n, c, s i + a, s j + b] = bias[c] + sum_(a, b) cols[n, a, b, c, i, j]``: the shifted adds that finish a
+    transposed convolution (kernel ``k``, ``stride``) whose per-pixel products ``cols [N, k, k, C, H, W]`` exist.
+    The result is ``[N, C, (H - 1) s + k, (W - 1) s + k]``, contiguous."""
+
+    @staticmethod
+    def forward(ctx, cols, bias, stride):
+        n, k, _, c, h, w = cols.shape
+        s = stride
+        out = cols.new_zeros(n, c, (h - 1) * s + k, (w - 1) * s + k)
+        if bias is not None:
+            out += bias.view(1, c, 1, 1)
+        for a in range(k):
+            for b in range(k):
+                out[:, :, a : a + s * (h - 1) + 1 : s, b : b + s * (w - 1) + 1 : s] += cols[:, a, b]
+        ctx.stride, ctx.shape, ctx.has_bias = stride, cols.shape, bias is not None
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        n, k, _, c, h, w = ctx.shape
+        s = ctx.stride
+        cols = grad.new_empty(ctx.shape)
+        for a in range(k):
+            for b in range(k):
+                cols[:, a, b] = grad[:, :, a : a + s * (h - 1) + 1 : s, b : b + s * (w - 1) + 1 : s]
+        grad_b = channel_sum(grad) if ctx.has_bias and ctx.needs_input_grad[1] else None
+        return cols, grad_b, None
+
+
+def native_applies(h: torch.Tensor) -> bool:
+    """Whether the fused native blocks can run on ``h``: float32 on CPU, outside autocast and forward-mode AD
+    (``torch.func`` transforms or dual tensors), with the kernels compiled."""
+    if h.device.type != "cpu" or h.dtype != torch.float32 or torch.is_autocast_enabled("cpu"):
+        return False
+    if torch._C._functorch.is_functorch_wrapped_tensor(h):
+        return False
+    if torch.autograd.forward_ad._current_level >= 0 and torch.autograd.forward_ad.unpack_dual(h).tangent is not None:
+        return False
+    return native.library() is not None
 
 
 class Projection(nn.Module):

@@ -1,0 +1,203 @@
+/* Fused "LayerNorm over a whole feature map, then ReLU, then (optionally) a per-pixel projection" for the
+ * ConvDecoder's channels-last blocks, forward and backward, float32, one row (sample) at a time.
+ *
+ * A row is handled in C H W order (that of nn.LayerNorm((C, H, W))'s parameters). It is read from the
+ * convolution's output through an index map (src[k]: where element k lies in that sample's memory), so the
+ * transposed convolution's phase layout is never copied into an interleaved map; maps written for torch
+ * (the ReLU output, the input gradient) are channels-last rows, element k at dst[k] = (h W + w) C + c. Each row is gathered once into a small buffer (a sample: ~25 KB for the pendulum,
+ * in L1/L2), normalised there, and written once: the feature map is read once per direction instead of the
+ * five to eight passes of separate layer-norm, ReLU and matrix-product kernels.
+ *
+ * Compiled on first use by ssm_ms/nets/native.py (plain C, no Python or torch headers) and called through
+ * ctypes. Rows are shared among OpenMP threads: loaded into a process that has torch, the library binds to the
+ * libgomp that torch loaded (same soname), so it uses torch's threads and follows torch.set_num_threads. Built
+ * without OpenMP (a compiler without -fopenmp), the pragmas are ignored and the rows run on one thread.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+/* How many threads the kernels use (torch's intra-op thread count when bound to torch's libgomp). */
+int fused_norm_threads(void)
+{
+#ifdef _OPENMP
+    return omp_get_max_threads();
+#else
+    return 1;
+#endif
+}
+
+/* Row statistics of buf[0..D): mean and 1/sqrt(var + eps) (two passes over the buffer, like torch). */
+static void row_stats(const float *restrict buf, int64_t D, float eps, float *mean_out, float *rstd_out)
+{
+    float s = 0.0f;
+#pragma omp simd reduction(+ : s)
+    for (int64_t k = 0; k < D; ++k) s += buf[k];
+    const float mean = s / (float)D;
+    float v = 0.0f;
+#pragma omp simd reduction(+ : v)
+    for (int64_t k = 0; k < D; ++k) {
+        const float c = buf[k] - mean;
+        v += c * c;
+    }
+    *mean_out = mean;
+    *rstd_out = 1.0f / sqrtf(v / (float)D + eps);
+}
+
+/* Rows r0..r1 of h = relu(layer_norm(row) * gamma + beta), D = C P elements (P pixels per channel).
+ * proj == NULL: out row = h as a channels-last row (dst). Else out row [Q, P]: out[q, p] = sum_c proj[c, q] h[c, p].
+ * Returns 0, or -1 where scratch memory could not be allocated. */
+int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t *restrict src,
+                       const int32_t *restrict dst, int64_t D, int64_t C,
+                       const float *restrict gamma, const float *restrict beta, float eps,
+                       const float *restrict proj, int64_t Q,
+                       float *restrict out, int64_t out_stride, float *restrict mean, float *restrict rstd,
+                       int64_t rows)
+{
+    const int64_t P = D / C;
+    int failed = 0;
+#pragma omp parallel reduction(| : failed)
+    {
+    float *restrict buf = malloc((size_t)D * sizeof(float));
+    failed = buf == NULL;
+#pragma omp for schedule(static)
+    for (int64_t r = 0; r < rows; ++r) {
+        if (failed) continue;
+        const float *restrict yr = y + r * y_stride;
+        for (int64_t k = 0; k < D; ++k) buf[k] = yr[src[k]];
+        float mu, rs;
+        row_stats(buf, D, eps, &mu, &rs);
+        mean[r] = mu;
+        rstd[r] = rs;
+#pragma omp simd
+        for (int64_t k = 0; k < D; ++k) {
+            const float a = (buf[k] - mu) * rs * gamma[k] + beta[k];
+            buf[k] = a > 0.0f ? a : 0.0f;
+        }
+        float *restrict o = out + r * out_stride;
+        if (proj == NULL) {
+            for (int64_t k = 0; k < D; ++k) o[dst[k]] = buf[k];
+            continue;
+        }
+        for (int64_t q = 0; q < Q; ++q) {
+            float *restrict oq = o + q * P;
+            for (int64_t p = 0; p < P; ++p) oq[p] = 0.0f;
+            for (int64_t c = 0; c < C; ++c) {
+                const float w = proj[c * Q + q];
+                const float *restrict h = buf + c * P;
+#pragma omp simd
+                for (int64_t p = 0; p < P; ++p) oq[p] += w * h[p];
+            }
+        }
+    }
+    free(buf);
+    }
+    return failed ? -1 : 0;
+}
+
+/* Gradients of fused_norm_forward: dx (channels-last rows of D), and the parameters' gradients summed over the
+ * rows of each thread t < threads (at most fused_norm_threads()) into the caller's zeroed row t of
+ * dgamma, dbeta [threads, D] (C H W order), dproj [threads, C Q] and dsum [threads, C] (the per-channel sums of
+ * dx: the preceding convolution's bias gradient); the caller sums those rows in order, so that a given thread
+ * count always gives the same bits. dout rows are as the forward wrote them.
+ * Returns 0, or -1 where scratch memory could not be allocated. */
+int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t *restrict src,
+                        const int32_t *restrict dst, int64_t D, int64_t C,
+                        const float *restrict gamma, const float *restrict beta,
+                        const float *restrict mean, const float *restrict rstd,
+                        const float *restrict proj, int64_t Q,
+                        const float *restrict dout, int64_t dout_stride, float *restrict dx,
+                        float *restrict dgamma_all, float *restrict dbeta_all, float *restrict dproj_all,
+                        float *restrict dsum_all, int64_t rows, int threads)
+{
+    const int64_t P = D / C, CQ = proj == NULL ? 0 : C * Q;
+    int failed = 0;
+#pragma omp parallel num_threads(threads) reduction(| : failed)
+    {
+#ifdef _OPENMP
+    const int64_t slot = omp_get_thread_num();
+#else
+    const int64_t slot = 0;
+#endif
+    float *restrict dgamma = dgamma_all + slot * D, *restrict dbeta = dbeta_all + slot * D;
+    float *restrict dproj = dproj_all + slot * CQ, *restrict dsum = dsum_all + slot * C;
+    float *restrict scratch = malloc((size_t)(2 * D + P) * sizeof(float)); /* xhat, g [D], t [P] */
+    failed = scratch == NULL;
+    float *restrict xhat = scratch, *restrict g = scratch + D, *restrict t = scratch + 2 * D;
+#pragma omp for schedule(static)
+    for (int64_t r = 0; r < rows; ++r) {
+        if (failed) continue;
+        const float *restrict yr = y + r * y_stride;
+        const float mu = mean[r], rs = rstd[r];
+#pragma omp simd
+        for (int64_t k = 0; k < D; ++k) xhat[k] = (yr[src[k]] - mu) * rs;
+        const float *restrict d = dout + r * dout_stride;
+        float s1 = 0.0f, s2 = 0.0f;
+        for (int64_t c = 0; c < C; ++c) { /* channel by channel, while its slice of the row is in L1 */
+            const int64_t o = c * P;
+            const float *restrict xc = xhat + o, *restrict gc = gamma + o, *restrict bc = beta + o;
+            float *restrict ga = g + o;
+            if (proj == NULL) {
+                const int32_t *restrict dc = dst + o;
+#pragma omp simd
+                for (int64_t p = 0; p < P; ++p) {
+                    const float a = xc[p] * gc[p] + bc[p], dk = d[dc[p]]; /* loaded either way: no branch */
+                    ga[p] = a > 0.0f ? dk : 0.0f;                         /* dL/da: the ReLU's mask */
+                }
+            } else {
+#pragma omp simd
+                for (int64_t p = 0; p < P; ++p) {
+                    const float a = xc[p] * gc[p] + bc[p];
+                    ga[p] = a > 0.0f ? a : 0.0f; /* h */
+                    t[p] = 0.0f;
+                }
+                for (int64_t q = 0; q < Q; ++q) {
+                    const float w = proj[c * Q + q];
+                    const float *restrict dq = d + q * P;
+                    float acc = 0.0f;
+#pragma omp simd reduction(+ : acc)
+                    for (int64_t p = 0; p < P; ++p) {
+                        t[p] += w * dq[p];
+                        acc += ga[p] * dq[p];
+                    }
+                    dproj[c * Q + q] += acc;
+                }
+#pragma omp simd
+                for (int64_t p = 0; p < P; ++p) ga[p] = ga[p] > 0.0f ? t[p] : 0.0f;
+            }
+            float *restrict dgc = dgamma + o, *restrict dbc = dbeta + o;
+#pragma omp simd reduction(+ : s1, s2)
+            for (int64_t p = 0; p < P; ++p) {
+                const float da = ga[p];
+                dbc[p] += da;
+                dgc[p] += da * xc[p];
+                const float gg = da * gc[p];
+                ga[p] = gg;
+                s1 += gg;
+                s2 += gg * xc[p];
+            }
+        }
+        const float m1 = s1 / (float)D, m2 = s2 / (float)D;
+        float *restrict dxr = dx + r * D;
+        for (int64_t c = 0; c < C; ++c) {
+            const int64_t o = c * P;
+            const float *restrict xc = xhat + o, *restrict ga = g + o;
+            const int32_t *restrict dc = dst + o;
+            float acc = 0.0f;
+#pragma omp simd reduction(+ : acc)
+            for (int64_t p = 0; p < P; ++p) {
+                const float v = rs * (ga[p] - m1 - xc[p] * m2);
+                dxr[dc[p]] = v;
+                acc += v;
+            }
+            dsum[c] += acc;
+        }
+    }
+    free(scratch);
+    }
+    return failed ? -1 : 0;
+}

@@ -1,0 +1,135 @@
+"""Native CPU kernels for the ConvDecoder: compiled on first use with the system C compiler, called through ctypes.
+
+The kernels (``_fused_norm.c``: a layer norm over a whole feature map, its ReLU and an optional per-pixel
+projection, forward and backward, float32) are plain C without Python or torch headers: compiling them takes
+about a second. The shared library is cached under ``$SSM_MS_CACHE`` (default ``$XDG_CACHE_HOME/ssm_ms`` or
+``~/.cache/ssm_ms``), keyed by the source, the compiler, its flags and this CPU's instruction sets (it is built
+with ``-march=native``), so a home directory shared between machines never loads a library built for another
+CPU. The rows (samples) are shared among OpenMP threads: the library links ``libgomp.so.1``, and in a process
+that has imported torch that is torch's own copy (same soname), so the kernels run on torch's intra-op threads
+and follow ``torch.set_num_threads``. A compiler without ``-fopenmp`` gives a one-thread build.
+
+Where no C compiler is found, compiling fails, or ``SSM_MS_NATIVE=0`` is set, :func:`library` returns
+``None`` and :func:`unavailable_reason` says why; the decoder then runs its torch-only path (same values).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+from pathlib import Path
+
+import torch
+
+SOURCE = Path(__file__).with_name("_fused_norm.c")
+# the first set the compiler accepts
+FLAG_SETS = (["-O3", "-march=native", "-fopenmp"], ["-O3", "-fopenmp"], ["-O3", "-march=native"], ["-O3"])
+
+_lock = threading.Lock()
+_state: dict[str, object] = {}
+
+
+def _compiler() -> str | None:
+    for name in (os.environ.get("CC"), "cc", "gcc", "clang"):
+        if name and shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def _cpu_signature() -> str:
+    """The CPU's model and instruction-set flags (what ``-march=native`` compiles for)."""
+    text = ""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith(("flags", "model name", "Features", "CPU part")):
+                    text += line
+                if line.strip() == "":
+                    break  # the first processor describes them all
+    except OSError:
+        pass
+    return platform.machine() + platform.processor() + text
+
+
+def cache_dir() -> Path:
+    if os.environ.get("SSM_MS_CACHE"):
+        return Path(os.environ["SSM_MS_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "ssm_ms"
+
+
+def _build() -> tuple[ctypes.CDLL | None, str | None]:
+    if os.environ.get("SSM_MS_NATIVE", "1") == "0":
+        return None, "SSM_MS_NATIVE=0 is set"
+    cc = _compiler()
+    if cc is None:
+        return None, "no C compiler (cc, gcc or clang; or $CC) on PATH"
+    source = SOURCE.read_bytes()
+    errors = []
+    for flags in FLAG_SETS:
+        key = hashlib.sha256(source + cc.encode() + " ".join(flags).encode() + _cpu_signature().encode()).hexdigest()
+        target = cache_dir() / f"fused_norm-{key[:20]}.so"
+        if not target.exists():
+            try:
+                target.parent.mkdir(parents=True, exist_ok=True)
+                fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
+                os.close(fd)
+                result = subprocess.run([cc, *flags, "-shared", "-fPIC", "-o", tmp, str(SOURCE), "-lm"],
+                                        capture_output=True, text=True)
+                if result.returncode != 0:
+                    os.unlink(tmp)
+                    first = next((ln for ln in result.stderr.splitlines() if "error" in ln), result.stderr.strip()[:200])
+                    errors.append(f"{Path(cc).name} {' '.join(flags)}: {first.strip()}")
+                    continue
+                os.replace(tmp, target)  # atomic: a concurrent process sees the whole library or none
+            except OSError as err:
+                errors.append(f"cannot write {target.parent}: {err}")
+                break
+        try:
+            lib = ctypes.CDLL(str(target))
+        except OSError as err:
+            errors.append(f"cannot load {target}: {err}")
+            continue
+        _declare(lib)
+        return lib, None
+    return None, "compiling the native kernels failed (" + "; ".join(errors) + ")"
+
+
+def _declare(lib: ctypes.CDLL) -> None:
+    p, i, f, n = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_int
+    lib.fused_norm_threads.argtypes, lib.fused_norm_threads.restype = [], n
+    lib.fused_norm_forward.argtypes = [p, i, p, p, i, i, p, p, f, p, i, p, i, p, p, i]
+    lib.fused_norm_forward.restype = n
+    lib.fused_norm_backward.argtypes = [p, i, p, p, i, i, p, p, p, p, p, i, p, i, p, p, p, p, p, i, n]
+    lib.fused_norm_backward.restype = n
+
+
+def library() -> ctypes.CDLL | None:
+    """The compiled kernels, built on the first call (``None`` where unavailable: see :func:`unavailable_reason`)."""
+    with _lock:
+        if "lib" not in _state:
+            _state["lib"], _state["reason"] = _build()
+        return _state["lib"]  # type: ignore[return-value]
+
+
+def unavailable_reason() -> str | None:
+    library()
+    return _state["reason"]  # type: ignore[return-value]
+
+
+def threads() -> int:
+    """How many threads the kernels share rows among (torch's intra-op thread count)."""
+    lib = library()
+    return 1 if lib is None else int(lib.fused_norm_threads())
+
+
+def check(status: int) -> None:
+    """Raise for a kernel's non-zero return (its scratch memory could not be allocated)."""
+    if status != 0:
+        raise MemoryError("ssm_ms native kernel: out of memory for its scratch buffers")

@@ -1,0 +1,150 @@
+"""The decoder's fused native kernels (ssm_ms/nets/native.py, _fused_norm.c) against torch's own layers."""
+
+import pytest
+import torch
+
+from ssm_ms.nets import ConvDecoder, native
+from ssm_ms.nets.observation import native_applies
+
+NATIVE = native.library() is not None
+needs_native = pytest.mark.skipif(not NATIVE, reason=f"native kernels unavailable: {native.unavailable_reason()}")
+
+# (stem channels, stem size, layers, image_size): the pendulum's shape (last layer a projection), a stride-1 first
+# layer, a last layer too wide to project (k^2 C_out > C_in: plain transposed convolution), a cropped image,
+# a several-channel projected last layer
+SPECS = [
+    (8, 3, [[6, 5, 3], [5, 3, 2], [1, 2, 1]], None),
+    (4, 2, [[6, 3, 1], [7, 3, 2], [1, 2, 1]], None),
+    (8, 3, [[6, 3, 2], [5, 3, 2], [3, 2, 1]], None),
+    (8, None, [[6, 5, 3], [12, 3, 2], [1, 2, 1]], 20),
+    (8, 2, [[6, 3, 2], [16, 3, 2], [3, 2, 1]], None),
+]
+
+
+def _pair(state_dim, stem, size, layers, image_size):
+    torch.manual_seed(0)
+    kwargs = dict(preset=None, stem_channels=stem, stem_size=size, layers=layers, image_size=image_size)
+    fused = ConvDecoder(state_dim, **kwargs)
+    with torch.no_grad():  # non-trivial LayerNorm affine parameters: a wrong element order would show
+        for p in fused.parameters():
+            p.add_(0.2 * torch.randn_like(p))
+    plain = ConvDecoder(state_dim, **kwargs, channels_last=False).double()  # torch's own layers, NCHW, float64
+    plain.load_state_dict(fused.state_dict())
+    return fused, plain
+
+
+def _graph_names(t: torch.Tensor) -> set[str]:
+    names, seen, todo = set(), set(), [t.grad_fn]
+    while todo:
+        fn = todo.pop()
+        if fn is not None and id(fn) not in seen:
+            seen.add(id(fn))
+            names.add(type(fn).__name__)
+            todo += [nxt for nxt, _ in fn.next_functions]
+    return names
+
+
+@needs_native
+@pytest.mark.parametrize("stem, size, layers, image_size", SPECS)
+def test_fused_decoder_matches_torch_layers_in_float64(stem, size, layers, image_size):
+    fused, plain = _pair(5, stem, size, layers, image_size)
+    x = torch.randn(9, 5, requires_grad=True)
+    out = fused(x)
+    assert "_DeconvNormBackward" in _graph_names(out)  # the native blocks ran
+    x64 = x.detach().double().requires_grad_()
+    want = plain(x64)
+    torch.testing.assert_close(out.double(), want, rtol=1e-5, atol=1e-5)
+    weight = torch.randn_like(want)
+    got = torch.autograd.grad((out * weight.float()).sum(), [x, *fused.parameters()])
+    ref = torch.autograd.grad((want * weight).sum(), [x64, *plain.parameters()])
+    names = [n for n, _ in fused.named_parameters()]
+    for name, g, r in zip(["x", *names], got, ref):
+        scale = r.abs().max().clamp_min(1e-3)
+        assert ((g.double() - r).abs().max() / scale).item() < 2e-5, name
+
+
+@needs_native
+def test_fused_decoder_gives_the_same_bits_twice_and_uses_every_thread_count():
+    fused, _ = _pair(5, *SPECS[0])
+    x = torch.randn(64, 5, requires_grad=True)
+    threads = torch.get_num_threads()
+    results = []
+    try:
+        for n in (threads, threads, 1):
+            torch.set_num_threads(n)
+            out = fused(x)
+            results.append((out.detach(), *torch.autograd.grad(out.square().sum(), [x, *fused.parameters()])))
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(results[0], results[1]):  # same thread count: identical, run to run
+        assert torch.equal(a, b)
+    for a, b in zip(results[0], results[2]):  # one thread: the same up to the order of the parameter sums
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+@needs_native
+def test_native_path_steps_aside_where_it_cannot_run():
+    fused, plain = _pair(5, *SPECS[0])
+    x = torch.randn(4, 5)
+    assert native_applies(x)
+    assert not native_applies(x.double())
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert not native_applies(x)
+    # forward-mode AD (analysis.jacobian's fallback) runs the torch-only path: tangents match float64 torch layers
+    from torch.func import jvp
+
+    tangent = torch.randn(4, 5)
+    _, got = jvp(fused, (x,), (tangent,))
+    _, want = jvp(plain, (x.double(),), (tangent.double(),))
+    torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)
+    off = ConvDecoder(5, preset=None, stem_channels=8, stem_size=3, layers=SPECS[0][2], native=False)
+    off.load_state_dict(fused.state_dict())
+    y = off(x.requires_grad_())
+    assert "_DeconvNormBackward" not in _graph_names(y)
+    torch.testing.assert_close(y, fused(x), rtol=1e-5, atol=1e-6)
+
+
+@pytest.fixture
+def fresh_native(monkeypatch, tmp_path):
+    """native with no library loaded yet and its cache in tmp_path."""
+    monkeypatch.setattr(native, "_state", {})
+    monkeypatch.setenv("SSM_MS_CACHE", str(tmp_path))
+    return tmp_path
+
+
+def test_unavailable_native_kernels_say_why(fresh_native, monkeypatch):
+    monkeypatch.setenv("SSM_MS_NATIVE", "0")
+    assert native.library() is None
+    assert native.unavailable_reason() == "SSM_MS_NATIVE=0 is set"
+    monkeypatch.setattr(native, "_state", {})
+    monkeypatch.setenv("SSM_MS_NATIVE", "1")
+    monkeypatch.setattr(native, "_compiler", lambda: None)
+    assert native.library() is None and "no C compiler" in native.unavailable_reason()
+    # without the kernels the decoder runs its torch-only path
+    x = torch.randn(3, 5)
+    assert not native_applies(x)
+    assert ConvDecoder(5, "pendulum")(x).shape == (3, 1, 24, 24)
+
+
+def test_a_compiler_error_is_reported_not_raised(fresh_native, monkeypatch):
+    broken = fresh_native / "broken.c"
+    broken.write_text("this is not C\n")
+    monkeypatch.setattr(native, "SOURCE", broken)
+    assert native.library() is None
+    reason = native.unavailable_reason()
+    assert reason.startswith("compiling the native kernels failed") and "error" in reason
+    assert not list(fresh_native.glob("*.so"))  # nothing half-written left in the cache
+
+
+@pytest.mark.skipif(native._compiler() is None, reason="no C compiler here")
+def test_the_cache_is_keyed_by_the_cpu(fresh_native, monkeypatch):
+    assert native.library() is not None
+    first = sorted(p.name for p in fresh_native.glob("*.so"))
+    assert len(first) == 1
+    monkeypatch.setattr(native, "_state", {})
+    assert native.library() is not None  # same CPU: the cached library, nothing rebuilt
+    assert sorted(p.name for p in fresh_native.glob("*.so")) == first
+    monkeypatch.setattr(native, "_state", {})
+    monkeypatch.setattr(native, "_cpu_signature", lambda: "another CPU flags : avx2")
+    assert native.library() is not None  # another CPU (a home directory shared between machines): its own build
+    assert len(list(fresh_native.glob("*.so"))) == 2
