@@ -1,12 +1,17 @@
-/* Fused "LayerNorm over a whole feature map, then ReLU, then (optionally) a per-pixel projection" for the
- * ConvDecoder's channels-last blocks, forward and backward, float32, one row (sample) at a time.
+/* Fused "LayerNorm over a whole feature map, then ReLU, then (optionally) the next transposed convolution" for
+ * the ConvDecoder's channels-last blocks, forward and backward, float32, one row (sample) at a time.
+ *
+ * The next layer, when fused, is a transposed convolution whose per-pixel products are few (K^2 C2 <= C, e.g.
+ * the image-drawing layer): proj [C, Q] holds its weight as (c; a, b, c2), Q = K K C2; each pixel's products are
+ * added at (S i + a, S j + b) of its output [C2, (H - 1) S + K, (W - 1) S + K], with bias2 (or none).
  *
  * A row is handled in C H W order (that of nn.LayerNorm((C, H, W))'s parameters). It is read from the
  * convolution's output through an index map (src[k]: where element k lies in that sample's memory), so the
  * transposed convolution's phase layout is never copied into an interleaved map; maps written for torch
- * (the ReLU output, the input gradient) are channels-last rows, element k at dst[k] = (h W + w) C + c. Each row is gathered once into a small buffer (a sample: ~25 KB for the pendulum,
- * in L1/L2), normalised there, and written once: the feature map is read once per direction instead of the
- * five to eight passes of separate layer-norm, ReLU and matrix-product kernels.
+ * (the ReLU output, the input gradient) are channels-last rows, element k at dst[k] = (h W + w) C + c. Each
+ * row is gathered once into a small buffer (a sample: ~25 KB for the pendulum, in L1/L2), normalised there,
+ * and written once: the feature map is read once per direction instead of the five to eight passes of separate
+ * layer-norm, ReLU and convolution kernels, and with the next layer fused it is never written at all.
  *
  * Compiled on first use by ssm_ms/nets/native.py (plain C, no Python or torch headers) and called through
  * ctypes. Rows are shared among OpenMP threads: loaded into a process that has torch, the library binds to the
@@ -48,26 +53,49 @@ static void row_stats(const float *restrict buf, int64_t D, float eps, float *me
     *rstd_out = 1.0f / sqrtf(v / (float)D + eps);
 }
 
-/* Rows r0..r1 of h = relu(layer_norm(row) * gamma + beta), D = C P elements (P pixels per channel).
- * proj == NULL: out row = h as a channels-last row (dst). Else out row [Q, P]: out[q, p] = sum_c proj[c, q] h[c, p].
- * Returns 0, or -1 where scratch memory could not be allocated. */
+/* The next layer's geometry: output pixel of product q = (a, b, c2) at input pixel (i, j) of a W-wide map. */
+typedef struct {
+    int64_t H, W, K, S, C2, H2, W2, Q;
+} next_layer;
+
+static next_layer next_geometry(int64_t P, int64_t W, int64_t K, int64_t S, int64_t C2)
+{
+    next_layer g = {P / W, W, K, S, C2, (P / W - 1) * S + K, (W - 1) * S + K, K * K * C2};
+    return g;
+}
+
+/* Offset in the next layer's output [C2, H2, W2] of product q's contribution from input row i, column 0. */
+static int64_t tap_offset(const next_layer *g, int64_t q, int64_t i)
+{
+    const int64_t a = q / (g->K * g->C2), b = (q / g->C2) % g->K, c2 = q % g->C2;
+    return (c2 * g->H2 + g->S * i + a) * g->W2 + b;
+}
+
+/* h = relu(layer_norm(row) * gamma + beta), D = C P elements (P pixels per channel, W of them per map row).
+ * proj == NULL: out row = h as a channels-last row (dst). Else out row = the next transposed convolution
+ * (kernel K, stride S, C2 channels, bias2 or NULL) of h, [C2, H2, W2]. Returns 0, or -1 where scratch memory
+ * could not be allocated. */
 int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t *restrict src,
-                       const int32_t *restrict dst, int64_t D, int64_t C,
+                       const int32_t *restrict dst, int64_t D, int64_t C, int64_t W,
                        const float *restrict gamma, const float *restrict beta, float eps,
-                       const float *restrict proj, int64_t Q,
+                       const float *restrict proj, int64_t K, int64_t S, int64_t C2, const float *restrict bias2,
                        float *restrict out, int64_t out_stride, float *restrict mean, float *restrict rstd,
                        int64_t rows)
 {
     const int64_t P = D / C;
+    const next_layer g = next_geometry(P, W, K, S, C2);
+    const int64_t Q = proj == NULL ? 0 : g.Q;
     int failed = 0;
 #pragma omp parallel reduction(| : failed)
     {
-    float *restrict buf = malloc((size_t)D * sizeof(float));
+    float *restrict buf = malloc((size_t)(D + Q * P) * sizeof(float)); /* the row, then the products [Q, P] */
     failed = buf == NULL;
+    float *restrict cols = buf + D;
 #pragma omp for schedule(static)
     for (int64_t r = 0; r < rows; ++r) {
         if (failed) continue;
         const float *restrict yr = y + r * y_stride;
+#pragma omp simd
         for (int64_t k = 0; k < D; ++k) buf[k] = yr[src[k]];
         float mu, rs;
         row_stats(buf, D, eps, &mu, &rs);
@@ -80,19 +108,30 @@ int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t 
         }
         float *restrict o = out + r * out_stride;
         if (proj == NULL) {
+#pragma omp simd
             for (int64_t k = 0; k < D; ++k) o[dst[k]] = buf[k];
             continue;
         }
         for (int64_t q = 0; q < Q; ++q) {
-            float *restrict oq = o + q * P;
-            for (int64_t p = 0; p < P; ++p) oq[p] = 0.0f;
+            float *restrict cq = cols + q * P;
+            for (int64_t p = 0; p < P; ++p) cq[p] = 0.0f;
             for (int64_t c = 0; c < C; ++c) {
                 const float w = proj[c * Q + q];
                 const float *restrict h = buf + c * P;
 #pragma omp simd
-                for (int64_t p = 0; p < P; ++p) oq[p] += w * h[p];
+                for (int64_t p = 0; p < P; ++p) cq[p] += w * h[p];
             }
         }
+        for (int64_t c2 = 0; c2 < C2; ++c2) {
+            const float b0 = bias2 == NULL ? 0.0f : bias2[c2];
+            for (int64_t k = 0; k < g.H2 * g.W2; ++k) o[c2 * g.H2 * g.W2 + k] = b0;
+        }
+        for (int64_t q = 0; q < Q; ++q)
+            for (int64_t i = 0; i < g.H; ++i) {
+                float *restrict oi = o + tap_offset(&g, q, i);
+                const float *restrict ci = cols + q * P + i * W;
+                for (int64_t j = 0; j < W; ++j) oi[S * j] += ci[j];
+            }
     }
     free(buf);
     }
@@ -101,20 +140,22 @@ int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t 
 
 /* Gradients of fused_norm_forward: dx (channels-last rows of D), and the parameters' gradients summed over the
  * rows of each thread t < threads (at most fused_norm_threads()) into the caller's zeroed row t of
- * dgamma, dbeta [threads, D] (C H W order), dproj [threads, C Q] and dsum [threads, C] (the per-channel sums of
- * dx: the preceding convolution's bias gradient); the caller sums those rows in order, so that a given thread
- * count always gives the same bits. dout rows are as the forward wrote them.
- * Returns 0, or -1 where scratch memory could not be allocated. */
+ * dgamma, dbeta [threads, D] (C H W order), dsum [threads, C] (the per-channel sums of dx: the preceding
+ * convolution's bias gradient) and, with the next layer, dproj [threads, C Q] and dbias2 [threads, C2]; the
+ * caller sums those rows in order, so that a given thread count always gives the same bits. dout rows are as the
+ * forward wrote them. Returns 0, or -1 where scratch memory could not be allocated. */
 int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t *restrict src,
-                        const int32_t *restrict dst, int64_t D, int64_t C,
+                        const int32_t *restrict dst, int64_t D, int64_t C, int64_t W,
                         const float *restrict gamma, const float *restrict beta,
                         const float *restrict mean, const float *restrict rstd,
-                        const float *restrict proj, int64_t Q,
+                        const float *restrict proj, int64_t K, int64_t S, int64_t C2,
                         const float *restrict dout, int64_t dout_stride, float *restrict dx,
-                        float *restrict dgamma_all, float *restrict dbeta_all, float *restrict dproj_all,
-                        float *restrict dsum_all, int64_t rows, int threads)
+                        float *restrict dgamma_all, float *restrict dbeta_all, float *restrict dsum_all,
+                        float *restrict dproj_all, float *restrict dbias2_all, int64_t rows, int threads)
 {
-    const int64_t P = D / C, CQ = proj == NULL ? 0 : C * Q;
+    const int64_t P = D / C;
+    const next_layer geo = next_geometry(P, W, K, S, C2);
+    const int64_t Q = proj == NULL ? 0 : geo.Q;
     int failed = 0;
 #pragma omp parallel num_threads(threads) reduction(| : failed)
     {
@@ -124,10 +165,14 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
     const int64_t slot = 0;
 #endif
     float *restrict dgamma = dgamma_all + slot * D, *restrict dbeta = dbeta_all + slot * D;
-    float *restrict dproj = dproj_all + slot * CQ, *restrict dsum = dsum_all + slot * C;
-    float *restrict scratch = malloc((size_t)(2 * D + P) * sizeof(float)); /* xhat, g [D], t [P] */
+    float *restrict dsum = dsum_all + slot * C;
+    float *restrict dproj = proj == NULL ? NULL : dproj_all + slot * C * Q;
+    float *restrict dbias2 = proj == NULL || dbias2_all == NULL ? NULL : dbias2_all + slot * C2;
+    /* xhat, g [D], t [P], the products' gradients [Q, P] */
+    float *restrict scratch = malloc((size_t)(2 * D + P + Q * P) * sizeof(float));
     failed = scratch == NULL;
     float *restrict xhat = scratch, *restrict g = scratch + D, *restrict t = scratch + 2 * D;
+    float *restrict dcols = t + P;
 #pragma omp for schedule(static)
     for (int64_t r = 0; r < rows; ++r) {
         if (failed) continue;
@@ -136,6 +181,22 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
 #pragma omp simd
         for (int64_t k = 0; k < D; ++k) xhat[k] = (yr[src[k]] - mu) * rs;
         const float *restrict d = dout + r * dout_stride;
+        if (proj != NULL) { /* the products' gradients: the output gradient read back at each tap */
+            for (int64_t q = 0; q < Q; ++q)
+                for (int64_t i = 0; i < geo.H; ++i) {
+                    const float *restrict di = d + tap_offset(&geo, q, i);
+                    float *restrict ci = dcols + q * P + i * W;
+                    for (int64_t j = 0; j < W; ++j) ci[j] = di[S * j];
+                }
+            if (dbias2 != NULL)
+                for (int64_t c2 = 0; c2 < C2; ++c2) {
+                    float acc = 0.0f;
+                    const float *restrict dc = d + c2 * geo.H2 * geo.W2;
+#pragma omp simd reduction(+ : acc)
+                    for (int64_t k = 0; k < geo.H2 * geo.W2; ++k) acc += dc[k];
+                    dbias2[c2] += acc;
+                }
+        }
         float s1 = 0.0f, s2 = 0.0f;
         for (int64_t c = 0; c < C; ++c) { /* channel by channel, while its slice of the row is in L1 */
             const int64_t o = c * P;
@@ -157,7 +218,7 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
                 }
                 for (int64_t q = 0; q < Q; ++q) {
                     const float w = proj[c * Q + q];
-                    const float *restrict dq = d + q * P;
+                    const float *restrict dq = dcols + q * P;
                     float acc = 0.0f;
 #pragma omp simd reduction(+ : acc)
                     for (int64_t p = 0; p < P; ++p) {
@@ -185,16 +246,20 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
         float *restrict dxr = dx + r * D;
         for (int64_t c = 0; c < C; ++c) {
             const int64_t o = c * P;
-            const float *restrict xc = xhat + o, *restrict ga = g + o;
-            const int32_t *restrict dc = dst + o;
+            const float *restrict xc = xhat + o;
+            float *restrict ga = g + o;
             float acc = 0.0f;
 #pragma omp simd reduction(+ : acc)
             for (int64_t p = 0; p < P; ++p) {
                 const float v = rs * (ga[p] - m1 - xc[p] * m2);
-                dxr[dc[p]] = v;
+                ga[p] = v;
                 acc += v;
             }
             dsum[c] += acc;
+        }
+        for (int64_t p = 0; p < P; ++p) { /* C H W -> H W C: contiguous stores */
+            float *restrict dp = dxr + p * C;
+            for (int64_t c = 0; c < C; ++c) dp[c] = g[c * P + p];
         }
     }
     free(scratch);

@@ -29,7 +29,7 @@ import torch
 
 SOURCE = Path(__file__).with_name("_fused_norm.c")
 # the first set the compiler accepts
-FLAG_SETS = (["-O3", "-march=native", "-fopenmp"], ["-O3", "-fopenmp"], ["-O3", "-march=native"], ["-O3"])
+FLAG_SETS = (["-O3", "-march=native", "-mtune-ctrl=use_gather", "-fopenmp"], ["-O3", "-march=native", "-fopenmp"], ["-O3", "-fopenmp"], ["-O3", "-march=native"], ["-O3"])
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -104,9 +104,9 @@ def _build() -> tuple[ctypes.CDLL | None, str | None]:
 def _declare(lib: ctypes.CDLL) -> None:
     p, i, f, n = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_int
     lib.fused_norm_threads.argtypes, lib.fused_norm_threads.restype = [], n
-    lib.fused_norm_forward.argtypes = [p, i, p, p, i, i, p, p, f, p, i, p, i, p, p, i]
+    lib.fused_norm_forward.argtypes = [p, i, p, p, i, i, i, p, p, f, p, i, i, i, p, p, i, p, p, i]
     lib.fused_norm_forward.restype = n
-    lib.fused_norm_backward.argtypes = [p, i, p, p, i, i, p, p, p, p, p, i, p, i, p, p, p, p, p, i, n]
+    lib.fused_norm_backward.argtypes = [p, i, p, p, i, i, i, p, p, p, p, p, i, i, i, p, i, p, p, p, p, p, p, i, n]
     lib.fused_norm_backward.restype = n
 
 

@@ -125,12 +125,12 @@ class ConvDecoder(nn.Module):
             if fused and self._fusable_block(layers, i):
                 norm, nxt = layers[i + 1], layers[i + 3] if i + 3 < len(layers) else None
                 if isinstance(nxt, nn.ConvTranspose2d) and _projects(nxt.weight):
-                    cols = _DeconvNorm.apply(h, layer.weight, layer.bias, norm.weight, norm.bias, nxt.weight,
-                                             layer.stride[0], norm.eps)
-                    h, i = _TapScatter.apply(cols, nxt.bias, nxt.stride[0]), i + 4
+                    h = _DeconvNorm.apply(h, layer.weight, layer.bias, norm.weight, norm.bias, nxt.weight, nxt.bias,
+                                          layer.stride[0], nxt.stride[0], norm.eps)
+                    i += 4
                 else:
-                    h = _DeconvNorm.apply(h, layer.weight, layer.bias, norm.weight, norm.bias, None, layer.stride[0],
-                                          norm.eps)
+                    h = _DeconvNorm.apply(h, layer.weight, layer.bias, norm.weight, norm.bias, None, None,
+                                          layer.stride[0], 1, norm.eps)
                     i += 3
                 continue
             if isinstance(layer, nn.LayerNorm):
@@ -421,21 +421,22 @@ def _norm_index(c: int, height: int, width: int, stride: int, strides: tuple[int
 
 
 class _DeconvNorm(torch.autograd.Function):
-    """``relu(LayerNorm((C, H, W))(conv_transpose2d(x, weight, bias, stride)))``, optionally followed by the
-    per-pixel matrix product of the next transposed convolution (``proj_weight``: its ``[C, C_next, k, k]``
-    weight), through the native kernels of :mod:`ssm_ms.nets.native` (float32, CPU).
+    """``relu(LayerNorm((C, H, W))(conv_transpose2d(x, weight, bias, stride)))``, optionally followed by the next
+    transposed convolution (``next_weight [C, C2, K, K]``, ``next_bias``, ``next_stride``; one with
+    ``K^2 C2 <= C``, see :func:`_projects`), through the native kernels of :mod:`ssm_ms.nets.native` (float32, CPU).
 
     The transposed convolution runs as :func:`_phase_conv`; the kernels read its phases in place (no interleaving
-    copy), normalise each sample in cache, and write the ReLU output as a channels-last map, or with
-    ``proj_weight`` only the products ``[N, k, k, C_next, H, W]`` that :class:`_TapScatter` adds into the next
-    layer's output (the normalised map is never stored). The backward recomputes the normalised sample from the
-    saved convolution output and writes the transposed convolution's output gradient in one pass; the
-    convolution's own gradients are then those of :class:`_ConvTranspose`. Same values as the torch-only path up
-    to float rounding; first-order gradients only (no forward-mode AD: the decoder takes the torch-only path there).
+    copy), normalise each sample in cache, and write the ReLU output as a channels-last map, or, with the next
+    layer, that layer's output ``[N, C2, H2, W2]`` (its per-pixel products and their shifted sums done in cache:
+    the normalised map is never stored). The backward recomputes the normalised sample from the saved convolution
+    output and writes the transposed convolution's output gradient in one pass, with the bias gradients; the
+    convolution's input and weight gradients are then those of :class:`_ConvTranspose`. Same values as the
+    torch-only path up to float rounding; first-order gradients only (no forward-mode AD: the decoder takes the
+    torch-only path there).
     """
 
     @staticmethod
-    def forward(ctx, x, weight, bias, gamma, beta, proj_weight, stride, eps):
+    def forward(ctx, x, weight, bias, gamma, beta, next_weight, next_bias, stride, next_stride, eps):
         lib = native.library()
         c, k = weight.shape[1], weight.shape[2]
         height, width = (x.shape[2] - 1) * stride + k, (x.shape[3] - 1) * stride + k
@@ -443,25 +444,23 @@ class _DeconvNorm(torch.autograd.Function):
         n, size = y.shape[0], c * height * width
         src, dst = _norm_index(c, height, width, stride, y.stride())
         gamma, beta = gamma.contiguous(), beta.contiguous()
-        if proj_weight is None:
-            proj, q = None, 0
+        proj, k2, s2, c2 = None, 0, 1, 0
+        if next_weight is None:
             out = y.new_empty(n, height, width, c)
         else:
-            k_next, c_next = proj_weight.shape[2], proj_weight.shape[1]
-            proj = proj_weight.permute(0, 2, 3, 1).reshape(c, k_next * k_next * c_next).contiguous()
-            q = proj.shape[1]
-            out = y.new_empty(n, q, height * width)
+            c2, k2, s2 = next_weight.shape[1], next_weight.shape[2], next_stride
+            proj = next_weight.permute(0, 2, 3, 1).reshape(c, k2 * k2 * c2).contiguous()  # (c; a, b, c2)
+            out = y.new_empty(n, c2, (height - 1) * s2 + k2, (width - 1) * s2 + k2)
+        next_bias = None if next_bias is None else next_bias.contiguous()
         mean, rstd = y.new_empty(n), y.new_empty(n)
         native.check(lib.fused_norm_forward(
-            y.data_ptr(), y.stride(0), src.data_ptr(), dst.data_ptr(), size, c, gamma.data_ptr(), beta.data_ptr(),
-            eps, None if proj is None else proj.data_ptr(), q, out.data_ptr(), out.stride(0), mean.data_ptr(),
-            rstd.data_ptr(), n))
+            y.data_ptr(), y.stride(0), src.data_ptr(), dst.data_ptr(), size, c, width, gamma.data_ptr(),
+            beta.data_ptr(), eps, _ptr(proj), k2, s2, c2, _ptr(next_bias), out.data_ptr(), out.stride(0),
+            mean.data_ptr(), rstd.data_ptr(), n))
         ctx.save_for_backward(x, weight, y, gamma, beta, proj, mean, rstd)
         ctx.stride, ctx.has_bias, ctx.shape = stride, bias is not None, (c, height, width)
-        if proj_weight is None:
-            return out.permute(0, 3, 1, 2)
-        ctx.proj_shape = (c, k_next, k_next, c_next)
-        return out.view(n, k_next, k_next, c_next, height, width)
+        ctx.next = (k2, s2, c2, next_bias is not None)
+        return out.permute(0, 3, 1, 2) if next_weight is None else out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -469,61 +468,37 @@ class _DeconvNorm(torch.autograd.Function):
         x, weight, y, gamma, beta, proj, mean, rstd = ctx.saved_tensors
         lib = native.library()
         (c, height, width), n = ctx.shape, y.shape[0]
-        size, pixels = c * height * width, height * width
+        k2, s2, c2, has_next_bias = ctx.next
+        size = c * height * width
         if proj is None:
-            dout, q = grad.permute(0, 2, 3, 1).contiguous(), 0  # channels-last rows (a view when it is so)
+            dout = grad.permute(0, 2, 3, 1).contiguous()  # channels-last rows (a view when it is so)
         else:
-            dout, q = grad.contiguous().view(n, -1), proj.shape[1]
+            dout = grad.contiguous()
         count = max(1, min(native.threads(), n))
         dz = y.new_empty(n, height, width, c)
-        dgamma, dbeta = y.new_zeros(count, size), y.new_zeros(count, size)
-        dproj, dsum = y.new_zeros(count, c * q), y.new_zeros(count, c)
+        dgamma, dbeta, dsum = y.new_zeros(count, size), y.new_zeros(count, size), y.new_zeros(count, c)
+        dproj = None if proj is None else y.new_zeros(count, proj.numel())
+        dbias2 = y.new_zeros(count, c2) if has_next_bias else None
         src, dst = _norm_index(c, height, width, ctx.stride, y.stride())
         native.check(lib.fused_norm_backward(
-            y.data_ptr(), y.stride(0), src.data_ptr(), dst.data_ptr(), size, c, gamma.data_ptr(), beta.data_ptr(),
-            mean.data_ptr(), rstd.data_ptr(), None if proj is None else proj.data_ptr(), q, dout.data_ptr(),
-            dout.stride(0), dz.data_ptr(), dgamma.data_ptr(), dbeta.data_ptr(), dproj.data_ptr(), dsum.data_ptr(), n,
-            count))
+            y.data_ptr(), y.stride(0), src.data_ptr(), dst.data_ptr(), size, c, width, gamma.data_ptr(),
+            beta.data_ptr(), mean.data_ptr(), rstd.data_ptr(), _ptr(proj), k2, s2, c2, dout.data_ptr(),
+            dout.stride(0), dz.data_ptr(), dgamma.data_ptr(), dbeta.data_ptr(), dsum.data_ptr(), _ptr(dproj),
+            _ptr(dbias2), n, count))
         dz = dz.permute(0, 3, 1, 2)  # the transposed convolution's output gradient, channels-last
         needs = ctx.needs_input_grad
-        grads = _conv_transpose_backward(x, weight, dz, ctx.stride, False, needs)[:2]  # bias: the kernel's sums
-        grads += (dsum.sum(0) if ctx.has_bias and needs[2] else None,)
-        grad_proj = None
+        grad_x, grad_w, _ = _conv_transpose_backward(x, weight, dz, ctx.stride, False, needs)  # bias: dsum
+        grad_b = dsum.sum(0) if ctx.has_bias and needs[2] else None
+        grad_next_w = grad_next_b = None
         if proj is not None:
-            grad_proj = dproj.sum(0).view(ctx.proj_shape).permute(0, 3, 1, 2)
-        return (*grads, dgamma.sum(0).view(c, height, width), dbeta.sum(0).view(c, height, width), grad_proj,
-                None, None)
+            grad_next_w = dproj.sum(0).view(c, k2, k2, c2).permute(0, 3, 1, 2)
+            grad_next_b = None if dbias2 is None else dbias2.sum(0)
+        return (grad_x, grad_w, grad_b, dgamma.sum(0).view(c, height, width), dbeta.sum(0).view(c, height, width),
+                grad_next_w, grad_next_b, None, None, None)
 
 
-class _TapScatter(torch.autograd.Function):
-    """``out[n, c, s i + a, s j + b] = bias[c] + sum_(a, b) cols[n, a, b, c, i, j]``: the shifted adds that finish a
-    transposed convolution (kernel ``k``, ``stride``) whose per-pixel products ``cols [N, k, k, C, H, W]`` exist.
-    The result is ``[N, C, (H - 1) s + k, (W - 1) s + k]``, contiguous."""
-
-    @staticmethod
-    def forward(ctx, cols, bias, stride):
-        n, k, _, c, h, w = cols.shape
-        s = stride
-        out = cols.new_zeros(n, c, (h - 1) * s + k, (w - 1) * s + k)
-        if bias is not None:
-            out += bias.view(1, c, 1, 1)
-        for a in range(k):
-            for b in range(k):
-                out[:, :, a : a + s * (h - 1) + 1 : s, b : b + s * (w - 1) + 1 : s] += cols[:, a, b]
-        ctx.stride, ctx.shape, ctx.has_bias = stride, cols.shape, bias is not None
-        return out
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad):
-        n, k, _, c, h, w = ctx.shape
-        s = ctx.stride
-        cols = grad.new_empty(ctx.shape)
-        for a in range(k):
-            for b in range(k):
-                cols[:, a, b] = grad[:, :, a : a + s * (h - 1) + 1 : s, b : b + s * (w - 1) + 1 : s]
-        grad_b = channel_sum(grad) if ctx.has_bias and ctx.needs_input_grad[1] else None
-        return cols, grad_b, None
+def _ptr(t: torch.Tensor | None) -> int | None:
+    return None if t is None else t.data_ptr()
 
 
 def native_applies(h: torch.Tensor) -> bool:
