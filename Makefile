@@ -39,7 +39,8 @@ tensorboard: $(STAMP)
 ## Speed figures, written to benchmarks/results/ (ssm-ms beside the reference structure, same-run ratios).
 bench: $(STAMP)
 	$(PY) benchmarks/bench_train_step.py
-	$(PY) benchmarks/bench_train_step.py --threads 1 --out benchmarks/results/train_step_threads1.md
+	$(PY) benchmarks/bench_train_step.py --threads 1 --rounds 4 --out benchmarks/results/train_step_threads1.md
+	$(PY) benchmarks/profile_decoder.py
 	$(PY) benchmarks/bench_pendulum_data.py
 	$(PY) benchmarks/bench_lorenz_data.py
 	$(PY) benchmarks/bench_moving_mnist.py

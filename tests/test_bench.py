@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks import bench_train_step, bench_ukf
+from benchmarks import bench_train_step, bench_ukf, profile_decoder
+from ssm_ms.nets import native
 from benchmarks.reference_structure import RefDecoder, RefLocallyLinear, RefTrainer, ref_ukf
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.nets import ConvDecoder, LocallyLinearTransition
@@ -62,7 +63,7 @@ def test_reference_ukf_agrees_with_ours_on_a_linear_system():
     torch.testing.assert_close(ours.means, ref)
 
 
-@pytest.mark.parametrize("script", ["train_step", "ukf"])
+@pytest.mark.parametrize("script", ["train_step", "ukf", "profile_decoder"])
 def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
     out = tmp_path / f"{script}.md"
     if script == "train_step":
@@ -72,6 +73,11 @@ def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
         rows = [line for line in out.read_text().splitlines() if line.startswith("| SSM-LL")]
         assert len(rows) >= 2 and "reference structure" in rows[0] and "ssm-ms, float32" in rows[1]
         assert ("compiled rollout" in rows[-1]) == compiled
+    elif script == "profile_decoder":
+        profile_decoder.main(["--tiny", "--threads", "1", "--repeats", "1", "--out", str(out)])
+        text = out.read_text()
+        assert "| decoder, native kernels |" in text and "| decoder, torch-only |" in text
+        assert ("| native kernels, all calls |" in text) == (native.library() is not None)
     else:
         bench_ukf.main(["--tiny", "--threads", "1", "--out", str(out)])
         text = out.read_text()

@@ -1,0 +1,140 @@
+"""Where the pendulum training step's time goes on CPU: the decoder (native kernels on and off) and f.
+
+    python benchmarks/profile_decoder.py [--threads 2] [--repeats 7]
+    python benchmarks/profile_decoder.py --tiny --out /tmp/x.md      # seconds, for `make test`
+
+On the paper's pendulum step sizes (4000 frames of 24x24 = batch 40 x m 4 x n 25; SSM-LL, K 32, 1024 hidden, on
+160 states x 26 steps), in one process with ``cli.py``'s allocator setting: median milliseconds of
+
+* the decoder's forward + backward through an MSE loss, with the fused native kernels (``ConvDecoder()``) and
+  without (``ConvDecoder(native=False)``), alternated;
+* inside the first, the time of each native kernel call (forward and backward of each fused block), taken
+  around the library's own functions;
+* f's rollout forward + backward.
+
+Writes benchmarks/results/decoder_profile.md with the machine, command and date.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import statistics
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+FULL = {"frames": 4000, "states": 160, "steps": 26, "d": 10, "k": 32, "hidden": 1024}
+TINY = {"frames": 8, "states": 4, "steps": 3, "d": 4, "k": 4, "hidden": 16}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--tiny", action="store_true", help="tiny sizes, to check that the script runs")
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "decoder_profile.md"))
+    args = parser.parse_args(argv)
+
+    from ssm_ms.perf import configure_allocator
+
+    configure_allocator()
+    import torch
+    import torch.nn.functional as F
+
+    from ssm_ms.machine import describe
+    from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, native
+    from ssm_ms.shooting import rollout
+
+    torch.set_num_threads(args.threads)
+    size = TINY if args.tiny else FULL
+    torch.manual_seed(0)
+    fused, plain = ConvDecoder(size["d"], "pendulum"), ConvDecoder(size["d"], "pendulum", native=False)
+    plain.load_state_dict(fused.state_dict())
+    z = torch.randn(size["frames"], size["d"], requires_grad=True)
+    y = torch.rand(size["frames"], 1, 24, 24)
+    f = LocallyLinearTransition(size["d"], size["k"], size["hidden"])
+    nodes = torch.nn.Parameter(0.1 * torch.randn(size["states"], size["d"]))
+
+    calls: dict[str, list[float]] = {}
+    lib = native.library()
+    originals = {}
+    if lib is not None:  # time each kernel call around the library's own function
+        for name in ("fused_norm_forward", "fused_norm_backward"):
+            originals[name] = getattr(lib, name)
+
+            def timed(*a, _fn=originals[name], _name=name):
+                t0 = time.perf_counter()
+                status = _fn(*a)
+                calls.setdefault(_name, []).append(time.perf_counter() - t0)
+                return status
+
+            setattr(lib, name, timed)
+
+    def decoder(g):
+        F.mse_loss(g(z), y).backward()
+
+    def f_rollout():
+        states = rollout(f, nodes, size["steps"])
+        states.square().mean().backward()
+
+    runs = {"decoder, native kernels": lambda: decoder(fused), "decoder, torch-only": lambda: decoder(plain),
+            "f rollout (SSM-LL)": f_rollout}
+    times: dict[str, list[float]] = {name: [] for name in runs}
+    per_call: list[list[float]] = []
+    try:
+        for name, run in runs.items():  # warm-up
+            run()
+        for _ in range(args.repeats):
+            for name, run in runs.items():
+                calls.clear()
+                t0 = time.perf_counter()
+                run()
+                times[name].append(time.perf_counter() - t0)
+                if name == "decoder, native kernels" and calls:
+                    per_call.append(calls["fused_norm_forward"] + calls["fused_norm_backward"])
+    finally:
+        for name, fn in originals.items():
+            setattr(lib, name, fn)
+
+    ms = {name: 1000 * statistics.median(ts) for name, ts in times.items()}
+    cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *(argv or sys.argv[1:])])
+    lines = [
+        "# Pendulum step on CPU: decoder with and without the native kernels, and f",
+        "",
+        f"- machine: {describe()}, {args.threads} torch threads",
+        f"- command: `{cmd}`",
+        f"- date: {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
+        f"- load average (1/5/15 min): {'/'.join(f'{v:.2f}' for v in os.getloadavg())}",
+        f"- set-up: {'TINY sizes (smoke test) ' if args.tiny else ''}{size['frames']} frames 24x24 (pendulum decoder, "
+        f"MSE), SSM-LL K {size['k']} hidden {size['hidden']} on {size['states']} states x {size['steps']} steps; "
+        f"median of {args.repeats} alternated runs, forward + backward",
+        f"- native kernels: {'on' if lib is not None else 'off: ' + str(native.unavailable_reason())}",
+        "",
+        "| part | ms |",
+        "|---|---:|",
+    ]
+    lines += [f"| {name} | {value:.1f} |" for name, value in ms.items()]
+    if per_call:
+        labels = ["forward, block 1", "forward, block 2 (with the image layer)", "backward, block 2", "backward, block 1"]
+        for i, label in enumerate(labels[: len(per_call[0])]):
+            lines.append(f"| native kernel: {label} | {1000 * statistics.median(c[i] for c in per_call):.1f} |")
+        total = 1000 * statistics.median(sum(c) for c in per_call)
+        lines.append(f"| native kernels, all calls | {total:.1f} |")
+        lines.append(f"| decoder with native kernels, the rest (convolutions, stem, sigmoid, loss) | "
+                     f"{ms['decoder, native kernels'] - total:.1f} |")
+    text = "\n".join(lines) + "\n"
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(text)
+    print(text)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
