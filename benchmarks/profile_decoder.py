@@ -10,7 +10,10 @@ On the paper's pendulum step sizes (4000 frames of 24x24 = batch 40 x m 4 x n 25
   without (``ConvDecoder(native=False)``), alternated;
 * inside the first, the time of each native kernel call (forward and backward of each fused block), taken
   around the library's own functions;
-* f's rollout forward + backward.
+* f's rollout forward + backward;
+* the quadruple-pendulum (1000 frames of 48x48) and Moving MNIST (100 frames of 64x64) decoders, forward +
+  backward: as shipped, with the native kernels forced on every block (``NATIVE_MAX_CHANNELS`` raised), and
+  torch-only.
 
 Writes benchmarks/results/decoder_profile.md with the machine, command and date.
 """
@@ -30,8 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-FULL = {"frames": 4000, "states": 160, "steps": 26, "d": 10, "k": 32, "hidden": 1024}
-TINY = {"frames": 8, "states": 4, "steps": 3, "d": 4, "k": 4, "hidden": 16}
+FULL = {"frames": 4000, "states": 160, "steps": 26, "d": 10, "k": 32, "hidden": 1024, "quad": 1000, "mnist": 100}
+TINY = {"frames": 8, "states": 4, "steps": 3, "d": 4, "k": 4, "hidden": 16, "quad": 2, "mnist": 1}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -104,6 +107,7 @@ def main(argv: list[str] | None = None) -> None:
             setattr(lib, name, fn)
 
     ms = {name: 1000 * statistics.median(ts) for name, ts in times.items()}
+    others = {preset: other_decoders(preset, size[preset], size["d"], args.repeats) for preset in ("quad", "mnist")}
     cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *(argv or sys.argv[1:])])
     lines = [
         "# Pendulum step on CPU: decoder with and without the native kernels, and f",
@@ -129,11 +133,49 @@ def main(argv: list[str] | None = None) -> None:
         lines.append(f"| native kernels, all calls | {total:.1f} |")
         lines.append(f"| decoder with native kernels, the rest (convolutions, stem, sigmoid, loss) | "
                      f"{ms['decoder, native kernels'] - total:.1f} |")
+    lines += ["", "| decoder, forward + backward | frames | as shipped, ms | native on every block, ms | torch-only, ms |",
+              "|---|---:|---:|---:|---:|"]
+    for preset, res in others.items():
+        lines.append(f"| {preset} | {size[preset]} | {res['shipped']:.1f} | {res['forced']:.1f} | {res['torch']:.1f} |")
     text = "\n".join(lines) + "\n"
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(text)
     print(text)
     print(f"wrote {args.out}")
+
+
+def other_decoders(preset: str, frames: int, d: int, repeats: int) -> dict[str, float]:
+    """Median ms of another preset's decoder forward+backward: as shipped, native forced on, torch-only."""
+    import torch
+    import torch.nn.functional as F
+
+    from ssm_ms.nets import ConvDecoder, observation
+
+    torch.manual_seed(0)
+    shipped = ConvDecoder(d, preset)
+    torch_only = ConvDecoder(d, preset, native=False)
+    torch_only.load_state_dict(shipped.state_dict())
+    z = torch.randn(frames, d, requires_grad=True)
+    y = torch.rand(frames, *shipped.out_shape)
+    limit = observation.NATIVE_MAX_CHANNELS
+
+    def run(g, forced=False):
+        observation.NATIVE_MAX_CHANNELS = 1 << 30 if forced else limit
+        try:
+            F.mse_loss(g(z), y).backward()
+        finally:
+            observation.NATIVE_MAX_CHANNELS = limit
+
+    runs = {"shipped": lambda: run(shipped), "forced": lambda: run(shipped, True), "torch": lambda: run(torch_only)}
+    times: dict[str, list[float]] = {name: [] for name in runs}
+    for run_once in runs.values():  # warm-up
+        run_once()
+    for _ in range(repeats):
+        for name, run_once in runs.items():
+            t0 = time.perf_counter()
+            run_once()
+            times[name].append(time.perf_counter() - t0)
+    return {name: 1000 * statistics.median(ts) for name, ts in times.items()}
 
 
 if __name__ == "__main__":

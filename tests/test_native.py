@@ -33,13 +33,14 @@ def _pair(state_dim, stem, size, layers, image_size):
     return fused, plain
 
 
-def _graph_names(t: torch.Tensor) -> set[str]:
-    names, seen, todo = set(), set(), [t.grad_fn]
+def _graph_names(t: torch.Tensor) -> list[str]:
+    """The class name of every node of ``t``'s autograd graph, once per node."""
+    names, seen, todo = [], set(), [t.grad_fn]
     while todo:
         fn = todo.pop()
         if fn is not None and id(fn) not in seen:
             seen.add(id(fn))
-            names.add(type(fn).__name__)
+            names.append(type(fn).__name__)
             todo += [nxt for nxt, _ in fn.next_functions]
     return names
 
@@ -102,6 +103,17 @@ def test_native_path_steps_aside_where_it_cannot_run():
     y = off(x.requires_grad_())
     assert "_DeconvNormBackward" not in _graph_names(y)
     torch.testing.assert_close(y, fused(x), rtol=1e-5, atol=1e-6)
+
+
+@needs_native
+def test_wide_maps_take_the_torch_path():
+    """Blocks wider than NATIVE_MAX_CHANNELS (Moving MNIST's 256 and 512) measured slower native: torch runs them."""
+    from ssm_ms.nets.observation import NATIVE_MAX_CHANNELS
+
+    wide = ConvDecoder(3, preset=None, stem_channels=4, stem_size=2,
+                       layers=[[NATIVE_MAX_CHANNELS + 1, 3, 2], [8, 3, 2], [1, 2, 1]])
+    names = _graph_names(wide(torch.randn(2, 3, requires_grad=True)))
+    assert names.count("_DeconvNormBackward") == 1  # the 8-channel block only
 
 
 @pytest.fixture
