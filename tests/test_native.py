@@ -124,6 +124,17 @@ def fresh_native(monkeypatch, tmp_path):
     return tmp_path
 
 
+@pytest.mark.skipif(native._compiler() is None, reason="no C compiler here")
+def test_portable_build_matches_torch_too(fresh_native, monkeypatch):
+    """Without -march=native (no AVX-512 on any CPU) the kernels convert layouts with plain loops instead of
+    register transposes: that build must be as right."""
+    monkeypatch.setattr(native, "FLAG_SETS", (["-O2", "-fopenmp"],))
+    if native.library() is None:
+        pytest.skip(f"portable build unavailable: {native.unavailable_reason()}")
+    test_fused_decoder_matches_torch_layers_in_float64(*SPECS[4])
+    test_fused_decoder_matches_torch_layers_in_float64(*SPECS[0])
+
+
 def test_unavailable_native_kernels_say_why(fresh_native, monkeypatch):
     monkeypatch.setenv("SSM_MS_NATIVE", "0")
     assert native.library() is None

@@ -6,9 +6,10 @@
  * added at (S i + a, S j + b) of its output [C2, (H - 1) S + K, (W - 1) S + K], with bias2 (or none).
  *
  * A row is handled in C H W order (that of nn.LayerNorm((C, H, W))'s parameters). It is read from the
- * convolution's output through an index map (src[k]: where element k lies in that sample's memory), so the
- * transposed convolution's phase layout is never copied into an interleaved map; maps written for torch
- * (the ReLU output, the input gradient) are channels-last rows, element k at dst[k] = (h W + w) C + c. Each
+ * convolution's channels-last output through pixel offsets (poff[p]: where pixel p's C contiguous channels lie in
+ * that sample's memory), so the transposed convolution's phase layout is never copied into an interleaved map;
+ * maps written for torch (the ReLU output, the input gradient) are channels-last [H W C] rows. With AVX-512 the
+ * conversions between pixel-major and C H W order run as 16 x 16 transposes in registers. Each
  * row is gathered once into a small buffer (a sample: ~25 KB for the pendulum, in L1/L2), normalised there,
  * and written once: the feature map is read once per direction instead of the five to eight passes of separate
  * layer-norm, ReLU and convolution kernels, and with the next layer fused it is never written at all.
@@ -25,6 +26,86 @@
 #ifdef _OPENMP
 #include <omp.h>
 #endif
+#ifdef __AVX512F__
+#include <immintrin.h>
+
+/* r[i][j] -> r[j][i] for a 16 x 16 block of floats held in 16 registers. */
+static inline void transpose16(__m512 r[16])
+{
+    __m512 t[16], u[16];
+    for (int k = 0; k < 8; ++k) {
+        t[2 * k] = _mm512_unpacklo_ps(r[2 * k], r[2 * k + 1]);
+        t[2 * k + 1] = _mm512_unpackhi_ps(r[2 * k], r[2 * k + 1]);
+    }
+    for (int G = 0; G < 4; ++G) { /* u[4 G + m], 128-bit lane L: column 4 L + m of rows 4 G .. 4 G + 3 */
+        const __m512d a = _mm512_castps_pd(t[4 * G]), b = _mm512_castps_pd(t[4 * G + 1]);
+        const __m512d c = _mm512_castps_pd(t[4 * G + 2]), d = _mm512_castps_pd(t[4 * G + 3]);
+        u[4 * G] = _mm512_castpd_ps(_mm512_unpacklo_pd(a, c));
+        u[4 * G + 1] = _mm512_castpd_ps(_mm512_unpackhi_pd(a, c));
+        u[4 * G + 2] = _mm512_castpd_ps(_mm512_unpacklo_pd(b, d));
+        u[4 * G + 3] = _mm512_castpd_ps(_mm512_unpackhi_pd(b, d));
+    }
+    for (int m = 0; m < 4; ++m) { /* the 4 x 4 transpose of 128-bit lanes */
+        const __m512 v0 = _mm512_shuffle_f32x4(u[m], u[4 + m], 0x44), v1 = _mm512_shuffle_f32x4(u[m], u[4 + m], 0xEE);
+        const __m512 v2 = _mm512_shuffle_f32x4(u[8 + m], u[12 + m], 0x44);
+        const __m512 v3 = _mm512_shuffle_f32x4(u[8 + m], u[12 + m], 0xEE);
+        r[m] = _mm512_shuffle_f32x4(v0, v2, 0x88);
+        r[4 + m] = _mm512_shuffle_f32x4(v0, v2, 0xDD);
+        r[8 + m] = _mm512_shuffle_f32x4(v1, v3, 0x88);
+        r[12 + m] = _mm512_shuffle_f32x4(v1, v3, 0xDD);
+    }
+}
+#endif
+
+/* row[c P + p] = sample[poff[p] + c] (poff NULL: p C), c < C, p < P: pixel-major channels to C H W order. */
+static void to_chw(const float *restrict sample, const int32_t *restrict poff, int64_t P, int64_t C,
+                   float *restrict row)
+{
+#ifdef __AVX512F__
+    for (int64_t c0 = 0; c0 < C; c0 += 16) {
+        const int64_t nc = C - c0 < 16 ? C - c0 : 16;
+        const __mmask16 cm = (__mmask16)((1u << nc) - 1u);
+        for (int64_t p0 = 0; p0 < P; p0 += 16) {
+            const int64_t np = P - p0 < 16 ? P - p0 : 16;
+            __m512 r[16];
+            for (int64_t i = 0; i < 16; ++i)
+                r[i] = i < np ? _mm512_maskz_loadu_ps(cm, sample + (poff ? poff[p0 + i] : (p0 + i) * C) + c0)
+                              : _mm512_setzero_ps();
+            transpose16(r);
+            const __mmask16 pm = (__mmask16)((1u << np) - 1u);
+            for (int64_t c = 0; c < nc; ++c) _mm512_mask_storeu_ps(row + (c0 + c) * P + p0, pm, r[c]);
+        }
+    }
+#else
+    for (int64_t p = 0; p < P; ++p) {
+        const float *restrict px = sample + (poff ? poff[p] : p * C);
+        for (int64_t c = 0; c < C; ++c) row[c * P + p] = px[c];
+    }
+#endif
+}
+
+/* out[p C + c] = row[c P + p], c < C, p < P: C H W order to a channels-last [H W C] row. */
+static void to_hwc(const float *restrict row, int64_t P, int64_t C, float *restrict out)
+{
+#ifdef __AVX512F__
+    for (int64_t c0 = 0; c0 < C; c0 += 16) {
+        const int64_t nc = C - c0 < 16 ? C - c0 : 16;
+        const __mmask16 cm = (__mmask16)((1u << nc) - 1u);
+        for (int64_t p0 = 0; p0 < P; p0 += 16) {
+            const int64_t np = P - p0 < 16 ? P - p0 : 16;
+            const __mmask16 pm = (__mmask16)((1u << np) - 1u);
+            __m512 r[16];
+            for (int64_t c = 0; c < 16; ++c)
+                r[c] = c < nc ? _mm512_maskz_loadu_ps(pm, row + (c0 + c) * P + p0) : _mm512_setzero_ps();
+            transpose16(r);
+            for (int64_t i = 0; i < np; ++i) _mm512_mask_storeu_ps(out + (p0 + i) * C + c0, cm, r[i]);
+        }
+    }
+#else
+    for (int64_t p = 0; p < P; ++p)
+        for (int64_t c = 0; c < C; ++c) out[p * C + c] = row[c * P + p];
+#endif
+}
 
 /* How many threads the kernels use (torch's intra-op thread count when bound to torch's libgomp). */
 int fused_norm_threads(void)
@@ -75,8 +156,8 @@ static int64_t tap_offset(const next_layer *g, int64_t q, int64_t i)
  * proj == NULL: out row = h as a channels-last row (dst). Else out row = the next transposed convolution
  * (kernel K, stride S, C2 channels, bias2 or NULL) of h, [C2, H2, W2]. Returns 0, or -1 where scratch memory
  * could not be allocated. */
-int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t *restrict src,
-                       const int32_t *restrict dst, int64_t D, int64_t C, int64_t W,
+int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t *restrict poff, int64_t D,
+                       int64_t C, int64_t W,
                        const float *restrict gamma, const float *restrict beta, float eps,
                        const float *restrict proj, int64_t K, int64_t S, int64_t C2, const float *restrict bias2,
                        float *restrict out, int64_t out_stride, float *restrict mean, float *restrict rstd,
@@ -94,9 +175,7 @@ int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t 
 #pragma omp for schedule(static)
     for (int64_t r = 0; r < rows; ++r) {
         if (failed) continue;
-        const float *restrict yr = y + r * y_stride;
-#pragma omp simd
-        for (int64_t k = 0; k < D; ++k) buf[k] = yr[src[k]];
+        to_chw(y + r * y_stride, poff, P, C, buf);
         float mu, rs;
         row_stats(buf, D, eps, &mu, &rs);
         mean[r] = mu;
@@ -108,8 +187,7 @@ int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t 
         }
         float *restrict o = out + r * out_stride;
         if (proj == NULL) {
-#pragma omp simd
-            for (int64_t k = 0; k < D; ++k) o[dst[k]] = buf[k];
+            to_hwc(buf, P, C, o);
             continue;
         }
         for (int64_t q = 0; q < Q; ++q) {
@@ -144,8 +222,8 @@ int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t 
  * convolution's bias gradient) and, with the next layer, dproj [threads, C Q] and dbias2 [threads, C2]; the
  * caller sums those rows in order, so that a given thread count always gives the same bits. dout rows are as the
  * forward wrote them. Returns 0, or -1 where scratch memory could not be allocated. */
-int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t *restrict src,
-                        const int32_t *restrict dst, int64_t D, int64_t C, int64_t W,
+int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t *restrict poff, int64_t D,
+                        int64_t C, int64_t W,
                         const float *restrict gamma, const float *restrict beta,
                         const float *restrict mean, const float *restrict rstd,
                         const float *restrict proj, int64_t K, int64_t S, int64_t C2,
@@ -176,11 +254,12 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
 #pragma omp for schedule(static)
     for (int64_t r = 0; r < rows; ++r) {
         if (failed) continue;
-        const float *restrict yr = y + r * y_stride;
         const float mu = mean[r], rs = rstd[r];
+        to_chw(y + r * y_stride, poff, P, C, xhat);
 #pragma omp simd
-        for (int64_t k = 0; k < D; ++k) xhat[k] = (yr[src[k]] - mu) * rs;
+        for (int64_t k = 0; k < D; ++k) xhat[k] = (xhat[k] - mu) * rs;
         const float *restrict d = dout + r * dout_stride;
+        if (proj == NULL) to_chw(d, NULL, P, C, g); /* the ReLU output's gradient, in C H W order */
         if (proj != NULL) { /* the products' gradients: the output gradient read back at each tap */
             for (int64_t q = 0; q < Q; ++q)
                 for (int64_t i = 0; i < geo.H; ++i) {
@@ -203,11 +282,10 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
             const float *restrict xc = xhat + o, *restrict gc = gamma + o, *restrict bc = beta + o;
             float *restrict ga = g + o;
             if (proj == NULL) {
-                const int32_t *restrict dc = dst + o;
 #pragma omp simd
                 for (int64_t p = 0; p < P; ++p) {
-                    const float a = xc[p] * gc[p] + bc[p], dk = d[dc[p]]; /* loaded either way: no branch */
-                    ga[p] = a > 0.0f ? dk : 0.0f;                         /* dL/da: the ReLU's mask */
+                    const float a = xc[p] * gc[p] + bc[p];
+                    ga[p] = a > 0.0f ? ga[p] : 0.0f; /* dL/da: the ReLU's mask */
                 }
             } else {
 #pragma omp simd
@@ -257,10 +335,7 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
             }
             dsum[c] += acc;
         }
-        for (int64_t p = 0; p < P; ++p) { /* C H W -> H W C: contiguous stores */
-            float *restrict dp = dxr + p * C;
-            for (int64_t c = 0; c < C; ++c) dp[c] = g[c * P + p];
-        }
+        to_hwc(g, P, C, dxr);
     }
     free(scratch);
     }

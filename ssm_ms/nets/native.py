@@ -109,9 +109,9 @@ def _build() -> tuple[ctypes.CDLL | None, str | None]:
 def _declare(lib: ctypes.CDLL) -> None:
     p, i, f, n = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_int
     lib.fused_norm_threads.argtypes, lib.fused_norm_threads.restype = [], n
-    lib.fused_norm_forward.argtypes = [p, i, p, p, i, i, i, p, p, f, p, i, i, i, p, p, i, p, p, i]
+    lib.fused_norm_forward.argtypes = [p, i, p, i, i, i, p, p, f, p, i, i, i, p, p, i, p, p, i]
     lib.fused_norm_forward.restype = n
-    lib.fused_norm_backward.argtypes = [p, i, p, p, i, i, i, p, p, p, p, p, i, i, i, p, i, p, p, p, p, p, p, i, n]
+    lib.fused_norm_backward.argtypes = [p, i, p, i, i, i, p, p, p, p, p, i, i, i, p, i, p, p, p, p, p, p, i, n]
     lib.fused_norm_backward.restype = n
 
 

@@ -418,15 +418,16 @@ def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
 
 
 @functools.lru_cache(maxsize=32)
-def _norm_index(c: int, height: int, width: int, stride: int, strides: tuple[int, ...]) -> tuple[torch.Tensor, ...]:
-    """Index maps of a ``(c, height, width)`` map, element ``k`` in C H W order: ``src[k]``, its offset in a sample
-    of the :func:`_phase_conv` output with ``strides``; ``dst[k]``, its offset in a channels-last sample."""
-    ch = torch.arange(c).view(c, 1, 1)
-    row, col = torch.arange(height).view(1, -1, 1), torch.arange(width).view(1, 1, -1)
-    phase = ((row % stride) * stride + col % stride) * c + ch
-    src = phase * strides[1] + (row // stride) * strides[2] + (col // stride) * strides[3]
-    dst = (row * width + col) * c + ch
-    return src.reshape(-1).to(torch.int32), dst.reshape(-1).to(torch.int32)
+def _pixel_offsets(c: int, height: int, width: int, stride: int, strides: tuple[int, ...]) -> torch.Tensor:
+    """Where pixel ``(Y, X)`` of a ``(c, height, width)`` map (``Y width + X``) starts, its ``c`` channels contiguous,
+    in a sample of the channels-last :func:`_phase_conv` output with ``strides``: its phase's channel block in the
+    slot of input row ``Y // stride``, column ``X // stride``."""
+    if strides[1] != 1:
+        raise ValueError(f"the phase convolution's output must be channels-last, got strides {strides}")
+    row, col = torch.arange(height).view(-1, 1), torch.arange(width).view(1, -1)
+    phase = (row % stride) * stride + col % stride
+    offsets = phase * c + (row // stride) * strides[2] + (col // stride) * strides[3]
+    return offsets.reshape(-1).to(torch.int32)
 
 
 class _DeconvNorm(torch.autograd.Function):
@@ -449,9 +450,9 @@ class _DeconvNorm(torch.autograd.Function):
         lib = native.library()
         c, k = weight.shape[1], weight.shape[2]
         height, width = (x.shape[2] - 1) * stride + k, (x.shape[3] - 1) * stride + k
-        y = _phase_conv(x, weight, bias, stride)
+        y = _phase_conv(x, weight, bias, stride).contiguous(memory_format=torch.channels_last)
         n, size = y.shape[0], c * height * width
-        src, dst = _norm_index(c, height, width, stride, y.stride())
+        poff = _pixel_offsets(c, height, width, stride, y.stride())
         gamma, beta = gamma.contiguous(), beta.contiguous()
         proj, k2, s2, c2 = None, 0, 1, 0
         if next_weight is None:
@@ -463,8 +464,7 @@ class _DeconvNorm(torch.autograd.Function):
         next_bias = None if next_bias is None else next_bias.contiguous()
         mean, rstd = y.new_empty(n), y.new_empty(n)
         native.check(lib.fused_norm_forward(
-            y.data_ptr(), y.stride(0), src.data_ptr(), dst.data_ptr(), size, c, width, gamma.data_ptr(),
-            beta.data_ptr(), eps, _ptr(proj), k2, s2, c2, _ptr(next_bias), out.data_ptr(), out.stride(0),
+            y.data_ptr(), y.stride(0), poff.data_ptr(), size, c, width, gamma.data_ptr(), beta.data_ptr(), eps, _ptr(proj), k2, s2, c2, _ptr(next_bias), out.data_ptr(), out.stride(0),
             mean.data_ptr(), rstd.data_ptr(), n))
         ctx.save_for_backward(x, weight, y, gamma, beta, proj, mean, rstd)
         ctx.stride, ctx.has_bias, ctx.shape = stride, bias is not None, (c, height, width)
@@ -488,10 +488,9 @@ class _DeconvNorm(torch.autograd.Function):
         dgamma, dbeta, dsum = y.new_zeros(count, size), y.new_zeros(count, size), y.new_zeros(count, c)
         dproj = None if proj is None else y.new_zeros(count, proj.numel())
         dbias2 = y.new_zeros(count, c2) if has_next_bias else None
-        src, dst = _norm_index(c, height, width, ctx.stride, y.stride())
+        poff = _pixel_offsets(c, height, width, ctx.stride, y.stride())
         native.check(lib.fused_norm_backward(
-            y.data_ptr(), y.stride(0), src.data_ptr(), dst.data_ptr(), size, c, width, gamma.data_ptr(),
-            beta.data_ptr(), mean.data_ptr(), rstd.data_ptr(), _ptr(proj), k2, s2, c2, dout.data_ptr(),
+            y.data_ptr(), y.stride(0), poff.data_ptr(), size, c, width, gamma.data_ptr(), beta.data_ptr(), mean.data_ptr(), rstd.data_ptr(), _ptr(proj), k2, s2, c2, dout.data_ptr(),
             dout.stride(0), dz.data_ptr(), dgamma.data_ptr(), dbeta.data_ptr(), dsum.data_ptr(), _ptr(dproj),
             _ptr(dbias2), n, count))
         dz = dz.permute(0, 3, 1, 2)  # the transposed convolution's output gradient, channels-last
