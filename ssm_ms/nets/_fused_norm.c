@@ -134,6 +134,42 @@ static void row_stats(const float *restrict buf, int64_t D, float eps, float *me
     *rstd_out = 1.0f / sqrtf(v / (float)D + eps);
 }
 
+/* out[m P + p] = sum_k w[k M + m] in[k P + p], m < M, p < P: the next layer's per-pixel products (and their
+ * adjoint), with the sums over k kept in registers. */
+static void mix(const float *restrict in, const float *restrict w, int64_t K, int64_t M, int64_t P,
+                float *restrict out)
+{
+#ifdef __AVX512F__
+    for (int64_t m0 = 0; m0 < M; m0 += 8) {
+        const int64_t nm = M - m0 < 8 ? M - m0 : 8;
+        for (int64_t p0 = 0; p0 < P; p0 += 16) {
+            const int64_t np = P - p0 < 16 ? P - p0 : 16;
+            const __mmask16 pm = (__mmask16)((1u << np) - 1u);
+            __m512 acc[8];
+            for (int m = 0; m < 8; ++m) acc[m] = _mm512_setzero_ps();
+            for (int64_t k = 0; k < K; ++k) {
+                const __m512 v = _mm512_maskz_loadu_ps(pm, in + k * P + p0);
+                const float *restrict wk = w + k * M + m0;
+                for (int m = 0; m < 8; ++m)
+                    if (m < nm) acc[m] = _mm512_fmadd_ps(_mm512_set1_ps(wk[m]), v, acc[m]);
+            }
+            for (int m = 0; m < 8; ++m)
+                if (m < nm) _mm512_mask_storeu_ps(out + (m0 + m) * P + p0, pm, acc[m]);
+        }
+    }
+#else
+    for (int64_t m = 0; m < M; ++m) {
+        float *restrict om = out + m * P;
+        for (int64_t p = 0; p < P; ++p) om[p] = 0.0f;
+        for (int64_t k = 0; k < K; ++k) {
+            const float wk = w[k * M + m];
+            const float *restrict ik = in + k * P;
+            for (int64_t p = 0; p < P; ++p) om[p] += wk * ik[p];
+        }
+    }
+#endif
+}
+
 /* The next layer's geometry: output pixel of product q = (a, b, c2) at input pixel (i, j) of a W-wide map. */
 typedef struct {
     int64_t H, W, K, S, C2, H2, W2, Q;
@@ -145,7 +181,8 @@ static next_layer next_geometry(int64_t P, int64_t W, int64_t K, int64_t S, int6
     return g;
 }
 
-/* Offset in the next layer's output [C2, H2, W2] of product q's contribution from input row i, column 0. */
+/* Offset in the next layer's output [C2, H2, W2] of product q's contribution from input row i, column 0
+ * (divisions: call once per product, not per row). */
 static int64_t tap_offset(const next_layer *g, int64_t q, int64_t i)
 {
     const int64_t a = q / (g->K * g->C2), b = (q / g->C2) % g->K, c2 = q % g->C2;
@@ -190,26 +227,19 @@ int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t 
             to_hwc(buf, P, C, o);
             continue;
         }
-        for (int64_t q = 0; q < Q; ++q) {
-            float *restrict cq = cols + q * P;
-            for (int64_t p = 0; p < P; ++p) cq[p] = 0.0f;
-            for (int64_t c = 0; c < C; ++c) {
-                const float w = proj[c * Q + q];
-                const float *restrict h = buf + c * P;
-#pragma omp simd
-                for (int64_t p = 0; p < P; ++p) cq[p] += w * h[p];
-            }
-        }
+        mix(buf, proj, C, Q, P, cols);
         for (int64_t c2 = 0; c2 < C2; ++c2) {
             const float b0 = bias2 == NULL ? 0.0f : bias2[c2];
             for (int64_t k = 0; k < g.H2 * g.W2; ++k) o[c2 * g.H2 * g.W2 + k] = b0;
         }
-        for (int64_t q = 0; q < Q; ++q)
+        for (int64_t q = 0; q < Q; ++q) {
+            const int64_t base = tap_offset(&g, q, 0);
             for (int64_t i = 0; i < g.H; ++i) {
-                float *restrict oi = o + tap_offset(&g, q, i);
+                float *restrict oi = o + base + S * i * g.W2;
                 const float *restrict ci = cols + q * P + i * W;
                 for (int64_t j = 0; j < W; ++j) oi[S * j] += ci[j];
             }
+        }
     }
     free(buf);
     }
@@ -234,6 +264,13 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
     const int64_t P = D / C;
     const next_layer geo = next_geometry(P, W, K, S, C2);
     const int64_t Q = proj == NULL ? 0 : geo.Q;
+    float *projT = NULL; /* [Q, C]: the adjoint products' weights */
+    if (Q > 0) {
+        projT = malloc((size_t)(Q * C) * sizeof(float));
+        if (projT == NULL) return -1;
+        for (int64_t c = 0; c < C; ++c)
+            for (int64_t q = 0; q < Q; ++q) projT[q * C + c] = proj[c * Q + q];
+    }
     int failed = 0;
 #pragma omp parallel num_threads(threads) reduction(| : failed)
     {
@@ -246,11 +283,11 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
     float *restrict dsum = dsum_all + slot * C;
     float *restrict dproj = proj == NULL ? NULL : dproj_all + slot * C * Q;
     float *restrict dbias2 = proj == NULL || dbias2_all == NULL ? NULL : dbias2_all + slot * C2;
-    /* xhat, g [D], t [P], the products' gradients [Q, P] */
-    float *restrict scratch = malloc((size_t)(2 * D + P + Q * P) * sizeof(float));
+    /* xhat, g [D], with the next layer t = dL/dh [D] and the products' gradients [Q, P] */
+    float *restrict scratch = malloc((size_t)(2 * D + (Q > 0 ? D + Q * P : 0)) * sizeof(float));
     failed = scratch == NULL;
     float *restrict xhat = scratch, *restrict g = scratch + D, *restrict t = scratch + 2 * D;
-    float *restrict dcols = t + P;
+    float *restrict dcols = t + D;
 #pragma omp for schedule(static)
     for (int64_t r = 0; r < rows; ++r) {
         if (failed) continue;
@@ -261,12 +298,15 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
         const float *restrict d = dout + r * dout_stride;
         if (proj == NULL) to_chw(d, NULL, P, C, g); /* the ReLU output's gradient, in C H W order */
         if (proj != NULL) { /* the products' gradients: the output gradient read back at each tap */
-            for (int64_t q = 0; q < Q; ++q)
+            for (int64_t q = 0; q < Q; ++q) {
+                const int64_t base = tap_offset(&geo, q, 0);
                 for (int64_t i = 0; i < geo.H; ++i) {
-                    const float *restrict di = d + tap_offset(&geo, q, i);
+                    const float *restrict di = d + base + S * i * geo.W2;
                     float *restrict ci = dcols + q * P + i * W;
                     for (int64_t j = 0; j < W; ++j) ci[j] = di[S * j];
                 }
+            }
+            mix(dcols, projT, Q, C, P, t);
             if (dbias2 != NULL)
                 for (int64_t c2 = 0; c2 < C2; ++c2) {
                     float acc = 0.0f;
@@ -292,21 +332,17 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
                 for (int64_t p = 0; p < P; ++p) {
                     const float a = xc[p] * gc[p] + bc[p];
                     ga[p] = a > 0.0f ? a : 0.0f; /* h */
-                    t[p] = 0.0f;
                 }
                 for (int64_t q = 0; q < Q; ++q) {
-                    const float w = proj[c * Q + q];
                     const float *restrict dq = dcols + q * P;
                     float acc = 0.0f;
 #pragma omp simd reduction(+ : acc)
-                    for (int64_t p = 0; p < P; ++p) {
-                        t[p] += w * dq[p];
-                        acc += ga[p] * dq[p];
-                    }
+                    for (int64_t p = 0; p < P; ++p) acc += ga[p] * dq[p];
                     dproj[c * Q + q] += acc;
                 }
+                const float *restrict tc = t + o; /* dL/dh of channel c */
 #pragma omp simd
-                for (int64_t p = 0; p < P; ++p) ga[p] = ga[p] > 0.0f ? t[p] : 0.0f;
+                for (int64_t p = 0; p < P; ++p) ga[p] = ga[p] > 0.0f ? tc[p] : 0.0f;
             }
             float *restrict dgc = dgamma + o, *restrict dbc = dbeta + o;
 #pragma omp simd reduction(+ : s1, s2)
@@ -339,5 +375,6 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
     }
     free(scratch);
     }
+    free(projT);
     return failed ? -1 : 0;
 }
