@@ -1,6 +1,6 @@
 """Seconds per optimizer step: ssm-ms beside the reference implementation's structure, in one run.
 
-    python benchmarks/bench_train_step.py [--rounds 6] [--steps 3] [--threads 2] [--models SSM-LL SSM-FC]
+    python benchmarks/bench_train_step.py [--rounds 6] [--discard 2] [--steps 3] [--threads 2] [--models SSM-LL SSM-FC]
     python benchmarks/bench_train_step.py --tiny --out /tmp/x.md      # seconds, for `make test`
     python benchmarks/bench_train_step.py --device cuda --compiled --out benchmarks/results/train_step_cuda.md
 
@@ -9,7 +9,7 @@ state 10, 24x24 images, SSM-LL with K = 32 and 1024 hidden (or SSM-FC, 3 x 512),
 Each implementation runs in its own worker process (the allocator setting is process-wide: the
 reference's process uses glibc's defaults, ours calls ``ssm_ms.perf.configure_allocator`` as
 ``cli.py`` does). The workers wait on a pipe; the parent asks each in turn for ``--steps`` timed steps,
-``--rounds`` times, so that a shared machine's load falls on all of them alike. Reported: median seconds
+``--rounds`` times (after ``--discard`` untimed rounds), so that a shared machine's load falls on all of them alike. Reported: median seconds
 per step of each, and the median over rounds of the same-round ratio ``reference / ours``.
 
 Implementations:
@@ -101,6 +101,12 @@ def build(impl: str, model: str, size: dict, device: str = "cpu"):
     return step
 
 
+# Warm-up steps per worker, then untimed interleaved rounds: the reference's first rounds after start ran slower
+# (SSM-LL, 2 threads: 0.51 s, 0.48 s, then 0.42 s a step) whatever the warm-up steps (3, 10 and 20 tried), while
+# ours ran steady, which inflated the early rounds' ratios (3.2-3.3 against 2.7 later).
+WARMUP = 3
+
+
 def worker(impl: str, model: str, tiny: bool, threads: int, device: str = "cpu") -> None:
     """Build, warm up, then answer ``run K`` lines with the seconds of K steps (JSON), until EOF."""
     if impl != "reference":
@@ -111,7 +117,7 @@ def worker(impl: str, model: str, tiny: bool, threads: int, device: str = "cpu")
 
     torch.set_num_threads(threads)
     step = build(impl, model, TINY if tiny else FULL, device)
-    for _ in range(1 if tiny else 3):
+    for _ in range(1 if tiny else WARMUP):
         step()
     print(json.dumps({"ready": True}), flush=True)
     for line in sys.stdin:
@@ -156,18 +162,22 @@ def bf16_native(device: str = "cpu") -> bool:
     return bf16_support(device)[0]
 
 
-def measure(model: str, impls: list[str], rounds: int, steps: int, threads: int, tiny: bool, device: str = "cpu") -> dict:
+def measure(model: str, impls: list[str], rounds: int, steps: int, threads: int, tiny: bool, device: str = "cpu",
+            discard: int = 2) -> dict:
     workers = [Worker(impl, model, tiny, threads, device) for impl in impls]
     times: dict[str, list[float]] = {impl: [] for impl in impls}
     per_round: dict[str, list[float]] = {impl: [] for impl in impls}
     try:
-        for r in range(rounds):
+        for r in range(-discard, rounds):  # the first `discard` rounds are not kept
             order = workers if r % 2 == 0 else workers[::-1]  # alternate who goes first
             for w in order:
                 ts = w.run(steps)
-                times[w.impl] += ts
-                per_round[w.impl].append(statistics.median(ts))
-            print(f"{model} round {r + 1}: " + "  ".join(f"{k} {v[-1]:.3f}" for k, v in per_round.items()), flush=True)
+                if r >= 0:
+                    times[w.impl] += ts
+                    per_round[w.impl].append(statistics.median(ts))
+            if r >= 0:
+                print(f"{model} round {r + 1}: " + "  ".join(f"{k} {v[-1]:.3f}" for k, v in per_round.items()),
+                      flush=True)
     finally:
         for w in workers:
             w.close()
@@ -178,6 +188,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rounds", type=int, default=6)
     parser.add_argument("--steps", type=int, default=3, help="timed steps per implementation per round")
+    parser.add_argument("--discard", type=int, default=2, help="untimed interleaved rounds before the timed ones")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--models", nargs="+", default=["SSM-LL", "SSM-FC"], choices=["SSM-LL", "SSM-FC"])
     parser.add_argument("--no-bf16", action="store_true", help="leave out the bf16-mixed variant")
@@ -213,7 +224,8 @@ def main(argv: list[str] | None = None) -> None:
         impls.append("ours-compiled")
     start = datetime.now(timezone.utc)
     load0 = os.getloadavg()
-    results = {model: measure(model, impls, args.rounds, args.steps, args.threads, args.tiny, args.device)
+    discard = 0 if args.tiny else args.discard
+    results = {model: measure(model, impls, args.rounds, args.steps, args.threads, args.tiny, args.device, discard)
                for model in args.models}
     load1 = os.getloadavg()
     size = TINY if args.tiny else FULL
@@ -234,7 +246,8 @@ def main(argv: list[str] | None = None) -> None:
         f"n {size['n']}, state {size['d']}, SSM-LL K {size['k']} hidden {size['hidden']}, SSM-FC 3 x {size['fc']}, "
         "24x24 images, Adam, loss fit + 1000 gap",
         f"- {args.rounds} rounds; in each, every implementation (its own process, waiting while the others run) "
-        f"makes {args.steps} timed steps after 3 warm-up steps; seconds per optimizer step (forward, backward, Adam)",
+        f"makes {args.steps} timed steps after {1 if args.tiny else WARMUP} warm-up steps and {discard} untimed rounds; "
+        "seconds per optimizer step (forward, backward, Adam)",
         "- ratio = reference / this implementation, per round (medians of that round), median over rounds",
     ]
     if bf16_note:

@@ -11,13 +11,15 @@ needs_native = pytest.mark.skipif(not NATIVE, reason=f"native kernels unavailabl
 
 # (stem channels, stem size, layers, image_size): the pendulum's shape (last layer a projection), a stride-1 first
 # layer, a last layer too wide to project (k^2 C_out > C_in: plain transposed convolution), a cropped image,
-# a several-channel projected last layer
+# a several-channel projected last layer, maps wider than one 16-lane register (80 and 70 channels, Moving MNIST's
+# kind: 16 products per pixel)
 SPECS = [
     (8, 3, [[6, 5, 3], [5, 3, 2], [1, 2, 1]], None),
     (4, 2, [[6, 3, 1], [7, 3, 2], [1, 2, 1]], None),
     (8, 3, [[6, 3, 2], [5, 3, 2], [3, 2, 1]], None),
     (8, None, [[6, 5, 3], [12, 3, 2], [1, 2, 1]], 20),
     (8, 2, [[6, 3, 2], [16, 3, 2], [3, 2, 1]], None),
+    (8, 2, [[80, 3, 2], [70, 3, 2], [1, 4, 2]], None),
 ]
 
 
@@ -105,17 +107,6 @@ def test_native_path_steps_aside_where_it_cannot_run():
     torch.testing.assert_close(y, fused(x), rtol=1e-5, atol=1e-6)
 
 
-@needs_native
-def test_wide_maps_take_the_torch_path():
-    """Blocks wider than NATIVE_MAX_CHANNELS (Moving MNIST's 256 and 512) measured slower native: torch runs them."""
-    from ssm_ms.nets.observation import NATIVE_MAX_CHANNELS
-
-    wide = ConvDecoder(3, preset=None, stem_channels=4, stem_size=2,
-                       layers=[[NATIVE_MAX_CHANNELS + 1, 3, 2], [8, 3, 2], [1, 2, 1]])
-    names = _graph_names(wide(torch.randn(2, 3, requires_grad=True)))
-    assert names.count("_DeconvNormBackward") == 1  # the 8-channel block only
-
-
 @pytest.fixture
 def fresh_native(monkeypatch, tmp_path):
     """native with no library loaded yet and its cache in tmp_path."""
@@ -131,8 +122,8 @@ def test_portable_build_matches_torch_too(fresh_native, monkeypatch):
     monkeypatch.setattr(native, "FLAG_SETS", (["-O2", "-fopenmp"],))
     if native.library() is None:
         pytest.skip(f"portable build unavailable: {native.unavailable_reason()}")
-    test_fused_decoder_matches_torch_layers_in_float64(*SPECS[4])
-    test_fused_decoder_matches_torch_layers_in_float64(*SPECS[0])
+    for spec in (SPECS[0], SPECS[4], SPECS[5]):
+        test_fused_decoder_matches_torch_layers_in_float64(*spec)
 
 
 def test_unavailable_native_kernels_say_why(fresh_native, monkeypatch):

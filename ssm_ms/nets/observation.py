@@ -14,12 +14,6 @@ from torch import nn
 
 from ssm_ms.nets import native
 
-# The fused native blocks serve maps of at most this many channels: the kernels gather each sample into C H W
-# order, which for wide maps strides across many cache lines per pixel. Measured (benchmarks/results/
-# decoder_profile.md, forward+backward): pendulum (16, 12 channels) and quadruple pendulum (16, 16, 12) a third
-# faster native; Moving MNIST (512, 256, 256) 4% slower. 64 lies between the widths measured.
-NATIVE_MAX_CHANNELS = 64
-
 # (stem channels, stem size, [(out_channels, kernel, stride), ...]) of the paper's decoders.
 PRESETS: dict[str, tuple[int, int, list[tuple[int, int, int]]]] = {
     # 3 -> 11 -> 23 -> 24
@@ -56,8 +50,8 @@ class ConvDecoder(nn.Module):
             the transposed convolutions then run through :func:`conv_transpose2d`. LayerNorm is applied to the
             ``(H, W, C)``-ordered sample, a view, never a copy.
         native: with ``channels_last``, on CPU in float32 (no autocast, no forward-mode AD), run each
-            ``ConvTranspose2d, LayerNorm, ReLU`` block of at most :data:`NATIVE_MAX_CHANNELS` channels, with the
-            image-drawing layer after it if that has ``k^2 C_out <= C_in``, through the fused native kernels of
+            ``ConvTranspose2d, LayerNorm, ReLU`` block, with the image-drawing layer after it if that has
+            ``k^2 C_out <= C_in``, through the fused native kernels of
             :mod:`ssm_ms.nets.native` (compiled on first use; same values up to float rounding). Where they
             cannot be compiled, the torch-only path runs.
     """
@@ -153,13 +147,11 @@ class ConvDecoder(nn.Module):
 
     @staticmethod
     def _fusable_block(layers: list[nn.Module], i: int) -> bool:
-        """``layers[i:i + 3]`` is ``ConvTranspose2d, LayerNorm (with affine parameters), ReLU`` with at most
-        :data:`NATIVE_MAX_CHANNELS` channels."""
+        """``layers[i:i + 3]`` is ``ConvTranspose2d, LayerNorm (with affine parameters), ReLU``."""
         block = layers[i : i + 3]
         return (len(block) == 3 and isinstance(block[0], nn.ConvTranspose2d) and isinstance(block[1], nn.LayerNorm)
                 and isinstance(block[2], nn.ReLU) and block[1].weight is not None and block[1].bias is not None
-                and block[0].padding == (0, 0) and block[0].stride[0] == block[0].stride[1]
-                and block[0].out_channels <= NATIVE_MAX_CHANNELS)
+                and block[0].padding == (0, 0) and block[0].stride[0] == block[0].stride[1])
 
     def _centre(self, h: torch.Tensor) -> torch.Tensor:
         """The centre ``out_shape`` of the drawn images (a view; ``h`` itself when nothing is cropped)."""
