@@ -9,8 +9,9 @@ state 10, 24x24 images, SSM-LL with K = 32 and 1024 hidden (or SSM-FC, 3 x 512),
 Each implementation runs in its own worker process (the allocator setting is process-wide: the
 reference's process uses glibc's defaults, ours calls ``ssm_ms.perf.configure_allocator`` as
 ``cli.py`` does). The workers wait on a pipe; the parent asks each in turn for ``--steps`` timed steps,
-``--rounds`` times (after ``--discard`` untimed rounds), so that a shared machine's load falls on all of them alike. Reported: median seconds
-per step of each, and the median over rounds of the same-round ratio ``reference / ours``.
+``--rounds`` times (after ``--discard`` untimed rounds), so that a shared machine's load falls on all of them
+alike. Reported: median seconds per step of each, and the median over rounds of the same-round ratio
+``reference / ours``.
 
 Implementations:
 
@@ -246,8 +247,8 @@ def main(argv: list[str] | None = None) -> None:
         f"n {size['n']}, state {size['d']}, SSM-LL K {size['k']} hidden {size['hidden']}, SSM-FC 3 x {size['fc']}, "
         "24x24 images, Adam, loss fit + 1000 gap",
         f"- {args.rounds} rounds; in each, every implementation (its own process, waiting while the others run) "
-        f"makes {args.steps} timed steps after {1 if args.tiny else WARMUP} warm-up steps and {discard} untimed rounds; "
-        "seconds per optimizer step (forward, backward, Adam)",
+        f"makes {args.steps} timed steps after {1 if args.tiny else WARMUP} warm-up steps and {discard} untimed "
+        "rounds; seconds per optimizer step (forward, backward, Adam)",
         "- ratio = reference / this implementation, per round (medians of that round), median over rounds",
     ]
     if bf16_note:

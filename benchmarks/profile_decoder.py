@@ -125,14 +125,16 @@ def main(argv: list[str] | None = None) -> None:
     ]
     lines += [f"| {name} | {value:.1f} |" for name, value in ms.items()]
     if per_call:
-        labels = ["forward, block 1", "forward, block 2 (with the image layer)", "backward, block 2", "backward, block 1"]
+        labels = ["forward, block 1", "forward, block 2 (with the image layer)", "backward, block 2",
+                  "backward, block 1"]
         for i, label in enumerate(labels[: len(per_call[0])]):
             lines.append(f"| native kernel: {label} | {1000 * statistics.median(c[i] for c in per_call):.1f} |")
         total = 1000 * statistics.median(sum(c) for c in per_call)
         lines.append(f"| native kernels, all calls | {total:.1f} |")
         lines.append(f"| decoder with native kernels, the rest (convolutions, stem, sigmoid, loss) | "
                      f"{ms['decoder, native kernels'] - total:.1f} |")
-    lines += ["", "| decoder, forward + backward | frames | native kernels, ms | torch-only, ms |", "|---|---:|---:|---:|"]
+    lines += ["", "| decoder, forward + backward | frames | native kernels, ms | torch-only, ms |",
+              "|---|---:|---:|---:|"]
     for preset, res in others.items():
         lines.append(f"| {preset} | {size[preset]} | {res['native']:.1f} | {res['torch']:.1f} |")
     text = "\n".join(lines) + "\n"

@@ -89,7 +89,8 @@ def _build() -> tuple[ctypes.CDLL | None, str | None]:
                                         capture_output=True, text=True)
                 if result.returncode != 0:
                     os.unlink(tmp)
-                    first = next((ln for ln in result.stderr.splitlines() if "error" in ln), result.stderr.strip()[:200])
+                    lines = result.stderr.splitlines()
+                    first = next((ln for ln in lines if "error" in ln), result.stderr.strip()[:200])
                     errors.append(f"{Path(cc).name} {' '.join(flags)}: {first.strip()}")
                     continue
                 os.replace(tmp, target)  # atomic: a concurrent process sees the whole library or none

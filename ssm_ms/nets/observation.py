@@ -456,8 +456,9 @@ class _DeconvNorm(torch.autograd.Function):
         next_bias = None if next_bias is None else next_bias.contiguous()
         mean, rstd = y.new_empty(n), y.new_empty(n)
         native.check(lib.fused_norm_forward(
-            y.data_ptr(), y.stride(0), poff.data_ptr(), size, c, width, gamma.data_ptr(), beta.data_ptr(), eps, _ptr(proj), k2, s2, c2, _ptr(next_bias), out.data_ptr(), out.stride(0),
-            mean.data_ptr(), rstd.data_ptr(), n))
+            y.data_ptr(), y.stride(0), poff.data_ptr(), size, c, width, gamma.data_ptr(), beta.data_ptr(), eps,
+            _ptr(proj), k2, s2, c2, _ptr(next_bias), out.data_ptr(), out.stride(0), mean.data_ptr(), rstd.data_ptr(),
+            n))
         ctx.save_for_backward(x, weight, y, gamma, beta, proj, mean, rstd)
         ctx.stride, ctx.has_bias, ctx.shape = stride, bias is not None, (c, height, width)
         ctx.next = (k2, s2, c2, next_bias is not None)
@@ -482,9 +483,9 @@ class _DeconvNorm(torch.autograd.Function):
         dbias2 = y.new_zeros(count, c2) if has_next_bias else None
         poff = _pixel_offsets(c, height, width, ctx.stride, y.stride())
         native.check(lib.fused_norm_backward(
-            y.data_ptr(), y.stride(0), poff.data_ptr(), size, c, width, gamma.data_ptr(), beta.data_ptr(), mean.data_ptr(), rstd.data_ptr(), _ptr(proj), k2, s2, c2, dout.data_ptr(),
-            dout.stride(0), dz.data_ptr(), dgamma.data_ptr(), dbeta.data_ptr(), dsum.data_ptr(), _ptr(dproj),
-            _ptr(dbias2), n, count))
+            y.data_ptr(), y.stride(0), poff.data_ptr(), size, c, width, gamma.data_ptr(), beta.data_ptr(),
+            mean.data_ptr(), rstd.data_ptr(), _ptr(proj), k2, s2, c2, dout.data_ptr(), dout.stride(0), dz.data_ptr(),
+            dgamma.data_ptr(), dbeta.data_ptr(), dsum.data_ptr(), _ptr(dproj), _ptr(dbias2), n, count))
         dz = dz.permute(0, 3, 1, 2)  # the transposed convolution's output gradient, channels-last
         needs = ctx.needs_input_grad
         grad_x, grad_w, _ = _conv_transpose_backward(x, weight, dz, ctx.stride, False, needs)  # bias: dsum
