@@ -48,6 +48,12 @@ from ssm_ms.perf import configure_allocator  # noqa: E402
 TINY = {"trajectories": 4, "steps": 20, "ref_steps": 5, "repeats": 1, "k": 4, "hidden": 16}
 
 
+def shared(loads: list[str], threads: int) -> bool:
+    """Whether a 1-minute load average seen during the run exceeds what the benchmark itself puts on the machine."""
+    ones = [float(v.split("/")[0]) for v in loads if v != "n/a"]
+    return bool(ones) and max(ones) > threads + 0.5
+
+
 def load() -> str:
     try:
         return "/".join(f"{v:.2f}" for v in os.getloadavg())
@@ -241,8 +247,10 @@ def main(argv: list[str] | None = None) -> None:
         f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
         f"- Machine: {describe()}, Python {platform.python_version()}; device: {dev_name}; "
         f"glibc malloc {'tuned as cli.py does' if tuned else 'not tunable here'} (the reference's worker: default)",
-        f"- Load average (1/5/15 min) before: {loads[0]}, after: {loads[-1]} (the machine was shared with other "
-        "jobs: absolute figures are slower than on a quiet one; compare the ratios, taken within each round)",
+        f"- Load average (1/5/15 min) before: {loads[0]}, after: {loads[-1]}"
+        + (" (the machine was shared with other jobs: absolute figures are slower than on a quiet one; compare the "
+           "ratios, taken within each round)" if shared(loads, args.threads) else
+           " (one worker runs at a time: the machine was otherwise quiet)"),
         f"- Command: `{cmd}`",
         f"- Set-up: {'TINY sizes (smoke test): ' if args.tiny else ''}{b} trajectories x {steps} steps, state dim 3, "
         f"measurement = x component, SSM-LL with K = {k}, hidden {hidden} (random weights), "

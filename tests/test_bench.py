@@ -91,3 +91,9 @@ def test_train_step_benchmark_refuses_cuda_without_a_gpu(capsys):
         bench_train_step.main(["--tiny", "--device", "cuda"])
     assert stop.value.code == 2
     assert "--device cuda: torch sees no CUDA device here" in capsys.readouterr().err
+
+
+def test_ukf_results_say_shared_only_when_the_load_exceeds_the_benchmark_itself():
+    assert bench_ukf.shared(["0.90/1.40/1.30", "3.10/2.00/1.50"], threads=2)  # another job ran meanwhile
+    assert not bench_ukf.shared(["0.90/1.40/1.30", "2.40/2.00/1.50"], threads=2)  # the benchmark's own 2 threads
+    assert not bench_ukf.shared(["n/a", "n/a"], threads=2)
