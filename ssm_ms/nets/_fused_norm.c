@@ -9,15 +9,14 @@
  * convolution's channels-last output through pixel offsets (poff[p]: where pixel p's C contiguous channels lie in
  * that sample's memory), so the transposed convolution's phase layout is never copied into an interleaved map;
  * maps written for torch (the ReLU output, the input gradient) are channels-last [H W C] rows. With AVX-512 the
- * conversions between pixel-major and C H W order run as 16 x 16 transposes in registers. Each
- * row is gathered once into a small buffer (a sample: ~25 KB for the pendulum, in L1/L2), normalised there,
- * and written once: the feature map is read once per direction instead of the five to eight passes of separate
+ * conversions between pixel-major and C H W order run as 16 x 16 transposes in registers. Each row is gathered
+ * once into a small buffer (a sample: ~25 KB for the pendulum, in L1/L2), normalised there, and written once: the feature map is read once per direction instead of the five to eight passes of separate
  * layer-norm, ReLU and convolution kernels, and with the next layer fused it is never written at all.
  *
  * Compiled on first use by ssm_ms/nets/native.py (plain C, no Python or torch headers) and called through
  * ctypes. Rows are shared among OpenMP threads: loaded into a process that has torch, the library binds to the
- * libgomp that torch loaded (same soname), so it uses torch's threads and follows torch.set_num_threads. Built
- * without OpenMP (a compiler without -fopenmp), the pragmas are ignored and the rows run on one thread.
+ * libgomp that torch loaded (same soname), so it uses torch's threads and follows torch.set_num_threads.
+ * native.py only loads builds with -fopenmp (without it the pragmas would be ignored: one thread).
  */
 #include <math.h>
 #include <stdint.h>
@@ -190,7 +189,7 @@ static int64_t tap_offset(const next_layer *g, int64_t q, int64_t i)
 }
 
 /* h = relu(layer_norm(row) * gamma + beta), D = C P elements (P pixels per channel, W of them per map row).
- * proj == NULL: out row = h as a channels-last row (dst). Else out row = the next transposed convolution
+ * proj == NULL: out row = h as a channels-last [H W C] row. Else out row = the next transposed convolution
  * (kernel K, stride S, C2 channels, bias2 or NULL) of h, [C2, H2, W2]. Returns 0, or -1 where scratch memory
  * could not be allocated. */
 int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t *restrict poff, int64_t D,
