@@ -10,8 +10,9 @@
  * that sample's memory), so the transposed convolution's phase layout is never copied into an interleaved map;
  * maps written for torch (the ReLU output, the input gradient) are channels-last [H W C] rows. With AVX-512 the
  * conversions between pixel-major and C H W order run as 16 x 16 transposes in registers. Each row is gathered
- * once into a small buffer (a sample: ~25 KB for the pendulum, in L1/L2), normalised there, and written once: the feature map is read once per direction instead of the five to eight passes of separate
- * layer-norm, ReLU and convolution kernels, and with the next layer fused it is never written at all.
+ * once into a small buffer (a sample: ~25 KB for the pendulum, in L1/L2), normalised there, and written once:
+ * the feature map is read once per direction instead of the five to eight passes of separate layer-norm, ReLU
+ * and convolution kernels, and with the next layer fused it is never written at all.
  *
  * Compiled on first use by ssm_ms/nets/native.py (plain C, no Python or torch headers) and called through
  * ctypes. Rows are shared among OpenMP threads: loaded into a process that has torch, the library binds to the
