@@ -1,5 +1,7 @@
 """The decoder's fused native kernels (ssm_ms/nets/native.py, _fused_norm.c) against torch's own layers."""
 
+import warnings
+
 import pytest
 import torch
 
@@ -128,12 +130,17 @@ def test_portable_build_matches_torch_too(fresh_native, monkeypatch):
 
 def test_unavailable_native_kernels_say_why(fresh_native, monkeypatch):
     monkeypatch.setenv("SSM_MS_NATIVE", "0")
-    assert native.library() is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # switched off on purpose: no warning
+        assert native.library() is None
     assert native.unavailable_reason() == "SSM_MS_NATIVE=0 is set"
     monkeypatch.setattr(native, "_state", {})
     monkeypatch.setenv("SSM_MS_NATIVE", "1")
     monkeypatch.setattr(native, "_compiler", lambda: None)
-    assert native.library() is None and "no C compiler" in native.unavailable_reason()
+    with pytest.warns(RuntimeWarning, match="native kernels are off.*no C compiler") as seen:
+        assert native.library() is None and "no C compiler" in native.unavailable_reason()
+        native.library()  # said once, not per call
+    assert len(seen) == 1
     # without the kernels the decoder runs its torch-only path
     x = torch.randn(3, 5)
     assert not native_applies(x)
@@ -144,7 +151,8 @@ def test_a_compiler_error_is_reported_not_raised(fresh_native, monkeypatch):
     broken = fresh_native / "broken.c"
     broken.write_text("this is not C\n")
     monkeypatch.setattr(native, "SOURCE", broken)
-    assert native.library() is None
+    with pytest.warns(RuntimeWarning, match="compiling the native kernels failed"):
+        assert native.library() is None
     reason = native.unavailable_reason()
     assert reason.startswith("compiling the native kernels failed") and "error" in reason
     assert not list(fresh_native.glob("*.so"))  # nothing half-written left in the cache

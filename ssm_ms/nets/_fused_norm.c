@@ -181,12 +181,12 @@ static next_layer next_geometry(int64_t P, int64_t W, int64_t K, int64_t S, int6
     return g;
 }
 
-/* Offset in the next layer's output [C2, H2, W2] of product q's contribution from input row i, column 0
- * (divisions: call once per product, not per row). */
-static int64_t tap_offset(const next_layer *g, int64_t q, int64_t i)
+/* Offset in the next layer's output [C2, H2, W2] of product q's contribution from input pixel (0, 0); input row i
+ * adds S i W2 (divisions: call once per product, not per row). */
+static int64_t tap_offset(const next_layer *g, int64_t q)
 {
     const int64_t a = q / (g->K * g->C2), b = (q / g->C2) % g->K, c2 = q % g->C2;
-    return (c2 * g->H2 + g->S * i + a) * g->W2 + b;
+    return (c2 * g->H2 + a) * g->W2 + b;
 }
 
 /* h = relu(layer_norm(row) * gamma + beta), D = C P elements (P pixels per channel, W of them per map row).
@@ -233,7 +233,7 @@ int fused_norm_forward(const float *restrict y, int64_t y_stride, const int32_t 
             for (int64_t k = 0; k < g.H2 * g.W2; ++k) o[c2 * g.H2 * g.W2 + k] = b0;
         }
         for (int64_t q = 0; q < Q; ++q) {
-            const int64_t base = tap_offset(&g, q, 0);
+            const int64_t base = tap_offset(&g, q);
             for (int64_t i = 0; i < g.H; ++i) {
                 float *restrict oi = o + base + S * i * g.W2;
                 const float *restrict ci = cols + q * P + i * W;
@@ -299,7 +299,7 @@ int fused_norm_backward(const float *restrict y, int64_t y_stride, const int32_t
         if (proj == NULL) to_chw(d, NULL, P, C, g); /* the ReLU output's gradient, in C H W order */
         if (proj != NULL) { /* the products' gradients: the output gradient read back at each tap */
             for (int64_t q = 0; q < Q; ++q) {
-                const int64_t base = tap_offset(&geo, q, 0);
+                const int64_t base = tap_offset(&geo, q);
                 for (int64_t i = 0; i < geo.H; ++i) {
                     const float *restrict di = d + base + S * i * geo.W2;
                     float *restrict ci = dcols + q * P + i * W;

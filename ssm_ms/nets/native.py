@@ -2,7 +2,7 @@
 
 The kernels (``_fused_norm.c``: a layer norm over a whole feature map, its ReLU and optionally the next, small
 transposed convolution, forward and backward, float32) are plain C without Python or torch headers: compiling them takes
-about a second. The shared library is cached under ``$SSM_MS_CACHE`` (default ``$XDG_CACHE_HOME/ssm_ms`` or
+under a second. The shared library is cached under ``$SSM_MS_CACHE`` (default ``$XDG_CACHE_HOME/ssm_ms`` or
 ``~/.cache/ssm_ms``), keyed by the source, the compiler, its flags and this CPU's instruction sets (it is built
 with ``-march=native``), so a home directory shared between machines never loads a library built for another
 CPU. The rows (samples) are shared among OpenMP threads: the library links ``libgomp.so.1``, and in a process
@@ -10,7 +10,8 @@ that has imported torch that is torch's own copy (same soname), so the kernels r
 and follow ``torch.set_num_threads``. A compiler without ``-fopenmp`` counts as none.
 
 Where no C compiler is found, compiling fails, or ``SSM_MS_NATIVE=0`` is set, :func:`library` returns
-``None`` and :func:`unavailable_reason` says why; the decoder then runs its torch-only path (same values).
+``None`` and :func:`unavailable_reason` says why; the decoder then runs its torch-only path (same values, slower).
+Unless the kernels were switched off on purpose, that is said once, as a ``RuntimeWarning``.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import warnings
 from pathlib import Path
 
 import torch
@@ -121,6 +123,9 @@ def library() -> ctypes.CDLL | None:
     with _lock:
         if "lib" not in _state:
             _state["lib"], _state["reason"] = _build()
+            if _state["lib"] is None and os.environ.get("SSM_MS_NATIVE", "1") != "0":
+                warnings.warn(f"ssm_ms: the decoder's native kernels are off, running the slower torch-only path: "
+                              f"{_state['reason']} (SSM_MS_NATIVE=0 silences this)", RuntimeWarning, stacklevel=2)
         return _state["lib"]  # type: ignore[return-value]
 
 
