@@ -8,8 +8,8 @@ On the paper's pendulum step sizes (4000 frames of 24x24 = batch 40 x m 4 x n 25
 
 * the decoder's forward + backward through an MSE loss, with the fused native kernels (``ConvDecoder()``) and
   without (``ConvDecoder(native=False)``), alternated;
-* inside the first, the time of each native kernel call (forward and backward of each fused block), taken
-  around the library's own functions;
+* inside the first, the time of each native kernel call (the forward and the backward of the whole stack of
+  transposed convolutions), taken around the library's own functions;
 * f's rollout forward + backward;
 * the quadruple-pendulum (1000 frames of 48x48) and Moving MNIST (100 frames of 64x64) decoders, forward +
   backward, with and without the native kernels.
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     lib = native.library()
     originals = {}
     if lib is not None:  # time each kernel call around the library's own function
-        for name in ("fused_norm_forward", "fused_norm_backward"):
+        for name in ("conv_stack_forward", "conv_stack_backward"):
             originals[name] = getattr(lib, name)
 
             def timed(*a, _fn=originals[name], _name=name):
@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> None:
                 run()
                 times[name].append(time.perf_counter() - t0)
                 if name == "decoder, native kernels" and calls:
-                    per_call.append(calls["fused_norm_forward"] + calls["fused_norm_backward"])
+                    per_call.append(calls["conv_stack_forward"] + calls["conv_stack_backward"])
     finally:
         for name, fn in originals.items():
             setattr(lib, name, fn)
@@ -125,13 +125,12 @@ def main(argv: list[str] | None = None) -> None:
     ]
     lines += [f"| {name} | {value:.1f} |" for name, value in ms.items()]
     if per_call:
-        labels = ["forward, block 1", "forward, block 2 (with the image layer)", "backward, block 2",
-                  "backward, block 1"]
+        labels = ["forward (the transposed-convolution stack)", "backward (the transposed-convolution stack)"]
         for i, label in enumerate(labels[: len(per_call[0])]):
             lines.append(f"| native kernel: {label} | {1000 * statistics.median(c[i] for c in per_call):.1f} |")
         total = 1000 * statistics.median(sum(c) for c in per_call)
         lines.append(f"| native kernels, all calls | {total:.1f} |")
-        lines.append(f"| decoder with native kernels, the rest (convolutions, stem, sigmoid, loss) | "
+        lines.append(f"| decoder with native kernels, the rest (stem, layout of its output, sigmoid, loss) | "
                      f"{ms['decoder, native kernels'] - total:.1f} |")
     lines += ["", "| decoder, forward + backward | frames | native kernels, ms | torch-only, ms |",
               "|---|---:|---:|---:|"]

@@ -1,4 +1,4 @@
-"""The decoder's fused native kernels (ssm_ms/nets/native.py, _fused_norm.c) against torch's own layers."""
+"""The decoder's native kernels (ssm_ms/nets/native.py, _conv_stack.c) against torch's own layers."""
 
 import warnings
 
@@ -6,15 +6,15 @@ import pytest
 import torch
 
 from ssm_ms.nets import ConvDecoder, native
-from ssm_ms.nets.observation import native_applies
+from ssm_ms.nets.observation import NATIVE_SCRATCH, native_applies
 
 NATIVE = native.library() is not None
 needs_native = pytest.mark.skipif(not NATIVE, reason=f"native kernels unavailable: {native.unavailable_reason()}")
 
-# (stem channels, stem size, layers, image_size): the pendulum's shape (last layer a projection), a stride-1 first
-# layer, a last layer too wide to project (k^2 C_out > C_in: plain transposed convolution), a cropped image,
-# a several-channel projected last layer, maps wider than one 16-lane register (80 and 70 channels, Moving MNIST's
-# kind: 16 products per pixel)
+# (stem channels, stem size, layers, image_size): the pendulum's shape, a stride-1 first layer, a three-channel
+# image, a cropped image, 16 channels (exactly one 16-lane register), maps wider than a register (80 and 70
+# channels: several vectors per pixel, products of 630 columns), the quadruple pendulum's depth (three layer norms),
+# one layer and no layer norm
 SPECS = [
     (8, 3, [[6, 5, 3], [5, 3, 2], [1, 2, 1]], None),
     (4, 2, [[6, 3, 1], [7, 3, 2], [1, 2, 1]], None),
@@ -22,10 +22,12 @@ SPECS = [
     (8, None, [[6, 5, 3], [12, 3, 2], [1, 2, 1]], 20),
     (8, 2, [[6, 3, 2], [16, 3, 2], [3, 2, 1]], None),
     (8, 2, [[80, 3, 2], [70, 3, 2], [1, 4, 2]], None),
+    (5, 3, [[6, 5, 3], [4, 3, 2], [3, 3, 2], [1, 2, 1]], None),
+    (3, 4, [[2, 3, 2]], None),
 ]
 
 
-def _pair(state_dim, stem, size, layers, image_size):
+def _pair(state_dim, stem, size, layers, image_size, drop_bias=False):
     torch.manual_seed(0)
     kwargs = dict(preset=None, stem_channels=stem, stem_size=size, layers=layers, image_size=image_size)
     fused = ConvDecoder(state_dim, **kwargs)
@@ -33,6 +35,9 @@ def _pair(state_dim, stem, size, layers, image_size):
         for p in fused.parameters():
             p.add_(0.2 * torch.randn_like(p))
     plain = ConvDecoder(state_dim, **kwargs, channels_last=False).double()  # torch's own layers, NCHW, float64
+    if drop_bias:  # a transposed convolution without bias (not what ConvDecoder builds, but the kernels allow it)
+        for dec in (fused, plain):
+            dec.deconv[0].register_parameter("bias", None)
     plain.load_state_dict(fused.state_dict())
     return fused, plain
 
@@ -51,11 +56,11 @@ def _graph_names(t: torch.Tensor) -> list[str]:
 
 @needs_native
 @pytest.mark.parametrize("stem, size, layers, image_size", SPECS)
-def test_fused_decoder_matches_torch_layers_in_float64(stem, size, layers, image_size):
-    fused, plain = _pair(5, stem, size, layers, image_size)
+def test_fused_decoder_matches_torch_layers_in_float64(stem, size, layers, image_size, drop_bias=False):
+    fused, plain = _pair(5, stem, size, layers, image_size, drop_bias)
     x = torch.randn(9, 5, requires_grad=True)
     out = fused(x)
-    assert "_DeconvNormBackward" in _graph_names(out)  # the native blocks ran
+    assert "_ConvStackBackward" in _graph_names(out)  # the native blocks ran
     x64 = x.detach().double().requires_grad_()
     want = plain(x64)
     torch.testing.assert_close(out.double(), want, rtol=1e-5, atol=1e-5)
@@ -66,6 +71,24 @@ def test_fused_decoder_matches_torch_layers_in_float64(stem, size, layers, image
     for name, g, r in zip(["x", *names], got, ref):
         scale = r.abs().max().clamp_min(1e-3)
         assert ((g.double() - r).abs().max() / scale).item() < 2e-5, name
+
+
+@needs_native
+def test_a_transposed_convolution_without_bias_matches_too():
+    test_fused_decoder_matches_torch_layers_in_float64(*SPECS[0], drop_bias=True)
+
+
+@needs_native
+def test_only_stacks_whose_sample_fits_in_cache_run_natively():
+    # one sample's scratch: the largest products (H_in W_in k^2 C_out) plus three largest layer-normed maps, counted
+    # here from the layer sizes by hand: pendulum 11x11 inputs x 3x3x12 products, maps 12x23x23
+    assert ConvDecoder(4, "pendulum").native_fits and 11 * 11 * 9 * 12 + 3 * 12 * 23 * 23 <= NATIVE_SCRATCH
+    assert ConvDecoder(4, "quad").native_fits and 23 * 23 * 9 * 12 + 3 * 12 * 47 * 47 <= NATIVE_SCRATCH
+    mnist = ConvDecoder(4, "mnist")  # 15x15 inputs x 3x3x256 products, maps 256x31x31: far more than an L2 cache
+    assert not mnist.native_fits and 15 * 15 * 9 * 256 > NATIVE_SCRATCH
+    x = torch.randn(2, 4, requires_grad=True)
+    assert "_ConvStackBackward" not in _graph_names(mnist(x))  # the torch-only path, batched oneDNN convolutions
+    assert "_ConvStackBackward" in _graph_names(ConvDecoder(4, "quad")(x))
 
 
 @needs_native
@@ -105,7 +128,7 @@ def test_native_path_steps_aside_where_it_cannot_run():
     off = ConvDecoder(5, preset=None, stem_channels=8, stem_size=3, layers=SPECS[0][2], native=False)
     off.load_state_dict(fused.state_dict())
     y = off(x.requires_grad_())
-    assert "_DeconvNormBackward" not in _graph_names(y)
+    assert "_ConvStackBackward" not in _graph_names(y)
     torch.testing.assert_close(y, fused(x), rtol=1e-5, atol=1e-6)
 
 
@@ -119,12 +142,12 @@ def fresh_native(monkeypatch, tmp_path):
 
 @pytest.mark.skipif(native._compiler() is None, reason="no C compiler here")
 def test_portable_build_matches_torch_too(fresh_native, monkeypatch):
-    """Without -march=native (no AVX-512 on any CPU) the kernels convert layouts with plain loops instead of
-    register transposes: that build must be as right."""
+    """Without -march=native (no AVX-512 on any CPU) the kernels' products and shifted adds are plain loops instead
+    of register-blocked tiles and masked vectors: that build must be as right."""
     monkeypatch.setattr(native, "FLAG_SETS", (["-O2", "-fopenmp"],))
     if native.library() is None:
         pytest.skip(f"portable build unavailable: {native.unavailable_reason()}")
-    for spec in (SPECS[0], SPECS[4], SPECS[5]):
+    for spec in (SPECS[0], SPECS[4], SPECS[5], SPECS[6]):
         test_fused_decoder_matches_torch_layers_in_float64(*spec)
 
 

@@ -1,8 +1,8 @@
 """Native CPU kernels for the ConvDecoder: compiled on first use with the system C compiler, called through ctypes.
 
-The kernels (``_fused_norm.c``: a layer norm over a whole feature map, its ReLU and optionally the next, small
-transposed convolution, forward and backward, float32) are plain C without Python or torch headers: compiling them takes
-under a second. The shared library is cached under ``$SSM_MS_CACHE`` (default ``$XDG_CACHE_HOME/ssm_ms`` or
+The kernels (``_conv_stack.c``: the decoder's whole stack of transposed convolutions with the layer norms and ReLUs
+between them, one sample at a time in cache, forward and backward, float32) are plain C without Python or torch
+headers: compiling them takes about a second. The shared library is cached under ``$SSM_MS_CACHE`` (default ``$XDG_CACHE_HOME/ssm_ms`` or
 ``~/.cache/ssm_ms``), keyed by the source, the compiler, its flags and this CPU's instruction sets (it is built
 with ``-march=native``), so a home directory shared between machines never loads a library built for another
 CPU. The rows (samples) are shared among OpenMP threads: the library links ``libgomp.so.1``, and in a process
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-SOURCE = Path(__file__).with_name("_fused_norm.c")
+SOURCE = Path(__file__).with_name("_conv_stack.c")
 # the first set the compiler accepts; OpenMP is required (kernels on one thread beside torch's threaded
 # convolutions were not measured, so not offered)
 FLAG_SETS = (
@@ -81,7 +81,7 @@ def _build() -> tuple[ctypes.CDLL | None, str | None]:
     errors = []
     for flags in FLAG_SETS:
         key = hashlib.sha256(source + cc.encode() + " ".join(flags).encode() + _cpu_signature().encode()).hexdigest()
-        target = cache_dir() / f"fused_norm-{key[:20]}.so"
+        target = cache_dir() / f"conv_stack-{key[:20]}.so"
         if not target.exists():
             try:
                 target.parent.mkdir(parents=True, exist_ok=True)
@@ -110,12 +110,13 @@ def _build() -> tuple[ctypes.CDLL | None, str | None]:
 
 
 def _declare(lib: ctypes.CDLL) -> None:
-    p, i, f, n = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_int
-    lib.fused_norm_threads.argtypes, lib.fused_norm_threads.restype = [], n
-    lib.fused_norm_forward.argtypes = [p, i, p, i, i, i, p, p, f, p, i, i, i, p, p, i, p, p, i]
-    lib.fused_norm_forward.restype = n
-    lib.fused_norm_backward.argtypes = [p, i, p, i, i, i, p, p, p, p, p, i, i, i, p, i, p, p, p, p, p, p, i, n]
-    lib.fused_norm_backward.restype = n
+    p, i, n = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    lib.conv_stack_threads.argtypes, lib.conv_stack_threads.restype = [], n
+    lib.conv_stack_forward.argtypes = [i, p, p, p, p, p, p, p, i]
+    lib.conv_stack_forward.restype = n
+    lib.conv_stack_saved_size.argtypes, lib.conv_stack_saved_size.restype = [i, p], i
+    lib.conv_stack_backward.argtypes = [i, p, p, p, p, p, p, p, p, p, p, i, i, n]
+    lib.conv_stack_backward.restype = n
 
 
 def library() -> ctypes.CDLL | None:
@@ -137,10 +138,12 @@ def unavailable_reason() -> str | None:
 def threads() -> int:
     """How many threads the kernels share rows among (torch's intra-op thread count)."""
     lib = library()
-    return 1 if lib is None else int(lib.fused_norm_threads())
+    return 1 if lib is None else int(lib.conv_stack_threads())
 
 
 def check(status: int) -> None:
-    """Raise for a kernel's non-zero return (its scratch memory could not be allocated)."""
-    if status != 0:
+    """Raise for a kernel's non-zero return (-1: its scratch memory could not be allocated)."""
+    if status == -1:
         raise MemoryError("ssm_ms native kernel: out of memory for its scratch buffers")
+    if status != 0:
+        raise ValueError(f"ssm_ms native kernel: bad arguments (status {status})")

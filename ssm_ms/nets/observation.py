@@ -5,7 +5,7 @@ Any ``nn.Module`` with that contract works as ``g``.
 
 from __future__ import annotations
 
-import functools
+import ctypes
 from collections.abc import Sequence
 
 import torch
@@ -112,28 +112,19 @@ class ConvDecoder(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         lead = x.shape[:-1]
-        h = self.stem(x.reshape(-1, self.state_dim)).view(-1, *self.stem_shape)
+        h = self.stem(x.reshape(-1, self.state_dim))
+        if self.native and self.native_fits and native_applies(h):
+            return self._centre(self._native_stack(h)).reshape(*lead, *self.out_shape)
+        h = h.view(-1, *self.stem_shape)
         if not self.channels_last:
             return self._centre(self.deconv(h)).reshape(*lead, *self.out_shape)
         # the stem's small map stays in the Linear's NCHW order, the layout in which oneDNN convolves a 3x3 map
         # fastest (first layer forward+backward: pendulum 40 ms instead of 54, Moving MNIST 0.77 s instead of 1.1);
         # the transposed convolutions return channels-last maps
-        fused = self.native and native_applies(h)
         layers = list(self.deconv)
         i = 0
         while i < len(layers):
             layer = layers[i]
-            if fused and self._fusable_block(layers, i):
-                norm, nxt = layers[i + 1], layers[i + 3] if i + 3 < len(layers) else None
-                if isinstance(nxt, nn.ConvTranspose2d) and _projects(nxt.weight):
-                    h = _DeconvNorm.apply(h, layer.weight, layer.bias, norm.weight, norm.bias, nxt.weight, nxt.bias,
-                                          layer.stride[0], nxt.stride[0], norm.eps)
-                    i += 4
-                else:
-                    h = _DeconvNorm.apply(h, layer.weight, layer.bias, norm.weight, norm.bias, None, None,
-                                          layer.stride[0], 1, norm.eps)
-                    i += 3
-                continue
             if isinstance(layer, nn.LayerNorm):
                 relu = i + 1 < len(layers) and isinstance(layers[i + 1], nn.ReLU)
                 h = layer_norm_channels_last(layer, h, relu=relu)
@@ -145,13 +136,46 @@ class ConvDecoder(nn.Module):
             i += 1
         return self._centre(h).reshape(*lead, *self.out_shape)  # a view for one uncropped channel, else a copy
 
-    @staticmethod
-    def _fusable_block(layers: list[nn.Module], i: int) -> bool:
-        """``layers[i:i + 3]`` is ``ConvTranspose2d, LayerNorm (with affine parameters), ReLU``."""
-        block = layers[i : i + 3]
-        return (len(block) == 3 and isinstance(block[0], nn.ConvTranspose2d) and isinstance(block[1], nn.LayerNorm)
-                and isinstance(block[2], nn.ReLU) and block[1].weight is not None and block[1].bias is not None
-                and block[0].padding == (0, 0) and block[0].stride[0] == block[0].stride[1])
+    @property
+    def native_fits(self) -> bool:
+        """Whether one sample's scratch for the native kernels (the largest products ``H_in W_in x k^2 C_out`` of a
+        layer and three of the largest layer-normed maps) is at most :data:`NATIVE_SCRATCH` floats: true for the
+        pendulum and quadruple-pendulum decoders, not for Moving MNIST's (512 and 256 channels: oneDNN's batched
+        convolutions are the faster way there)."""
+        return _stack_scratch(self._geometry()) <= NATIVE_SCRATCH
+
+    def _geometry(self) -> tuple[tuple[int, int, int, int, int, int], ...]:
+        """``(C_in, C_out, kernel, stride, H_in, W_in)`` of each transposed convolution."""
+        geometry, size = [], self.stem_shape[1]
+        for layer in self.deconv:
+            if isinstance(layer, nn.ConvTranspose2d):
+                c_in, c_out, k, _ = layer.weight.shape
+                geometry.append((c_in, c_out, k, layer.stride[0], size, size))
+                size = (size - 1) * layer.stride[0] + k
+        return tuple(geometry)
+
+    def _native_stack(self, h: torch.Tensor) -> torch.Tensor:
+        """The transposed convolutions, layer norms and ReLUs after the stem through :class:`_ConvStack`, then the
+        rest (the sigmoid) in torch; ``h`` is the stem's output ``[N, C S S]``."""
+        c, s = self.stem_shape[0], self.stem_shape[1]
+        n = h.shape[0]
+        hwc = h.view(n, c, s, s).permute(0, 2, 3, 1).reshape(n, s * s * c)  # the kernels' pixel-major rows
+        params: list[torch.Tensor | None] = []
+        eps: list[float] = []
+        layers = list(self.deconv)
+        for i, layer in enumerate(layers):
+            if isinstance(layer, nn.ConvTranspose2d):
+                params += [layer.weight, layer.bias]
+                norm = layers[i + 1] if i + 1 < len(layers) and isinstance(layers[i + 1], nn.LayerNorm) else None
+                if norm is not None:
+                    params += [norm.weight, norm.bias]
+                eps.append(norm.eps if norm is not None else 0.0)
+        geometry = self._geometry()
+        out = _ConvStack.apply(hwc, geometry, tuple(eps), *params)
+        c_out, k, stride, size = geometry[-1][1], geometry[-1][2], geometry[-1][3], geometry[-1][4]
+        side = (size - 1) * stride + k
+        out = out.view(n, side, side, c_out).permute(0, 3, 1, 2)
+        return self.deconv[-1](out) if isinstance(self.deconv[-1], nn.Sigmoid) else out
 
     def _centre(self, h: torch.Tensor) -> torch.Tensor:
         """The centre ``out_shape`` of the drawn images (a view; ``h`` itself when nothing is cropped)."""
@@ -409,97 +433,110 @@ def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
     return function.apply(x, weight, bias, stride)
 
 
-@functools.lru_cache(maxsize=32)
-def _pixel_offsets(c: int, height: int, width: int, stride: int, strides: tuple[int, ...]) -> torch.Tensor:
-    """Where pixel ``(Y, X)`` of a ``(c, height, width)`` map (``Y width + X``) starts, its ``c`` channels contiguous,
-    in a sample of the channels-last :func:`_phase_conv` output with ``strides``: its phase's channel block in the
-    slot of input row ``Y // stride``, column ``X // stride``."""
-    if strides[1] != 1:
-        raise ValueError(f"the phase convolution's output must be channels-last, got strides {strides}")
-    row, col = torch.arange(height).view(-1, 1), torch.arange(width).view(1, -1)
-    phase = (row % stride) * stride + col % stride
-    offsets = phase * c + (row // stride) * strides[2] + (col // stride) * strides[3]
-    return offsets.reshape(-1).to(torch.int32)
+NATIVE_SCRATCH = 1 << 18  # floats (1 MiB): what one sample of the native kernels may use, about a core's L2 cache
 
 
-class _DeconvNorm(torch.autograd.Function):
-    """``relu(LayerNorm((C, H, W))(conv_transpose2d(x, weight, bias, stride)))``, optionally followed by the next
-    transposed convolution (``next_weight [C, C2, K, K]``, ``next_bias``, ``next_stride``; one with
-    ``K^2 C2 <= C``, see :func:`_projects`), through the native kernels of :mod:`ssm_ms.nets.native` (float32, CPU).
+def _stack_scratch(geometry) -> int:
+    """Floats of one sample's scratch in the native kernels: the largest products plus three largest normed maps."""
+    prods, maps = [0], [1]
+    for i, (c_in, c_out, k, s, h, w) in enumerate(geometry):
+        prods.append(h * w * k * k * c_out)
+        if i < len(geometry) - 1:
+            maps.append(((h - 1) * s + k) * ((w - 1) * s + k) * c_out)
+    return max(prods) + 3 * max(maps)
 
-    The transposed convolution runs as :func:`_phase_conv`; the kernels read its phases in place (no interleaving
-    copy), normalise each sample in cache, and write the ReLU output as a channels-last map, or, with the next
-    layer, that layer's output ``[N, C2, H2, W2]`` (its per-pixel products and their shifted sums done in cache:
-    the normalised map is never stored). The backward recomputes the normalised sample from the saved convolution
-    output and writes the transposed convolution's output gradient in one pass, with the bias gradients; the
-    convolution's input and weight gradients are then those of :class:`_ConvTranspose`. Same values as the
-    torch-only path up to float rounding; first-order gradients only (no forward-mode AD: the decoder takes the
-    torch-only path there).
+
+class _ConvStack(torch.autograd.Function):
+    """A ConvDecoder's transposed convolutions, each but the last followed by ``LayerNorm((C, H, W))`` and a ReLU,
+    through the native kernels of :mod:`ssm_ms.nets.native` (float32, CPU), one sample at a time in cache.
+
+    ``x [N, S S C]`` is the stem's output as pixel-major rows; ``geometry`` holds ``(C_in, C_out, kernel, stride,
+    H_in, W_in)`` per layer, ``eps`` the layer norms' epsilons (any value for the last layer), ``params`` per layer
+    the ConvTranspose2d's weight and bias (or ``None``), and for all but the last the LayerNorm's weight and bias.
+    Returns the last layer's output as pixel-major rows ``[N, H W C]``. The maps are pixel-major inside the kernels,
+    the LayerNorm parameters permuted alike; the forward saves each layer norm's input, the backward normalises it
+    again. Same values as the torch-only path up to float rounding; first-order gradients only (forward-mode AD
+    takes the torch-only path: see :func:`native_applies`).
     """
 
     @staticmethod
-    def forward(ctx, x, weight, bias, gamma, beta, next_weight, next_bias, stride, next_stride, eps):
+    def forward(ctx, x, geometry, eps, *params):
         lib = native.library()
-        c, k = weight.shape[1], weight.shape[2]
-        height, width = (x.shape[2] - 1) * stride + k, (x.shape[3] - 1) * stride + k
-        y = _phase_conv(x, weight, bias, stride).contiguous(memory_format=torch.channels_last)
-        n, size = y.shape[0], c * height * width
-        poff = _pixel_offsets(c, height, width, stride, y.stride())
-        gamma, beta = gamma.contiguous(), beta.contiguous()
-        proj, k2, s2, c2 = None, 0, 1, 0
-        if next_weight is None:
-            out = y.new_empty(n, height, width, c)
-        else:
-            c2, k2, s2 = next_weight.shape[1], next_weight.shape[2], next_stride
-            proj = next_weight.permute(0, 2, 3, 1).reshape(c, k2 * k2 * c2).contiguous()  # (c; a, b, c2)
-            out = y.new_empty(n, c2, (height - 1) * s2 + k2, (width - 1) * s2 + k2)
-        next_bias = None if next_bias is None else next_bias.contiguous()
-        mean, rstd = y.new_empty(n), y.new_empty(n)
-        native.check(lib.fused_norm_forward(
-            y.data_ptr(), y.stride(0), poff.data_ptr(), size, c, width, gamma.data_ptr(), beta.data_ptr(), eps,
-            _ptr(proj), k2, s2, c2, _ptr(next_bias), out.data_ptr(), out.stride(0), mean.data_ptr(), rstd.data_ptr(),
-            n))
-        ctx.save_for_backward(x, weight, y, gamma, beta, proj, mean, rstd)
-        ctx.stride, ctx.has_bias, ctx.shape = stride, bias is not None, (c, height, width)
-        ctx.next = (k2, s2, c2, next_bias is not None)
-        return out.permute(0, 3, 1, 2) if next_weight is None else out
+        packed, pointers, goff, gsize = _pack(geometry, params)
+        n, last = x.shape[0], geometry[-1]
+        out_size = ((last[4] - 1) * last[3] + last[2]) * ((last[5] - 1) * last[3] + last[2]) * last[1]
+        x = x.contiguous()
+        geo = torch.tensor(geometry, dtype=torch.int64)
+        out = x.new_empty(n, out_size)
+        saved, stats = x.new_empty(n, lib.conv_stack_saved_size(len(geometry), geo.data_ptr())), x.new_empty(n, 2 * (len(geometry) - 1))
+        eps_arr = (ctypes.c_float * len(geometry))(*eps)
+        native.check(lib.conv_stack_forward(len(geometry), geo.data_ptr(), pointers, eps_arr, x.data_ptr(),
+                                            out.data_ptr(), saved.data_ptr(), stats.data_ptr(), n))
+        ctx.save_for_backward(x, saved, stats, *packed)
+        ctx.geometry, ctx.eps, ctx.goff, ctx.gsize = geometry, eps, goff, gsize
+        return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
-        x, weight, y, gamma, beta, proj, mean, rstd = ctx.saved_tensors
+        x, saved, stats, *packed = ctx.saved_tensors
         lib = native.library()
-        (c, height, width), n = ctx.shape, y.shape[0]
-        k2, s2, c2, has_next_bias = ctx.next
-        size = c * height * width
-        if proj is None:
-            dout = grad.permute(0, 2, 3, 1).contiguous()  # channels-last rows (a view when it is so)
-        else:
-            dout = grad.contiguous()
+        geometry = ctx.geometry
+        n = x.shape[0]
+        pointers = _pointers(packed)
         count = max(1, min(native.threads(), n))
-        dz = y.new_empty(n, height, width, c)
-        dgamma, dbeta, dsum = y.new_zeros(count, size), y.new_zeros(count, size), y.new_zeros(count, c)
-        dproj = None if proj is None else y.new_zeros(count, proj.numel())
-        dbias2 = y.new_zeros(count, c2) if has_next_bias else None
-        poff = _pixel_offsets(c, height, width, ctx.stride, y.stride())
-        native.check(lib.fused_norm_backward(
-            y.data_ptr(), y.stride(0), poff.data_ptr(), size, c, width, gamma.data_ptr(), beta.data_ptr(),
-            mean.data_ptr(), rstd.data_ptr(), _ptr(proj), k2, s2, c2, dout.data_ptr(), dout.stride(0), dz.data_ptr(),
-            dgamma.data_ptr(), dbeta.data_ptr(), dsum.data_ptr(), _ptr(dproj), _ptr(dbias2), n, count))
-        dz = dz.permute(0, 3, 1, 2)  # the transposed convolution's output gradient, channels-last
-        needs = ctx.needs_input_grad
-        grad_x, grad_w, _ = _conv_transpose_backward(x, weight, dz, ctx.stride, False, needs)  # bias: dsum
-        grad_b = dsum.sum(0) if ctx.has_bias and needs[2] else None
-        grad_next_w = grad_next_b = None
-        if proj is not None:
-            grad_next_w = dproj.sum(0).view(c, k2, k2, c2).permute(0, 3, 1, 2)
-            grad_next_b = None if dbias2 is None else dbias2.sum(0)
-        return (grad_x, grad_w, grad_b, dgamma.sum(0).view(c, height, width), dbeta.sum(0).view(c, height, width),
-                grad_next_w, grad_next_b, None, None, None)
+        grads = x.new_zeros(count, ctx.gsize)
+        dx = x.new_empty(x.shape)
+        geo = torch.tensor(geometry, dtype=torch.int64)
+        goff = torch.tensor(ctx.goff, dtype=torch.int64)
+        eps_arr = (ctypes.c_float * len(geometry))(*ctx.eps)
+        grad = grad.contiguous()
+        native.check(lib.conv_stack_backward(len(geometry), geo.data_ptr(), pointers, eps_arr, x.data_ptr(),
+                                             saved.data_ptr(), stats.data_ptr(), grad.data_ptr(), dx.data_ptr(),
+                                             grads.data_ptr(), goff.data_ptr(), ctx.gsize, n, count))
+        total = grads.sum(0)
+        out: list[torch.Tensor | None] = []
+        for layer, (c_in, c_out, k, s, h, w) in enumerate(geometry):
+            o_w, o_b, o_g, o_be = ctx.goff[4 * layer : 4 * layer + 4]
+            out.append(total[o_w : o_w + c_in * k * k * c_out].view(c_in, k, k, c_out).permute(0, 3, 1, 2))
+            out.append(total[o_b : o_b + c_out] if o_b >= 0 else None)
+            if layer < len(geometry) - 1:
+                hw = ((h - 1) * s + k, (w - 1) * s + k)
+                size = hw[0] * hw[1] * c_out
+                out.append(total[o_g : o_g + size].view(*hw, c_out).permute(2, 0, 1))
+                out.append(total[o_be : o_be + size].view(*hw, c_out).permute(2, 0, 1))
+        return (dx, None, None, *out)
 
 
-def _ptr(t: torch.Tensor | None) -> int | None:
-    return None if t is None else t.data_ptr()
+def _pack(geometry, params):
+    """The kernels' copies of the parameters, per layer ``w [C_in, k k C_out]`` ((c; a, b, c2) order), its transpose,
+    the bias, and the LayerNorm's weight and bias in ``H W C`` order; their addresses; each layer's gradient offsets
+    ``(w, bias, gamma, beta)`` in a row of the kernels' gradient buffer (-1: none), and that row's length."""
+    packed: list[torch.Tensor | None] = []
+    goff: list[int] = []
+    size, i = 0, 0
+    for layer, (c_in, c_out, k, _, _, _) in enumerate(geometry):
+        weight, bias = params[i], params[i + 1]
+        w = weight.detach().permute(0, 2, 3, 1).reshape(c_in, k * k * c_out).contiguous()
+        packed += [w, w.t().contiguous(), None if bias is None else bias.detach().contiguous()]
+        goff += [size, -1 if bias is None else size + w.numel()]
+        size += w.numel() + (0 if bias is None else c_out)
+        i += 2
+        if layer < len(geometry) - 1:
+            gamma, beta = params[i], params[i + 1]
+            packed += [gamma.detach().permute(1, 2, 0).contiguous(), beta.detach().permute(1, 2, 0).contiguous()]
+            goff += [size, size + gamma.numel()]
+            size += 2 * gamma.numel()
+            i += 2
+        else:
+            packed += [None, None]
+            goff += [-1, -1]
+    return packed, _pointers(packed), goff, size
+
+
+def _pointers(packed):
+    """The ``void *[5 L]`` array of the packed parameters' addresses (NULL for ``None``)."""
+    return (ctypes.c_void_p * len(packed))(*[None if t is None else t.data_ptr() for t in packed])
 
 
 def native_applies(h: torch.Tensor) -> bool:

@@ -1,0 +1,463 @@
+/* The ConvDecoder's stack of transposed convolutions with "LayerNorm over the whole map, ReLU" between them,
+ * forward and backward, float32, run one sample (row) at a time in cache.
+ *
+ * Layer l is a transposed convolution (no padding) from a [Hin, Win, Cin] map to a [Hout, Wout, Cout] one,
+ * Hout = (Hin - 1) S + K, its weight packed as w [Cin, Q] with Q = K K Cout in (a, b, c2) order (and its
+ * transpose wt [Q, Cin]), bias [Cout] or NULL. Every layer but the last is followed by a LayerNorm over its
+ * whole output (gamma, beta in the same H W C order) and a ReLU. All maps are pixel-major ([H W C] rows: a
+ * pixel's channels contiguous), the layout in which a transposed convolution is one small matrix product,
+ * products [Hin Win, Q] = map [Hin Win, Cin] @ w, followed by the shifted adds of its taps: output pixel
+ * (S i + a, S j + b) gets the Cout contiguous products (a, b, :) of input pixel (i, j). The backward reads the
+ * output gradient back at those pixels (the products' gradient), from which the input gradient is one matrix
+ * product with wt and the weight gradient one with the input map.
+ *
+ * A sample's maps (tens to a few hundred KB for the pendulum and quadruple-pendulum decoders) stay in the core's
+ * caches from the first layer to the last: only the layer norms' inputs (saved for the backward, written with
+ * streaming stores) and the image go to memory, where separate convolution, layer-norm and ReLU kernels over the
+ * batch would each stream the whole batch's maps through memory, forward and backward.
+ *
+ * With AVX-512 the matrix products run as register-blocked tiles (12 to 28 accumulators of 16 lanes) and a pixel's
+ * channels as masked vectors; other builds use plain loops that the compiler vectorises. Compiled on first use by
+ * ssm_ms/nets/native.py (plain C, no Python or torch headers) and called through ctypes. Rows are shared among
+ * OpenMP threads: loaded into a process that has torch, the library binds to the libgomp that torch loaded (same
+ * soname), so it uses torch's threads and follows torch.set_num_threads. native.py only loads builds with -fopenmp.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+#ifdef __AVX512F__
+#include <immintrin.h>
+#endif
+
+/* geo[l GEO + G_*]: a layer's geometry; ptrs[l PTRS + P_*]: its parameters (gamma, beta NULL for the last). */
+enum { G_CIN, G_COUT, G_K, G_S, G_HIN, G_WIN, GEO };
+enum { P_W, P_WT, P_BIAS, P_GAMMA, P_BETA, PTRS };
+/* goff[l GOFF + O_*]: where a layer's gradients lie in a thread's row of grads (-1: none). */
+enum { O_W, O_BIAS, O_GAMMA, O_BETA, GOFF };
+
+#define MAX_LAYERS 16
+
+typedef struct {
+    int64_t cin, cout, k, s, hin, win, hout, wout, pin, pout, q, din, dout;
+    float eps;
+    const float *w, *wt, *bias, *gamma, *beta;
+} layer_t;
+
+static int describe(int64_t L, const int64_t *geo, const float *const *ptrs, const float *eps, layer_t *ly)
+{
+    if (L < 1 || L > MAX_LAYERS) return -2;
+    for (int64_t l = 0; l < L; ++l) {
+        const int64_t *g = geo + l * GEO;
+        layer_t *y = ly + l;
+        y->cin = g[G_CIN], y->cout = g[G_COUT], y->k = g[G_K], y->s = g[G_S], y->hin = g[G_HIN], y->win = g[G_WIN];
+        y->hout = (y->hin - 1) * y->s + y->k, y->wout = (y->win - 1) * y->s + y->k;
+        y->pin = y->hin * y->win, y->pout = y->hout * y->wout, y->q = y->k * y->k * y->cout;
+        y->din = y->pin * y->cin, y->dout = y->pout * y->cout;
+        y->eps = eps[l];
+        const float *const *p = ptrs + l * PTRS;
+        y->w = p[P_W], y->wt = p[P_WT], y->bias = p[P_BIAS], y->gamma = p[P_GAMMA], y->beta = p[P_BETA];
+    }
+    return 0;
+}
+
+/* ---- small matrix products: C[r ldc + m] (+)= sum_j A[r ra + j ja] B[j ldb + m], r < R, j < J, m < M ---- */
+
+#ifdef __AVX512F__
+static inline __mmask16 lanes(int64_t left)
+{
+    return left >= 16 ? (__mmask16)0xFFFF : left > 0 ? (__mmask16)((1u << left) - 1u) : (__mmask16)0;
+}
+
+/* One tile: RP rows of C by NV 16-lane vectors of columns (mleft columns exist from B and C on), the sums over j
+ * kept in RP NV registers. */
+#define GEMM_TILE(RP, NV)                                                                                         \
+    static void gemm_tile_##RP##_##NV(const float *restrict A, int64_t ra, int64_t ja, const float *restrict B,  \
+                                      int64_t ldb, int64_t J, int64_t mleft, float *restrict C, int64_t ldc,     \
+                                      int accumulate)                                                            \
+    {                                                                                                             \
+        __mmask16 mk[NV];                                                                                         \
+        _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) mk[v] = lanes(mleft - 16 * v);                     \
+        __m512 acc[RP][NV];                                                                                       \
+        _Pragma("GCC unroll 16") for (int r = 0; r < RP; ++r)                                                    \
+            _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_setzero_ps();               \
+        for (int64_t j = 0; j < J; ++j) {                                                                         \
+            __m512 b[NV];                                                                                         \
+            _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v)                                                \
+                b[v] = _mm512_maskz_loadu_ps(mk[v], B + j * ldb + 16 * v);                                        \
+            _Pragma("GCC unroll 16") for (int r = 0; r < RP; ++r) {                                              \
+                const __m512 a = _mm512_set1_ps(A[r * ra + j * ja]);                                              \
+                _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_fmadd_ps(a, b[v], acc[r][v]); \
+            }                                                                                                     \
+        }                                                                                                         \
+        _Pragma("GCC unroll 16") for (int r = 0; r < RP; ++r)                                                    \
+            _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) {                                              \
+                float *restrict c = C + r * ldc + 16 * v;                                                         \
+                const __m512 x = accumulate ? _mm512_add_ps(_mm512_maskz_loadu_ps(mk[v], c), acc[r][v]) : acc[r][v]; \
+                _mm512_mask_storeu_ps(c, mk[v], x);                                                               \
+            }                                                                                                     \
+    }
+
+GEMM_TILE(12, 1)
+GEMM_TILE(6, 2)
+GEMM_TILE(6, 3)
+GEMM_TILE(6, 4)
+GEMM_TILE(4, 5)
+GEMM_TILE(4, 6)
+GEMM_TILE(3, 7)
+GEMM_TILE(1, 1)
+GEMM_TILE(1, 2)
+GEMM_TILE(1, 3)
+GEMM_TILE(1, 4)
+GEMM_TILE(1, 5)
+GEMM_TILE(1, 6)
+GEMM_TILE(1, 7)
+
+/* Rows in tiles of RP (the rest one by one), columns in blocks of NV vectors. */
+#define GEMM_RUN(RP, NV)                                                                                          \
+    for (int64_t m0 = 0; m0 < M; m0 += 16 * NV) {                                                                 \
+        int64_t r0 = 0;                                                                                           \
+        for (; r0 + RP <= R; r0 += RP)                                                                            \
+            gemm_tile_##RP##_##NV(A + r0 * ra, ra, ja, B + m0, ldb, J, M - m0, C + r0 * ldc + m0, ldc, accumulate); \
+        for (; r0 < R; ++r0)                                                                                      \
+            gemm_tile_1_##NV(A + r0 * ra, ra, ja, B + m0, ldb, J, M - m0, C + r0 * ldc + m0, ldc, accumulate);    \
+    }
+#endif
+
+static void gemm(const float *restrict A, int64_t ra, int64_t ja, const float *restrict B, int64_t ldb, int64_t R,
+                 int64_t J, int64_t M, float *restrict C, int64_t ldc, int accumulate)
+{
+#ifdef __AVX512F__
+    switch ((M + 15) / 16) { /* the tile shape by the number of column vectors: 12 to 28 accumulators */
+    case 1: GEMM_RUN(12, 1) break;
+    case 2: GEMM_RUN(6, 2) break;
+    case 3: GEMM_RUN(6, 3) break;
+    case 4: GEMM_RUN(6, 4) break;
+    case 5: GEMM_RUN(4, 5) break;
+    case 6: GEMM_RUN(4, 6) break;
+    case 7: GEMM_RUN(3, 7) break;
+    default: GEMM_RUN(4, 5) break;
+    }
+#else
+    for (int64_t r = 0; r < R; ++r) {
+        float *restrict c = C + r * ldc;
+        if (!accumulate) memset(c, 0, (size_t)M * sizeof(float));
+        for (int64_t j = 0; j < J; ++j) {
+            const float a = A[r * ra + j * ja];
+            const float *restrict b = B + j * ldb;
+#pragma omp simd
+            for (int64_t m = 0; m < M; ++m) c[m] += a * b[m];
+        }
+    }
+#endif
+}
+
+/* dst[0..n) += src[0..n), or = with copy: one pixel's channels */
+static inline void pixel_op(float *restrict dst, const float *restrict src, int64_t n, int copy)
+{
+    if (n == 1) {
+        dst[0] = copy ? src[0] : dst[0] + src[0];
+        return;
+    }
+#ifdef __AVX512F__
+    for (int64_t c = 0; c < n; c += 16) {
+        const __mmask16 m = lanes(n - c);
+        const __m512 v = _mm512_maskz_loadu_ps(m, src + c);
+        _mm512_mask_storeu_ps(dst + c, m, copy ? v : _mm512_add_ps(_mm512_maskz_loadu_ps(m, dst + c), v));
+    }
+#else
+    for (int64_t c = 0; c < n; ++c) dst[c] = copy ? src[c] : dst[c] + src[c];
+#endif
+}
+
+/* Output pixel (S i + a, S j + b) and product (a, b, :) of input pixel (i, j), for every i, j, a, b: the
+ * transposed convolution's shifted adds (forward: out += prod) or their adjoint (backward: prod = out, the output
+ * gradient read back at each product). For fixed (i, a, b) the pixels j are distinct, so consecutive adds never
+ * wait on each other's stores; with one channel (an image-drawing layer) they are plain strided loops, which the
+ * compiler vectorises. */
+static void taps_forward(const layer_t *ly, const float *restrict prod, float *restrict out)
+{
+    const int64_t C = ly->cout, Q = ly->q, S = ly->s, W = ly->win;
+    for (int64_t i = 0; i < ly->hin; ++i)
+        for (int64_t a = 0; a < ly->k; ++a)
+            for (int64_t b = 0; b < ly->k; ++b) {
+                float *restrict o = out + ((S * i + a) * ly->wout + b) * C;
+                const float *restrict pr = prod + i * W * Q + (a * ly->k + b) * C;
+                if (C == 1)
+                    for (int64_t j = 0; j < W; ++j) o[S * j] += pr[j * Q];
+                else
+                    for (int64_t j = 0; j < W; ++j) pixel_op(o + S * j * C, pr + j * Q, C, 0);
+            }
+}
+
+static void taps_backward(const layer_t *ly, const float *restrict dout, float *restrict dprod)
+{
+    const int64_t C = ly->cout, Q = ly->q, S = ly->s, W = ly->win;
+    for (int64_t i = 0; i < ly->hin; ++i)
+        for (int64_t a = 0; a < ly->k; ++a)
+            for (int64_t b = 0; b < ly->k; ++b) {
+                const float *restrict o = dout + ((S * i + a) * ly->wout + b) * C;
+                float *restrict pr = dprod + i * W * Q + (a * ly->k + b) * C;
+                if (C == 1)
+                    for (int64_t j = 0; j < W; ++j) pr[j * Q] = o[S * j];
+                else
+                    for (int64_t j = 0; j < W; ++j) pixel_op(pr + j * Q, o + S * j * C, C, 1);
+            }
+}
+
+/* acc[c] += sum_p d[p C + c], c < C (a bias gradient), with independent partial sums. */
+static void channel_sums(const float *restrict d, int64_t P, int64_t C, float *restrict acc)
+{
+    if (C == 1) {
+        float s = 0.0f;
+#pragma omp simd reduction(+ : s)
+        for (int64_t p = 0; p < P; ++p) s += d[p];
+        acc[0] += s;
+        return;
+    }
+#ifdef __AVX512F__
+    for (int64_t c = 0; c < C; c += 16) {
+        const __mmask16 m = lanes(C - c);
+        __m512 s0 = _mm512_setzero_ps(), s1 = s0, s2 = s0, s3 = s0;
+        int64_t p = 0;
+        for (; p + 4 <= P; p += 4) {
+            s0 = _mm512_add_ps(s0, _mm512_maskz_loadu_ps(m, d + p * C + c));
+            s1 = _mm512_add_ps(s1, _mm512_maskz_loadu_ps(m, d + (p + 1) * C + c));
+            s2 = _mm512_add_ps(s2, _mm512_maskz_loadu_ps(m, d + (p + 2) * C + c));
+            s3 = _mm512_add_ps(s3, _mm512_maskz_loadu_ps(m, d + (p + 3) * C + c));
+        }
+        for (; p < P; ++p) s0 = _mm512_add_ps(s0, _mm512_maskz_loadu_ps(m, d + p * C + c));
+        const __m512 t = _mm512_add_ps(_mm512_add_ps(s0, s1), _mm512_add_ps(s2, s3));
+        _mm512_mask_storeu_ps(acc + c, m, _mm512_add_ps(_mm512_maskz_loadu_ps(m, acc + c), t));
+    }
+#else
+    for (int64_t p = 0; p < P; ++p)
+        for (int64_t c = 0; c < C; ++c) acc[c] += d[p * C + c];
+#endif
+}
+
+/* ---- one layer ---- */
+
+/* out [Pout, Cout] = the layer applied to in [Pin, Cin], through the products prod [Pin, Q]. */
+static void layer_forward(const layer_t *ly, const float *restrict in, float *restrict prod, float *restrict out)
+{
+    gemm(in, ly->cin, 1, ly->w, ly->q, ly->pin, ly->cin, ly->q, prod, ly->q, 0);
+    if (ly->bias == NULL)
+        memset(out, 0, (size_t)ly->dout * sizeof(float));
+    else if (ly->cout == 1)
+        for (int64_t p = 0; p < ly->pout; ++p) out[p] = ly->bias[0];
+    else
+        for (int64_t p = 0; p < ly->pout; ++p) pixel_op(out + p * ly->cout, ly->bias, ly->cout, 1);
+    taps_forward(ly, prod, out);
+}
+
+/* dst[0..n) = src[0..n) for a dst that is not read again soon (the saved layer-norm inputs): with AVX-512 and a
+ * 64-byte aligned dst, streaming stores, which skip reading the destination's cache lines from memory first. */
+static void store_away(float *restrict dst, const float *restrict src, int64_t n)
+{
+#ifdef __AVX512F__
+    if (((uintptr_t)dst & 63) == 0) {
+        int64_t k = 0;
+        for (; k + 16 <= n; k += 16) _mm512_stream_ps(dst + k, _mm512_loadu_ps(src + k));
+        for (; k < n; ++k) dst[k] = src[k];
+        return;
+    }
+#endif
+    memcpy(dst, src, (size_t)n * sizeof(float));
+}
+
+/* Mean and 1/sqrt(var + eps) of y[0..D) (two passes, like torch). */
+static void row_stats(const float *restrict y, int64_t D, float eps, float *mean_out, float *rstd_out)
+{
+    float s = 0.0f;
+#pragma omp simd reduction(+ : s)
+    for (int64_t k = 0; k < D; ++k) s += y[k];
+    const float mean = s / (float)D;
+    float v = 0.0f;
+#pragma omp simd reduction(+ : v)
+    for (int64_t k = 0; k < D; ++k) {
+        const float c = y[k] - mean;
+        v += c * c;
+    }
+    *mean_out = mean;
+    *rstd_out = 1.0f / sqrtf(v / (float)D + eps);
+}
+
+/* h = relu((y - mu) rs gamma + beta) */
+static void norm_relu(const float *restrict y, int64_t D, const float *restrict gamma, const float *restrict beta,
+                      float mu, float rs, float *restrict h)
+{
+#pragma omp simd
+    for (int64_t k = 0; k < D; ++k) {
+        const float a = (y[k] - mu) * rs * gamma[k] + beta[k];
+        h[k] = a > 0.0f ? a : 0.0f;
+    }
+}
+
+/* g: in dL/dh, out dL/dy, for h = relu(layer_norm(y) gamma + beta); dgamma, dbeta accumulate. */
+static void norm_relu_backward(const float *restrict y, int64_t D, const float *restrict gamma,
+                               const float *restrict beta, float mu, float rs, float *restrict g,
+                               float *restrict dgamma, float *restrict dbeta)
+{
+    float s1 = 0.0f, s2 = 0.0f;
+#pragma omp simd reduction(+ : s1, s2)
+    for (int64_t k = 0; k < D; ++k) {
+        const float xh = (y[k] - mu) * rs;
+        const float da = xh * gamma[k] + beta[k] > 0.0f ? g[k] : 0.0f;
+        dbeta[k] += da;
+        dgamma[k] += da * xh;
+        const float gg = da * gamma[k];
+        g[k] = gg;
+        s1 += gg;
+        s2 += gg * xh;
+    }
+    const float m1 = s1 / (float)D, m2 = s2 / (float)D;
+#pragma omp simd
+    for (int64_t k = 0; k < D; ++k) g[k] = rs * (g[k] - m1 - (y[k] - mu) * rs * m2);
+}
+
+/* ---- the stack ---- */
+
+/* How many threads the kernels use (torch's intra-op thread count when bound to torch's libgomp). */
+int conv_stack_threads(void)
+{
+#ifdef _OPENMP
+    return omp_get_max_threads();
+#else
+    return 1;
+#endif
+}
+
+/* Largest products [Pin, Q] and largest layer-normed map of the stack (scratch sizes, floats). */
+static void scratch_sizes(int64_t L, const layer_t *ly, int64_t *prod, int64_t *map)
+{
+    *prod = 0, *map = 1;
+    for (int64_t l = 0; l < L; ++l) {
+        if (ly[l].pin * ly[l].q > *prod) *prod = ly[l].pin * ly[l].q;
+        if (l < L - 1 && ly[l].dout > *map) *map = ly[l].dout;
+    }
+}
+
+/* Floats per row of conv_stack_forward's saved: each layer-normed output rounded up to 16 floats (64 bytes). */
+static int64_t saved_offsets(int64_t L, const layer_t *ly, int64_t *soff)
+{
+    int64_t S = 0;
+    for (int64_t l = 0; l < L - 1; ++l) soff[l] = S, S += (ly[l].dout + 15) / 16 * 16;
+    return S;
+}
+
+int64_t conv_stack_saved_size(int64_t L, const int64_t *geo)
+{
+    layer_t ly[MAX_LAYERS];
+    int64_t soff[MAX_LAYERS];
+    const float *ptrs[MAX_LAYERS * PTRS] = {0};
+    float eps[MAX_LAYERS] = {0};
+    if (describe(L, geo, ptrs, eps, ly) != 0) return -2;
+    return saved_offsets(L, ly, soff);
+}
+
+/* x [rows, Din of layer 0] -> out [rows, Dout of the last layer]. Saves each layer-normed layer's output y
+ * (saved [rows, conv_stack_saved_size()], in layer order, each at a multiple of 16 floats) and its mean and 1/std
+ * (stats [rows, 2 (L - 1)]).
+ * Returns 0, -1 where scratch memory could not be allocated, -2 for a bad layer count. */
+int conv_stack_forward(int64_t L, const int64_t *geo, const float *const *ptrs, const float *eps,
+                       const float *restrict x, float *restrict out, float *restrict saved, float *restrict stats,
+                       int64_t rows)
+{
+    layer_t ly[MAX_LAYERS];
+    if (describe(L, geo, ptrs, eps, ly) != 0) return -2;
+    int64_t nprod, nmap, soff[MAX_LAYERS];
+    scratch_sizes(L, ly, &nprod, &nmap);
+    const int64_t S = saved_offsets(L, ly, soff);
+    int failed = 0;
+#pragma omp parallel reduction(| : failed)
+    {
+    float *restrict scratch = malloc((size_t)(nprod + 3 * nmap) * sizeof(float));
+    failed = scratch == NULL;
+    /* prod: the products; y: a layer's output, made in cache, then stored away; maps: the normalised maps */
+    float *restrict prod = scratch, *restrict y = scratch + nprod;
+    float *restrict maps[2] = {scratch + nprod + nmap, scratch + nprod + 2 * nmap};
+#pragma omp for schedule(static)
+    for (int64_t r = 0; r < rows; ++r) {
+        if (failed) continue;
+        const float *in = x + r * ly[0].din;
+        float *restrict st = stats + r * 2 * (L - 1);
+        for (int64_t l = 0; l < L - 1; ++l) {
+            layer_forward(ly + l, in, prod, y);
+            store_away(saved + r * S + soff[l], y, ly[l].dout);
+            row_stats(y, ly[l].dout, ly[l].eps, st, st + 1);
+            norm_relu(y, ly[l].dout, ly[l].gamma, ly[l].beta, st[0], st[1], maps[l & 1]);
+            in = maps[l & 1];
+            st += 2;
+        }
+        layer_forward(ly + L - 1, in, prod, out + r * ly[L - 1].dout);
+    }
+    free(scratch);
+    }
+#ifdef __AVX512F__
+    _mm_sfence(); /* the streaming stores are visible before the caller reads saved */
+#endif
+    return failed ? -1 : 0;
+}
+
+/* Gradients of conv_stack_forward given dout [rows, Dout of the last layer]: dx [rows, Din of layer 0], and the
+ * parameters' gradients summed over the rows of each thread t < threads (at most conv_stack_threads()) into the
+ * caller's zeroed row t of grads [threads, gsize], at goff (weights in w's packed order, gamma and beta in H W C
+ * order); the caller sums those rows in order, so that a given thread count always gives the same bits.
+ * Returns 0, -1 where scratch memory could not be allocated, -2 for a bad layer count. */
+int conv_stack_backward(int64_t L, const int64_t *geo, const float *const *ptrs, const float *eps,
+                        const float *restrict x, const float *restrict saved, const float *restrict stats,
+                        const float *restrict dout, float *restrict dx, float *restrict grads,
+                        const int64_t *goff, int64_t gsize, int64_t rows, int threads)
+{
+    layer_t ly[MAX_LAYERS];
+    if (describe(L, geo, ptrs, eps, ly) != 0) return -2;
+    int64_t nprod, nmap, soff[MAX_LAYERS];
+    scratch_sizes(L, ly, &nprod, &nmap);
+    const int64_t S = saved_offsets(L, ly, soff);
+    int failed = 0;
+#pragma omp parallel num_threads(threads) reduction(| : failed)
+    {
+#ifdef _OPENMP
+    const int64_t slot = omp_get_thread_num();
+#else
+    const int64_t slot = 0;
+#endif
+    float *restrict G = grads + slot * gsize;
+    float *restrict scratch = malloc((size_t)(nprod + 3 * nmap) * sizeof(float));
+    failed = scratch == NULL;
+    /* dcols: the products' gradient; h: a layer's input map; dh[2]: map gradients, alternating by layer */
+    float *restrict dcols = scratch, *restrict h = scratch + nprod;
+    float *restrict dh[2] = {scratch + nprod + nmap, scratch + nprod + 2 * nmap};
+#pragma omp for schedule(static)
+    for (int64_t r = 0; r < rows; ++r) {
+        if (failed) continue;
+        const float *d = dout + r * ly[L - 1].dout; /* the gradient of layer l's output */
+        for (int64_t l = L - 1; l >= 0; --l) {
+            const layer_t *c = ly + l;
+            const int64_t *o = goff + l * GOFF;
+            if (o[O_BIAS] >= 0) channel_sums(d, c->pout, c->cout, G + o[O_BIAS]);
+            taps_backward(c, d, dcols);
+            const float *in = x + r * ly[0].din, *y = NULL, *st = NULL;
+            if (l > 0) { /* this layer's input: the previous layer's output, normalised again from its saved y */
+                y = saved + r * S + soff[l - 1], st = stats + r * 2 * (L - 1) + 2 * (l - 1);
+                norm_relu(y, ly[l - 1].dout, ly[l - 1].gamma, ly[l - 1].beta, st[0], st[1], h);
+                in = h;
+            }
+            gemm(in, 1, c->cin, dcols, c->q, c->cin, c->pin, c->q, G + o[O_W], c->q, 1); /* += in^T dcols */
+            float *restrict g = l == 0 ? dx + r * ly[0].din : dh[l & 1];
+            gemm(dcols, c->q, 1, c->wt, c->cin, c->pin, c->q, c->cin, g, c->cin, 0); /* dcols wt: dL/d(in) */
+            if (l == 0) break;
+            const int64_t *op = goff + (l - 1) * GOFF;
+            norm_relu_backward(y, ly[l - 1].dout, ly[l - 1].gamma, ly[l - 1].beta, st[0], st[1], g,
+                               G + op[O_GAMMA], G + op[O_BETA]);
+            d = g;
+        }
+    }
+    free(scratch);
+    }
+    return failed ? -1 : 0;
+}
