@@ -45,15 +45,16 @@ class ConvDecoder(nn.Module):
             the strides; none at the sizes the stack draws exactly, e.g. the presets' 24, 48, 64). Sizes
             below what a 1x1 stem draws are refused with the sizes that work. Give ``stem_size`` or
             ``image_size``, not both.
-        channels_last: run the feature maps after the first transposed convolution in channels-last memory
-            layout (same results, same parameters), the layout oneDNN's CPU convolutions are fastest in;
-            the transposed convolutions then run through :func:`conv_transpose2d`. LayerNorm is applied to the
-            ``(H, W, C)``-ordered sample, a view, never a copy.
-        native: with ``channels_last``, on CPU in float32 (no autocast, no forward-mode AD), run each
-            ``ConvTranspose2d, LayerNorm, ReLU`` block, with the image-drawing layer after it if that has
-            ``k^2 C_out <= C_in``, through the fused native kernels of
-            :mod:`ssm_ms.nets.native` (compiled on first use; same values up to float rounding). Where they
-            cannot be compiled, the torch-only path runs.
+        channels_last: on the torch-only path, run the feature maps after the first transposed convolution in
+            channels-last memory layout (same results, same parameters), the layout oneDNN's CPU convolutions are
+            fastest in; the transposed convolutions then run through :func:`conv_transpose2d`. LayerNorm is applied
+            to the ``(H, W, C)``-ordered sample, a view, never a copy.
+        native: on CPU in float32 (no autocast, no forward-mode AD), run the whole stack after the stem (every
+            transposed convolution, LayerNorm and ReLU) through the native kernels of :mod:`ssm_ms.nets.native`,
+            one sample at a time in cache (compiled on first use; same values up to float rounding), where one
+            sample's scratch fits in :data:`NATIVE_SCRATCH` floats (:attr:`native_fits`: the pendulum and
+            quadruple-pendulum decoders, not Moving MNIST's). Elsewhere, or where the kernels cannot be compiled,
+            the torch-only path runs.
     """
 
     def __init__(
