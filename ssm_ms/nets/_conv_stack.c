@@ -108,13 +108,46 @@ GEMM_TILE(6, 4)
 GEMM_TILE(4, 5)
 GEMM_TILE(4, 6)
 GEMM_TILE(3, 7)
-GEMM_TILE(1, 1)
-GEMM_TILE(1, 2)
-GEMM_TILE(1, 3)
-GEMM_TILE(1, 4)
-GEMM_TILE(1, 5)
-GEMM_TILE(1, 6)
-GEMM_TILE(1, 7)
+
+/* One row of C (a tile's leftover rows): the sum over j split into four interleaved partial sums, so that the
+ * additions do not wait on each other (a single chain of fused multiply-adds runs at their latency, not rate). */
+#define GEMM_ROW(NV)                                                                                              \
+    static void gemm_tile_1_##NV(const float *restrict A, int64_t ra, int64_t ja, const float *restrict B,       \
+                                 int64_t ldb, int64_t J, int64_t mleft, float *restrict C, int64_t ldc,          \
+                                 int accumulate)                                                                 \
+    {                                                                                                             \
+        (void)ra, (void)ldc;                                                                                      \
+        __mmask16 mk[NV];                                                                                         \
+        _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) mk[v] = lanes(mleft - 16 * v);                     \
+        __m512 acc[4][NV];                                                                                        \
+        _Pragma("GCC unroll 16") for (int u = 0; u < 4; ++u)                                                     \
+            _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[u][v] = _mm512_setzero_ps();               \
+        int64_t j = 0;                                                                                            \
+        for (; j + 4 <= J; j += 4)                                                                                \
+            _Pragma("GCC unroll 4") for (int u = 0; u < 4; ++u) {                                                \
+                const __m512 a = _mm512_set1_ps(A[(j + u) * ja]);                                                 \
+                _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[u][v] = _mm512_fmadd_ps(               \
+                    a, _mm512_maskz_loadu_ps(mk[v], B + (j + u) * ldb + 16 * v), acc[u][v]);                     \
+            }                                                                                                     \
+        for (; j < J; ++j) {                                                                                      \
+            const __m512 a = _mm512_set1_ps(A[j * ja]);                                                           \
+            _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v)                                                \
+                acc[0][v] = _mm512_fmadd_ps(a, _mm512_maskz_loadu_ps(mk[v], B + j * ldb + 16 * v), acc[0][v]);    \
+        }                                                                                                         \
+        _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) {                                                  \
+            __m512 x = _mm512_add_ps(_mm512_add_ps(acc[0][v], acc[1][v]), _mm512_add_ps(acc[2][v], acc[3][v]));  \
+            if (accumulate) x = _mm512_add_ps(_mm512_maskz_loadu_ps(mk[v], C + 16 * v), x);                      \
+            _mm512_mask_storeu_ps(C + 16 * v, mk[v], x);                                                          \
+        }                                                                                                         \
+    }
+
+GEMM_ROW(1)
+GEMM_ROW(2)
+GEMM_ROW(3)
+GEMM_ROW(4)
+GEMM_ROW(5)
+GEMM_ROW(6)
+GEMM_ROW(7)
 
 /* Rows in tiles of RP (the rest one by one), columns in blocks of NV vectors. */
 #define GEMM_RUN(RP, NV)                                                                                          \
@@ -272,6 +305,28 @@ static void store_away(float *restrict dst, const float *restrict src, int64_t n
 /* Mean and 1/sqrt(var + eps) of y[0..D) (two passes, like torch). */
 static void row_stats(const float *restrict y, int64_t D, float eps, float *mean_out, float *rstd_out)
 {
+#ifdef __AVX512F__
+    /* four independent partial sums: one chain of vector additions would run at their latency, not their rate */
+    __m512 a[4] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
+    int64_t k = 0;
+    for (; k + 64 <= D; k += 64)
+        for (int u = 0; u < 4; ++u) a[u] = _mm512_add_ps(a[u], _mm512_loadu_ps(y + k + 16 * u));
+    for (; k < D; k += 16) a[0] = _mm512_add_ps(a[0], _mm512_maskz_loadu_ps(lanes(D - k), y + k));
+    const float mean = _mm512_reduce_add_ps(_mm512_add_ps(_mm512_add_ps(a[0], a[1]), _mm512_add_ps(a[2], a[3]))) / (float)D;
+    const __m512 m = _mm512_set1_ps(mean);
+    for (int u = 0; u < 4; ++u) a[u] = _mm512_setzero_ps();
+    for (k = 0; k + 64 <= D; k += 64)
+        for (int u = 0; u < 4; ++u) {
+            const __m512 c = _mm512_sub_ps(_mm512_loadu_ps(y + k + 16 * u), m);
+            a[u] = _mm512_fmadd_ps(c, c, a[u]);
+        }
+    for (; k < D; k += 16) {
+        const __mmask16 mk = lanes(D - k);
+        const __m512 c = _mm512_maskz_sub_ps(mk, _mm512_maskz_loadu_ps(mk, y + k), m);
+        a[0] = _mm512_fmadd_ps(c, c, a[0]);
+    }
+    const float v = _mm512_reduce_add_ps(_mm512_add_ps(_mm512_add_ps(a[0], a[1]), _mm512_add_ps(a[2], a[3])));
+#else
     float s = 0.0f;
 #pragma omp simd reduction(+ : s)
     for (int64_t k = 0; k < D; ++k) s += y[k];
@@ -282,6 +337,7 @@ static void row_stats(const float *restrict y, int64_t D, float eps, float *mean
         const float c = y[k] - mean;
         v += c * c;
     }
+#endif
     *mean_out = mean;
     *rstd_out = 1.0f / sqrtf(v / (float)D + eps);
 }
