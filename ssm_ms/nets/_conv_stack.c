@@ -206,24 +206,39 @@ static inline void pixel_op(float *restrict dst, const float *restrict src, int6
 #endif
 }
 
+/* dst[j dstep + c] (+)= src[j sstep + c], j < W, c < C: one strip of pixels, a pixel's C channels at a time. */
+static inline void strip(float *restrict dst, int64_t dstep, const float *restrict src, int64_t sstep, int64_t W,
+                         int64_t C, int copy)
+{
+    if (C == 1) {
+        for (int64_t j = 0; j < W; ++j) dst[j * dstep] = copy ? src[j * sstep] : dst[j * dstep] + src[j * sstep];
+        return;
+    }
+#ifdef __AVX512F__
+    if (C <= 16) { /* one masked vector per pixel */
+        const __mmask16 m = lanes(C);
+        for (int64_t j = 0; j < W; ++j) {
+            const __m512 v = _mm512_maskz_loadu_ps(m, src + j * sstep);
+            float *restrict d = dst + j * dstep;
+            _mm512_mask_storeu_ps(d, m, copy ? v : _mm512_add_ps(_mm512_maskz_loadu_ps(m, d), v));
+        }
+        return;
+    }
+#endif
+    for (int64_t j = 0; j < W; ++j) pixel_op(dst + j * dstep, src + j * sstep, C, copy);
+}
+
 /* Output pixel (S i + a, S j + b) and product (a, b, :) of input pixel (i, j), for every i, j, a, b: the
  * transposed convolution's shifted adds (forward: out += prod) or their adjoint (backward: prod = out, the output
- * gradient read back at each product). For fixed (i, a, b) the pixels j are distinct, so consecutive adds never
- * wait on each other's stores; with one channel (an image-drawing layer) they are plain strided loops, which the
- * compiler vectorises. */
+ * gradient read back at each product), as strips over j: for fixed (i, a, b) the pixels j are distinct, so
+ * consecutive adds never wait on each other's stores. */
 static void taps_forward(const layer_t *ly, const float *restrict prod, float *restrict out)
 {
     const int64_t C = ly->cout, Q = ly->q, S = ly->s, W = ly->win;
     for (int64_t i = 0; i < ly->hin; ++i)
         for (int64_t a = 0; a < ly->k; ++a)
-            for (int64_t b = 0; b < ly->k; ++b) {
-                float *restrict o = out + ((S * i + a) * ly->wout + b) * C;
-                const float *restrict pr = prod + i * W * Q + (a * ly->k + b) * C;
-                if (C == 1)
-                    for (int64_t j = 0; j < W; ++j) o[S * j] += pr[j * Q];
-                else
-                    for (int64_t j = 0; j < W; ++j) pixel_op(o + S * j * C, pr + j * Q, C, 0);
-            }
+            for (int64_t b = 0; b < ly->k; ++b)
+                strip(out + ((S * i + a) * ly->wout + b) * C, S * C, prod + i * W * Q + (a * ly->k + b) * C, Q, W, C, 0);
 }
 
 static void taps_backward(const layer_t *ly, const float *restrict dout, float *restrict dprod)
@@ -231,14 +246,8 @@ static void taps_backward(const layer_t *ly, const float *restrict dout, float *
     const int64_t C = ly->cout, Q = ly->q, S = ly->s, W = ly->win;
     for (int64_t i = 0; i < ly->hin; ++i)
         for (int64_t a = 0; a < ly->k; ++a)
-            for (int64_t b = 0; b < ly->k; ++b) {
-                const float *restrict o = dout + ((S * i + a) * ly->wout + b) * C;
-                float *restrict pr = dprod + i * W * Q + (a * ly->k + b) * C;
-                if (C == 1)
-                    for (int64_t j = 0; j < W; ++j) pr[j * Q] = o[S * j];
-                else
-                    for (int64_t j = 0; j < W; ++j) pixel_op(pr + j * Q, o + S * j * C, C, 1);
-            }
+            for (int64_t b = 0; b < ly->k; ++b)
+                strip(dprod + i * W * Q + (a * ly->k + b) * C, Q, dout + ((S * i + a) * ly->wout + b) * C, S * C, W, C, 1);
 }
 
 /* acc[c] += sum_p d[p C + c], c < C (a bias gradient), with independent partial sums. */
