@@ -512,7 +512,7 @@ int conv_stack_backward(int64_t L, const int64_t *geo, const float *const *ptrs,
                 norm_relu(y, ly[l - 1].dout, ly[l - 1].gamma, ly[l - 1].beta, st[0], st[1], h);
                 in = h;
             }
-            gemm(in, 1, c->cin, dcols, c->q, c->cin, c->pin, c->q, G + o[O_W], c->q, 1); /* += in^T dcols */
+            gemm(dcols, 1, c->q, in, c->cin, c->q, c->pin, c->cin, G + o[O_W], c->cin, 1); /* wt's: += dcols^T in */
             float *restrict g = l == 0 ? dx + r * ly[0].din : dh[l & 1];
             gemm(dcols, c->q, 1, c->wt, c->cin, c->pin, c->q, c->cin, g, c->cin, 0); /* dcols wt: dL/d(in) */
             if (l == 0) break;

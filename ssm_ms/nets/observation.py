@@ -499,7 +499,7 @@ class _ConvStack(torch.autograd.Function):
         out: list[torch.Tensor | None] = []
         for layer, (c_in, c_out, k, s, h, w) in enumerate(geometry):
             o_w, o_b, o_g, o_be = ctx.goff[4 * layer : 4 * layer + 4]
-            out.append(total[o_w : o_w + c_in * k * k * c_out].view(c_in, k, k, c_out).permute(0, 3, 1, 2))
+            out.append(total[o_w : o_w + c_in * k * k * c_out].view(k, k, c_out, c_in).permute(3, 2, 0, 1))
             out.append(total[o_b : o_b + c_out] if o_b >= 0 else None)
             if layer < len(geometry) - 1:
                 hw = ((h - 1) * s + k, (w - 1) * s + k)
