@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     import torch
 
-    from ssm_ms.machine import describe
+    from ssm_ms.machine import CpuWatch, describe, quiet_note
     from ssm_ms.shooting import compile_unavailable_reason
 
     if args.device == "cuda" and not torch.cuda.is_available():  # before any worker starts (and dies)
@@ -224,11 +224,11 @@ def main(argv: list[str] | None = None) -> None:
     if args.compiled:
         impls.append("ours-compiled")
     start = datetime.now(timezone.utc)
-    load0 = os.getloadavg()
+    watch = CpuWatch()
     discard = 0 if args.tiny else args.discard
     results = {model: measure(model, impls, args.rounds, args.steps, args.threads, args.tiny, args.device, discard)
                for model in args.models}
-    load1 = os.getloadavg()
+    others = watch.others()  # the workers have exited
     size = TINY if args.tiny else FULL
     cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *(argv or sys.argv[1:])])
     lines = [
@@ -238,11 +238,7 @@ def main(argv: list[str] | None = None) -> None:
         f"{args.threads} torch threads per worker, device {args.device}",
         f"- command: `{cmd}`",
         f"- date: {start.isoformat(timespec='seconds')}",
-        f"- load average (1/5/15 min) before: {'/'.join(f'{v:.2f}' for v in load0)}, after: "
-        f"{'/'.join(f'{v:.2f}' for v in load1)}"
-        + (". The machine was shared with other jobs: absolute figures are slower than on a quiet machine; the "
-           "same-round ratios are the comparison." if max(load0[0], load1[0]) > args.threads + 0.5 else
-           " (one benchmark worker runs at a time: the machine was otherwise quiet)."),
+        f"- others' CPU use: {quiet_note(others)} (one benchmark worker runs at a time)",
         f"- set-up: {'TINY sizes (smoke test) ' if args.tiny else ''}batch {size['batch']}, m {size['m']}, "
         f"n {size['n']}, state {size['d']}, SSM-LL K {size['k']} hidden {size['hidden']}, SSM-FC 3 x {size['fc']}, "
         "24x24 images, Adam, loss fit + 1000 gap",

@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-from ssm_ms.machine import describe  # noqa: E402
+from ssm_ms.machine import CpuWatch, describe, quiet_note  # noqa: E402
 from ssm_ms.inference.shared import call_model  # noqa: E402
 from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402
 from ssm_ms.nets.observation import Projection  # noqa: E402
@@ -46,19 +46,6 @@ from ssm_ms.nets.transition import LocallyLinearTransition  # noqa: E402
 from ssm_ms.perf import configure_allocator  # noqa: E402
 
 TINY = {"trajectories": 4, "steps": 20, "ref_steps": 5, "repeats": 1, "k": 4, "hidden": 16}
-
-
-def shared(loads: list[str], threads: int) -> bool:
-    """Whether a 1-minute load average seen during the run exceeds what the benchmark itself puts on the machine."""
-    ones = [float(v.split("/")[0]) for v in loads if v != "n/a"]
-    return bool(ones) and max(ones) > threads + 0.5
-
-
-def load() -> str:
-    try:
-        return "/".join(f"{v:.2f}" for v in os.getloadavg())
-    except OSError:
-        return "n/a"
 
 
 def lorenz_measurements(n: int, steps: int, seed: int = 0) -> torch.Tensor:
@@ -202,7 +189,7 @@ def main(argv: list[str] | None = None) -> None:
     ref_name = "reference UKF structure (scipy sqrtm per trajectory, loops over 6 sigma points), float32"
     times: dict[str, list[float]] = {name: [] for name in [ref_name, *variants]}
     ref_finite = True
-    loads = [load()]
+    watch = CpuWatch()
     reference = ReferenceUKF(b, min(args.ref_steps, steps), args.threads, k, hidden) if device.type == "cpu" else None
     try:
         with torch.inference_mode():
@@ -220,7 +207,6 @@ def main(argv: list[str] | None = None) -> None:
                     sync(device)
                     times[name].append((time.perf_counter() - start) * 1e3 / steps)
                 print(" ".join(f"{statistics.median(v):.3f}" for v in times.values() if v), flush=True)
-            loads.append(load())
 
             full = UnscentedKalmanFilter(f, g).filter(y[:, :500])
             finite = bool(torch.isfinite(full.means).all() and torch.isfinite(full.covs).all())
@@ -235,6 +221,7 @@ def main(argv: list[str] | None = None) -> None:
     finally:
         if reference is not None:
             reference.close()
+    others = watch.others()  # the reference's worker has exited
     if not times[ref_name]:
         del times[ref_name]
 
@@ -247,10 +234,7 @@ def main(argv: list[str] | None = None) -> None:
         f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
         f"- Machine: {describe()}, Python {platform.python_version()}; device: {dev_name}; "
         f"glibc malloc {'tuned as cli.py does' if tuned else 'not tunable here'} (the reference's worker: default)",
-        f"- Load average (1/5/15 min) before: {loads[0]}, after: {loads[-1]}"
-        + (" (the machine was shared with other jobs: absolute figures are slower than on a quiet one; compare the "
-           "ratios, taken within each round)" if shared(loads, args.threads) else
-           " (one worker runs at a time: the machine was otherwise quiet)"),
+        f"- Others' CPU use: {quiet_note(others)} (one worker runs at a time)",
         f"- Command: `{cmd}`",
         f"- Set-up: {'TINY sizes (smoke test): ' if args.tiny else ''}{b} trajectories x {steps} steps, state dim 3, "
         f"measurement = x component, SSM-LL with K = {k}, hidden {hidden} (random weights), "
