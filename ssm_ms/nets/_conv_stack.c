@@ -238,7 +238,8 @@ static void taps_forward(const layer_t *ly, const float *restrict prod, float *r
     for (int64_t i = 0; i < ly->hin; ++i)
         for (int64_t a = 0; a < ly->k; ++a)
             for (int64_t b = 0; b < ly->k; ++b)
-                strip(out + ((S * i + a) * ly->wout + b) * C, S * C, prod + i * W * Q + (a * ly->k + b) * C, Q, W, C, 0);
+                strip(out + ((S * i + a) * ly->wout + b) * C, S * C, prod + i * W * Q + (a * ly->k + b) * C, Q, W, C,
+                      0);
 }
 
 static void taps_backward(const layer_t *ly, const float *restrict dout, float *restrict dprod)
@@ -247,7 +248,8 @@ static void taps_backward(const layer_t *ly, const float *restrict dout, float *
     for (int64_t i = 0; i < ly->hin; ++i)
         for (int64_t a = 0; a < ly->k; ++a)
             for (int64_t b = 0; b < ly->k; ++b)
-                strip(dprod + i * W * Q + (a * ly->k + b) * C, Q, dout + ((S * i + a) * ly->wout + b) * C, S * C, W, C, 1);
+                strip(dprod + i * W * Q + (a * ly->k + b) * C, Q, dout + ((S * i + a) * ly->wout + b) * C, S * C, W, C,
+                      1);
 }
 
 /* acc[c] += sum_p d[p C + c], c < C (a bias gradient), with independent partial sums. */
@@ -321,7 +323,8 @@ static void row_stats(const float *restrict y, int64_t D, float eps, float *mean
     for (; k + 64 <= D; k += 64)
         for (int u = 0; u < 4; ++u) a[u] = _mm512_add_ps(a[u], _mm512_loadu_ps(y + k + 16 * u));
     for (; k < D; k += 16) a[0] = _mm512_add_ps(a[0], _mm512_maskz_loadu_ps(lanes(D - k), y + k));
-    const float mean = _mm512_reduce_add_ps(_mm512_add_ps(_mm512_add_ps(a[0], a[1]), _mm512_add_ps(a[2], a[3]))) / (float)D;
+    const float s = _mm512_reduce_add_ps(_mm512_add_ps(_mm512_add_ps(a[0], a[1]), _mm512_add_ps(a[2], a[3])));
+    const float mean = s / (float)D;
     const __m512 m = _mm512_set1_ps(mean);
     for (int u = 0; u < 4; ++u) a[u] = _mm512_setzero_ps();
     for (k = 0; k + 64 <= D; k += 64)

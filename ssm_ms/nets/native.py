@@ -2,12 +2,13 @@
 
 The kernels (``_conv_stack.c``: the decoder's whole stack of transposed convolutions with the layer norms and ReLUs
 between them, one sample at a time in cache, forward and backward, float32) are plain C without Python or torch
-headers: compiling them takes about a second. The shared library is cached under ``$SSM_MS_CACHE`` (default ``$XDG_CACHE_HOME/ssm_ms`` or
-``~/.cache/ssm_ms``), keyed by the source, the compiler, its flags and this CPU's instruction sets (it is built
-with ``-march=native``), so a home directory shared between machines never loads a library built for another
-CPU. The rows (samples) are shared among OpenMP threads: the library links ``libgomp.so.1``, and in a process
-that has imported torch that is torch's own copy (same soname), so the kernels run on torch's intra-op threads
-and follow ``torch.set_num_threads``. A compiler without ``-fopenmp`` counts as none.
+headers: compiling them takes about a second. The shared library is cached under ``$SSM_MS_CACHE`` (default
+``$XDG_CACHE_HOME/ssm_ms`` or ``~/.cache/ssm_ms``), keyed by the source, the compiler, its flags and this CPU's
+instruction sets (it is built with ``-march=native``), so a home directory shared between machines never loads a
+library built for another CPU. The rows (samples) are shared among OpenMP threads: the library links
+``libgomp.so.1``, and in a process that has imported torch that is torch's own copy (same soname), so the kernels
+run on torch's intra-op threads and follow ``torch.set_num_threads``. A compiler without ``-fopenmp`` counts as
+none.
 
 Where no C compiler is found, compiling fails, or ``SSM_MS_NATIVE=0`` is set, :func:`library` returns
 ``None`` and :func:`unavailable_reason` says why; the decoder then runs its torch-only path (same values, slower).

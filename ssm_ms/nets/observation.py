@@ -173,9 +173,7 @@ class ConvDecoder(nn.Module):
                 eps.append(norm.eps if norm is not None else 0.0)
         geometry = self._geometry()
         out = _ConvStack.apply(hwc, geometry, tuple(eps), *params)
-        c_out, k, stride, size = geometry[-1][1], geometry[-1][2], geometry[-1][3], geometry[-1][4]
-        side = (size - 1) * stride + k
-        out = out.view(n, side, side, c_out).permute(0, 3, 1, 2)
+        out = out.view(n, self.drawn_size, self.drawn_size, geometry[-1][1]).permute(0, 3, 1, 2)
         return self.deconv[-1](out) if isinstance(self.deconv[-1], nn.Sigmoid) else out
 
     def _centre(self, h: torch.Tensor) -> torch.Tensor:
@@ -469,7 +467,8 @@ class _ConvStack(torch.autograd.Function):
         x = x.contiguous()
         geo = torch.tensor(geometry, dtype=torch.int64)
         out = x.new_empty(n, out_size)
-        saved, stats = x.new_empty(n, lib.conv_stack_saved_size(len(geometry), geo.data_ptr())), x.new_empty(n, 2 * (len(geometry) - 1))
+        saved = x.new_empty(n, lib.conv_stack_saved_size(len(geometry), geo.data_ptr()))
+        stats = x.new_empty(n, 2 * (len(geometry) - 1))
         eps_arr = (ctypes.c_float * len(geometry))(*eps)
         native.check(lib.conv_stack_forward(len(geometry), geo.data_ptr(), pointers, eps_arr, x.data_ptr(),
                                             out.data_ptr(), saved.data_ptr(), stats.data_ptr(), n))
@@ -541,8 +540,8 @@ def _pointers(packed):
 
 
 def native_applies(h: torch.Tensor) -> bool:
-    """Whether the fused native blocks can run on ``h``: float32 on CPU, outside autocast and forward-mode AD
-    (``torch.func`` transforms or dual tensors), with the kernels compiled."""
+    """Whether the native kernels can run on ``h`` (the stem's output): float32 on CPU, outside autocast and
+    forward-mode AD (``torch.func`` transforms or dual tensors), with the kernels compiled."""
     if h.device.type != "cpu" or h.dtype != torch.float32 or torch.is_autocast_enabled("cpu"):
         return False
     if torch._C._functorch.is_functorch_wrapped_tensor(h):
