@@ -48,14 +48,15 @@ SUFFIX = {"pt2": ".pt2", "torchscript": ".torchscript.pt"}
 
 
 def _standalone_copy(module: nn.Module) -> nn.Module:
-    """An eval-mode copy in plain torch operations: modules with a ``channels_last`` switch (the
-    :class:`~ssm_ms.nets.ConvDecoder`, whose channels-last path runs its own CPU kernels for training
-    speed, which tracing cannot follow) get it turned off (same function, same parameters), and
-    parameters and buffers are made contiguous (a channels-last weight makes ``torch.export.load`` warn)."""
+    """An eval-mode copy in plain torch operations: modules with ``channels_last`` and ``native`` switches (the
+    :class:`~ssm_ms.nets.ConvDecoder`, whose native kernels and channels-last path are CPU training speed that
+    tracing cannot follow) get them turned off (same function, same parameters), and parameters and buffers are
+    made contiguous (a channels-last weight makes ``torch.export.load`` warn)."""
     copy_ = copy.deepcopy(module).eval()
     for sub in copy_.modules():
-        if isinstance(getattr(sub, "channels_last", None), bool):
-            sub.channels_last = False
+        for switch in ("channels_last", "native"):
+            if isinstance(getattr(sub, switch, None), bool):
+                setattr(sub, switch, False)
     with torch.no_grad():
         for tensor in list(copy_.parameters()) + list(copy_.buffers()):
             tensor.data = tensor.data.contiguous()

@@ -125,6 +125,14 @@ def test_native_path_steps_aside_where_it_cannot_run():
     _, got = jvp(fused, (x,), (tangent,))
     _, want = jvp(plain, (x.double(),), (tangent.double(),))
     torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)
+    # a trace cannot record a call through ctypes: tracing runs the torch-only path (here its NCHW layers, the
+    # ones ssm_ms.control exports), so the traced graph is whole
+    fused.channels_last = False
+    traced = torch.jit.trace(fused, (x,), check_trace=False)
+    other = torch.randn(6, 5)
+    torch.testing.assert_close(traced(other), fused(other), rtol=1e-5, atol=1e-6)
+    exported = torch.export.export(fused.eval(), (x,)).module()  # fake tensors: the torch-only path too
+    torch.testing.assert_close(exported(other[:4]), fused(other[:4]), rtol=1e-5, atol=1e-6)
     off = ConvDecoder(5, preset=None, stem_channels=8, stem_size=3, layers=SPECS[0][2], native=False)
     off.load_state_dict(fused.state_dict())
     y = off(x.requires_grad_())

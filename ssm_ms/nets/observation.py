@@ -540,9 +540,12 @@ def _pointers(packed):
 
 
 def native_applies(h: torch.Tensor) -> bool:
-    """Whether the native kernels can run on ``h`` (the stem's output): float32 on CPU, outside autocast and
-    forward-mode AD (``torch.func`` transforms or dual tensors), with the kernels compiled."""
+    """Whether the native kernels can run on ``h`` (the stem's output): a plain float32 tensor on CPU, outside
+    autocast, forward-mode AD (``torch.func`` transforms or dual tensors) and tracing (``torch.compile``,
+    ``torch.export``, ``torch.jit.trace``: a graph cannot record a call through ctypes), with the kernels compiled."""
     if h.device.type != "cpu" or h.dtype != torch.float32 or torch.is_autocast_enabled("cpu"):
+        return False
+    if type(h) is not torch.Tensor or torch.compiler.is_compiling() or torch.jit.is_tracing():
         return False
     if torch._C._functorch.is_functorch_wrapped_tensor(h):
         return False
