@@ -125,6 +125,15 @@ def test_native_path_steps_aside_where_it_cannot_run():
     _, got = jvp(fused, (x,), (tangent,))
     _, want = jvp(plain, (x.double(),), (tangent.double(),))
     torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)
+    # ... also with tangents on the parameters only (torch.func over functional_call)
+    from torch.func import functional_call
+
+    params = {k: v.detach() for k, v in fused.named_parameters()}
+    tangents = {k: torch.randn_like(v) for k, v in params.items()}
+    _, got = jvp(lambda p: functional_call(fused, p, (x,)), (params,), (tangents,))
+    _, want = jvp(lambda p: functional_call(plain, p, (x.double(),)),
+                  ({k: v.double() for k, v in params.items()},), ({k: v.double() for k, v in tangents.items()},))
+    torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)
     # a trace cannot record a call through ctypes: tracing runs the torch-only path (here its NCHW layers, the
     # ones ssm_ms.control exports), so the traced graph is whole
     fused.channels_last = False
