@@ -417,6 +417,31 @@ static int64_t saved_offsets(int64_t L, const layer_t *ly, int64_t *soff)
     return S;
 }
 
+/* A stack as one call sees it: its layers, scratch sizes (floats) and where each layer-normed output lies in a row of
+ * the forward's saved. */
+typedef struct {
+    layer_t ly[MAX_LAYERS];
+    int64_t nprod, nmap, S, soff[MAX_LAYERS];
+} stack_geo;
+
+static int setup(int64_t L, const int64_t *geo, const float *const *ptrs, const float *eps, stack_geo *st)
+{
+    if (describe(L, geo, ptrs, eps, st->ly) != 0) return -2;
+    scratch_sizes(L, st->ly, &st->nprod, &st->nmap);
+    st->S = saved_offsets(L, st->ly, st->soff);
+    return 0;
+}
+
+/* One thread's scratch, returned for free(): buf[0] for products (nprod floats), buf[1..3] for maps (nmap each);
+ * NULL where memory could not be allocated. */
+static float *thread_scratch(const stack_geo *st, float *buf[4])
+{
+    float *scratch = malloc((size_t)(st->nprod + 3 * st->nmap) * sizeof(float));
+    buf[0] = scratch;
+    for (int i = 1; i < 4; ++i) buf[i] = scratch == NULL ? NULL : scratch + st->nprod + (i - 1) * st->nmap;
+    return scratch;
+}
+
 int64_t conv_stack_saved_size(int64_t L, const int64_t *geo)
 {
     layer_t ly[MAX_LAYERS];
@@ -435,19 +460,18 @@ int conv_stack_forward(int64_t L, const int64_t *geo, const float *const *ptrs, 
                        const float *restrict x, float *restrict out, float *restrict saved, float *restrict stats,
                        int64_t rows)
 {
-    layer_t ly[MAX_LAYERS];
-    if (describe(L, geo, ptrs, eps, ly) != 0) return -2;
-    int64_t nprod, nmap, soff[MAX_LAYERS];
-    scratch_sizes(L, ly, &nprod, &nmap);
-    const int64_t S = saved_offsets(L, ly, soff);
+    stack_geo st;
+    if (setup(L, geo, ptrs, eps, &st) != 0) return -2;
+    const layer_t *ly = st.ly;
+    const int64_t S = st.S, *soff = st.soff;
     int failed = 0;
 #pragma omp parallel reduction(| : failed)
     {
-    float *restrict scratch = malloc((size_t)(nprod + 3 * nmap) * sizeof(float));
+    float *buf[4];
+    float *scratch = thread_scratch(&st, buf);
     failed = scratch == NULL;
     /* prod: the products; y: a layer's output, made in cache, then stored away; maps: the normalised maps */
-    float *restrict prod = scratch, *restrict y = scratch + nprod;
-    float *restrict maps[2] = {scratch + nprod + nmap, scratch + nprod + 2 * nmap};
+    float *restrict prod = buf[0], *restrict y = buf[1], *restrict maps[2] = {buf[2], buf[3]};
 #pragma omp for schedule(static)
     for (int64_t r = 0; r < rows; ++r) {
         if (failed) continue;
@@ -473,19 +497,18 @@ int conv_stack_forward(int64_t L, const int64_t *geo, const float *const *ptrs, 
 
 /* Gradients of conv_stack_forward given dout [rows, Dout of the last layer]: dx [rows, Din of layer 0], and the
  * parameters' gradients summed over the rows of each thread t < threads (at most conv_stack_threads()) into the
- * caller's zeroed row t of grads [threads, gsize], at goff (weights in w's packed order, gamma and beta in H W C
- * order); the caller sums those rows in order, so that a given thread count always gives the same bits.
+ * caller's zeroed row t of grads [threads, gsize], at goff (weights as wt's gradient [Q, Cin], gamma and beta in
+ * H W C order); the caller sums those rows in order, so that a given thread count always gives the same bits.
  * Returns 0, -1 where scratch memory could not be allocated, -2 for a bad layer count. */
 int conv_stack_backward(int64_t L, const int64_t *geo, const float *const *ptrs, const float *eps,
                         const float *restrict x, const float *restrict saved, const float *restrict stats,
                         const float *restrict dout, float *restrict dx, float *restrict grads,
                         const int64_t *goff, int64_t gsize, int64_t rows, int threads)
 {
-    layer_t ly[MAX_LAYERS];
-    if (describe(L, geo, ptrs, eps, ly) != 0) return -2;
-    int64_t nprod, nmap, soff[MAX_LAYERS];
-    scratch_sizes(L, ly, &nprod, &nmap);
-    const int64_t S = saved_offsets(L, ly, soff);
+    stack_geo st;
+    if (setup(L, geo, ptrs, eps, &st) != 0) return -2;
+    const layer_t *ly = st.ly;
+    const int64_t S = st.S, *soff = st.soff;
     int failed = 0;
 #pragma omp parallel num_threads(threads) reduction(| : failed)
     {
@@ -495,11 +518,11 @@ int conv_stack_backward(int64_t L, const int64_t *geo, const float *const *ptrs,
     const int64_t slot = 0;
 #endif
     float *restrict G = grads + slot * gsize;
-    float *restrict scratch = malloc((size_t)(nprod + 3 * nmap) * sizeof(float));
+    float *buf[4];
+    float *scratch = thread_scratch(&st, buf);
     failed = scratch == NULL;
     /* dcols: the products' gradient; h: a layer's input map; dh[2]: map gradients, alternating by layer */
-    float *restrict dcols = scratch, *restrict h = scratch + nprod;
-    float *restrict dh[2] = {scratch + nprod + nmap, scratch + nprod + 2 * nmap};
+    float *restrict dcols = buf[0], *restrict h = buf[1], *restrict dh[2] = {buf[2], buf[3]};
 #pragma omp for schedule(static)
     for (int64_t r = 0; r < rows; ++r) {
         if (failed) continue;
