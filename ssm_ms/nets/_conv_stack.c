@@ -16,8 +16,9 @@
  * streaming stores) and the image go to memory, where separate convolution, layer-norm and ReLU kernels over the
  * batch would each stream the whole batch's maps through memory, forward and backward.
  *
- * With AVX-512 the matrix products run as register-blocked tiles (12 to 28 accumulators of 16 lanes) and a pixel's
- * channels as masked vectors; other builds use plain loops that the compiler vectorises. Compiled on first use by
+ * AVX-512 only: the matrix products run as register-blocked tiles (12 to 28 accumulators of 16 lanes) and a pixel's
+ * channels as masked vectors (built for AVX2 with plain loops instead, the kernels were slower than the torch-only
+ * path, so other CPUs run that; native.py does not build this file there). Compiled on first use by
  * ssm_ms/nets/native.py (plain C, no Python or torch headers) and called through ctypes. Rows are shared among
  * OpenMP threads: loaded into a process that has torch, the library binds to the libgomp that torch loaded (same
  * soname), so it uses torch's threads and follows torch.set_num_threads. native.py only loads builds with -fopenmp.
@@ -29,9 +30,10 @@
 #ifdef _OPENMP
 #include <omp.h>
 #endif
-#ifdef __AVX512F__
-#include <immintrin.h>
+#ifndef __AVX512F__
+#error "the native kernels need AVX-512 (build with -march=native on a CPU with avx512f)"
 #endif
+#include <immintrin.h>
 
 /* geo[l GEO + G_*]: a layer's geometry; ptrs[l PTRS + P_*]: its parameters (gamma, beta NULL for the last). */
 enum { G_CIN, G_COUT, G_K, G_S, G_HIN, G_WIN, GEO };
@@ -66,7 +68,6 @@ static int describe(int64_t L, const int64_t *geo, const float *const *ptrs, con
 
 /* ---- small matrix products: C[r ldc + m] (+)= sum_j A[r ra + j ja] B[j ldb + m], r < R, j < J, m < M ---- */
 
-#ifdef __AVX512F__
 static inline __mmask16 lanes(int64_t left)
 {
     return left >= 16 ? (__mmask16)0xFFFF : left > 0 ? (__mmask16)((1u << left) - 1u) : (__mmask16)0;
@@ -158,12 +159,10 @@ GEMM_ROW(7)
         for (; r0 < R; ++r0)                                                                                      \
             gemm_tile_1_##NV(A + r0 * ra, ra, ja, B + m0, ldb, J, M - m0, C + r0 * ldc + m0, ldc, accumulate);    \
     }
-#endif
 
 static void gemm(const float *restrict A, int64_t ra, int64_t ja, const float *restrict B, int64_t ldb, int64_t R,
                  int64_t J, int64_t M, float *restrict C, int64_t ldc, int accumulate)
 {
-#ifdef __AVX512F__
     switch ((M + 15) / 16) { /* the tile shape by the number of column vectors: 12 to 28 accumulators */
     case 1: GEMM_RUN(12, 1) break;
     case 2: GEMM_RUN(6, 2) break;
@@ -174,18 +173,6 @@ static void gemm(const float *restrict A, int64_t ra, int64_t ja, const float *r
     case 7: GEMM_RUN(3, 7) break;
     default: GEMM_RUN(4, 5) break;
     }
-#else
-    for (int64_t r = 0; r < R; ++r) {
-        float *restrict c = C + r * ldc;
-        if (!accumulate) memset(c, 0, (size_t)M * sizeof(float));
-        for (int64_t j = 0; j < J; ++j) {
-            const float a = A[r * ra + j * ja];
-            const float *restrict b = B + j * ldb;
-#pragma omp simd
-            for (int64_t m = 0; m < M; ++m) c[m] += a * b[m];
-        }
-    }
-#endif
 }
 
 /* dst[0..n) += src[0..n), or = with copy: one pixel's channels */
@@ -195,15 +182,11 @@ static inline void pixel_op(float *restrict dst, const float *restrict src, int6
         dst[0] = copy ? src[0] : dst[0] + src[0];
         return;
     }
-#ifdef __AVX512F__
     for (int64_t c = 0; c < n; c += 16) {
         const __mmask16 m = lanes(n - c);
         const __m512 v = _mm512_maskz_loadu_ps(m, src + c);
         _mm512_mask_storeu_ps(dst + c, m, copy ? v : _mm512_add_ps(_mm512_maskz_loadu_ps(m, dst + c), v));
     }
-#else
-    for (int64_t c = 0; c < n; ++c) dst[c] = copy ? src[c] : dst[c] + src[c];
-#endif
 }
 
 /* dst[j dstep + c] (+)= src[j sstep + c], j < W, c < C: one strip of pixels, a pixel's C channels at a time. */
@@ -214,7 +197,6 @@ static inline void strip(float *restrict dst, int64_t dstep, const float *restri
         for (int64_t j = 0; j < W; ++j) dst[j * dstep] = copy ? src[j * sstep] : dst[j * dstep] + src[j * sstep];
         return;
     }
-#ifdef __AVX512F__
     if (C <= 16) { /* one masked vector per pixel */
         const __mmask16 m = lanes(C);
         for (int64_t j = 0; j < W; ++j) {
@@ -224,7 +206,6 @@ static inline void strip(float *restrict dst, int64_t dstep, const float *restri
         }
         return;
     }
-#endif
     for (int64_t j = 0; j < W; ++j) pixel_op(dst + j * dstep, src + j * sstep, C, copy);
 }
 
@@ -262,7 +243,6 @@ static void channel_sums(const float *restrict d, int64_t P, int64_t C, float *r
         acc[0] += s;
         return;
     }
-#ifdef __AVX512F__
     for (int64_t c = 0; c < C; c += 16) {
         const __mmask16 m = lanes(C - c);
         __m512 s0 = _mm512_setzero_ps(), s1 = s0, s2 = s0, s3 = s0;
@@ -277,10 +257,6 @@ static void channel_sums(const float *restrict d, int64_t P, int64_t C, float *r
         const __m512 t = _mm512_add_ps(_mm512_add_ps(s0, s1), _mm512_add_ps(s2, s3));
         _mm512_mask_storeu_ps(acc + c, m, _mm512_add_ps(_mm512_maskz_loadu_ps(m, acc + c), t));
     }
-#else
-    for (int64_t p = 0; p < P; ++p)
-        for (int64_t c = 0; c < C; ++c) acc[c] += d[p * C + c];
-#endif
 }
 
 /* ---- one layer ---- */
@@ -302,21 +278,18 @@ static void layer_forward(const layer_t *ly, const float *restrict in, float *re
  * 64-byte aligned dst, streaming stores, which skip reading the destination's cache lines from memory first. */
 static void store_away(float *restrict dst, const float *restrict src, int64_t n)
 {
-#ifdef __AVX512F__
     if (((uintptr_t)dst & 63) == 0) {
         int64_t k = 0;
         for (; k + 16 <= n; k += 16) _mm512_stream_ps(dst + k, _mm512_loadu_ps(src + k));
         for (; k < n; ++k) dst[k] = src[k];
         return;
     }
-#endif
     memcpy(dst, src, (size_t)n * sizeof(float));
 }
 
 /* Mean and 1/sqrt(var + eps) of y[0..D) (two passes, like torch). */
 static void row_stats(const float *restrict y, int64_t D, float eps, float *mean_out, float *rstd_out)
 {
-#ifdef __AVX512F__
     /* four independent partial sums: one chain of vector additions would run at their latency, not their rate */
     __m512 a[4] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
     int64_t k = 0;
@@ -338,18 +311,6 @@ static void row_stats(const float *restrict y, int64_t D, float eps, float *mean
         a[0] = _mm512_fmadd_ps(c, c, a[0]);
     }
     const float v = _mm512_reduce_add_ps(_mm512_add_ps(_mm512_add_ps(a[0], a[1]), _mm512_add_ps(a[2], a[3])));
-#else
-    float s = 0.0f;
-#pragma omp simd reduction(+ : s)
-    for (int64_t k = 0; k < D; ++k) s += y[k];
-    const float mean = s / (float)D;
-    float v = 0.0f;
-#pragma omp simd reduction(+ : v)
-    for (int64_t k = 0; k < D; ++k) {
-        const float c = y[k] - mean;
-        v += c * c;
-    }
-#endif
     *mean_out = mean;
     *rstd_out = 1.0f / sqrtf(v / (float)D + eps);
 }
@@ -489,9 +450,7 @@ int conv_stack_forward(int64_t L, const int64_t *geo, const float *const *ptrs, 
     }
     free(scratch);
     }
-#ifdef __AVX512F__
     _mm_sfence(); /* the streaming stores are visible before the caller reads saved */
-#endif
     return failed ? -1 : 0;
 }
 

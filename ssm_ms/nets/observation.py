@@ -49,12 +49,12 @@ class ConvDecoder(nn.Module):
             channels-last memory layout (same results, same parameters), the layout oneDNN's CPU convolutions are
             fastest in; the transposed convolutions then run through :func:`conv_transpose2d`. LayerNorm is applied
             to the ``(H, W, C)``-ordered sample, a view, never a copy.
-        native: on CPU in float32 (no autocast, no forward-mode AD), run the whole stack after the stem (every
-            transposed convolution, LayerNorm and ReLU) through the native kernels of :mod:`ssm_ms.nets.native`,
-            one sample at a time in cache (compiled on first use; same values up to float rounding), where one
-            sample's scratch fits in :data:`NATIVE_SCRATCH` floats (:attr:`native_fits`: the pendulum and
-            quadruple-pendulum decoders, not Moving MNIST's). Elsewhere, or where the kernels cannot be compiled,
-            the torch-only path runs.
+        native: on a CPU with AVX-512, in float32 (no autocast, no forward-mode AD, no tracing), run the whole
+            stack after the stem (every transposed convolution, LayerNorm and ReLU) through the native kernels of
+            :mod:`ssm_ms.nets.native`, one sample at a time in cache (compiled on first use; same values up to
+            float rounding), where one sample's scratch fits in :data:`NATIVE_SCRATCH` floats
+            (:attr:`native_fits`: the pendulum and quadruple-pendulum decoders, not Moving MNIST's). Elsewhere, or
+            where the kernels cannot be compiled, the torch-only path runs.
     """
 
     def __init__(
