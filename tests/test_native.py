@@ -157,14 +157,29 @@ def fresh_native(monkeypatch, tmp_path):
     return tmp_path
 
 
-def test_a_cpu_without_avx512_runs_the_torch_only_path_silently(fresh_native, monkeypatch):
-    """Built without AVX-512 the kernels were slower than the torch-only path, so such CPUs are not offered them:
-    nothing is built, nothing is lost, so nothing is said."""
-    monkeypatch.setattr(native, "_has_avx512", lambda: False)
+@pytest.mark.skipif(native._compiler() is None, reason="no C compiler here")
+def test_the_avx2_build_matches_torch_too(fresh_native, monkeypatch):
+    """CPUs without AVX-512 but with AVX2 and FMA (AMD Zen 2/3, desktop Intel) get a build with 8-lane vectors and
+    smaller tiles: it must be as right (built here with -mavx2 -mfma, which this CPU runs)."""
+    flags = ""
+    with open("/proc/cpuinfo") as fh:
+        flags = next((line for line in fh if line.startswith("flags")), "")
+    if not {"avx2", "fma"} <= set(flags.split()):
+        pytest.skip("this CPU cannot run an AVX2 build")
+    monkeypatch.setattr(native, "FLAG_SETS", (["-O3", "-mavx2", "-mfma", "-fopenmp"],))
+    assert native.library() is not None, native.unavailable_reason()
+    for spec in (SPECS[0], SPECS[4], SPECS[5], SPECS[6]):
+        test_fused_decoder_matches_torch_layers_in_float64(*spec)
+
+
+def test_a_cpu_without_vector_instructions_runs_the_torch_only_path_silently(fresh_native, monkeypatch):
+    """In plain C the kernels were slower than the torch-only path, so such CPUs are not offered them: nothing is
+    built, nothing is lost, so nothing is said."""
+    monkeypatch.setattr(native, "_has_simd", lambda: False)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert native.library() is None
-    assert native.unavailable_reason() == native.NO_AVX512 and "AVX-512" in native.NO_AVX512
+    assert native.unavailable_reason() == native.NO_SIMD and "AVX2" in native.NO_SIMD
     assert not list(fresh_native.glob("*.so"))
     x = torch.randn(3, 5)
     assert not native_applies(x)
@@ -173,11 +188,11 @@ def test_a_cpu_without_avx512_runs_the_torch_only_path_silently(fresh_native, mo
 
 
 @pytest.mark.skipif(native._compiler() is None, reason="no C compiler here")
-def test_a_build_without_avx512_is_refused_by_the_source(fresh_native, monkeypatch):
-    monkeypatch.setattr(native, "FLAG_SETS", (["-O2", "-fopenmp"],))  # no -march=native: no AVX-512
+def test_a_build_without_vector_instructions_is_refused_by_the_source(fresh_native, monkeypatch):
+    monkeypatch.setattr(native, "FLAG_SETS", (["-O2", "-fopenmp"],))  # no -march=native: SSE2 only
     with pytest.warns(RuntimeWarning, match="compiling the native kernels failed"):
         assert native.library() is None
-    assert "need AVX-512" in native.unavailable_reason()
+    assert "need AVX-512, or AVX2 with FMA" in native.unavailable_reason()
 
 
 def test_unavailable_native_kernels_say_why(fresh_native, monkeypatch):

@@ -16,9 +16,10 @@
  * streaming stores) and the image go to memory, where separate convolution, layer-norm and ReLU kernels over the
  * batch would each stream the whole batch's maps through memory, forward and backward.
  *
- * AVX-512 only: the matrix products run as register-blocked tiles (12 to 28 accumulators of 16 lanes) and a pixel's
- * channels as masked vectors (built for AVX2 with plain loops instead, the kernels were slower than the torch-only
- * path, so other CPUs run that; native.py does not build this file there). Compiled on first use by
+ * Written for AVX-512 and for AVX2 with FMA (below: vec, VL lanes): the matrix products run as register-blocked
+ * tiles (AVX-512: 12 to 28 accumulators of 16 lanes; AVX2: 8 or 9 of 8) and a pixel's channels as masked vectors.
+ * In plain C loops the kernels were slower than the torch-only path, so other CPUs run that (native.py does not
+ * build this file there, and it refuses to build without either). Compiled on first use by
  * ssm_ms/nets/native.py (plain C, no Python or torch headers) and called through ctypes. Rows are shared among
  * OpenMP threads: loaded into a process that has torch, the library binds to the libgomp that torch loaded (same
  * soname), so it uses torch's threads and follows torch.set_num_threads. native.py only loads builds with -fopenmp.
@@ -30,10 +31,60 @@
 #ifdef _OPENMP
 #include <omp.h>
 #endif
-#ifndef __AVX512F__
-#error "the native kernels need AVX-512 (build with -march=native on a CPU with avx512f)"
-#endif
 #include <immintrin.h>
+
+/* The vectors the kernels are written in: 16 lanes with AVX-512, 8 with AVX2 and FMA (16 registers instead of 32:
+ * smaller product tiles). vload/vstore take a lane mask (lanes(n): the first n), masked-off lanes read as zero and
+ * are not written (nor fault). */
+#if defined(__AVX512F__)
+#define VL 16
+#define ROW_U 4 /* interleaved partial sums in a leftover-row product */
+typedef __m512 vec;
+typedef __mmask16 vmask;
+static inline vmask lanes(int64_t left)
+{
+    return left >= 16 ? (vmask)0xFFFF : left > 0 ? (vmask)((1u << left) - 1u) : (vmask)0;
+}
+#define vzero() _mm512_setzero_ps()
+#define vset1(x) _mm512_set1_ps(x)
+#define vload(m, p) _mm512_maskz_loadu_ps(m, p)
+#define vstore(p, m, v) _mm512_mask_storeu_ps(p, m, v)
+#define vloadu(p) _mm512_loadu_ps(p)
+#define vstream(p, v) _mm512_stream_ps(p, v)
+#define vfma(a, b, c) _mm512_fmadd_ps(a, b, c)
+#define vadd(a, b) _mm512_add_ps(a, b)
+#define vsub(a, b) _mm512_sub_ps(a, b)
+#define vzmask(m, v) _mm512_maskz_mov_ps(m, v)
+#define vsum(v) _mm512_reduce_add_ps(v)
+#elif defined(__AVX2__) && defined(__FMA__)
+#define VL 8
+#define ROW_U 2
+typedef __m256 vec;
+typedef __m256i vmask;
+static inline vmask lanes(int64_t left)
+{
+    const int n = left >= 8 ? 8 : left > 0 ? (int)left : 0;
+    return _mm256_cmpgt_epi32(_mm256_set1_epi32(n), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+}
+static inline float vsum(vec v)
+{
+    const __m128 h = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+    const __m128 q = _mm_add_ps(h, _mm_movehl_ps(h, h));
+    return _mm_cvtss_f32(_mm_add_ss(q, _mm_movehdup_ps(q)));
+}
+#define vzero() _mm256_setzero_ps()
+#define vset1(x) _mm256_set1_ps(x)
+#define vload(m, p) _mm256_maskload_ps(p, m)
+#define vstore(p, m, v) _mm256_maskstore_ps(p, m, v)
+#define vloadu(p) _mm256_loadu_ps(p)
+#define vstream(p, v) _mm256_stream_ps(p, v)
+#define vfma(a, b, c) _mm256_fmadd_ps(a, b, c)
+#define vadd(a, b) _mm256_add_ps(a, b)
+#define vsub(a, b) _mm256_sub_ps(a, b)
+#define vzmask(m, v) _mm256_and_ps(v, _mm256_castsi256_ps(m))
+#else
+#error "the native kernels need AVX-512, or AVX2 with FMA (build with -march=native on such a CPU)"
+#endif
 
 /* geo[l GEO + G_*]: a layer's geometry; ptrs[l PTRS + P_*]: its parameters (gamma, beta NULL for the last). */
 enum { G_CIN, G_COUT, G_K, G_S, G_HIN, G_WIN, GEO };
@@ -68,40 +119,36 @@ static int describe(int64_t L, const int64_t *geo, const float *const *ptrs, con
 
 /* ---- small matrix products: C[r ldc + m] (+)= sum_j A[r ra + j ja] B[j ldb + m], r < R, j < J, m < M ---- */
 
-static inline __mmask16 lanes(int64_t left)
-{
-    return left >= 16 ? (__mmask16)0xFFFF : left > 0 ? (__mmask16)((1u << left) - 1u) : (__mmask16)0;
-}
-
-/* One tile: RP rows of C by NV 16-lane vectors of columns (mleft columns exist from B and C on), the sums over j
+/* One tile: RP rows of C by NV VL-lane vectors of columns (mleft columns exist from B and C on), the sums over j
  * kept in RP NV registers. */
 #define GEMM_TILE(RP, NV)                                                                                         \
     static void gemm_tile_##RP##_##NV(const float *restrict A, int64_t ra, int64_t ja, const float *restrict B,  \
                                       int64_t ldb, int64_t J, int64_t mleft, float *restrict C, int64_t ldc,     \
                                       int accumulate)                                                            \
     {                                                                                                             \
-        __mmask16 mk[NV];                                                                                         \
-        _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) mk[v] = lanes(mleft - 16 * v);                     \
-        __m512 acc[RP][NV];                                                                                       \
+        vmask mk[NV];                                                                                         \
+        _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) mk[v] = lanes(mleft - VL * v);                     \
+        vec acc[RP][NV];                                                                                       \
         _Pragma("GCC unroll 16") for (int r = 0; r < RP; ++r)                                                    \
-            _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_setzero_ps();               \
+            _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[r][v] = vzero();               \
         for (int64_t j = 0; j < J; ++j) {                                                                         \
-            __m512 b[NV];                                                                                         \
+            vec b[NV];                                                                                         \
             _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v)                                                \
-                b[v] = _mm512_maskz_loadu_ps(mk[v], B + j * ldb + 16 * v);                                        \
+                b[v] = vload(mk[v], B + j * ldb + VL * v);                                        \
             _Pragma("GCC unroll 16") for (int r = 0; r < RP; ++r) {                                              \
-                const __m512 a = _mm512_set1_ps(A[r * ra + j * ja]);                                              \
-                _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[r][v] = _mm512_fmadd_ps(a, b[v], acc[r][v]); \
+                const vec a = vset1(A[r * ra + j * ja]);                                              \
+                _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[r][v] = vfma(a, b[v], acc[r][v]); \
             }                                                                                                     \
         }                                                                                                         \
         _Pragma("GCC unroll 16") for (int r = 0; r < RP; ++r)                                                    \
             _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) {                                              \
-                float *restrict c = C + r * ldc + 16 * v;                                                         \
-                const __m512 x = accumulate ? _mm512_add_ps(_mm512_maskz_loadu_ps(mk[v], c), acc[r][v]) : acc[r][v]; \
-                _mm512_mask_storeu_ps(c, mk[v], x);                                                               \
+                float *restrict c = C + r * ldc + VL * v;                                                         \
+                const vec x = accumulate ? vadd(vload(mk[v], c), acc[r][v]) : acc[r][v]; \
+                vstore(c, mk[v], x);                                                               \
             }                                                                                                     \
     }
 
+#if VL == 16 /* 32 registers: 12 to 28 accumulators */
 GEMM_TILE(12, 1)
 GEMM_TILE(6, 2)
 GEMM_TILE(6, 3)
@@ -109,8 +156,14 @@ GEMM_TILE(6, 4)
 GEMM_TILE(4, 5)
 GEMM_TILE(4, 6)
 GEMM_TILE(3, 7)
+#else /* 16 registers: 8 or 9 accumulators */
+GEMM_TILE(8, 1)
+GEMM_TILE(4, 2)
+GEMM_TILE(3, 3)
+GEMM_TILE(2, 4)
+#endif
 
-/* One row of C (a tile's leftover rows): the sum over j split into four interleaved partial sums, so that the
+/* One row of C (a tile's leftover rows): the sum over j split into ROW_U interleaved partial sums, so that the
  * additions do not wait on each other (a single chain of fused multiply-adds runs at their latency, not rate). */
 #define GEMM_ROW(NV)                                                                                              \
     static void gemm_tile_1_##NV(const float *restrict A, int64_t ra, int64_t ja, const float *restrict B,       \
@@ -118,27 +171,28 @@ GEMM_TILE(3, 7)
                                  int accumulate)                                                                 \
     {                                                                                                             \
         (void)ra, (void)ldc;                                                                                      \
-        __mmask16 mk[NV];                                                                                         \
-        _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) mk[v] = lanes(mleft - 16 * v);                     \
-        __m512 acc[4][NV];                                                                                        \
-        _Pragma("GCC unroll 16") for (int u = 0; u < 4; ++u)                                                     \
-            _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[u][v] = _mm512_setzero_ps();               \
+        vmask mk[NV];                                                                                         \
+        _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) mk[v] = lanes(mleft - VL * v);                     \
+        vec acc[ROW_U][NV];                                                                                       \
+        _Pragma("GCC unroll 16") for (int u = 0; u < ROW_U; ++u)                                                 \
+            _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[u][v] = vzero();                           \
         int64_t j = 0;                                                                                            \
-        for (; j + 4 <= J; j += 4)                                                                                \
-            _Pragma("GCC unroll 4") for (int u = 0; u < 4; ++u) {                                                \
-                const __m512 a = _mm512_set1_ps(A[(j + u) * ja]);                                                 \
-                _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) acc[u][v] = _mm512_fmadd_ps(               \
-                    a, _mm512_maskz_loadu_ps(mk[v], B + (j + u) * ldb + 16 * v), acc[u][v]);                     \
+        for (; j + ROW_U <= J; j += ROW_U)                                                                        \
+            _Pragma("GCC unroll 4") for (int u = 0; u < ROW_U; ++u) {                                            \
+                const vec a = vset1(A[(j + u) * ja]);                                                             \
+                _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v)                                            \
+                    acc[u][v] = vfma(a, vload(mk[v], B + (j + u) * ldb + VL * v), acc[u][v]);                     \
             }                                                                                                     \
         for (; j < J; ++j) {                                                                                      \
-            const __m512 a = _mm512_set1_ps(A[j * ja]);                                                           \
+            const vec a = vset1(A[j * ja]);                                                                       \
             _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v)                                                \
-                acc[0][v] = _mm512_fmadd_ps(a, _mm512_maskz_loadu_ps(mk[v], B + j * ldb + 16 * v), acc[0][v]);    \
+                acc[0][v] = vfma(a, vload(mk[v], B + j * ldb + VL * v), acc[0][v]);                               \
         }                                                                                                         \
         _Pragma("GCC unroll 16") for (int v = 0; v < NV; ++v) {                                                  \
-            __m512 x = _mm512_add_ps(_mm512_add_ps(acc[0][v], acc[1][v]), _mm512_add_ps(acc[2][v], acc[3][v]));  \
-            if (accumulate) x = _mm512_add_ps(_mm512_maskz_loadu_ps(mk[v], C + 16 * v), x);                      \
-            _mm512_mask_storeu_ps(C + 16 * v, mk[v], x);                                                          \
+            vec x = acc[0][v];                                                                                    \
+            _Pragma("GCC unroll 4") for (int u = 1; u < ROW_U; ++u) x = vadd(x, acc[u][v]);                      \
+            if (accumulate) x = vadd(vload(mk[v], C + VL * v), x);                                                \
+            vstore(C + VL * v, mk[v], x);                                                                         \
         }                                                                                                         \
     }
 
@@ -146,13 +200,15 @@ GEMM_ROW(1)
 GEMM_ROW(2)
 GEMM_ROW(3)
 GEMM_ROW(4)
+#if VL == 16
 GEMM_ROW(5)
 GEMM_ROW(6)
 GEMM_ROW(7)
+#endif
 
 /* Rows in tiles of RP (the rest one by one), columns in blocks of NV vectors. */
 #define GEMM_RUN(RP, NV)                                                                                          \
-    for (int64_t m0 = 0; m0 < M; m0 += 16 * NV) {                                                                 \
+    for (int64_t m0 = 0; m0 < M; m0 += VL * NV) {                                                                 \
         int64_t r0 = 0;                                                                                           \
         for (; r0 + RP <= R; r0 += RP)                                                                            \
             gemm_tile_##RP##_##NV(A + r0 * ra, ra, ja, B + m0, ldb, J, M - m0, C + r0 * ldc + m0, ldc, accumulate); \
@@ -163,7 +219,8 @@ GEMM_ROW(7)
 static void gemm(const float *restrict A, int64_t ra, int64_t ja, const float *restrict B, int64_t ldb, int64_t R,
                  int64_t J, int64_t M, float *restrict C, int64_t ldc, int accumulate)
 {
-    switch ((M + 15) / 16) { /* the tile shape by the number of column vectors: 12 to 28 accumulators */
+#if VL == 16
+    switch ((M + 15) / 16) { /* the tile shape by the number of column vectors */
     case 1: GEMM_RUN(12, 1) break;
     case 2: GEMM_RUN(6, 2) break;
     case 3: GEMM_RUN(6, 3) break;
@@ -173,6 +230,14 @@ static void gemm(const float *restrict A, int64_t ra, int64_t ja, const float *r
     case 7: GEMM_RUN(3, 7) break;
     default: GEMM_RUN(4, 5) break;
     }
+#else
+    switch ((M + 7) / 8) {
+    case 1: GEMM_RUN(8, 1) break;
+    case 2: GEMM_RUN(4, 2) break;
+    case 3: GEMM_RUN(3, 3) break;
+    default: GEMM_RUN(2, 4) break;
+    }
+#endif
 }
 
 /* dst[0..n) += src[0..n), or = with copy: one pixel's channels */
@@ -182,10 +247,10 @@ static inline void pixel_op(float *restrict dst, const float *restrict src, int6
         dst[0] = copy ? src[0] : dst[0] + src[0];
         return;
     }
-    for (int64_t c = 0; c < n; c += 16) {
-        const __mmask16 m = lanes(n - c);
-        const __m512 v = _mm512_maskz_loadu_ps(m, src + c);
-        _mm512_mask_storeu_ps(dst + c, m, copy ? v : _mm512_add_ps(_mm512_maskz_loadu_ps(m, dst + c), v));
+    for (int64_t c = 0; c < n; c += VL) {
+        const vmask m = lanes(n - c);
+        const vec v = vload(m, src + c);
+        vstore(dst + c, m, copy ? v : vadd(vload(m, dst + c), v));
     }
 }
 
@@ -197,12 +262,12 @@ static inline void strip(float *restrict dst, int64_t dstep, const float *restri
         for (int64_t j = 0; j < W; ++j) dst[j * dstep] = copy ? src[j * sstep] : dst[j * dstep] + src[j * sstep];
         return;
     }
-    if (C <= 16) { /* one masked vector per pixel */
-        const __mmask16 m = lanes(C);
+    if (C <= VL) { /* one masked vector per pixel */
+        const vmask m = lanes(C);
         for (int64_t j = 0; j < W; ++j) {
-            const __m512 v = _mm512_maskz_loadu_ps(m, src + j * sstep);
+            const vec v = vload(m, src + j * sstep);
             float *restrict d = dst + j * dstep;
-            _mm512_mask_storeu_ps(d, m, copy ? v : _mm512_add_ps(_mm512_maskz_loadu_ps(m, d), v));
+            vstore(d, m, copy ? v : vadd(vload(m, d), v));
         }
         return;
     }
@@ -243,19 +308,19 @@ static void channel_sums(const float *restrict d, int64_t P, int64_t C, float *r
         acc[0] += s;
         return;
     }
-    for (int64_t c = 0; c < C; c += 16) {
-        const __mmask16 m = lanes(C - c);
-        __m512 s0 = _mm512_setzero_ps(), s1 = s0, s2 = s0, s3 = s0;
+    for (int64_t c = 0; c < C; c += VL) {
+        const vmask m = lanes(C - c);
+        vec s0 = vzero(), s1 = s0, s2 = s0, s3 = s0;
         int64_t p = 0;
         for (; p + 4 <= P; p += 4) {
-            s0 = _mm512_add_ps(s0, _mm512_maskz_loadu_ps(m, d + p * C + c));
-            s1 = _mm512_add_ps(s1, _mm512_maskz_loadu_ps(m, d + (p + 1) * C + c));
-            s2 = _mm512_add_ps(s2, _mm512_maskz_loadu_ps(m, d + (p + 2) * C + c));
-            s3 = _mm512_add_ps(s3, _mm512_maskz_loadu_ps(m, d + (p + 3) * C + c));
+            s0 = vadd(s0, vload(m, d + p * C + c));
+            s1 = vadd(s1, vload(m, d + (p + 1) * C + c));
+            s2 = vadd(s2, vload(m, d + (p + 2) * C + c));
+            s3 = vadd(s3, vload(m, d + (p + 3) * C + c));
         }
-        for (; p < P; ++p) s0 = _mm512_add_ps(s0, _mm512_maskz_loadu_ps(m, d + p * C + c));
-        const __m512 t = _mm512_add_ps(_mm512_add_ps(s0, s1), _mm512_add_ps(s2, s3));
-        _mm512_mask_storeu_ps(acc + c, m, _mm512_add_ps(_mm512_maskz_loadu_ps(m, acc + c), t));
+        for (; p < P; ++p) s0 = vadd(s0, vload(m, d + p * C + c));
+        const vec t = vadd(vadd(s0, s1), vadd(s2, s3));
+        vstore(acc + c, m, vadd(vload(m, acc + c), t));
     }
 }
 
@@ -280,7 +345,7 @@ static void store_away(float *restrict dst, const float *restrict src, int64_t n
 {
     if (((uintptr_t)dst & 63) == 0) {
         int64_t k = 0;
-        for (; k + 16 <= n; k += 16) _mm512_stream_ps(dst + k, _mm512_loadu_ps(src + k));
+        for (; k + VL <= n; k += VL) vstream(dst + k, vloadu(src + k));
         for (; k < n; ++k) dst[k] = src[k];
         return;
     }
@@ -291,26 +356,26 @@ static void store_away(float *restrict dst, const float *restrict src, int64_t n
 static void row_stats(const float *restrict y, int64_t D, float eps, float *mean_out, float *rstd_out)
 {
     /* four independent partial sums: one chain of vector additions would run at their latency, not their rate */
-    __m512 a[4] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
+    vec a[4] = {vzero(), vzero(), vzero(), vzero()};
     int64_t k = 0;
-    for (; k + 64 <= D; k += 64)
-        for (int u = 0; u < 4; ++u) a[u] = _mm512_add_ps(a[u], _mm512_loadu_ps(y + k + 16 * u));
-    for (; k < D; k += 16) a[0] = _mm512_add_ps(a[0], _mm512_maskz_loadu_ps(lanes(D - k), y + k));
-    const float s = _mm512_reduce_add_ps(_mm512_add_ps(_mm512_add_ps(a[0], a[1]), _mm512_add_ps(a[2], a[3])));
+    for (; k + 4 * VL <= D; k += 4 * VL)
+        for (int u = 0; u < 4; ++u) a[u] = vadd(a[u], vloadu(y + k + VL * u));
+    for (; k < D; k += VL) a[0] = vadd(a[0], vload(lanes(D - k), y + k));
+    const float s = vsum(vadd(vadd(a[0], a[1]), vadd(a[2], a[3])));
     const float mean = s / (float)D;
-    const __m512 m = _mm512_set1_ps(mean);
-    for (int u = 0; u < 4; ++u) a[u] = _mm512_setzero_ps();
-    for (k = 0; k + 64 <= D; k += 64)
+    const vec m = vset1(mean);
+    for (int u = 0; u < 4; ++u) a[u] = vzero();
+    for (k = 0; k + 4 * VL <= D; k += 4 * VL)
         for (int u = 0; u < 4; ++u) {
-            const __m512 c = _mm512_sub_ps(_mm512_loadu_ps(y + k + 16 * u), m);
-            a[u] = _mm512_fmadd_ps(c, c, a[u]);
+            const vec c = vsub(vloadu(y + k + VL * u), m);
+            a[u] = vfma(c, c, a[u]);
         }
-    for (; k < D; k += 16) {
-        const __mmask16 mk = lanes(D - k);
-        const __m512 c = _mm512_maskz_sub_ps(mk, _mm512_maskz_loadu_ps(mk, y + k), m);
-        a[0] = _mm512_fmadd_ps(c, c, a[0]);
+    for (; k < D; k += VL) {
+        const vmask mk = lanes(D - k);
+        const vec c = vzmask(mk, vsub(vload(mk, y + k), m));
+        a[0] = vfma(c, c, a[0]);
     }
-    const float v = _mm512_reduce_add_ps(_mm512_add_ps(_mm512_add_ps(a[0], a[1]), _mm512_add_ps(a[2], a[3])));
+    const float v = vsum(vadd(vadd(a[0], a[1]), vadd(a[2], a[3])));
     *mean_out = mean;
     *rstd_out = 1.0f / sqrtf(v / (float)D + eps);
 }

@@ -10,12 +10,12 @@ library built for another CPU. The rows (samples) are shared among OpenMP thread
 run on torch's intra-op threads and follow ``torch.set_num_threads``. A compiler without ``-fopenmp`` counts as
 none.
 
-The kernels need AVX-512 (x86 CPUs with ``avx512f``): built for AVX2 or plainer they would be slower than the
-torch-only path, so on other CPUs they are not built. Where the CPU lacks AVX-512, no C compiler is found,
-compiling fails, or ``SSM_MS_NATIVE=0`` is set, :func:`library` returns ``None`` and :func:`unavailable_reason`
-says why; the decoder then runs its torch-only path (same values). A missing compiler or a failed build is said
-once, as a ``RuntimeWarning`` (the decoder is slower than it could be); a CPU without AVX-512 and
-``SSM_MS_NATIVE=0`` are not (nothing is lost).
+The kernels are written for AVX-512 (16 lanes) and AVX2 with FMA (8 lanes, smaller tiles); in plain C loops they
+were slower than the torch-only path, so on other CPUs (ARM, x86 before AVX2) they are not built. Where the CPU
+has neither, no C compiler is found, compiling fails, or ``SSM_MS_NATIVE=0`` is set, :func:`library` returns
+``None`` and :func:`unavailable_reason` says why; the decoder then runs its torch-only path (same values). A
+missing compiler or a failed build is said once, as a ``RuntimeWarning`` (the decoder is slower than it could be);
+a CPU without those instructions and ``SSM_MS_NATIVE=0`` are not (nothing is lost).
 """
 
 from __future__ import annotations
@@ -35,15 +35,17 @@ import torch
 
 SOURCE = Path(__file__).with_name("_conv_stack.c")
 # the first set the compiler accepts; OpenMP is required (kernels on one thread beside torch's threaded
-# convolutions were not measured, so not offered); -march=native for AVX-512 (the source refuses builds without it)
+# convolutions were not measured, so not offered); -march=native for AVX-512 or AVX2 (the source refuses others)
 FLAG_SETS = (
     ["-O3", "-march=native", "-funroll-loops", "-mtune-ctrl=use_gather", "-fopenmp"],  # GCC: hardware gathers
     ["-O3", "-march=native", "-funroll-loops", "-fopenmp"],
 )
-# Why the kernels need AVX-512: without it they would be slower than the torch-only path (measured on the
-# pendulum decoder, 4000 frames, 2 threads, an AVX-512 Xeon: a build for AVX2 364 ms, plain -O3 403 ms, torch-only
-# 196 ms), so such CPUs run the torch-only path, silently.
-NO_AVX512 = "this CPU has no AVX-512 (no avx512f in /proc/cpuinfo): the torch-only path is the faster one here"
+# Why the kernels need vector instructions: written in plain C loops they were slower than the torch-only path
+# (pendulum decoder, 4000 frames, 2 threads, an AVX-512 Xeon: plain -O3 403 ms, plain loops built for AVX2 364 ms,
+# torch-only 196 ms; the intrinsics built for AVX2 132 ms, for AVX-512 92 ms), so other CPUs run the torch-only
+# path, silently.
+NO_SIMD = ("this CPU has neither AVX-512 nor AVX2 with FMA (per /proc/cpuinfo): the kernels need one of them, "
+           "the torch-only path runs")
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -56,13 +58,15 @@ def _compiler() -> str | None:
     return None
 
 
-def _has_avx512() -> bool:
-    """Whether /proc/cpuinfo lists ``avx512f`` (False where there is no /proc/cpuinfo: macOS, Windows)."""
+def _has_simd() -> bool:
+    """Whether /proc/cpuinfo lists ``avx512f``, or ``avx2`` and ``fma`` (False where there is no /proc/cpuinfo:
+    macOS, Windows)."""
     try:
         with open("/proc/cpuinfo") as fh:
             for line in fh:
                 if line.startswith("flags"):
-                    return "avx512f" in line.split()
+                    flags = set(line.split())
+                    return "avx512f" in flags or {"avx2", "fma"} <= flags
     except OSError:
         pass
     return False
@@ -93,8 +97,8 @@ def cache_dir() -> Path:
 def _build() -> tuple[ctypes.CDLL | None, str | None]:
     if os.environ.get("SSM_MS_NATIVE", "1") == "0":
         return None, "SSM_MS_NATIVE=0 is set"
-    if not _has_avx512():
-        return None, NO_AVX512
+    if not _has_simd():
+        return None, NO_SIMD
     cc = _compiler()
     if cc is None:
         return None, "no C compiler (cc, gcc or clang; or $CC) on PATH"
@@ -145,7 +149,7 @@ def library() -> ctypes.CDLL | None:
     with _lock:
         if "lib" not in _state:
             _state["lib"], _state["reason"] = _build()
-            on_purpose = _state["reason"] in ("SSM_MS_NATIVE=0 is set", NO_AVX512)
+            on_purpose = _state["reason"] in ("SSM_MS_NATIVE=0 is set", NO_SIMD)
             if _state["lib"] is None and not on_purpose:
                 warnings.warn(f"ssm_ms: the decoder's native kernels are off, running the slower torch-only path: "
                               f"{_state['reason']} (SSM_MS_NATIVE=0 silences this)", RuntimeWarning, stacklevel=2)

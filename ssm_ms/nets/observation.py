@@ -49,7 +49,7 @@ class ConvDecoder(nn.Module):
             channels-last memory layout (same results, same parameters), the layout oneDNN's CPU convolutions are
             fastest in; the transposed convolutions then run through :func:`conv_transpose2d`. LayerNorm is applied
             to the ``(H, W, C)``-ordered sample, a view, never a copy.
-        native: on a CPU with AVX-512, in float32 (no autocast, no forward-mode AD, no tracing), run the whole
+        native: on a CPU with AVX-512 or AVX2, in float32 (no autocast, no forward-mode AD, no tracing), run the whole
             stack after the stem (every transposed convolution, LayerNorm and ReLU) through the native kernels of
             :mod:`ssm_ms.nets.native`, one sample at a time in cache (compiled on first use; same values up to
             float rounding), where one sample's scratch fits in :data:`NATIVE_SCRATCH` floats
