@@ -243,10 +243,6 @@ static void gemm(const float *restrict A, int64_t ra, int64_t ja, const float *r
 /* dst[0..n) += src[0..n), or = with copy: one pixel's channels */
 static inline void pixel_op(float *restrict dst, const float *restrict src, int64_t n, int copy)
 {
-    if (n == 1) {
-        dst[0] = copy ? src[0] : dst[0] + src[0];
-        return;
-    }
     for (int64_t c = 0; c < n; c += VL) {
         const vmask m = lanes(n - c);
         const vec v = vload(m, src + c);
@@ -254,7 +250,8 @@ static inline void pixel_op(float *restrict dst, const float *restrict src, int6
     }
 }
 
-/* dst[j dstep + c] (+)= src[j sstep + c], j < W, c < C: one strip of pixels, a pixel's C channels at a time. */
+/* dst[j dstep + c] (+)= src[j sstep + c], j < W, c < C: one strip of pixels, a pixel's C channels at a time
+ * (sstep 0: the same C values into every pixel). */
 static inline void strip(float *restrict dst, int64_t dstep, const float *restrict src, int64_t sstep, int64_t W,
                          int64_t C, int copy)
 {
@@ -332,15 +329,13 @@ static void layer_forward(const layer_t *ly, const float *restrict in, float *re
     gemm(in, ly->cin, 1, ly->w, ly->q, ly->pin, ly->cin, ly->q, prod, ly->q, 0);
     if (ly->bias == NULL)
         memset(out, 0, (size_t)ly->dout * sizeof(float));
-    else if (ly->cout == 1)
-        for (int64_t p = 0; p < ly->pout; ++p) out[p] = ly->bias[0];
     else
-        for (int64_t p = 0; p < ly->pout; ++p) pixel_op(out + p * ly->cout, ly->bias, ly->cout, 1);
+        strip(out, ly->cout, ly->bias, 0, ly->pout, ly->cout, 1);
     taps_forward(ly, prod, out);
 }
 
-/* dst[0..n) = src[0..n) for a dst that is not read again soon (the saved layer-norm inputs): with AVX-512 and a
- * 64-byte aligned dst, streaming stores, which skip reading the destination's cache lines from memory first. */
+/* dst[0..n) = src[0..n) for a dst that is not read again soon (the saved layer-norm inputs): to a 64-byte aligned
+ * dst, streaming stores, which skip reading the destination's cache lines from memory first. */
 static void store_away(float *restrict dst, const float *restrict src, int64_t n)
 {
     if (((uintptr_t)dst & 63) == 0) {
@@ -458,28 +453,35 @@ static int setup(int64_t L, const int64_t *geo, const float *const *ptrs, const 
     return 0;
 }
 
+/* Floats of one thread's scratch, in either direction: a products buffer and three maps. */
+static int64_t scratch_floats(const stack_geo *st)
+{
+    return st->nprod + 3 * st->nmap;
+}
+
 /* One thread's scratch, returned for free(): buf[0] for products (nprod floats), buf[1..3] for maps (nmap each);
  * NULL where memory could not be allocated. */
 static float *thread_scratch(const stack_geo *st, float *buf[4])
 {
-    float *scratch = malloc((size_t)(st->nprod + 3 * st->nmap) * sizeof(float));
+    float *scratch = malloc((size_t)scratch_floats(st) * sizeof(float));
     buf[0] = scratch;
     for (int i = 1; i < 4; ++i) buf[i] = scratch == NULL ? NULL : scratch + st->nprod + (i - 1) * st->nmap;
     return scratch;
 }
 
-int64_t conv_stack_saved_size(int64_t L, const int64_t *geo)
+/* Floats per row of conv_stack_forward's saved (what = 0), or of one thread's scratch in either direction (what = 1),
+ * for a stack's geometry; -2 for a bad layer count. */
+int64_t conv_stack_size(int64_t L, const int64_t *geo, int what)
 {
-    layer_t ly[MAX_LAYERS];
-    int64_t soff[MAX_LAYERS];
+    stack_geo st;
     const float *ptrs[MAX_LAYERS * PTRS] = {0};
     float eps[MAX_LAYERS] = {0};
-    if (describe(L, geo, ptrs, eps, ly) != 0) return -2;
-    return saved_offsets(L, ly, soff);
+    if (setup(L, geo, ptrs, eps, &st) != 0) return -2;
+    return what == 0 ? st.S : scratch_floats(&st);
 }
 
 /* x [rows, Din of layer 0] -> out [rows, Dout of the last layer]. Saves each layer-normed layer's output y
- * (saved [rows, conv_stack_saved_size()], in layer order, each at a multiple of 16 floats) and its mean and 1/std
+ * (saved [rows, conv_stack_size(L, geo, 0)], in layer order, each at a multiple of 16 floats) and its mean and 1/std
  * (stats [rows, 2 (L - 1)]).
  * Returns 0, -1 where scratch memory could not be allocated, -2 for a bad layer count. */
 int conv_stack_forward(int64_t L, const int64_t *geo, const float *const *ptrs, const float *eps,

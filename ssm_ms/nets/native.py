@@ -139,7 +139,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.conv_stack_threads.argtypes, lib.conv_stack_threads.restype = [], n
     lib.conv_stack_forward.argtypes = [i, p, p, p, p, p, p, p, i]
     lib.conv_stack_forward.restype = n
-    lib.conv_stack_saved_size.argtypes, lib.conv_stack_saved_size.restype = [i, p], i
+    lib.conv_stack_size.argtypes, lib.conv_stack_size.restype = [i, p, n], i
     lib.conv_stack_backward.argtypes = [i, p, p, p, p, p, p, p, p, p, p, i, i, n]
     lib.conv_stack_backward.restype = n
 

@@ -114,7 +114,7 @@ class ConvDecoder(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         lead = x.shape[:-1]
         h = self.stem(x.reshape(-1, self.state_dim))
-        if self.native and self.native_fits and native_applies(h):
+        if self.native and native_applies(h) and self.native_fits:
             return self._centre(self._native_stack(h)).reshape(*lead, *self.out_shape)
         h = h.view(-1, *self.stem_shape)
         if not self.channels_last:
@@ -137,13 +137,22 @@ class ConvDecoder(nn.Module):
             i += 1
         return self._centre(h).reshape(*lead, *self.out_shape)  # a view for one uncropped channel, else a copy
 
+    def native_scratch(self) -> int | None:
+        """Floats of one sample's scratch in the native kernels (the largest products ``H_in W_in x k^2 C_out`` of a
+        layer and three of the largest layer-normed maps), as the kernels count it; ``None`` without them."""
+        lib = native.library()
+        if lib is None:
+            return None
+        geo = torch.tensor(self._geometry(), dtype=torch.int64)  # held: the call reads its memory
+        return int(lib.conv_stack_size(geo.shape[0], geo.data_ptr(), 1))
+
     @property
     def native_fits(self) -> bool:
-        """Whether one sample's scratch for the native kernels (the largest products ``H_in W_in x k^2 C_out`` of a
-        layer and three of the largest layer-normed maps) is at most :data:`NATIVE_SCRATCH` floats: true for the
-        pendulum and quadruple-pendulum decoders, not for Moving MNIST's (512 and 256 channels: oneDNN's batched
-        convolutions are the faster way there)."""
-        return _stack_scratch(self._geometry()) <= NATIVE_SCRATCH
+        """Whether :meth:`native_scratch` is at most :data:`NATIVE_SCRATCH` floats: true for the pendulum and
+        quadruple-pendulum decoders, not for Moving MNIST's (512 and 256 channels: oneDNN's batched convolutions are
+        the faster way there)."""
+        scratch = self.native_scratch()
+        return scratch is not None and scratch <= NATIVE_SCRATCH
 
     def _geometry(self) -> tuple[tuple[int, int, int, int, int, int], ...]:
         """``(C_in, C_out, kernel, stride, H_in, W_in)`` of each transposed convolution."""
@@ -232,29 +241,21 @@ def layer_norm_channels_last(ln: nn.LayerNorm, h: torch.Tensor, relu: bool = Fal
     return out.view(n, height, width, c).permute(0, 3, 1, 2)
 
 
-def _phase_conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
-    """The ``s^2`` output phases of ``F.conv_transpose2d(x, weight, bias, stride)`` (no padding) as the channels of
-    one stride-1 convolution: ``[N, s^2 C_out, H + T - 1, W + T - 1]``, channel ``(p_y, p_x, c_out)``.
+def _phase_forward(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
+    """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding) as one stride-1 convolution and one copy.
 
     Output pixel ``s j + p`` (phase ``p < s``) sums the taps ``k = p + s t`` over the inputs ``j - t``,
-    ``t < T = ceil(kernel / s)``: per phase a ``T x T`` convolution. The phases are the output channels of one
-    ``Conv2d(C_in, s^2 C_out, T, padding=T-1)``, its weight gathered from ``weight`` (taps beyond the kernel zero).
-    Pixel ``(s j + p_y, s i + p_x)`` of the transposed convolution, for the ``(H - 1) s + kernel`` rows and
-    columns it has, is element ``(p_y, p_x, c_out), j, i`` of the result.
+    ``t < T = ceil(kernel / s)``: per phase a ``T x T`` convolution. The ``s^2`` phases are the output
+    channels of one ``Conv2d(C_in, s^2 C_out, T, padding=T-1)`` (its weight gathered from ``weight``,
+    taps beyond the kernel zero), then copied, interleaved and cropped to ``(H - 1) s + kernel``, into
+    a channels-last result.
     """
     c_in, c_out, k, _ = weight.shape
     s, t = stride, -(-k // stride)
     w = F.pad(weight, (0, s * t - k, 0, s * t - k)).view(c_in, c_out, t, s, t, s).flip(2, 4)
     w = w.permute(3, 5, 1, 0, 2, 4).reshape(s * s * c_out, c_in, t, t)  # output channel (p_y, p_x, c_out)
     b = None if bias is None else bias.repeat(s * s)
-    return F.conv2d(x, w, b, padding=t - 1)
-
-
-def _phase_forward(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
-    """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding) as :func:`_phase_conv` and one copy: the phases
-    interleaved and cropped to ``(H - 1) s + kernel`` into a channels-last result."""
-    c_out, k, s = weight.shape[1], weight.shape[2], stride
-    y = _phase_conv(x, weight, bias, stride)
+    y = F.conv2d(x, w, b, padding=t - 1)
     n, _, rows_in, cols_in = y.shape
     phases = y.permute(0, 2, 3, 1).reshape(n, rows_in, cols_in, s, s, c_out)  # a view when channels-last
     height, width = (x.shape[2] - 1) * s + k, (x.shape[3] - 1) * s + k
@@ -294,27 +295,21 @@ class _ConvTranspose(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):
         x, weight = ctx.saved_tensors
-        return (*_conv_transpose_backward(x, weight, grad, ctx.stride, ctx.has_bias, ctx.needs_input_grad), None)
+        s = ctx.stride
+        grad_x = grad_w = grad_b = None
+        if ctx.needs_input_grad[0]:
+            grad_x = F.conv2d(grad, weight, stride=s)
+        if ctx.needs_input_grad[1]:
+            grad_w = torch.ops.aten.convolution_backward(
+                x, grad, weight, None, [s, s], [0, 0], [1, 1], False, [0, 0], 1, [False, True, False]
+            )[1]
+        if ctx.has_bias and ctx.needs_input_grad[2]:
+            grad_b = channel_sum(grad)
+        return grad_x, grad_w, grad_b, None
 
     @staticmethod
     def jvp(ctx, x_t, weight_t, bias_t, _):
         return _linear_jvp(_phase_forward, ctx, x_t, weight_t, bias_t)
-
-
-def _conv_transpose_backward(x, weight, grad, stride, has_bias, needs):
-    """Gradients ``(x, weight, bias)`` of ``F.conv_transpose2d(x, weight, bias, stride)`` given the output's
-    gradient ``grad`` (``None`` where ``needs`` says not needed)."""
-    s = stride
-    grad_x = grad_w = grad_b = None
-    if needs[0]:
-        grad_x = F.conv2d(grad, weight, stride=s)
-    if needs[1]:
-        grad_w = torch.ops.aten.convolution_backward(
-            x, grad, weight, None, [s, s], [0, 0], [1, 1], False, [0, 0], 1, [False, True, False]
-        )[1]
-    if has_bias and needs[2]:
-        grad_b = channel_sum(grad)
-    return grad_x, grad_w, grad_b
 
 
 def channel_sum(grad: torch.Tensor) -> torch.Tensor:
@@ -402,13 +397,6 @@ def _linear_jvp(forward, ctx, x_t, weight_t, bias_t):
     return out
 
 
-def _projects(weight: torch.Tensor) -> bool:
-    """A transposed convolution whose per-pixel products ``k^2 C_out`` are no more than its input channels
-    ``C_in``: computed as a matrix product and shifted adds (e.g. a decoder's last, image-drawing layer)."""
-    c_in, c_out, k, _ = weight.shape
-    return k * k * c_out <= c_in
-
-
 def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: int) -> torch.Tensor:
     """``F.conv_transpose2d(x, weight, bias, stride)`` (no padding, square stride), fast on CPU.
 
@@ -417,9 +405,10 @@ def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
     :class:`_ConvTranspose`; the rest (stride 1: a plain convolution with a flipped kernel, no gain measured)
     and other devices (cuDNN's transposed convolutions are fine) use ``F.conv_transpose2d`` itself.
     """
+    c_in, c_out, k, _ = weight.shape
     if x.device.type != "cpu":
         return F.conv_transpose2d(x, weight, bias, stride)
-    if _projects(weight):
+    if k * k * c_out <= c_in:
         function = _ConvTransposeGemm
     elif stride > 1:
         function = _ConvTranspose
@@ -433,16 +422,6 @@ def conv_transpose2d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
 
 
 NATIVE_SCRATCH = 1 << 18  # floats (1 MiB): what one sample of the native kernels may use, about a core's L2 cache
-
-
-def _stack_scratch(geometry) -> int:
-    """Floats of one sample's scratch in the native kernels: the largest products plus three largest normed maps."""
-    prods, maps = [0], [1]
-    for i, (c_in, c_out, k, s, h, w) in enumerate(geometry):
-        prods.append(h * w * k * k * c_out)
-        if i < len(geometry) - 1:
-            maps.append(((h - 1) * s + k) * ((w - 1) * s + k) * c_out)
-    return max(prods) + 3 * max(maps)
 
 
 class _ConvStack(torch.autograd.Function):
@@ -467,7 +446,7 @@ class _ConvStack(torch.autograd.Function):
         x = x.contiguous()
         geo = torch.tensor(geometry, dtype=torch.int64)
         out = x.new_empty(n, out_size)
-        saved = x.new_empty(n, lib.conv_stack_saved_size(len(geometry), geo.data_ptr()))
+        saved = x.new_empty(n, lib.conv_stack_size(len(geometry), geo.data_ptr(), 0))
         stats = x.new_empty(n, 2 * (len(geometry) - 1))
         eps_arr = (ctypes.c_float * len(geometry))(*eps)
         native.check(lib.conv_stack_forward(len(geometry), geo.data_ptr(), pointers, eps_arr, x.data_ptr(),
