@@ -42,6 +42,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--tiny", action="store_true", help="tiny sizes, to check that the script runs")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "decoder_profile.md"))
+    parser.add_argument("--cflags", default=None,
+                        help='compiler flags for the native kernels instead of ssm_ms.nets.native.FLAG_SETS, e.g. '
+                             '"-O3 -mavx2 -mfma" for the AVX2 build on an AVX-512 CPU (-fopenmp is added)')
     args = parser.parse_args(argv)
 
     from ssm_ms.perf import configure_allocator
@@ -50,9 +53,13 @@ def main(argv: list[str] | None = None) -> None:
     import torch
     import torch.nn.functional as F
 
-    from ssm_ms.machine import describe
+    from ssm_ms.machine import CpuWatch, describe, quiet_note
     from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, native
     from ssm_ms.shooting import rollout
+
+    if args.cflags:
+        native.FLAG_SETS = (args.cflags.split() + ["-fopenmp"],)
+    watch = CpuWatch()
 
     torch.set_num_threads(args.threads)
     size = TINY if args.tiny else FULL
@@ -114,11 +121,12 @@ def main(argv: list[str] | None = None) -> None:
         f"- machine: {describe()}, {args.threads} torch threads",
         f"- command: `{cmd}`",
         f"- date: {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
-        f"- load average (1/5/15 min): {'/'.join(f'{v:.2f}' for v in os.getloadavg())}",
+        f"- others' CPU use: {quiet_note(watch.others())}",
         f"- set-up: {'TINY sizes (smoke test) ' if args.tiny else ''}{size['frames']} frames 24x24 (pendulum decoder, "
         f"MSE), SSM-LL K {size['k']} hidden {size['hidden']} on {size['states']} states x {size['steps']} steps; "
         f"median of {args.repeats} alternated runs, forward + backward",
-        f"- native kernels: {'on' if lib is not None else 'off: ' + str(native.unavailable_reason())}",
+        f"- native kernels: {'on' if lib is not None else 'off: ' + str(native.unavailable_reason())}, built with "
+        f"`{' '.join(native.FLAG_SETS[0]) if args.cflags else 'ssm_ms.nets.native.FLAG_SETS (-march=native)'}`",
         "",
         "| part | ms |",
         "|---|---:|",

@@ -40,10 +40,10 @@ FLAG_SETS = (
     ["-O3", "-march=native", "-funroll-loops", "-mtune-ctrl=use_gather", "-fopenmp"],  # GCC: hardware gathers
     ["-O3", "-march=native", "-funroll-loops", "-fopenmp"],
 )
-# Why the kernels need vector instructions: written in plain C loops they were slower than the torch-only path
-# (pendulum decoder, 4000 frames, 2 threads, an AVX-512 Xeon: plain -O3 403 ms, plain loops built for AVX2 364 ms,
-# torch-only 196 ms; the intrinsics built for AVX2 132 ms, for AVX-512 92 ms), so other CPUs run the torch-only
-# path, silently.
+# Why the kernels need vector instructions: written in plain C loops (commit dd83305) they were slower than the
+# torch-only path (pendulum decoder, 4000 frames, 2 threads, an AVX-512 Xeon: plain -O3 403 ms, plain loops built
+# for AVX2 364 ms, torch-only 196 ms; the intrinsics: benchmarks/results/decoder_profile*.md), so other CPUs run
+# the torch-only path, silently.
 NO_SIMD = ("this CPU has neither AVX-512 nor AVX2 with FMA (per /proc/cpuinfo): the kernels need one of them, "
            "the torch-only path runs")
 
