@@ -77,7 +77,7 @@ def cost_split(cfg: dict, count: int = P.CHUNK_SIZE, repeats: int = 3) -> dict[s
         q, _ = P.simulate(model, data, q0, v0, dm.n_frames, int(round(dm.frame_dt / dm.dt)), dm.dt, dm.damping)
         times["dynamics"].append(time.perf_counter() - t)
         t = time.perf_counter()
-        clean = [P.render(q[j], dm.image_size, dm.line_width) for j in range(count)]
+        clean = [P.render(q[j], dm.image_size, dm.line_width, dm.rendering) for j in range(count)]
         times["rendering"].append(time.perf_counter() - t)
         t = time.perf_counter()
         for c in clean:

@@ -58,7 +58,17 @@ def small_module(tmp_path, **kw) -> PendulumDataModule:
 
 @pytest.fixture(scope="module")
 def simple_data(tmp_path_factory):
-    dm = small_module(tmp_path_factory.mktemp("pend"))
+    """Four trajectories per split in the analytic rendering (exact zeros off the line, values in [0, 1])."""
+    dm = small_module(tmp_path_factory.mktemp("pend"), rendering="analytic")
+    dm.prepare_data()
+    return dm, dm.load_arrays("train"), dm.load_arrays("test")
+
+
+@pytest.fixture(scope="module")
+def paper_data(tmp_path_factory):
+    """The same in the paper's rendering (the default)."""
+    dm = small_module(tmp_path_factory.mktemp("pend_paper"))
+    assert dm.rendering == "paper"
     dm.prepare_data()
     return dm, dm.load_arrays("train"), dm.load_arrays("test")
 
@@ -146,7 +156,7 @@ def naive_render(angles: np.ndarray, size: int, width: float) -> np.ndarray:
 @pytest.mark.parametrize("n,size,width", [(1, 24, 2.0), (4, 48, 2.0), (3, 20, 1.0), (2, 17, 3.5)])
 def test_render_matches_naive_loop(n, size, width):
     angles = np.random.default_rng(n).uniform(-4, 4, (3, n))
-    img = P.render(angles, size, width)
+    img = P.render_analytic(angles, size, width)
     assert img.shape == (3, 1, size, size) and img.dtype == np.float32
     assert img.min() >= 0 and img.max() <= 1
     np.testing.assert_allclose(img, naive_render(angles, size, width), atol=1e-5)
@@ -165,26 +175,111 @@ def test_render_geometry(n, size):
     for theta, direction in [(0.0, (0, 1)), (math.pi / 2, (1, 0)), (-math.pi / 2, (-1, 0)), (math.pi, (0, -1))]:
         angles = np.zeros((1, n))
         angles[0, 0] = theta  # straight chain: mid-chain point at half the length
-        img = P.render(angles, size, 2.0)[0]
+        img = P.render_analytic(angles, size, 2.0)[0]
         assert img.shape == (1, size, size)
         expected = size / 2 + 0.5 * length * np.array(direction)
         np.testing.assert_allclose(centroid(img), expected, atol=0.15)
     # a bent chain: the first link straight right, the others down again, the mean of link midpoints
     if n == 4:
-        img = P.render(np.array([[math.pi / 2, -math.pi / 2, 0, 0]]), size, 2.0)[0]
+        img = P.render_analytic(np.array([[math.pi / 2, -math.pi / 2, 0, 0]]), size, 2.0)[0]
         link = length / 4
         mids = np.array([[0.5, 0], [1, 0.5], [1, 1.5], [1, 2.5]]) * link + size / 2
         np.testing.assert_allclose(centroid(img), mids.mean(0), atol=0.5)
 
 
-def test_frames_match_states(simple_data):
-    """Every clean frame of the data set shows the link where its stored angle puts it."""
-    _, train, _ = simple_data
+@pytest.mark.parametrize("data,length", [("simple_data", 10.0), ("paper_data", 12.0)])
+def test_frames_match_states(data, length, request):
+    """Every clean frame of the data set shows the link where its stored angle puts it (analytic chain: 10 px,
+    paper: 12 px, half the frame)."""
+    _, train, _ = request.getfixturevalue(data)
     theta = np.asarray(train["state"][..., 0], dtype=np.float64).reshape(-1)
     frames = np.asarray(train["y_clean"]).reshape(-1, 24, 24) / 255.0
-    mid = 12 + 0.5 * 10 * np.stack([np.sin(theta), np.cos(theta)], 1)
+    mid = 12 + 0.5 * length * np.stack([np.sin(theta), np.cos(theta)], 1)
     got = np.stack([centroid(f) for f in frames])
     assert np.abs(got - mid).max() < 0.3
+
+
+# ------------------------------------------------------------------ the paper's rendering
+def pil_render(angles: np.ndarray, size: int) -> np.ndarray:
+    """The paper generator's drawing, with PIL itself: 8-px lines on a 128-px float canvas, LANCZOS resize."""
+    from PIL import Image, ImageDraw
+
+    n = angles.shape[1]
+    out = []
+    for theta in angles:
+        canvas = Image.new("F", (128, 128), 0.0)
+        draw = ImageDraw.Draw(canvas)
+        pts = np.concatenate([[[0.0, 0.0]], np.cumsum(np.stack([np.sin(np.cumsum(theta)), np.cos(np.cumsum(theta))], 1), 0)])
+        pts = 64 + 64 / n * pts  # x right, y down, the chain half the canvas long
+        for a, b in zip(pts[:-1], pts[1:]):
+            draw.line([tuple(a), tuple(b)], fill=1.0, width=8)
+        out.append(np.asarray(canvas.resize((size, size), resample=Image.LANCZOS)))
+    return np.stack(out)[:, None]
+
+
+def test_lanczos_resize_is_pils():
+    Image = pytest.importorskip("PIL.Image")
+    rng = np.random.default_rng(0)
+    for size, source in [(24, 128), (48, 128), (7, 30), (40, 20)]:
+        img = rng.uniform(-1, 2, (source, source)).astype(np.float32)
+        expected = np.asarray(Image.fromarray(img, mode="F").resize((size, size), resample=Image.LANCZOS))
+        resize = P.lanczos_matrix(size, source)
+        np.testing.assert_allclose(resize @ img @ resize.T, expected, atol=2e-5)
+
+
+@pytest.mark.parametrize("n,size", [(1, 24), (4, 48)])
+def test_paper_rendering_matches_pil(n, size):
+    """Against PIL's own line drawing and resize. PIL truncates end points to whole canvas pixels and rounds the
+    line's half widths to 3 and 4 pixels along the axes, so its ink varies by up to ~10% with the angle; ours is
+    an exact 8-pixel rectangle: a small per-pixel difference and the same ink on average."""
+    pytest.importorskip("PIL")
+    angles = np.random.default_rng(n).uniform(-math.pi, math.pi, (40, n))
+    ours, pil = P.render_paper(angles, size), pil_render(angles, size)
+    assert ours.shape == pil.shape == (40, 1, size, size) and ours.dtype == np.float32
+    assert np.abs(ours - pil).mean() < 0.008
+    assert ours.sum() == pytest.approx(pil.sum(), rel=0.025)
+    assert ours.min() < -0.05 and ours.max() > 1.05  # the filter rings outside [0, 1], as PIL's does
+    assert pil.min() < -0.05 and pil.max() > 1.05
+
+
+@pytest.mark.parametrize("n,size", [(1, 24), (4, 48)])
+def test_paper_geometry(n, size):
+    """A straight chain pointing right: as long as half the frame (it reaches the edge), 8/128 of the frame thick,
+    its ink the rectangle's area (the resize keeps the sum), its centroid half way."""
+    angles = np.zeros((1, n))
+    angles[0, 0] = math.pi / 2
+    img = P.render_paper(angles, size)[0, 0].astype(np.float64)
+    width, length = size / 16, size / 2
+    assert img.sum() == pytest.approx(width * length, rel=0.02)
+    np.testing.assert_allclose(centroid(img), [size / 2 + length / 2, size / 2], atol=0.05)
+    mid = size // 2 + int(length // 2)
+    assert img[:, mid].sum() == pytest.approx(width, rel=0.02)  # the cross-section of the rod
+    rows = slice(size // 2 - 1, size // 2 + 1)
+    assert img[rows, -1].min() > 0.3  # the tip reaches the last column
+    assert np.abs(img[:, : size // 2 - 3]).max() < 1e-6  # nothing behind the pivot beyond the filter's reach
+    assert P.render(angles, size)[0, 0].tolist() == img.astype(np.float32).tolist()  # the default rendering
+
+
+def test_paper_noise_is_clipped_after_it_is_added(paper_data):
+    """Where the filter rings below 0, the noisy pixel is clip(c + Z, 0, 1) with c < 0 (the paper's order), not
+    clip(clip(c) + Z): checked against the closed form of E[clip(c + Z, 0, 1)] on the re-rendered frames."""
+    _, train, test = paper_data
+    state = np.concatenate([train["state"], test["state"]]).astype(np.float64)
+    clean = np.stack([P.render_paper(s[:, :1], 24)[:, 0] for s in state]).astype(np.float64)
+    y = np.concatenate([train["y"], test["y"]])[:, :, 0].astype(np.float64) / 255.0
+
+    def expected_mean(c):
+        sd = 0.2
+        lo, hi = (0 - c) / sd, (1 - c) / sd  # 0 below lo, c + sd z between, 1 above hi
+        return c * (norm.cdf(hi) - norm.cdf(lo)) + sd * (norm.pdf(lo) - norm.pdf(hi)) + norm.sf(hi)
+
+    ringing = clean < -0.04
+    assert ringing.sum() > 500
+    got = y[ringing].mean()
+    assert got == pytest.approx(expected_mean(clean[ringing]).mean(), abs=0.004)
+    assert got < expected_mean(np.zeros(1))[0] - 0.01  # clipping first would give the zero pixel's mean
+    everywhere = expected_mean(clean)
+    assert np.abs(y.mean() - everywhere.mean()) < 0.002
 
 
 # ------------------------------------------------------------------ noise
@@ -286,8 +381,10 @@ def test_paper_defaults():
     "kw,match",
     [
         (dict(n_links=0), "n_links"),
-        (dict(image_size=5), "image_size"),
-        (dict(n_links=4, image_size=10), "too small"),
+        (dict(image_size=5, rendering="analytic"), "image_size"),
+        (dict(n_links=4, image_size=10, rendering="analytic"), "too small"),
+        (dict(n_links=4, image_size=7), "too small"),
+        (dict(rendering="pil"), "rendering"),
         (dict(dt=0.003), "multiple of the integrator step"),
         (dict(duration=1.05), "multiple .* of frame_dt"),
         (dict(noise_std=-0.1), "noise_std"),
@@ -315,7 +412,7 @@ def test_true_measurements_continue_the_stored_trajectories(simple_data):
     s0 = np.asarray(train["state"], dtype=np.float64)[0, 0]
     t = np.arange(150) * 0.1
     ref = solve_ivp(lambda _t, x: [x[1], -G * np.sin(x[0])], (0, t[-1]), s0, t_eval=t, rtol=1e-11, atol=1e-11)
-    expected = P.quantize(P.render(ref.y[0][:, None], 24)) / 255.0
+    expected = P.quantize(P.render(ref.y[0][:, None], 24, rendering=dm.rendering)) / 255.0
     # float32 initial state: the angle agrees to ~1e-6 rad, a pixel to a grey level at most
     assert np.abs(frames[1].numpy() - expected).max() <= 1.5 / 255
     assert dm.known_largest_exponent == 0.0 and dm.sample_period == 0.1
