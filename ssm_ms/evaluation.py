@@ -27,7 +27,8 @@ training frame.
 
 Beyond the score (``analysis`` argument, :mod:`ssm_ms.analysis`): the *valid prediction time* of every
 forecaster (how many steps its forecast stays within a normalised error of 0.5 of the noiseless truth,
-in steps, seconds and Lyapunov times of the true system), and for an SSM what ``f`` is on its own
+in steps, seconds and Lyapunov times of the true system; for images, the error above the forecaster's own
+reconstruction error on its last given frames: see :class:`ValidTimeAccumulator`), and for an SSM what ``f`` is on its own
 (:meth:`ssm_ms.inference.SSMForecaster.analyze`: Lyapunov exponents, long free runs against the data).
 """
 
@@ -50,6 +51,7 @@ from ssm_ms.machine import describe
 
 BCE_EPS = 1e-12
 METRICS = ("mse", "bce")
+FLOOR_FRAMES = 10  # images: the valid time counts errors above the reconstruction error on the last 10 given frames
 # analysis: {section: {key: default}}; a section absent from the config is not computed
 ANALYSIS_DEFAULTS: dict[str, dict[str, Any]] = {
     # forecast `horizon` steps after `n_filter` given ones (None: the protocol's split), valid while the
@@ -309,11 +311,14 @@ class ForecastModule(pl.LightningModule):
                     self._record(f"{method}/{target_name}/{metric}", values)
         if self._valid_time is not None:
             k_v, h = self._valid_time_split(batch["y"].shape[1])
-            pred = out.predicted if (k_v, h) == (k, p) else self.forecast(batch["y"][:, :k_v], h).predicted
-            truth = batch["y_clean" if "y_clean" in batch else "y"][:, k_v : k_v + h]
+            out_v = out if (k_v, h) == (k, p) else self.forecast(batch["y"][:, :k_v], h)
+            truth = batch["y_clean" if "y_clean" in batch else "y"]
+            m = min(FLOOR_FRAMES, k_v)
+            pred, given, truth, truth_given = out_v.predicted, out_v.filtered[:, -m:], truth[:, k_v : k_v + h], truth[:, k_v - m : k_v]
             if self.original_units and norm is not None:
                 pred, truth = norm.denormalize(pred), norm.denormalize(truth)
-            self._valid_time.update(pred, truth, clean="y_clean" in batch)
+                given, truth_given = norm.denormalize(given), norm.denormalize(truth_given)
+            self._valid_time.update(pred, truth, clean="y_clean" in batch, given=(given, truth_given))
         if self._first_batch is None:  # kept for the figures
             self._first_batch = {key: batch[key][:, : k + p] for key in ("y", "y_clean", "state") if key in batch}
             self._first_batch["y_model"] = torch.cat([out.filtered, out.predicted], 1)
@@ -417,7 +422,7 @@ class ForecastModule(pl.LightningModule):
                 vt = {k: v for k, v in vt.items() if "seconds" not in k and "lyapunov" not in k}
             vt.update(threshold=settings["threshold"], n_filter=settings["n_filter"] or self.n_filter,
                       truth="noiseless" if self._valid_time.clean else "noisy", dt=dt,
-                      error_at_step=self._valid_time.growth())
+                      error_at_step=self._valid_time.growth(), given_error=self._valid_time.floor())
             out["valid_time"] = vt
         return out
 
@@ -462,23 +467,44 @@ class ValidTimeAccumulator:
     std. Images: pooled, the mean squared error over the pixels ``[B, h, 1]`` scaled by the mean per-pixel
     variance, so that, as for vectors, a normalised error of 1 is as bad as predicting the mean frame (and
     background pixels that never change divide nothing).
+
+    Images, in excess of the method's own floor: a decoder's reconstruction of frames it was given is already
+    blurred (the full-size pendulum SSM: normalised error ~0.5 on the given frames), which would make every
+    image forecast "invalid" from its first frame. So for images the error of a step is the part above the
+    sequence's reconstruction error on its last :data:`FLOOR_FRAMES` given frames (the ``given`` pairs of
+    :meth:`update`): ``sqrt(max(mse_t - mse_given, 0) / mean pixel variance)``. Valid while the forecast
+    has lost no more than that to its reconstruction; a forecast that drifts off the object's phase soon
+    exceeds it. Vectors keep the convention's plain error (no floor).
     """
 
     def __init__(self) -> None:
         self.errors: list[torch.Tensor] = []
+        self.floors: list[torch.Tensor] = []
         self.total = self.total_sq = None
         self.count = 0
         self.clean = True
         self.pooled = False
 
-    def update(self, pred: torch.Tensor, truth: torch.Tensor, clean: bool = True) -> None:
-        """Add a batch: predictions and truth ``[B, h, *obs_shape]``; ``clean``: the truth is noiseless."""
+    def update(
+        self,
+        pred: torch.Tensor,
+        truth: torch.Tensor,
+        clean: bool = True,
+        given: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> None:
+        """Add a batch: predictions and truth ``[B, h, *obs_shape]``; ``clean``: the truth is noiseless;
+        ``given``: the method's estimate of its last given measurements and their truth ``[B, m, *obs_shape]``
+        (images: the floor; without it, none)."""
         self.clean = self.clean and clean
         pred, truth = pred.double(), truth.double()
         self.pooled = truth.dim() > 3
         sq = (pred - truth).pow(2)
         if self.pooled:  # images
             sq = sq.flatten(2).mean(2, keepdim=True)
+            floor = torch.zeros(len(sq), dtype=torch.float64)
+            if given is not None:
+                floor = (given[0].double() - given[1].double()).pow(2).flatten(1).mean(1).cpu()
+            self.floors.append(floor)
         self.errors.append(sq.cpu())
         values = truth.flatten(2).reshape(-1, truth[0, 0].numel())
         total, total_sq = values.sum(0).cpu(), values.pow(2).sum(0).cpu()
@@ -486,12 +512,23 @@ class ValidTimeAccumulator:
         self.total_sq = total_sq if self.total_sq is None else self.total_sq + total_sq
         self.count += len(values)
 
-    def normalised_errors(self) -> torch.Tensor:
-        """``[N, h]``: each test sequence's normalised error at each forecast step."""
+    def _variance(self) -> torch.Tensor:
         mean = self.total / self.count
         var = (self.total_sq / self.count - mean.pow(2)).clamp_min(0)
-        var = var.mean(0, keepdim=True) if self.pooled else var
-        return (torch.cat(self.errors) / var.clamp_min(1e-30)).mean(-1).sqrt()  # errors: [N, h, D or 1]
+        return (var.mean(0, keepdim=True) if self.pooled else var).clamp_min(1e-30)
+
+    def normalised_errors(self) -> torch.Tensor:
+        """``[N, h]``: each test sequence's normalised error at each forecast step (images: above its floor)."""
+        errors = torch.cat(self.errors)  # [N, h, D or 1]
+        if self.pooled:
+            errors = (errors - torch.cat(self.floors)[:, None, None]).clamp_min(0)
+        return (errors / self._variance()).mean(-1).sqrt()
+
+    def floor(self) -> float | None:
+        """Images: the mean normalised reconstruction error on the given frames, ``sqrt(mse_given / var)``."""
+        if not self.pooled:
+            return None
+        return float((torch.cat(self.floors) / self._variance()).sqrt().mean())
 
     def steps(self, threshold: float) -> tuple[torch.Tensor, int]:
         """Valid steps per test sequence ``[N]`` (``inf``: valid over the whole horizon) and the horizon."""

@@ -220,6 +220,10 @@ def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
             + (f" ({true['largest']:.3g} per time unit, {true['source']})." if true else " (not known here).")
         )
         lines.append(" `error at step`: the normalised error averaged over sequences at those forecast steps (how it grows).")
+        if any(vt.get("given_error") is not None for _, vt in timed):
+            lines.append(" Images: the error counted is the part above the sequence's own reconstruction error on its last "
+                         "10 given frames (`given`: that floor, normalised the same way), since a decoder's blur alone "
+                         "would read as invalid from the first frame.")
         lines += ["", "| method | mean ± std (steps) | median (steps) | mean (s) | mean (Lyapunov times) | censored | "
                   "error at step |", "|---|---|---|---|---|---|---|"]
         for label, vt in timed:
@@ -227,7 +231,8 @@ def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
             growth = ", ".join(f"{k}: {_num(v, 2)}" for k, v in steps)
             lines.append(f"| {label} | {_num(vt['mean_steps'])} ± {_num(vt['std_steps'], 2)} | {_num(vt['median_steps'])} | "
                          f"{_num(vt.get('mean_seconds'))} | {_num(vt.get('mean_lyapunov_times'))} | "
-                         f"{_num(vt['censored_share'], 2)} | {growth or '—'} |")
+                         f"{_num(vt['censored_share'], 2)} | {growth or '—'}"
+                         + (f"; given: {_num(vt['given_error'], 2)}" if vt.get("given_error") is not None else "") + " |")
         lines.append("")
     dyn = [(label, a["dynamics"]) for label, a in runs if a.get("dynamics")]
     if dyn:

@@ -251,3 +251,35 @@ def test_particle_filter_stage_tracks_the_exact_model(exact_ssm):
     fast_trainer(tmp, max_epochs=1).test(pf, dm)
     saved = json.loads((tmp / "results" / "rot_pf.json").read_text())["runs"]["pf"]["summary"]
     assert saved["pf/clean/mse"]["mean"] < 0.1 * saved["mean/clean/mse"]["mean"]
+
+
+def test_valid_time_of_images_counts_the_error_above_the_reconstruction_floor():
+    """A forecaster whose decoder blurs every frame by the same amount (its reconstruction of the given frames
+    included) and loses the object after s steps: valid for exactly s steps, counted by hand above its floor;
+    without the given frames the blur alone reads as invalid from the first step."""
+    torch.manual_seed(1)
+    n, h, m = 5, 12, 4
+    truth = (torch.rand(n, m + h, 1, 6, 6, dtype=torch.float64) > 0.7).double()  # sparse "lit" pixels
+    blur = 0.4 * torch.randn(n, 1, 1, 6, 6, dtype=torch.float64)  # the decoder's error, the same on every frame
+    lost = torch.tensor([0, 3, 7, 11, 12])  # step at which each sequence's forecast loses the object
+    est = truth + blur
+    for i, s in enumerate(lost.tolist()):
+        est[i, m + s :] = truth[i, m + s :].roll(3, dims=-1) + blur[i]  # drawn elsewhere, same blur
+    acc = ValidTimeAccumulator()
+    acc.update(est[:, m:], truth[:, m:], given=(est[:, :m], truth[:, :m]))
+    steps, horizon = acc.steps(0.5)
+    # by hand: pooled variance, per-sequence floor from the given frames, error above it, first step over 0.5
+    values = truth[:, m:].reshape(-1, 36)
+    var = values.var(0, unbiased=False).mean()
+    expected = []
+    for i in range(n):
+        floor = ((est[i, :m] - truth[i, :m]) ** 2).mean()
+        err = [(((est[i, m + t] - truth[i, m + t]) ** 2).mean() - floor).clamp_min(0).div(var).sqrt() for t in range(h)]
+        expected.append(next((t for t in range(h) if err[t] > 0.5), math.inf))
+    assert horizon == h and steps.tolist() == expected
+    assert expected[1:] == [3.0, 7.0, 11.0, math.inf] and expected[0] == 0.0  # as constructed
+    assert acc.floor() == pytest.approx(float(((est[:, :m] - truth[:, :m]) ** 2).flatten(1).mean(1).div(var).sqrt().mean()))
+    assert acc.floor() > 0.5  # the blur alone is over the threshold:
+    plain = ValidTimeAccumulator()
+    plain.update(est[:, m:], truth[:, m:])
+    assert plain.steps(0.5)[0].tolist() == [0.0] * n and plain.floor() == 0.0
