@@ -121,3 +121,35 @@ def test_results_say_shared_when_other_processes_ran_not_after_a_busy_minute():
         busy.kill()
         busy.wait()
     assert 0.6 < other < 1.6
+
+def test_epoch_profile_shares_from_a_profiler_table():
+    """profile_epoch reads SimpleProfiler's table and splits the fit into non-overlapping shares that add up."""
+    from benchmarks.profile_epoch import parse_profile, shares
+
+    table = """FIT Profiler Report
+| Action | Mean duration (s) | Num calls | Total time (s) | Percentage % |
+|------------------------------------------------------------------------|
+| Total                                             | -       | 900   | 100.0 | 100 % |
+|------------------------------------------------------------------------|
+| run_training_epoch                                | 8.0     | 10    | 80.0  | 80.0 |
+| run_training_batch                                | 0.25    | 300   | 75.0  | 75.0 |
+| [Strategy]SingleDeviceStrategy.backward           | 0.1     | 300   | 30.0  | 30.0 |
+| [LightningDataModule]PendulumDataModule.prepare_data | 6.0  | 1     | 6.0   | 6.0 |
+| [_TrainingEpochLoop].train_dataloader_next        | 0.01    | 300   | 3.0   | 3.0 |
+| [_EvaluationLoop].val_next                        | 0.1     | 5     | 0.5   | 0.5 |
+| [Strategy]SingleDeviceStrategy.validation_step    | 1.0     | 5     | 5.0   | 5.0 |
+| [Callback]EpochCheckpoint{'monitor': None}.on_train_epoch_end | 0.2 | 10 | 2.0 | 2.0 |
+"""
+    rows = parse_profile(table)
+    assert rows["run_training_batch"] == (300, 75.0) and rows["Total"] == (900, 100.0)
+    assert rows["[Strategy]SingleDeviceStrategy.validation_step"] == (5, 5.0)
+    total, groups = shares(rows)
+    assert total == 100.0
+    got = dict(groups)
+    assert got["training steps (forward, backward, optimizer)"] == 75.0
+    assert got["waiting for the next training batch (data)"] == 3.0
+    assert got["validation (steps, batches, its hooks)"] == 5.5
+    assert got["end-of-epoch callbacks (last.ckpt, figures)"] == 2.0
+    assert got["data set generation and set-up (first run of a config only)"] == 6.0
+    assert got["the rest (logging, progress bar, set-up)"] == pytest.approx(100.0 - 75 - 3 - 5.5 - 2 - 6)
+    assert sum(got.values()) == pytest.approx(total)
