@@ -30,7 +30,10 @@ from typing import Any
 import lightning.pytorch as pl
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset, DistributedSampler, Sampler, default_collate
+from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
+
+from datamodules.arrays import check_finite, check_header, concat_shape, load_files, read_header
+from datamodules.samplers import EpochSeededSampler, GlobalBatchShardSampler
 
 
 class Normalizer:
@@ -150,96 +153,10 @@ def collate(batch: Any) -> Any:
     return batch if isinstance(batch, dict) else default_collate(batch)
 
 
-class EpochSeededSampler(Sampler[int]):
-    """A shuffling sampler whose order is a pure function of ``(seed, epoch)``.
-
-    Lightning calls ``set_epoch`` at the start of every epoch, so a run resumed from a checkpoint
-    sees the same batches as an uninterrupted one.
-    """
-
-    def __init__(self, n: int, seed: int = 0, shuffle: bool = True):
-        self.n, self.seed, self.shuffle, self.epoch = n, seed, shuffle, 0
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = epoch
-
-    def __len__(self) -> int:
-        return self.n
-
-    def __iter__(self):
-        if not self.shuffle:
-            return iter(range(self.n))
-        g = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
-        return iter(torch.randperm(self.n, generator=g).tolist())
-
-
-class GlobalBatchShardSampler(DistributedSampler):
-    """This rank's share of the one-device batches, for data parallelism.
-
-    The order of an epoch is :class:`EpochSeededSampler`'s; it is cut into global batches of
-    ``batch_size`` trajectories, and each global batch into ``num_replicas`` contiguous shards whose
-    sizes differ by at most one: shard ``rank`` is this rank's batch. The ranks together see exactly
-    the one-device batches, with no trajectory repeated or dropped. (Lightning's own
-    ``DistributedSamplerWrapper``, used otherwise, deals the order out in turns with batches of
-    ``batch_size`` per rank, so the global batch grows with the number of devices, and pads the
-    epoch by repeating trajectories when it does not divide.) A subclass of ``DistributedSampler`` so
-    that Lightning leaves it in place.
-    """
-
-    def __init__(self, n: int, batch_size: int, num_replicas: int, rank: int, seed: int = 0, shuffle: bool = True):
-        super().__init__(range(n), num_replicas=num_replicas, rank=rank, shuffle=False)
-        if batch_size % num_replicas != 0:
-            raise ValueError(
-                f"data.batch_size={batch_size} is the global batch, split over {num_replicas} devices: choose a "
-                f"multiple of {num_replicas} (e.g. {batch_size - batch_size % num_replicas or num_replicas})"
-            )
-        last = n % batch_size
-        if 0 < last < num_replicas:
-            raise ValueError(
-                f"the last global batch of an epoch holds {last} of {n} trajectories, fewer than the {num_replicas} "
-                f"devices: choose data.batch_size so that {n} % batch_size is 0 or at least {num_replicas}"
-            )
-        self.order = EpochSeededSampler(n, seed, shuffle)
-        self.n, self.batch_size = n, batch_size
-
-    def set_epoch(self, epoch: int) -> None:
-        super().set_epoch(epoch)
-        self.order.set_epoch(epoch)
-
-    def _shard(self, start: int) -> tuple[int, int]:
-        size = min(self.batch_size, self.n - start)
-        base, extra = divmod(size, self.num_replicas)
-        lo = start + self.rank * base + min(self.rank, extra)
-        return lo, lo + base + (1 if self.rank < extra else 0)
-
-    def __iter__(self):
-        order = list(self.order)
-        return iter([i for start in range(0, self.n, self.batch_size) for i in order[slice(*self._shard(start))]])
-
-    def __len__(self) -> int:
-        return sum(hi - lo for lo, hi in map(self._shard, range(0, self.n, self.batch_size)))
-
-
 def params_digest(params: Mapping[str, Any]) -> str:
     """A short stable hash of generator parameters (the cache key)."""
     text = json.dumps(params, sort_keys=True, default=str)
     return hashlib.sha1(text.encode()).hexdigest()[:10]
-
-
-def check_finite(name: str, a: np.ndarray, chunk: int = 1 << 22) -> None:
-    """Raise if a float array holds NaN or inf (checked in chunks: arrays may be memory-mapped)."""
-    if not np.issubdtype(a.dtype, np.floating):
-        return
-    flat = a.reshape(-1)
-    for start in range(0, flat.size, chunk):
-        block = np.asarray(flat[start : start + chunk])
-        if not np.isfinite(block).all():
-            bad = start + int(np.flatnonzero(~np.isfinite(block))[0])
-            where = np.unravel_index(bad, a.shape)
-            raise ValueError(
-                f"{name} holds a non-finite value ({block[bad - start]}) at index {tuple(int(w) for w in where)} "
-                "(trajectory, time, ...): remove or interpolate missing samples before training"
-            )
 
 
 class TrajectoryDataModule(pl.LightningDataModule):
@@ -395,8 +312,6 @@ class TrajectoryDataModule(pl.LightningDataModule):
     def load_predict(self) -> TrajectoryDataset:
         """The sequences of ``predict_path`` (checked like a user's training files), whole: the forecaster
         reads the first ``predict_given`` samples and the rest, if any, is what followed them."""
-        from datamodules.files import FileDataModule, _check_header, read_header  # files.py builds on this module
-
         if not self.predict_path:
             raise ValueError(
                 "nothing to predict: give the sequences to forecast with --data.init_args.predict_path FILE "
@@ -404,8 +319,8 @@ class TrajectoryDataModule(pl.LightningDataModule):
             )
         heads = [read_header(path, self.predict_key, "predict_path") for path in self.predict_path]
         for h in heads:
-            _check_header(h, "predict_path")
-        shape = FileDataModule._concat_shape(heads, "predict_path")  # served [N, T, *obs]
+            check_header(h, "predict_path")
+        shape = concat_shape(heads, "predict_path")  # served [N, T, *obs]
         if tuple(shape[2:]) != tuple(self.obs_shape):
             raise ValueError(
                 f"predict_path: the sequences hold measurements of shape {tuple(shape[2:])} but the model was "
@@ -416,7 +331,7 @@ class TrajectoryDataModule(pl.LightningDataModule):
                 f"predict_given={self.predict_given} but the sequences of predict_path have T={shape[1]} samples: "
                 f"give at most {shape[1]} (or leave predict_given unset to use all of them)"
             )
-        return TrajectoryDataset({"y": FileDataModule._load_files(heads)})
+        return TrajectoryDataset({"y": load_files(heads)})
 
     def predict_dataloader(self) -> DataLoader:
         if "predict" not in self.datasets:

@@ -17,125 +17,21 @@ dtypes differ, uint8 parts mapped to [0, 1]); a single file stays memory-mapped.
 
 from __future__ import annotations
 
-import struct
-import zipfile
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from torch.utils.data import DataLoader, Dataset
 
-from datamodules.base import TrajectoryDataModule, TrajectoryDataset, check_finite
+from datamodules.arrays import ArrayHeader, check_header, concat_shape, load_files, read_header
+from datamodules.base import TrajectoryDataModule, TrajectoryDataset
 
-LAYOUTS = "[N, T, D] vectors, [N, T, H, W] grey images or [N, T, C, H, W] images"
-
-
-@dataclass(frozen=True)
-class ArrayHeader:
-    """Where one array lives and what its header says (no data read)."""
-
-    path: Path
-    key: str | None  # member of an .npz (None for .npy)
-    shape: tuple[int, ...]
-    dtype: np.dtype
-    fortran_order: bool
-    data_offset: int | None = None  # byte offset of the data in an uncompressed .npz (memory-mappable)
-
-    @property
-    def label(self) -> str:
-        return f"{self.path}" + (f" (array '{self.key}')" if self.key is not None else "")
-
-
-def _read_npy_header(fp, where: str) -> tuple[tuple[int, ...], bool, np.dtype]:
-    try:
-        version = np.lib.format.read_magic(fp)
-    except ValueError as err:
-        raise ValueError(f"{where} is not a NumPy .npy array ({err}); write arrays with numpy.save / numpy.savez") from err
-    if version == (1, 0):
-        return np.lib.format.read_array_header_1_0(fp)
-    return np.lib.format.read_array_header_2_0(fp)
-
-
-def read_header(path: str | Path, key: str, what: str) -> ArrayHeader:
-    """Read the header of a ``.npy`` file or of the member ``key`` of an ``.npz`` file.
-
-    ``what`` names the argument the path came from, for error messages.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"{what}: {path} does not exist (or is not a file); expected a .npy or .npz file holding "
-            f"trajectories as {LAYOUTS}"
-        )
-    suffix = path.suffix.lower()
-    if suffix == ".npy":
-        with open(path, "rb") as fp:
-            shape, fortran, dtype = _read_npy_header(fp, str(path))
-        return ArrayHeader(path, None, tuple(shape), dtype, fortran)
-    if suffix != ".npz":
-        raise ValueError(f"{what}: {path} is neither .npy nor .npz; save your trajectories with numpy.save or numpy.savez")
-    if not zipfile.is_zipfile(path):
-        raise ValueError(f"{what}: {path} is not a valid .npz (zip) archive; write it with numpy.savez")
-    with zipfile.ZipFile(path) as zf:
-        member = f"{key}.npy"
-        names = [n[:-4] for n in zf.namelist() if n.endswith(".npy")]
-        if member not in zf.namelist():
-            raise ValueError(f"{what}: {path} holds no array '{key}' (it holds {names}); set the key argument to one of them")
-        info = zf.getinfo(member)
-        with zf.open(member) as fp:
-            shape, fortran, dtype = _read_npy_header(fp, f"{path}['{key}']")
-            header_len = fp.tell()
-    offset = None
-    if info.compress_type == zipfile.ZIP_STORED:
-        with open(path, "rb") as fh:  # local file header: 30 bytes, then name and extra field
-            fh.seek(info.header_offset)
-            local = fh.read(30)
-        if local[:4] == b"PK\x03\x04":
-            name_len, extra_len = struct.unpack("<HH", local[26:30])
-            offset = info.header_offset + 30 + name_len + extra_len + header_len
-    return ArrayHeader(path, key, tuple(shape), dtype, fortran, offset)
-
-
-def open_array(h: ArrayHeader) -> np.ndarray:
-    """The array of a header: memory-mapped where possible, else read into memory."""
-    if h.key is None:
-        return np.load(h.path, mmap_mode="r")
-    if h.data_offset is not None and not h.dtype.hasobject:
-        return np.memmap(h.path, dtype=h.dtype, mode="r", offset=h.data_offset, shape=h.shape,
-                         order="F" if h.fortran_order else "C")
-    with np.load(h.path) as npz:
-        return npz[h.key]
 
 
 def _as_list(paths: str | list[str] | None) -> list[str]:
     if paths is None:
         return []
     return [paths] if isinstance(paths, (str, Path)) else [str(p) for p in paths]
-
-
-def _check_header(h: ArrayHeader, what: str) -> None:
-    if h.dtype.hasobject:
-        raise ValueError(
-            f"{what}: {h.label} is an object array (ragged trajectories or a pickled list): all trajectories "
-            "must have the same length T; pad or cut them and save one numeric array "
-            f"({LAYOUTS})"
-        )
-    if h.dtype.kind not in "biuf":
-        raise ValueError(f"{what}: {h.label} has dtype {h.dtype}; expected a real numeric (float, int or uint8) array")
-    if len(h.shape) not in (3, 4, 5):
-        hint = " (scalar measurements [N, T]: add a trailing axis, y[..., None])" if len(h.shape) == 2 else ""
-        raise ValueError(f"{what}: {h.label} has shape {h.shape} (rank {len(h.shape)}); accepted layouts: {LAYOUTS}{hint}")
-    if 0 in h.shape:
-        raise ValueError(
-            f"{what}: {h.label} is empty (shape {h.shape}, layout [N, T, ...]): it needs at least one trajectory "
-            "of at least one sample"
-        )
-
-
-def _served_shape(shape: tuple[int, ...]) -> tuple[int, ...]:
-    """``[N, T, H, W]`` files are served channel-first as ``[N, T, 1, H, W]``."""
-    return (shape[0], shape[1], 1, *shape[2:]) if len(shape) == 4 else tuple(shape)
 
 
 class FileDataModule(TrajectoryDataModule):
@@ -218,8 +114,8 @@ class FileDataModule(TrajectoryDataModule):
         what = f"{split}_path"
         heads = [read_header(p, self.key, what) for p in self.paths[split]]
         for h in heads:
-            _check_header(h, what)
-        shape = self._concat_shape(heads, what)
+            check_header(h, what)
+        shape = concat_shape(heads, what)
         if split != "train":
             obs, train_obs = shape[2:], self.shapes["train"][2:]
             if obs != train_obs:
@@ -244,26 +140,14 @@ class FileDataModule(TrajectoryDataModule):
             clean = []
         if clean:
             for h in clean:
-                _check_header(h, what_clean)
-            clean_shape = self._concat_shape(clean, what_clean)
+                check_header(h, what_clean)
+            clean_shape = concat_shape(clean, what_clean)
             if clean_shape != shape:
                 raise ValueError(
                     f"{what_clean}: the clean targets have shape {clean_shape} but the measurements have shape "
                     f"{shape}: clean targets must have exactly the measurements' shape"
                 )
         self.headers[split], self.clean_headers[split], self.shapes[split] = heads, clean, shape
-
-    @staticmethod
-    def _concat_shape(heads: list[ArrayHeader], what: str) -> tuple[int, ...]:
-        first = _served_shape(heads[0].shape)
-        for h in heads[1:]:
-            other = _served_shape(h.shape)
-            if other[1:] != first[1:]:
-                raise ValueError(
-                    f"{what}: {h.label} holds trajectories of shape {other[1:]} but {heads[0].label} holds "
-                    f"{first[1:]} ([T, *obs]); files of one split are concatenated along N and must agree"
-                )
-        return (sum(h.shape[0] for h in heads), *first[1:])
 
     # ------------------------------------------------------------------ sizes known before loading
     @property
@@ -292,35 +176,20 @@ class FileDataModule(TrajectoryDataModule):
     def prepare_data(self) -> None:
         """Nothing to generate or cache: the files are read in :meth:`setup`."""
 
-    @staticmethod
-    def _load_files(heads: list[ArrayHeader]) -> np.ndarray:
-        arrays = []
-        for h in heads:
-            a = open_array(h)
-            check_finite(h.label, a)
-            arrays.append(a.reshape(_served_shape(a.shape)) if a.ndim == 4 else a)
-        if len(arrays) == 1:
-            return arrays[0]
-        if len({a.dtype for a in arrays}) > 1:  # e.g. uint8 with float files: bring all to float32 in [0, 1]
-            arrays = [a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32) for a in arrays]
-        elif arrays[0].dtype.kind == "f" and arrays[0].dtype != np.float32:
-            arrays = [a.astype(np.float32) for a in arrays]
-        return np.concatenate(arrays)
-
     def _split_arrays(self, split: str) -> dict[str, np.ndarray]:
         if split in self._arrays:
             return self._arrays[split]
         if split in ("train", "test") and self.n_holdout:
-            full = {"y": self._load_files(self.headers["train"])}
+            full = {"y": load_files(self.headers["train"])}
             if self.clean_headers["train"]:
-                full["y_clean"] = self._load_files(self.clean_headers["train"])
+                full["y_clean"] = load_files(self.clean_headers["train"])
             cut = len(full["y"]) - self.n_holdout
             self._arrays["train"] = {k: a[:cut] for k, a in full.items()}
             self._arrays["test"] = {k: a[cut:] for k, a in full.items()}
         else:
-            arrays = {"y": self._load_files(self.headers[split])}
+            arrays = {"y": load_files(self.headers[split])}
             if self.clean_headers[split]:
-                arrays["y_clean"] = self._load_files(self.clean_headers[split])
+                arrays["y_clean"] = load_files(self.clean_headers[split])
             self._arrays[split] = arrays
         return self._arrays[split]
 

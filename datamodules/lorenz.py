@@ -10,6 +10,7 @@ holds the uncut set once and the pieces are a reshaped view of it.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from functools import partial
 from typing import Any
@@ -21,6 +22,13 @@ from tqdm.auto import tqdm
 from datamodules.base import TrajectoryDataModule, TrajectoryDataset
 
 SPLIT_STREAMS = {"train": 0, "test": 1}  # spawn keys: independent random streams per split from one seed
+
+
+def lorenz_wing_level(beta: float = 8.0 / 3.0, rho: float = 28.0) -> float:
+    """``0.5 * sqrt(beta (rho - 1))``: half the distance from 0 of the Lorenz fixed points' ``x`` (~4.24)."""
+    if not beta * (rho - 1) > 0:
+        raise ValueError(f"the Lorenz wings need beta * (rho - 1) > 0, got beta={beta!r}, rho={rho!r}")
+    return 0.5 * math.sqrt(beta * (rho - 1))
 
 
 def lorenz_rk4(
@@ -226,8 +234,6 @@ class LorenzDataModule(TrajectoryDataModule):
 
     def wing_level(self) -> float:
         """Level of ``x`` beyond which a run is on a wing of the butterfly: half the fixed points' ``|x|``."""
-        from ssm_ms.analysis import lorenz_wing_level
-
         return lorenz_wing_level(self.beta, self.rho)
 
     def true_transition(self) -> Callable[[torch.Tensor], torch.Tensor]:

@@ -48,6 +48,7 @@ from typing import NamedTuple
 import torch
 from torch.func import jacrev, jvp, vmap
 
+from datamodules.lorenz import lorenz_wing_level  # where the Lorenz system lives; kept importable here
 from ssm_ms.shooting import rollout
 
 Fn = Callable[[torch.Tensor], torch.Tensor]
@@ -304,13 +305,6 @@ def attractor_statistics(model: torch.Tensor, reference: torch.Tensor) -> dict[s
         "reference_mean": reference.mean(0).tolist(),
         "reference_std": reference.std(0, correction=0).tolist(),
     }
-
-
-def lorenz_wing_level(beta: float = 8.0 / 3.0, rho: float = 28.0) -> float:
-    """``0.5 * sqrt(beta (rho - 1))``: half the distance from 0 of the Lorenz fixed points' ``x`` (~4.24)."""
-    if not beta * (rho - 1) > 0:
-        raise ValueError(f"the Lorenz wings need beta * (rho - 1) > 0, got beta={beta!r}, rho={rho!r}")
-    return 0.5 * math.sqrt(beta * (rho - 1))
 
 
 def both_wings_share(x: torch.Tensor, level: float) -> float:

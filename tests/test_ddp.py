@@ -104,7 +104,7 @@ def test_two_processes_match_one_on_the_same_global_batches(ddp_run, name):
 
 def test_global_batches_are_sharded_without_repeats():
     """Each global batch of the one-device order is split over the ranks, contiguously, nothing twice."""
-    from datamodules.base import EpochSeededSampler, GlobalBatchShardSampler
+    from datamodules.samplers import EpochSeededSampler, GlobalBatchShardSampler
 
     n, batch, world = 23, 9, 3  # last global batch: 5 -> shards of 2, 2, 1
     shards = [GlobalBatchShardSampler(n, batch, world, r, seed=5) for r in range(world)]

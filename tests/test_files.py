@@ -12,7 +12,7 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-import datamodules.files as files_mod
+import datamodules.arrays as arrays_mod
 from datamodules.files import FileDataModule
 from tests.conftest import fast_trainer
 
@@ -238,7 +238,7 @@ def test_sizes_come_from_headers_only(tmp_path, monkeypatch):
     def no_reading(*args, **kwargs):
         raise AssertionError("data read at construction")
 
-    monkeypatch.setattr(files_mod, "open_array", no_reading)
+    monkeypatch.setattr(arrays_mod, "open_array", no_reading)
     monkeypatch.setattr(np, "load", no_reading)
     dm = FileDataModule(train_path=paths, test_fraction=0.25)
     assert dm.num_train_trajectories == 14 - round(14 * 0.25) == 10

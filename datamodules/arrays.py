@@ -1,0 +1,164 @@
+"""Arrays on disk: ``.npy`` / ``.npz`` headers read without loading, checks, memory-mapped loading.
+
+Used by :mod:`datamodules.files` (a user's recorded trajectories) and by
+:meth:`datamodules.base.TrajectoryDataModule.load_predict` (sequences to forecast); it imports nothing of
+either, so neither imports the other to read an array.
+"""
+
+from __future__ import annotations
+
+import struct
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+LAYOUTS = "[N, T, D] vectors, [N, T, H, W] grey images or [N, T, C, H, W] images"
+
+
+@dataclass(frozen=True)
+class ArrayHeader:
+    """Where one array lives and what its header says (no data read)."""
+
+    path: Path
+    key: str | None  # member of an .npz (None for .npy)
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    fortran_order: bool
+    data_offset: int | None = None  # byte offset of the data in an uncompressed .npz (memory-mappable)
+
+    @property
+    def label(self) -> str:
+        return f"{self.path}" + (f" (array '{self.key}')" if self.key is not None else "")
+
+
+def _read_npy_header(fp, where: str) -> tuple[tuple[int, ...], bool, np.dtype]:
+    try:
+        version = np.lib.format.read_magic(fp)
+    except ValueError as err:
+        raise ValueError(f"{where} is not a NumPy .npy array ({err}); write arrays with numpy.save / numpy.savez") from err
+    if version == (1, 0):
+        return np.lib.format.read_array_header_1_0(fp)
+    return np.lib.format.read_array_header_2_0(fp)
+
+
+def read_header(path: str | Path, key: str, what: str) -> ArrayHeader:
+    """Read the header of a ``.npy`` file or of the member ``key`` of an ``.npz`` file.
+
+    ``what`` names the argument the path came from, for error messages.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{what}: {path} does not exist (or is not a file); expected a .npy or .npz file holding "
+            f"trajectories as {LAYOUTS}"
+        )
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        with open(path, "rb") as fp:
+            shape, fortran, dtype = _read_npy_header(fp, str(path))
+        return ArrayHeader(path, None, tuple(shape), dtype, fortran)
+    if suffix != ".npz":
+        raise ValueError(f"{what}: {path} is neither .npy nor .npz; save your trajectories with numpy.save or numpy.savez")
+    if not zipfile.is_zipfile(path):
+        raise ValueError(f"{what}: {path} is not a valid .npz (zip) archive; write it with numpy.savez")
+    with zipfile.ZipFile(path) as zf:
+        member = f"{key}.npy"
+        names = [n[:-4] for n in zf.namelist() if n.endswith(".npy")]
+        if member not in zf.namelist():
+            raise ValueError(f"{what}: {path} holds no array '{key}' (it holds {names}); set the key argument to one of them")
+        info = zf.getinfo(member)
+        with zf.open(member) as fp:
+            shape, fortran, dtype = _read_npy_header(fp, f"{path}['{key}']")
+            header_len = fp.tell()
+    offset = None
+    if info.compress_type == zipfile.ZIP_STORED:
+        with open(path, "rb") as fh:  # local file header: 30 bytes, then name and extra field
+            fh.seek(info.header_offset)
+            local = fh.read(30)
+        if local[:4] == b"PK\x03\x04":
+            name_len, extra_len = struct.unpack("<HH", local[26:30])
+            offset = info.header_offset + 30 + name_len + extra_len + header_len
+    return ArrayHeader(path, key, tuple(shape), dtype, fortran, offset)
+
+
+def open_array(h: ArrayHeader) -> np.ndarray:
+    """The array of a header: memory-mapped where possible, else read into memory."""
+    if h.key is None:
+        return np.load(h.path, mmap_mode="r")
+    if h.data_offset is not None and not h.dtype.hasobject:
+        return np.memmap(h.path, dtype=h.dtype, mode="r", offset=h.data_offset, shape=h.shape,
+                         order="F" if h.fortran_order else "C")
+    with np.load(h.path) as npz:
+        return npz[h.key]
+
+
+def check_header(h: ArrayHeader, what: str) -> None:
+    """Refuse arrays that cannot be trajectories: object arrays, non-numeric dtypes, other ranks, empty ones."""
+    if h.dtype.hasobject:
+        raise ValueError(
+            f"{what}: {h.label} is an object array (ragged trajectories or a pickled list): all trajectories "
+            "must have the same length T; pad or cut them and save one numeric array "
+            f"({LAYOUTS})"
+        )
+    if h.dtype.kind not in "biuf":
+        raise ValueError(f"{what}: {h.label} has dtype {h.dtype}; expected a real numeric (float, int or uint8) array")
+    if len(h.shape) not in (3, 4, 5):
+        hint = " (scalar measurements [N, T]: add a trailing axis, y[..., None])" if len(h.shape) == 2 else ""
+        raise ValueError(f"{what}: {h.label} has shape {h.shape} (rank {len(h.shape)}); accepted layouts: {LAYOUTS}{hint}")
+    if 0 in h.shape:
+        raise ValueError(
+            f"{what}: {h.label} is empty (shape {h.shape}, layout [N, T, ...]): it needs at least one trajectory "
+            "of at least one sample"
+        )
+
+
+def served_shape(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """``[N, T, H, W]`` files are served channel-first as ``[N, T, 1, H, W]``."""
+    return (shape[0], shape[1], 1, *shape[2:]) if len(shape) == 4 else tuple(shape)
+
+
+def concat_shape(heads: list[ArrayHeader], what: str) -> tuple[int, ...]:
+    """The served shape ``[N, T, *obs]`` of files concatenated along ``N`` (their ``[T, *obs]`` must agree)."""
+    first = served_shape(heads[0].shape)
+    for h in heads[1:]:
+        other = served_shape(h.shape)
+        if other[1:] != first[1:]:
+            raise ValueError(
+                f"{what}: {h.label} holds trajectories of shape {other[1:]} but {heads[0].label} holds "
+                f"{first[1:]} ([T, *obs]); files of one split are concatenated along N and must agree"
+            )
+    return (sum(h.shape[0] for h in heads), *first[1:])
+
+
+def load_files(heads: list[ArrayHeader]) -> np.ndarray:
+    """The arrays of headers, checked finite, served layout, concatenated along ``N`` (one file stays mapped)."""
+    arrays = []
+    for h in heads:
+        a = open_array(h)
+        check_finite(h.label, a)
+        arrays.append(a.reshape(served_shape(a.shape)) if a.ndim == 4 else a)
+    if len(arrays) == 1:
+        return arrays[0]
+    if len({a.dtype for a in arrays}) > 1:  # e.g. uint8 with float files: bring all to float32 in [0, 1]
+        arrays = [a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32) for a in arrays]
+    elif arrays[0].dtype.kind == "f" and arrays[0].dtype != np.float32:
+        arrays = [a.astype(np.float32) for a in arrays]
+    return np.concatenate(arrays)
+
+
+def check_finite(name: str, a: np.ndarray, chunk: int = 1 << 22) -> None:
+    """Raise if a float array holds NaN or inf (checked in chunks: arrays may be memory-mapped)."""
+    if not np.issubdtype(a.dtype, np.floating):
+        return
+    flat = a.reshape(-1)
+    for start in range(0, flat.size, chunk):
+        block = np.asarray(flat[start : start + chunk])
+        if not np.isfinite(block).all():
+            bad = start + int(np.flatnonzero(~np.isfinite(block))[0])
+            where = np.unravel_index(bad, a.shape)
+            raise ValueError(
+                f"{name} holds a non-finite value ({block[bad - start]}) at index {tuple(int(w) for w in where)} "
+                "(trajectory, time, ...): remove or interpolate missing samples before training"
+            )

@@ -1,0 +1,60 @@
+"""The house's import rules, read from the source (imports inside functions count too): the data layer never
+imports the method, and the data layer's modules import each other without a circle."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def imported_modules(path: Path) -> set[str]:
+    """Every module a file imports, at any depth of its code (``from a.b import c`` gives ``a.b``)."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module)
+    return out
+
+
+def data_graph() -> dict[str, set[str]]:
+    files = {f"datamodules.{p.stem}": p for p in (ROOT / "datamodules").glob("*.py") if p.stem != "__init__"}
+    return {name: {m for m in imported_modules(p) if m in files} for name, p in files.items()}
+
+
+def test_data_never_imports_the_method():
+    for path in sorted((ROOT / "datamodules").glob("*.py")):
+        method = sorted(m for m in imported_modules(path) if m == "ssm_ms" or m.startswith("ssm_ms."))
+        assert not method, f"{path.name} imports {method}: data must not depend on the method"
+
+
+def test_data_modules_import_each_other_without_a_circle():
+    graph = data_graph()
+    assert graph["datamodules.base"] >= {"datamodules.arrays", "datamodules.samplers"}  # the graph is read
+    state: dict[str, int] = {}
+
+    def visit(name: str, path: list[str]) -> None:
+        state[name] = 1
+        for dep in sorted(graph[name]):
+            assert state.get(dep) != 1, f"import circle: {' -> '.join(path + [name, dep])}"
+            if dep not in state:
+                visit(dep, path + [name])
+        state[name] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [])
+
+
+def test_the_circle_check_finds_a_circle(monkeypatch):
+    """The check itself: a graph with base -> files -> base is refused."""
+    import pytest
+
+    fake = {"datamodules.base": {"datamodules.files", "datamodules.arrays", "datamodules.samplers"},
+            "datamodules.files": {"datamodules.base"}, "datamodules.arrays": set(), "datamodules.samplers": set()}
+    monkeypatch.setitem(globals(), "data_graph", lambda: fake)
+    with pytest.raises(AssertionError, match="import circle"):
+        test_data_modules_import_each_other_without_a_circle()
