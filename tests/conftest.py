@@ -1,4 +1,12 @@
-"""Shared fixtures: a tiny rotation system as a DataModule, and trainer settings for fast CPU runs."""
+"""Shared fixtures: a tiny rotation system as a DataModule, trainer settings for fast CPU runs, and
+``decoder_path``, which runs a decoder test twice: through the native kernels and through the torch-only path.
+
+The ConvDecoder has two float32 CPU paths with the same values (ssm_ms/nets/native.py): the native kernels, taken
+wherever they can be built (AVX-512 or AVX2 with FMA, a C compiler), and the torch-only path, taken everywhere else.
+A test run on one machine would otherwise exercise only one of them, so the other could rot unseen: a test that
+asks for ``decoder_path`` runs once per path in the same pytest process (``[native]`` is skipped, with the reason,
+where the kernels cannot be built; ``[torch-only]`` sets ``SSM_MS_NATIVE=0`` and forgets any loaded library for
+the test's duration, so subprocesses it starts take that path too)."""
 
 from __future__ import annotations
 
@@ -13,7 +21,7 @@ import torch
 
 from datamodules.base import TrajectoryDataModule
 from ssm_ms.module import MultipleShootingModule
-from ssm_ms.nets import LocallyLinearTransition, Projection
+from ssm_ms.nets import LocallyLinearTransition, Projection, native
 
 if "OMP_NUM_THREADS" not in os.environ:  # the CI machine's 2 cores; OMP_NUM_THREADS=1 on a shared machine
     torch.set_num_threads(2)
@@ -67,6 +75,19 @@ def fast_trainer(tmp_path, max_epochs: int, callbacks=(), **kwargs) -> pl.Traine
                 num_sanity_val_steps=0, deterministic=True)
     args.update(kwargs)
     return pl.Trainer(**args)
+
+
+@pytest.fixture(params=["native", "torch-only"])
+def decoder_path(request, monkeypatch) -> str:
+    """The ConvDecoder's float32 CPU path for this test: ``"native"`` or ``"torch-only"`` (see the module docstring)."""
+    if request.param == "native":
+        if native.library() is None:
+            pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
+    else:
+        monkeypatch.setenv("SSM_MS_NATIVE", "0")
+        monkeypatch.setattr(native, "_state", {})
+        assert native.library() is None
+    return request.param
 
 
 @pytest.fixture

@@ -1,4 +1,7 @@
-"""The decoder's native kernels (ssm_ms/nets/native.py, _conv_stack.c) against torch's own layers."""
+"""The decoder's native kernels (ssm_ms/nets/native.py, _conv_stack.c) against torch's own layers.
+
+The tests taking ``decoder_path`` (tests/conftest.py) run twice, natively and with the kernels off, so the
+torch-only float32 path that every other machine runs is held to the same float64 reference."""
 
 import warnings
 
@@ -54,13 +57,13 @@ def _graph_names(t: torch.Tensor) -> list[str]:
     return names
 
 
-@needs_native
-@pytest.mark.parametrize("stem, size, layers, image_size", SPECS)
-def test_fused_decoder_matches_torch_layers_in_float64(stem, size, layers, image_size, drop_bias=False):
+def _check_against_float64(stem, size, layers, image_size, native_ran: bool, drop_bias=False):
+    """The float32 decoder (native kernels where ``native_ran``, else the torch-only channels-last path), values
+    and gradients, against torch's own NCHW layers in float64."""
     fused, plain = _pair(5, stem, size, layers, image_size, drop_bias)
     x = torch.randn(9, 5, requires_grad=True)
     out = fused(x)
-    assert "_ConvStackBackward" in _graph_names(out)  # the native blocks ran
+    assert ("_ConvStackBackward" in _graph_names(out)) == native_ran  # the path under test ran
     x64 = x.detach().double().requires_grad_()
     want = plain(x64)
     torch.testing.assert_close(out.double(), want, rtol=1e-5, atol=1e-5)
@@ -73,9 +76,13 @@ def test_fused_decoder_matches_torch_layers_in_float64(stem, size, layers, image
         assert ((g.double() - r).abs().max() / scale).item() < 2e-5, name
 
 
-@needs_native
-def test_a_transposed_convolution_without_bias_matches_too():
-    test_fused_decoder_matches_torch_layers_in_float64(*SPECS[0], drop_bias=True)
+@pytest.mark.parametrize("stem, size, layers, image_size", SPECS)
+def test_decoder_matches_torch_layers_in_float64(decoder_path, stem, size, layers, image_size):
+    _check_against_float64(stem, size, layers, image_size, native_ran=decoder_path == "native")
+
+
+def test_a_transposed_convolution_without_bias_matches_too(decoder_path):
+    _check_against_float64(*SPECS[0], native_ran=decoder_path == "native", drop_bias=True)
 
 
 @needs_native
@@ -92,10 +99,10 @@ def test_only_stacks_whose_sample_fits_in_cache_run_natively():
     assert "_ConvStackBackward" in _graph_names(ConvDecoder(4, "quad")(x))
 
 
-@needs_native
-def test_fused_decoder_gives_the_same_bits_twice_and_uses_every_thread_count():
+def test_decoder_gives_the_same_bits_twice_and_uses_every_thread_count(decoder_path):
     fused, _ = _pair(5, *SPECS[0])
     x = torch.randn(64, 5, requires_grad=True)
+    assert ("_ConvStackBackward" in _graph_names(fused(x))) == (decoder_path == "native")
     threads = torch.get_num_threads()
     results = []
     try:
@@ -170,7 +177,7 @@ def test_the_avx2_build_matches_torch_too(fresh_native, monkeypatch):
     monkeypatch.setattr(native, "FLAG_SETS", (["-O3", "-mavx2", "-mfma", "-fopenmp"],))
     assert native.library() is not None, native.unavailable_reason()
     for spec in (SPECS[0], SPECS[4], SPECS[5], SPECS[6]):
-        test_fused_decoder_matches_torch_layers_in_float64(*spec)
+        _check_against_float64(*spec, native_ran=True)
 
 
 def test_a_cpu_without_vector_instructions_runs_the_torch_only_path_silently(fresh_native, monkeypatch):

@@ -31,9 +31,12 @@ def test_fully_connected_is_residual():
 
 @pytest.mark.parametrize("preset, size, channels", [("pendulum", 24, [16, 12, 1]), ("quad", 48, [16, 16, 12, 1]),
                                                     ("mnist", 64, [512, 256, 256, 1])])
-def test_decoder_presets(preset, size, channels):
+def test_decoder_presets(preset, size, channels, decoder_path):
     g = ConvDecoder(5, preset)
-    out = g(torch.randn(3, 5))
+    x = torch.randn(3, 5, requires_grad=True)
+    out = g(x)
+    out.sum().backward()  # the backward pass of either path runs
+    assert x.grad.isfinite().all() and x.grad.abs().sum() > 0
     assert out.shape == (3, 1, size, size)
     assert ((out >= 0) & (out <= 1)).all()  # sigmoid (may saturate in float32)
     convs = [m for m in g.deconv if isinstance(m, torch.nn.ConvTranspose2d)]
