@@ -1,4 +1,12 @@
-"""``MultipleShootingModule``: f, g and the shooting nodes, trained by multiple shooting."""
+"""``MultipleShootingModule``: f, g and the shooting nodes, trained by multiple shooting.
+
+``trainer.precision: 64-true`` and checkpoints: the CLI builds f and g in float32, and Lightning restores a
+checkpoint into the module *before* it converts the module to float64 (``Trainer._run``: ``setup``, restore,
+then the strategy's precision conversion), so a resumed float64 run would load its weights into float32
+tensors, rounded. :meth:`MultipleShootingModule.setup` therefore converts the module to float64 itself under
+``64-true`` (what Lightning does next anyway) before anything is restored: a resumed run continues bit for bit
+like an uninterrupted one (tests/test_module.py).
+"""
 
 from __future__ import annotations
 
@@ -171,8 +179,8 @@ class MultipleShootingModule(pl.LightningModule):
             )
 
     def _make_nodes(self, num_trajectories: int) -> None:
-        # in the module's dtype: Lightning restores a checkpoint into the module before converting its precision
-        # (``64-true``), so nodes made float32 here would round a float64 checkpoint's nodes
+        # in the module's dtype (float64 under ``64-true``: setup converts the module before any checkpoint is
+        # restored into it, see setup)
         self.nodes = nn.Embedding(num_trajectories, self.n_nodes * self.state_dim, dtype=self.alpha.dtype)
         nn.init.zeros_(self.nodes.weight)
         self.hparams["num_trajectories"] = num_trajectories
@@ -200,6 +208,11 @@ class MultipleShootingModule(pl.LightningModule):
         dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         if self._trainer is not None:
             check_precision(self.trainer.precision, self.trainer.strategy.root_device)
+            if str(self.trainer.precision) == "64-true" and self.alpha.dtype != torch.float64:
+                # Lightning restores a checkpoint into the module (Trainer._run: setup, restore, then
+                # strategy.setup converts the precision), so f and g built in float32 by the CLI would round a
+                # float64 checkpoint's weights to float32 on resume: convert now, as Lightning will (.double())
+                self.double()
         if self.nodes is None:
             n = getattr(dm, "num_train_trajectories", None)
             if n is None:

@@ -154,3 +154,32 @@ def test_load_from_checkpoint_round_trip(tmp_path, rotation_dm):
         assert loaded.state_dict().keys() == model.state_dict().keys()
         for key, value in model.state_dict().items():
             torch.testing.assert_close(loaded.state_dict()[key], value)
+
+
+@pytest.mark.parametrize("node_optimizer", ["dense", "sparse"])
+def test_a_float64_run_resumes_bit_for_bit_though_f_and_g_are_built_in_float32(tmp_path, node_optimizer):
+    """``precision: 64-true`` as the CLI runs it: f, g and the module built in float32, Lightning converting them.
+    Lightning restores a checkpoint before it converts the module, so a module still in float32 at that moment
+    rounds the checkpoint's float64 weights to float32: the resumed run must equal the uninterrupted one exactly."""
+    from ssm_ms.checkpointing import EpochCheckpoint
+
+    def dm():
+        return RotationDataModule(data_dir=str(tmp_path / "data"), batch_size=3, val_trajectories=0)
+
+    args = dict(lr=3e-2, node_optimizer=node_optimizer, constraint="augmented_lagrangian")
+    full = rotation_model(**args)
+    assert full.f.matrices.dtype == torch.float32  # built as the CLI builds it
+    fast_trainer(tmp_path / "full", max_epochs=3, precision="64-true").fit(full, dm())
+    first = rotation_model(**args)
+    fast_trainer(tmp_path / "a", max_epochs=2, precision="64-true",
+                 callbacks=[EpochCheckpoint(dirpath=str(tmp_path / "ckpt"))]).fit(first, dm())
+    saved = torch.load(tmp_path / "ckpt" / "last.ckpt", weights_only=True)["state_dict"]
+    rounded = [k for k, v in saved.items() if v.dtype == torch.float64 and not torch.equal(v, v.float().double())]
+    assert {"f.matrices", "nodes.weight"} <= set(rounded)  # float32 would change them: the test can see rounding
+    resumed = rotation_model(**args)
+    fast_trainer(tmp_path / "b", max_epochs=3, precision="64-true").fit(resumed, dm(), ckpt_path=str(tmp_path / "ckpt" / "last.ckpt"))
+    a, b = full.state_dict(), resumed.state_dict()
+    assert a.keys() == b.keys()
+    for key in a:
+        assert b[key].dtype == a[key].dtype and torch.equal(b[key], a[key]), key
+    assert a["f.matrices"].dtype == torch.float64
