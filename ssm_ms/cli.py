@@ -12,7 +12,16 @@ What the command line adds to Lightning's:
   environment shows the full traceback for everything.
 - **Checkpoints.** ``--ckpt_path`` and ``model.init_args.ssm_checkpoint`` are read (``weights_only``)
   before anything is built: a missing, truncated or foreign file, or the checkpoint of another kind of
-  model, is refused with a message.
+  model, is refused with a message. With ``--ckpt_path`` the model is rebuilt with the settings the
+  checkpoint was trained with (Lightning's rule: a resumed run continues the saved model), replacing the
+  config's and command line's ``model`` values; where a value given differs from the checkpoint's, one
+  line on stderr says so (``note: --ckpt_path ...: model.init_args.lr = 0.01 from the checkpoint, not
+  0.5 as given ...``). A checkpoint whose model does not fit this command's data (another experiment's)
+  is refused naming that first (``the checkpoint ... was trained for another model or data ...``), then
+  the detail (g's output shape against the data's, the trajectory length, the trajectory count).
+- **Trainer settings.** An invalid ``trainer`` value that Lightning refuses when it builds the Trainer
+  (a ``MisconfigurationException`` or ``ValueError``, e.g. ``--trainer.max_epochs -5``) is a user's
+  mistake: one ``error: trainer: ...`` line, status 1.
 - **Ctrl-C.** An interrupted ``fit`` exits with status 130 and prints the command that resumes it from
   the last completed epoch's ``last.ckpt`` (written every epoch by
   :class:`ssm_ms.checkpointing.EpochCheckpoint`).
@@ -34,8 +43,10 @@ from typing import Any
 
 import lightning.pytorch as pl
 from jsonargparse import set_parsing_settings
+from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.trainer.states import TrainerStatus
+from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
 from ssm_ms.checkpointing import EpochCheckpoint, read_checkpoint
 from ssm_ms.perf import configure_allocator
@@ -70,6 +81,7 @@ class SSMCLI(LightningCLI):
 
     def __init__(self, *args: Any, argv: list[str] | None = None, **kwargs: Any):
         self._argv = list(sys.argv[1:] if argv is None else argv)
+        self._checkpoint_source: str | None = None  # "<--ckpt_path> (trained on ...)", for the model's messages
         super().__init__(*args, args=argv, **kwargs)
 
     def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
@@ -87,6 +99,7 @@ class SSMCLI(LightningCLI):
                     "give the last.ckpt of a run of this config (or the config of that run, saved as config.yaml "
                     "in its folder)"
                 )
+            self._checkpoint_source = f"{ckpt}" + _trained_on(saved)
         model_args = config.get("model", {}).get("init_args") if config.get("model") else None
         ssm = model_args.get("ssm_checkpoint") if model_args is not None else None
         if ssm:
@@ -97,6 +110,42 @@ class SSMCLI(LightningCLI):
                     f"model.init_args.ssm_checkpoint {ssm} is the checkpoint of {kind}, not of an SSM: give the "
                     "last.ckpt of an SSM run (python cli.py fit --config configs/<experiment>.yaml)"
                 )
+
+    def _parse_ckpt_path(self) -> None:
+        """Lightning's: the checkpoint's model hyperparameters replace the config's; then one line naming each
+        value given that the checkpoint's replaced (silently replaced before)."""
+        subcommand = self.config.get("subcommand")
+        before = self.config[subcommand].get("model") if subcommand else None
+        before = before.clone().as_dict() if before is not None else {}
+        super()._parse_ckpt_path()
+        after = self.config[subcommand].get("model") if subcommand else None
+        after = after.as_dict() if after is not None else {}
+        old, new = _flatten(before, "model"), _flatten(after, "model")
+        replaced, other_class = [], []
+        for key, value in old.items():
+            if value is None or key not in new or new[key] == value:
+                continue
+            if any(key.startswith(prefix) for prefix in other_class):
+                continue  # the init_args of a network replaced by another class
+            if key.endswith(".class_path"):
+                other_class.append(key[: -len("class_path")])
+            replaced.append(f"{key} = {new[key]!r} from the checkpoint, not {value!r} as given")
+        if replaced and rank_zero_only.rank == 0:
+            shown = "; ".join(replaced[:6]) + (f"; and {len(replaced) - 6} more" if len(replaced) > 6 else "")
+            print(f"note: --ckpt_path resumes the model the checkpoint was trained with, so its settings win over "
+                  f"this command's: {shown} (to train with other model settings, start a fresh run without "
+                  "--ckpt_path)", file=sys.stderr)
+
+    def after_instantiate_classes(self) -> None:
+        super().after_instantiate_classes()
+        if self._checkpoint_source is not None and hasattr(self.model, "checkpoint_source"):
+            self.model.checkpoint_source = self._checkpoint_source  # its data checks then name the checkpoint first
+
+    def _instantiate_trainer(self, config: dict[str, Any], callbacks: list) -> pl.Trainer:
+        try:
+            return super()._instantiate_trainer(config, callbacks)
+        except (MisconfigurationException, ValueError) as err:  # Lightning refusing a trainer setting
+            raise ValueError(f"trainer: {err}") from err
 
     def fit(self, model: pl.LightningModule, **kwargs: Any) -> None:
         try:
@@ -123,6 +172,25 @@ class SSMCLI(LightningCLI):
                 argv.append(arg)
         command = shlex.join(["python", "cli.py", *argv, "--ckpt_path", last])
         return f"interrupted during epoch {epoch}; the last completed epoch is saved in {last}. Resume with:\n  {command}"
+
+
+def _flatten(value: Any, prefix: str) -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` as ``{"<prefix>.a.b": 1}`` (lists are values)."""
+    if isinstance(value, dict):
+        out: dict[str, Any] = {}
+        for key, item in value.items():
+            out.update(_flatten(item, f"{prefix}.{key}"))
+        return out
+    return {prefix: value}
+
+
+def _trained_on(checkpoint: dict[str, Any]) -> str:
+    """`` (trained on the 'pendulum' data of PendulumDataModule)`` from the data module's state Lightning saves
+    under its class name; empty where the checkpoint holds none."""
+    for key, value in checkpoint.items():
+        if isinstance(value, dict) and "generator_params" in value and "name" in value:
+            return f" (trained on the {value['name']!r} data of {key})"
+    return ""
 
 
 # ---------------------------------------------------------------------------- user errors

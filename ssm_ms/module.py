@@ -135,6 +135,8 @@ class MultipleShootingModule(pl.LightningModule):
                 raise ValueError(f"node_init_map names state components {bad} outside 0..{state_dim - 1}")
         self.f, self.g = f, g
         self.state_dim, self.n_nodes = state_dim, n_nodes
+        # where this model's weights are restored from, when its settings came from a checkpoint (see check_data)
+        self.checkpoint_source: str | None = None
         self.register_buffer("alpha", torch.tensor(float(alpha)))
         if node_optimizer not in NODE_OPTIMIZERS:
             raise ValueError(f"unknown node_optimizer {node_optimizer!r}: choose one of {list(NODE_OPTIMIZERS)}")
@@ -241,25 +243,34 @@ class MultipleShootingModule(pl.LightningModule):
             g["init_args"].update(fixed)  # hparams.yaml and checkpoints rebuild g at this size
 
     def check_data(self, seq_len: int, obs_shape: tuple[int, ...], num_train: int | None = None) -> None:
-        """Fail before training when the data and the model disagree (shapes, T, trajectory count)."""
+        """Fail before training when the data and the model disagree (shapes, T, trajectory count).
+
+        With :attr:`checkpoint_source` set (the CLI sets it under ``--ckpt_path``, having rebuilt this model
+        from the checkpoint's settings), a disagreement means the checkpoint belongs to another model or data:
+        the message says that first, then the detail, and points to the checkpoint's own config."""
+        problem = None
         if seq_len % self.n_nodes != 0:
             divisors = [k for k in range(1, seq_len + 1) if seq_len % k == 0]
+            problem = (f"trajectory length T={seq_len} is not divisible by model.n_nodes={self.n_nodes}",
+                       f"choose n_nodes among {divisors}")
+        elif tuple(out := self.obs_shape()) != tuple(obs_shape):
+            problem = (f"the observation model g outputs measurements of shape {out} but the data have shape "
+                       f"{tuple(obs_shape)}",
+                       "adapt g (e.g. ConvDecoder's image_size to the data's, a linear g's out_features to the "
+                       "channel count, or the Projection indices to the measured components)")
+        elif num_train is not None and self.nodes is not None and self.nodes.num_embeddings != num_train:
+            problem = (f"the model holds shooting nodes for {self.nodes.num_embeddings} trajectories but the "
+                       f"training set has {num_train}",
+                       f"set model.num_trajectories to {num_train} (or leave it unset)")
+        if problem is None:
+            return
+        if self.checkpoint_source:
             raise ValueError(
-                f"trajectory length T={seq_len} is not divisible by model.n_nodes={self.n_nodes}: "
-                f"choose n_nodes among {divisors}"
+                f"the checkpoint {self.checkpoint_source} was trained for another model or other data than "
+                f"this command's: {problem[0]}; resume it with the config saved beside it (config.yaml in its run "
+                "folder), or start a fresh run without --ckpt_path"
             )
-        out = self.obs_shape()
-        if tuple(out) != tuple(obs_shape):
-            raise ValueError(
-                f"the observation model g outputs measurements of shape {out} but the data have shape "
-                f"{tuple(obs_shape)}: adapt g (e.g. ConvDecoder's image_size to the data's, "
-                "a linear g's out_features to the channel count, or the Projection indices to the measured components)"
-            )
-        if num_train is not None and self.nodes is not None and self.nodes.num_embeddings != num_train:
-            raise ValueError(
-                f"the model holds shooting nodes for {self.nodes.num_embeddings} trajectories but the training "
-                f"set has {num_train}: set model.num_trajectories to {num_train} (or leave it unset)"
-            )
+        raise ValueError(f"{problem[0]}: {problem[1]}")
 
     @torch.no_grad()
     def init_nodes_from_measurements(self, y_nodes: torch.Tensor) -> None:

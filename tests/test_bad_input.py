@@ -337,3 +337,52 @@ def test_the_real_command_prints_no_traceback(setup):
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 1
     assert "Traceback" not in done.stderr and "error: state_dim and n_nodes must be >= 1" in done.stderr
+
+
+# ---------------------------------------------------------------------------- resuming (issue 23)
+def test_invalid_trainer_value_is_one_error_line(setup, capsys):
+    root, _ = setup
+    fails(capsys, fit(root, "--trainer.max_epochs", "-5"), 1, "trainer:", "max_epochs", "-5")
+
+
+def test_checkpoint_of_another_model_names_the_checkpoint_first(setup, capsys):
+    """A checkpoint trained with a g of 3 outputs on 3-channel data, given to this config (2 channels): the error
+    says the checkpoint belongs to another model or data before the shape detail, in one line."""
+    root, _ = setup
+    path = save(root, "three.npz", y=trajectories(d=2).repeat(2, axis=-1)[..., :3])
+    main(fit(root, "--data.init_args.train_path", path, "--model.init_args.g.init_args.out_features", "3",
+             "--trainer.default_root_dir", str(root / "three")))
+    (other,) = (root / "three").glob("**/last.ckpt")
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as stop:
+        main(fit(root, "--ckpt_path", str(other)))
+    err = capsys.readouterr().err
+    assert stop.value.code == 1 and "Traceback" not in err
+    lines = err.strip().splitlines()
+    # the note that the checkpoint's g (3 outputs) replaced the config's (2), then the error
+    assert lines[0].startswith("note: --ckpt_path") and "g.init_args.out_features = 3 from the checkpoint" in lines[0]
+    error = lines[1]
+    assert error.startswith(f"error: the checkpoint {other} (trained on the ")
+    assert error.index("was trained for another model or other data") < error.index("outputs measurements of shape (3,)")
+    assert "data have shape (2,)" in error and "config.yaml" in error and len(lines) == 3, err
+
+
+def test_ckpt_path_says_which_model_values_it_replaced(setup, capsys):
+    """Lightning rebuilds the model with the checkpoint's hyperparameters: a value given that differs is named, with
+    the winner; values that agree, and trainer values (which are not replaced), are not."""
+    root, ckpt = setup
+    saved = torch.load(ckpt, weights_only=True)["hyper_parameters"]
+    assert saved["lr"] == 0.01 and saved["f"]["init_args"]["hidden"] == 8
+    cli = main(fit(root, "--ckpt_path", str(ckpt), "--model.init_args.lr", "0.5", "--model.init_args.n_nodes", "3",
+                   "--model.init_args.f.init_args.hidden", "16", "--trainer.max_epochs", "2"))
+    err = capsys.readouterr().err
+    notes = [line for line in err.splitlines() if line.startswith("note:")]
+    assert len(notes) == 1, err
+    note = notes[0]
+    assert "model.init_args.lr = 0.01 from the checkpoint, not 0.5 as given" in note
+    assert "model.init_args.f.init_args.hidden = 8 from the checkpoint, not 16 as given" in note
+    assert "n_nodes" not in note and "max_epochs" not in note and "without --ckpt_path" in note
+    assert cli.model.hparams.lr == 0.01 and cli.trainer.max_epochs == 2  # the note tells the truth
+    capsys.readouterr()
+    main(fit(root, "--ckpt_path", str(ckpt), "--trainer.max_epochs", "2"))  # nothing replaced: nothing said
+    assert "note:" not in capsys.readouterr().err
