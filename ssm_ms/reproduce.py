@@ -11,11 +11,19 @@ every baseline of the experiment (fit -> test); or one baseline alone.
 logged under ``runs/<name>/reproduce-<stamp>/``, so the checkpoints each stage hands to the next are
 known. Every method lands in the same ``results/<experiment>.md``, which ends with the commands and
 their durations.
+
+Ctrl-C during a stage stops the stage as ``fit`` stops (its last completed epoch kept); this process waits
+for it, prints which stage was interrupted and the command that resumes that stage (``--ckpt_path`` its
+``last.ckpt``), and exits with status 130. A failing stage ends in one ``error:`` line naming it, with the
+stage's status. No traceback either way; the later stages do not run (there is no pipeline-level resume:
+run them after the resumed stage, or reproduce again). See :func:`run_stage`.
 """
 
 from __future__ import annotations
 
 import argparse
+import shlex
+import signal
 import subprocess
 import sys
 import time
@@ -44,11 +52,54 @@ def experiment_name(config: Path) -> str:
     return str(OmegaConf.select(cfg, "model.init_args.experiment", default=config.stem))
 
 
+def _stage_checkpoint(args: list[str]) -> Path | None:
+    """The ``last.ckpt`` a ``fit`` stage writes (its config's logger folder, this run's version), if it exists."""
+    if not args or args[0] != "fit" or "--config" not in args or "--trainer.logger.init_args.version" not in args:
+        return None
+    try:
+        config = ROOT / args[args.index("--config") + 1]  # relative to the root, where the stage runs
+        version = args[args.index("--trainer.logger.init_args.version") + 1]
+        ckpt = logger_dir(config) / version / "checkpoints" / "last.ckpt"
+    except (IndexError, ValueError, OSError):
+        return None
+    return ckpt if (ckpt if ckpt.is_absolute() else ROOT / ckpt).is_file() else None
+
+
 def run_stage(args: list[str], stages: list[dict]) -> None:
+    """Run ``python cli.py *args`` from the root; on success append its command and duration to ``stages``.
+
+    Ctrl-C reaches the stage and this process together (one process group): the stage stops as ``fit`` does
+    (keeping its last completed epoch), this process waits for it, then says which stage was interrupted and
+    the command that resumes it (``--ckpt_path`` its ``last.ckpt`` for a ``fit`` that saved one, else the
+    stage's own command) and exits with status 130; a second Ctrl-C stops the stage at once. A stage that
+    fails exits with its status after one ``error:`` line naming it (its own message is printed above).
+    Either way no traceback: the later stages and the results file do not run."""
     cmd = [sys.executable, "cli.py", *args]
     print("\n>>> " + " ".join(cmd), flush=True)
     start = time.time()
-    subprocess.run(cmd, cwd=ROOT, check=True)
+    proc = subprocess.Popen(cmd, cwd=ROOT)
+    interrupted = False
+    while True:
+        try:
+            code = proc.wait()
+            break
+        except KeyboardInterrupt:
+            if interrupted:  # a second Ctrl-C: do not wait for the stage to stop cleanly
+                proc.kill()
+            interrupted = True
+    stage = f"stage {len(stages) + 1} (python cli.py {shlex.join(args)})"
+    if interrupted or code in (130, -signal.SIGINT):
+        ckpt = _stage_checkpoint(args)
+        resume = shlex.join(["python", "cli.py", *args, *(["--ckpt_path", str(ckpt)] if ckpt else [])])
+        saved = f"; its last completed epoch is saved in {ckpt}" if ckpt else ""
+        print(f"\nreproduce was interrupted during {stage}{saved}. Resume that stage with:\n  {resume}\n"
+              "(the stages after it and the results file did not run: run them after it, or reproduce again)",
+              file=sys.stderr)
+        raise SystemExit(130)
+    if code != 0:
+        print(f"error: reproduce stopped: {stage} failed with status {code} (its message is above); the "
+              "stages after it and the results file did not run", file=sys.stderr)
+        raise SystemExit(code)
     stages.append({"command": "python " + " ".join(cmd[1:]), "seconds": round(time.time() - start, 1)})
 
 

@@ -62,3 +62,56 @@ def test_a_baseline_alone_and_without_baselines(recorded):
 def test_unknown_experiment_lists_the_known_ones(recorded):
     with pytest.raises(SystemExit, match=r"no configs for experiment 'pendulm'.*'pendulum'.*'pendulum_lstm'"):
         reproduce.main(["pendulm"])
+
+
+# ---------------------------------------------------------------------------- a stage interrupted or failing
+def _stage_in_own_group(tmp_path, args):
+    """``reproduce.run_stage(args)`` in a new process group (as a terminal runs ``make reproduce``)."""
+    import subprocess
+    import sys
+
+    script = f"from ssm_ms import reproduce; reproduce.run_stage({args!r}, [])"
+    out = open(tmp_path / "stage.log", "w")
+    env = dict(__import__("os").environ, OMP_NUM_THREADS="1")
+    return subprocess.Popen([sys.executable, "-c", script], cwd=reproduce.ROOT, start_new_session=True, stdout=out,
+                            stderr=subprocess.PIPE, text=True, env=env)
+
+
+def test_ctrl_c_during_a_stage_names_it_and_the_command_that_resumes_it(tmp_path):
+    """Ctrl-C reaches the stage and reproduce together (SIGINT to the process group): no traceback, status 130,
+    the stage named and the command that resumes it from the last completed epoch."""
+    import os
+    import shlex
+    import signal
+    import time
+
+    import torch
+
+    from tests.test_cli import ROTATION
+
+    config = tmp_path / "rot.yaml"
+    config.write_text(ROTATION.format(root=tmp_path).replace("max_epochs: 4", "max_epochs: 100000"))
+    args = ["fit", "--config", str(config), "--trainer.logger.init_args.version", "reproduce-x"]
+    ckpt = tmp_path / "runs" / "rot" / "reproduce-x" / "checkpoints" / "last.ckpt"
+    proc = _stage_in_own_group(tmp_path, args)
+    deadline = time.time() + 120
+    while not ckpt.is_file() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.2)
+    assert ckpt.is_file(), proc.poll()
+    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in the terminal does
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "Traceback" not in err, err
+    assert f"reproduce was interrupted during stage 1 (python cli.py {shlex.join(args)}); its last completed epoch " \
+           f"is saved in {ckpt}. Resume that stage with:" in err, err
+    resume = err.split("Resume that stage with:")[1].strip().splitlines()[0]
+    assert resume == "python cli.py " + shlex.join(args) + f" --ckpt_path {ckpt}"
+    assert torch.load(ckpt, weights_only=True)["epoch"] >= 0  # a completed epoch to resume from
+
+
+def test_a_failing_stage_is_one_error_line_not_a_traceback(tmp_path):
+    args = ["fit", "--config", str(tmp_path / "missing.yaml")]
+    proc = _stage_in_own_group(tmp_path, args)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in err and "CalledProcessError" not in err, err
+    assert err.strip().splitlines()[-1].startswith("error: reproduce stopped: stage 1 (python cli.py fit --config ")
+    assert "failed with status 2" in err
