@@ -95,6 +95,9 @@ def test_train_step_benchmark_refuses_cuda_without_a_gpu(capsys):
 
 
 def test_results_say_shared_when_other_processes_ran_not_after_a_busy_minute():
+    """What CpuWatch counts, against the machine's own background load (measured in idle windows around the
+    checks, so the test holds on a machine that other jobs keep busy: `make test` beside a training run)."""
+    import os
     import subprocess
     import sys
     import time
@@ -103,14 +106,27 @@ def test_results_say_shared_when_other_processes_ran_not_after_a_busy_minute():
 
     assert "otherwise quiet" in quiet_note(0.05) and "shared with other jobs" in quiet_note(SHARED_CORES + 0.5)
     assert "not measured" in quiet_note(None)
+
+    def idle(seconds=1.0):
+        watch = CpuWatch()
+        time.sleep(seconds)
+        return watch.others()
+
+    before = idle()
+    if before is None:
+        pytest.skip("no /proc/stat here")
     # a process of its own that busied a core and exited (as a benchmark worker does) is not another's load
     watch = CpuWatch()
     subprocess.run([sys.executable, "-c", "import time\nt = time.time()\nwhile time.time() - t < 1: pass"], check=True)
     own = watch.others()
-    if own is None:
-        pytest.skip("no /proc/stat here")
-    assert own < 0.5
-    # a process still running beside the measurement (another job) is: about one core
+    after = idle()
+    background, drift = max(before, after), abs(after - before)  # other jobs' load, and how steady it was
+    assert own < background + drift + 0.5, (own, before, after)
+    # a process still running beside the measurement (another job) is: about one more core, where one is free
+    free = (os.cpu_count() or 1) - background
+    if free < 1.2:
+        pytest.skip(f"the machine's other jobs keep {background:.2f} of {os.cpu_count()} cores busy: no free core to "
+                    "see one more process on")
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
         time.sleep(0.3)  # its interpreter has started
@@ -120,7 +136,8 @@ def test_results_say_shared_when_other_processes_ran_not_after_a_busy_minute():
     finally:
         busy.kill()
         busy.wait()
-    assert 0.6 < other < 1.6
+    assert 0.6 - drift < other - min(before, after) and other - background < 1.6 + drift, (other, before, after)
+
 
 def test_epoch_profile_shares_from_a_profiler_table():
     """profile_epoch reads SimpleProfiler's table and splits the fit into non-overlapping shares that add up."""
