@@ -19,7 +19,8 @@ def fake_checkpoint() -> dict:
         "state_dict": {"big": torch.randn(HALF_MIN_NUMEL + 1), "small": torch.randn(7), "count": torch.tensor(4)},
         "optimizer_states": [{"state": {0: {"exp_avg": torch.randn(3)}}}], "lr_schedulers": [{}],
         "loops": {"fit_loop": {}}, "callbacks": {"EpochCheckpoint": {}},
-        "hyper_parameters": {"ssm_checkpoint": "runs/x/version_0/checkpoints/last.ckpt", "n_filter": 50},
+        "hyper_parameters": {"ssm_checkpoint": "runs/x/version_0/checkpoints/last.ckpt", "n_filter": 50,
+                             "results_dir": "results", "figures_dir": "results/figures"},
         "PendulumDataModule": {"name": "pendulum", "generator_params": {"seed": 0}},
     }
 
@@ -37,7 +38,7 @@ def test_strip_drops_training_state_and_keeps_the_rest():
 
 def test_strip_half_and_ssm_path():
     ckpt = fake_checkpoint()
-    out = strip(ckpt, ssm_checkpoint="pretrained/x_ssm.ckpt", half=True)
+    out = strip(ckpt, ssm_checkpoint="pretrained/x_ssm.ckpt", half=True, results_dir="runs/pretrained")
     big = out["state_dict"]["big"]
     assert big.dtype == torch.float16 and torch.equal(big, ckpt["state_dict"]["big"].to(torch.float16))
     assert out["state_dict"]["small"].dtype == torch.float32 and out["state_dict"]["count"].dtype == torch.int64
@@ -48,8 +49,12 @@ def test_strip_half_and_ssm_path():
     assert ((back - ref).abs() <= ref.abs() * 2.0**-11 + 2.0**-24).all()
     assert out["hyper_parameters"]["ssm_checkpoint"] == "pretrained/x_ssm.ckpt"
     assert ckpt["hyper_parameters"]["ssm_checkpoint"].startswith("runs/")
+    assert (out["hyper_parameters"]["results_dir"], out["hyper_parameters"]["figures_dir"]) == (
+        "runs/pretrained", "runs/pretrained/figures")
     with pytest.raises(ValueError, match="records no SSM"):
         strip({"state_dict": {}, "hyper_parameters": {}}, ssm_checkpoint="x")
+    with pytest.raises(ValueError, match="writes no results"):
+        strip({"state_dict": {}, "hyper_parameters": {}}, results_dir="x")
 
 
 def test_strip_command(tmp_path, capsys):
