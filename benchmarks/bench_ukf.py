@@ -41,7 +41,7 @@ from torch import nn  # noqa: E402
 from ssm_ms.machine import CpuWatch, describe, quiet_note  # noqa: E402
 from ssm_ms.inference.shared import call_model  # noqa: E402
 from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402
-from ssm_ms.nets.observation import Projection  # noqa: E402
+from ssm_ms.nets.readout import Projection  # noqa: E402
 from ssm_ms.nets.transition import LocallyLinearTransition  # noqa: E402
 from ssm_ms.perf import configure_allocator  # noqa: E402
 

@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--tiny", action="store_true", help="tiny sizes, to check that the script runs")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "decoder_profile.md"))
     parser.add_argument("--cflags", default=None,
-                        help='compiler flags for the native kernels instead of ssm_ms.nets.native.FLAG_SETS, e.g. '
+                        help='compiler flags for the native kernels instead of ssm_ms.nets.native.build.FLAG_SETS, e.g. '
                              '"-O3 -mavx2 -mfma" for the AVX2 build on an AVX-512 CPU (-fopenmp is added)')
     args = parser.parse_args(argv)
 
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> None:
     from ssm_ms.shooting import rollout
 
     if args.cflags:
-        native.FLAG_SETS = (args.cflags.split() + ["-fopenmp"],)
+        native.build.FLAG_SETS = (args.cflags.split() + ["-fopenmp"],)
     watch = CpuWatch()
 
     torch.set_num_threads(args.threads)
@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> None:
         f"MSE), SSM-LL K {size['k']} hidden {size['hidden']} on {size['states']} states x {size['steps']} steps; "
         f"median of {args.repeats} alternated runs, forward + backward",
         f"- native kernels: {'on' if lib is not None else 'off: ' + str(native.unavailable_reason())}, built with "
-        f"`{' '.join(native.FLAG_SETS[0]) if args.cflags else 'ssm_ms.nets.native.FLAG_SETS (-march=native)'}`",
+        f"`{' '.join(native.build.FLAG_SETS[0]) if args.cflags else 'ssm_ms.nets.native.build.FLAG_SETS (-march=native)'}`",
         "",
         "| part | ms |",
         "|---|---:|",

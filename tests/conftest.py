@@ -1,7 +1,7 @@
 """Shared fixtures: a tiny rotation system as a DataModule, trainer settings for fast CPU runs, and
 ``decoder_path``, which runs a decoder test twice: through the native kernels and through the torch-only path.
 
-The ConvDecoder has two float32 CPU paths with the same values (ssm_ms/nets/native.py): the native kernels, taken
+The ConvDecoder has two float32 CPU paths with the same values (ssm_ms/nets/native/): the native kernels, taken
 wherever they can be built (AVX-512 or AVX2 with FMA, a C compiler), and the torch-only path, taken everywhere else.
 A test run on one machine would otherwise exercise only one of them, so the other could rot unseen: a test that
 asks for ``decoder_path`` runs once per path in the same pytest process (``[native]`` is skipped, with the reason,
@@ -85,7 +85,7 @@ def decoder_path(request, monkeypatch) -> str:
             pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
     else:
         monkeypatch.setenv("SSM_MS_NATIVE", "0")
-        monkeypatch.setattr(native, "_state", {})
+        monkeypatch.setattr(native.build, "_state", {})
         assert native.library() is None
     return request.param
 

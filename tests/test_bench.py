@@ -78,7 +78,7 @@ def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
         text = out.read_text()
         assert "| decoder, native kernels |" in text and "| decoder, torch-only |" in text
         assert ("| native kernels, all calls |" in text) == (native.library() is not None)
-        assert "native.FLAG_SETS (-march=native)" in text
+        assert "native.build.FLAG_SETS (-march=native)" in text
     else:
         bench_ukf.main(["--tiny", "--threads", "1", "--out", str(out)])
         text = out.read_text()

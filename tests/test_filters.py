@@ -190,7 +190,7 @@ def lorenz_data(B, T, seed=0):
 
 def test_linear_g_is_not_evaluated_on_sigma_points_and_changes_nothing():
     """Projection / nn.Linear g: the update uses H directly; same result as sigma points through g."""
-    from ssm_ms.nets.observation import Projection
+    from ssm_ms.nets.readout import Projection
     from ssm_ms.nets.transition import LocallyLinearTransition
 
     class CountingProjection(Projection):
@@ -229,7 +229,7 @@ def test_linear_g_is_not_evaluated_on_sigma_points_and_changes_nothing():
 
 
 def test_projection_observation_matrix():
-    from ssm_ms.nets.observation import Projection
+    from ssm_ms.nets.readout import Projection
 
     x = torch.randn(5, 4)
     proj = Projection([3, 1, 1])

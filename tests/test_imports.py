@@ -58,3 +58,53 @@ def test_the_circle_check_finds_a_circle(monkeypatch):
     monkeypatch.setitem(globals(), "data_graph", lambda: fake)
     with pytest.raises(AssertionError, match="import circle"):
         test_data_modules_import_each_other_without_a_circle()
+
+
+def method_graph() -> dict[str, set[str]]:
+    """``ssm_ms``'s modules -> the ``ssm_ms`` modules each imports (a package's own parents left out: importing
+    ``ssm_ms.nets.native`` loads ``ssm_ms.nets`` first, which is not a circle)."""
+    files = {}
+    for p in (ROOT / "ssm_ms").rglob("*.py"):
+        parts = p.relative_to(ROOT).with_suffix("").parts
+        files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = p
+    graph = {}
+    for name, path in files.items():
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                deps.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                deps.add(node.module)
+                deps.update(f"{node.module}.{alias.name}" for alias in node.names)  # a submodule imported by name
+        graph[name] = {d for d in deps if d in files and d != name and not name.startswith(d + ".")}
+    return graph
+
+
+def test_the_method_imports_without_a_circle():
+    graph = method_graph()
+    assert "ssm_ms.nets.native.build" in graph["ssm_ms.nets.native.ops"]  # the graph is read
+    state: dict[str, int] = {}
+
+    def visit(name: str, path: list[str]) -> None:
+        state[name] = 1
+        for dep in sorted(graph[name]):
+            assert state.get(dep) != 1, f"import circle: {' -> '.join(path + [name, dep])}"
+            if dep not in state:
+                visit(dep, path + [name])
+        state[name] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [])
+
+
+def test_moved_modules_keep_their_old_names():
+    """Configs and checkpoints of earlier versions name ``ssm_ms.nets.observation.*``: those names still load, as
+    the same classes."""
+    import importlib
+
+    from ssm_ms import nets
+
+    old = importlib.import_module("ssm_ms.nets.observation")
+    for name in ("ConvDecoder", "LinearReadout", "Projection"):
+        assert getattr(old, name) is getattr(nets, name)

@@ -1,4 +1,4 @@
-"""The decoder's native kernels (ssm_ms/nets/native.py, _conv_stack.c) against torch's own layers.
+"""The decoder's native kernels (ssm_ms/nets/native/: build.py, ops.py, conv_stack.c) against torch's own layers.
 
 The tests taking ``decoder_path`` (tests/conftest.py) run twice, natively and with the kernels off, so the
 torch-only float32 path that every other machine runs is held to the same float64 reference."""
@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from ssm_ms.nets import ConvDecoder, native
-from ssm_ms.nets.observation import NATIVE_SCRATCH, native_applies
+from ssm_ms.nets.native import NATIVE_SCRATCH, build
+from ssm_ms.nets.native import applies as native_applies
 
 NATIVE = native.library() is not None
 needs_native = pytest.mark.skipif(not NATIVE, reason=f"native kernels unavailable: {native.unavailable_reason()}")
@@ -159,13 +160,13 @@ def test_native_path_steps_aside_where_it_cannot_run():
 
 @pytest.fixture
 def fresh_native(monkeypatch, tmp_path):
-    """native with no library loaded yet and its cache in tmp_path."""
-    monkeypatch.setattr(native, "_state", {})
+    """the kernels with no library loaded yet and its cache in tmp_path."""
+    monkeypatch.setattr(build, "_state", {})
     monkeypatch.setenv("SSM_MS_CACHE", str(tmp_path))
     return tmp_path
 
 
-@pytest.mark.skipif(native._compiler() is None, reason="no C compiler here")
+@pytest.mark.skipif(build._compiler() is None, reason="no C compiler here")
 def test_the_avx2_build_matches_torch_too(fresh_native, monkeypatch):
     """CPUs without AVX-512 but with AVX2 and FMA (AMD Zen 2/3, desktop Intel) get a build with 8-lane vectors and
     smaller tiles: it must be as right (built here with -mavx2 -mfma, which this CPU runs)."""
@@ -174,7 +175,7 @@ def test_the_avx2_build_matches_torch_too(fresh_native, monkeypatch):
         flags = next((line for line in fh if line.startswith("flags")), "")
     if not {"avx2", "fma"} <= set(flags.split()):
         pytest.skip("this CPU cannot run an AVX2 build")
-    monkeypatch.setattr(native, "FLAG_SETS", (["-O3", "-mavx2", "-mfma", "-fopenmp"],))
+    monkeypatch.setattr(build, "FLAG_SETS", (["-O3", "-mavx2", "-mfma", "-fopenmp"],))
     assert native.library() is not None, native.unavailable_reason()
     for spec in (SPECS[0], SPECS[4], SPECS[5], SPECS[6]):
         _check_against_float64(*spec, native_ran=True)
@@ -183,11 +184,11 @@ def test_the_avx2_build_matches_torch_too(fresh_native, monkeypatch):
 def test_a_cpu_without_vector_instructions_runs_the_torch_only_path_silently(fresh_native, monkeypatch):
     """In plain C the kernels were slower than the torch-only path, so such CPUs are not offered them: nothing is
     built, nothing is lost, so nothing is said."""
-    monkeypatch.setattr(native, "_has_simd", lambda: False)
+    monkeypatch.setattr(build, "_has_simd", lambda: False)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert native.library() is None
-    assert native.unavailable_reason() == native.NO_SIMD and "AVX2" in native.NO_SIMD
+    assert native.unavailable_reason() == build.NO_SIMD and "AVX2" in build.NO_SIMD
     assert not list(fresh_native.glob("*.so"))
     x = torch.randn(3, 5)
     assert not native_applies(x)
@@ -195,9 +196,9 @@ def test_a_cpu_without_vector_instructions_runs_the_torch_only_path_silently(fre
     torch.testing.assert_close(fused(x).double(), plain(x.double()), rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.skipif(native._compiler() is None, reason="no C compiler here")
+@pytest.mark.skipif(build._compiler() is None, reason="no C compiler here")
 def test_a_build_without_vector_instructions_is_refused_by_the_source(fresh_native, monkeypatch):
-    monkeypatch.setattr(native, "FLAG_SETS", (["-O2", "-fopenmp"],))  # no -march=native: SSE2 only
+    monkeypatch.setattr(build, "FLAG_SETS", (["-O2", "-fopenmp"],))  # no -march=native: SSE2 only
     with pytest.warns(RuntimeWarning, match="compiling the native kernels failed"):
         assert native.library() is None
     assert "need AVX-512, or AVX2 with FMA" in native.unavailable_reason()
@@ -209,9 +210,9 @@ def test_unavailable_native_kernels_say_why(fresh_native, monkeypatch):
         warnings.simplefilter("error")  # switched off on purpose: no warning
         assert native.library() is None
     assert native.unavailable_reason() == "SSM_MS_NATIVE=0 is set"
-    monkeypatch.setattr(native, "_state", {})
+    monkeypatch.setattr(build, "_state", {})
     monkeypatch.setenv("SSM_MS_NATIVE", "1")
-    monkeypatch.setattr(native, "_compiler", lambda: None)
+    monkeypatch.setattr(build, "_compiler", lambda: None)
     with pytest.warns(RuntimeWarning, match="native kernels are off.*no C compiler") as seen:
         assert native.library() is None and "no C compiler" in native.unavailable_reason()
         native.library()  # said once, not per call
@@ -225,7 +226,7 @@ def test_unavailable_native_kernels_say_why(fresh_native, monkeypatch):
 def test_a_compiler_error_is_reported_not_raised(fresh_native, monkeypatch):
     broken = fresh_native / "broken.c"
     broken.write_text("this is not C\n")
-    monkeypatch.setattr(native, "SOURCE", broken)
+    monkeypatch.setattr(build, "SOURCE", broken)
     with pytest.warns(RuntimeWarning, match="compiling the native kernels failed"):
         assert native.library() is None
     reason = native.unavailable_reason()
@@ -233,15 +234,15 @@ def test_a_compiler_error_is_reported_not_raised(fresh_native, monkeypatch):
     assert not list(fresh_native.glob("*.so"))  # nothing half-written left in the cache
 
 
-@pytest.mark.skipif(native._compiler() is None, reason="no C compiler here")
+@pytest.mark.skipif(build._compiler() is None, reason="no C compiler here")
 def test_the_cache_is_keyed_by_the_cpu(fresh_native, monkeypatch):
     assert native.library() is not None
     first = sorted(p.name for p in fresh_native.glob("*.so"))
     assert len(first) == 1
-    monkeypatch.setattr(native, "_state", {})
+    monkeypatch.setattr(build, "_state", {})
     assert native.library() is not None  # same CPU: the cached library, nothing rebuilt
     assert sorted(p.name for p in fresh_native.glob("*.so")) == first
-    monkeypatch.setattr(native, "_state", {})
-    monkeypatch.setattr(native, "_cpu_signature", lambda: "another CPU flags : avx2")
+    monkeypatch.setattr(build, "_state", {})
+    monkeypatch.setattr(build, "_cpu_signature", lambda: "another CPU flags : avx2")
     assert native.library() is not None  # another CPU (a home directory shared between machines): its own build
     assert len(list(fresh_native.glob("*.so"))) == 2

@@ -103,7 +103,7 @@ def test_encoder_presets(preset, shape, features):
 def test_fast_conv_transpose_equals_torch_with_gradients_and_jvp(c_in, c_out, kernel, stride, size, channels_last):
     from torch.func import jvp
 
-    from ssm_ms.nets.observation import conv_transpose2d
+    from ssm_ms.nets.channels_last import conv_transpose2d
 
     torch.manual_seed(0)
     w = torch.randn(c_in, c_out, kernel, kernel, dtype=torch.float64, requires_grad=True)

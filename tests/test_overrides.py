@@ -13,7 +13,8 @@ from omegaconf import OmegaConf
 from ssm_ms.cli import main
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import ConvDecoder
-from ssm_ms.nets.observation import PRESETS, LinearReadout
+from ssm_ms.nets import LinearReadout
+from ssm_ms.nets.decoder import PRESETS
 from tests.test_cli import CPU, ROOT, fit_tiny, outputs, run
 
 

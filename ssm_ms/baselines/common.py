@@ -9,8 +9,8 @@ from typing import NamedTuple, Optional
 
 from torch import Tensor
 
-from ssm_ms.nets.observation import PRESETS as DECODER_PRESETS
-from ssm_ms.nets.observation import ConvDecoder
+from ssm_ms.nets.decoder import PRESETS as DECODER_PRESETS
+from ssm_ms.nets.decoder import ConvDecoder
 
 # Image side -> preset of both the encoder and the decoder (the paper's three image experiments).
 PRESET_BY_IMAGE_SIZE = {24: "pendulum", 48: "quad", 64: "mnist"}

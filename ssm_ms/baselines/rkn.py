@@ -295,7 +295,7 @@ class RecurrentKalmanNetwork(nn.Module):
             48 -> ``"quad"``, 64 -> ``"mnist"`` (other square sizes: the nearest of these).
         encoder_hidden: widths of Linear + ReLU layers between the CNN features and the two heads of
             ``w`` (``m``) and ``s`` (``m``, ``elu + 1``); ``()`` by default (ours).
-        decoder_preset: images only: the :class:`~ssm_ms.nets.observation.ConvDecoder` preset; ``None``
+        decoder_preset: images only: the :class:`~ssm_ms.nets.decoder.ConvDecoder` preset; ``None``
             picks it by size like the encoder. It draws the image size of ``obs_shape``; its channels must
             match (checked here).
         decoder_hidden: vectors only: ReLU hidden widths of the mean MLP (of the posterior mean) and of the

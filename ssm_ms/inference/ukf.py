@@ -138,7 +138,7 @@ class UnscentedKalmanFilter:
             with a full ``R`` and ``O(p (2d+1)^2)`` with a diagonal one; needs non-negative weights.
             ``"auto"`` (default) picks ``low_rank`` when the weights allow it and ``p > 2d+1``.
             In ``dense`` mode a linear ``g`` (``nn.Linear``, or a module with ``observation_matrix(d)``
-            such as :class:`~ssm_ms.nets.observation.Projection`) is not evaluated on sigma points: the
+            such as :class:`~ssm_ms.nets.readout.Projection`) is not evaluated on sigma points: the
             unscented transform of a linear map is exact, so the update uses ``H P H^T`` and ``P H^T``
             directly (the same result, fewer operations). Wrap ``g`` in a function to force sigma points.
         autocast: ``None`` (default: the dtype of ``y``), ``"bfloat16"`` or ``"float16"``: evaluate ``f``

@@ -1,7 +1,8 @@
 """Networks: residual transitions ``f``, observation models ``g``, state encoders."""
 
+from ssm_ms.nets.decoder import ConvDecoder
 from ssm_ms.nets.encoder import FrameEncoder, StateEncoder
-from ssm_ms.nets.observation import ConvDecoder, LinearReadout, Projection
+from ssm_ms.nets.readout import LinearReadout, Projection
 from ssm_ms.nets.transition import FullyConnectedTransition, LocallyLinearTransition
 
 __all__ = [

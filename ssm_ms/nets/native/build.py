@@ -1,6 +1,6 @@
 """Native CPU kernels for the ConvDecoder: compiled on first use with the system C compiler, called through ctypes.
 
-The kernels (``_conv_stack.c``: the decoder's whole stack of transposed convolutions with the layer norms and ReLUs
+The kernels (``conv_stack.c``: the decoder's whole stack of transposed convolutions with the layer norms and ReLUs
 between them, one sample at a time in cache, forward and backward, float32) are plain C without Python or torch
 headers: compiling them takes about a second. The shared library is cached under ``$SSM_MS_CACHE`` (default
 ``$XDG_CACHE_HOME/ssm_ms`` or ``~/.cache/ssm_ms``), keyed by the source, the compiler, its flags and this CPU's
@@ -31,9 +31,9 @@ import threading
 import warnings
 from pathlib import Path
 
-import torch
+import torch  # noqa: F401  (loaded first: the kernels then bind torch's own libgomp, see above)
 
-SOURCE = Path(__file__).with_name("_conv_stack.c")
+SOURCE = Path(__file__).with_name("conv_stack.c")
 # the first set the compiler accepts; OpenMP is required (kernels on one thread beside torch's threaded
 # convolutions were not measured, so not offered); -march=native for AVX-512 or AVX2 (the source refuses others)
 FLAG_SETS = (
