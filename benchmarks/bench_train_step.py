@@ -17,9 +17,9 @@ Implementations:
 
 * ``reference``: :mod:`benchmarks.reference_structure` (its networks, its per-step ``loss_function``,
   a dense node tensor, default allocator);
-* ``ours``: ``MultipleShootingModule.shooting_loss`` + its Adam, float32 (the decoder's fused native kernels
-  where they compile: :mod:`ssm_ms.nets.native`);
-* ``ours-torch``: the same with ``ConvDecoder(native=False)``, the torch-only decoder;
+* ``ours``: ``MultipleShootingModule.shooting_loss`` + its Adam, float32 (the decoder's fused native kernels,
+  ``backend="native"``, where they compile: :mod:`ssm_ms.nets.native`);
+* ``ours-torch``: the same with ``ConvDecoder(backend="torch")``, the torch-only decoder;
 * ``ours-bf16``: the same under ``torch.autocast(device, bfloat16)``, what ``trainer.precision: bf16-mixed``
   does (only where the device has native bfloat16 instructions; else it is reported as skipped);
 * ``ours-compiled`` (``--compiled``): float32 with ``compile_rollout`` (``reduce-overhead`` on a GPU:
@@ -76,12 +76,13 @@ def build(impl: str, model: str, size: dict, device: str = "cpu"):
         return lambda: trainer.step(idx, y_flat)
 
     from ssm_ms.module import MultipleShootingModule
-    from ssm_ms.nets import ConvDecoder, FullyConnectedTransition, LocallyLinearTransition
+    from ssm_ms.nets import ConvDecoder, FullyConnectedTransition, LocallyLinearTransition, native
 
     f = LocallyLinearTransition(d, size["k"], size["hidden"]) if model == "SSM-LL" else \
         FullyConnectedTransition(d, (size["fc"],) * 3)
     compiled = ("reduce-overhead" if device == "cuda" else "default") if impl == "ours-compiled" else None
-    g = ConvDecoder(d, "pendulum", native=impl != "ours-torch")
+    kernels = "native" if device == "cpu" and native.library() is not None else "torch"
+    g = ConvDecoder(d, "pendulum", backend="torch" if impl == "ours-torch" else kernels)
     module = MultipleShootingModule(f, g, d, num_trajectories=size["n_train"], n_nodes=m,
                                     compile_rollout=compiled).to(device)
     with torch.no_grad():

@@ -32,6 +32,7 @@ What the command line adds to Lightning's:
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import shlex
@@ -271,6 +272,18 @@ def _help_command(args: list[str] | None) -> str:
     return f"python cli.py {subcommand} --help" if subcommand else "python cli.py --help"
 
 
+def show_package_log() -> None:
+    """The ``ssm_ms`` logger's INFO lines (e.g. which decoder backend ``auto`` chose) on stderr, as Lightning shows its
+    own; once per process."""
+    log = logging.getLogger("ssm_ms")
+    if not log.handlers:
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
+        log.propagate = False
+
+
 def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     """Parse ``args`` (default: ``sys.argv``) and run the subcommand.
 
@@ -279,6 +292,7 @@ def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     command line. A user's mistake exits with one message on stderr (see the module docstring).
     """
     configure_allocator()  # large CPU tensors: reuse freed memory instead of page-faulting it back
+    show_package_log()
     # interpolation paths are written from the config's root (the subcommand's level)
     set_parsing_settings(omegaconf_absolute_to_relative_paths=True)
     sigint = signal.getsignal(signal.SIGINT)  # Lightning ignores SIGINT after a Ctrl-C: restore it after

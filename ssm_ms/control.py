@@ -40,6 +40,7 @@ import torch
 from torch import nn
 
 from ssm_ms.analysis import jacobian, linearize
+from ssm_ms.nets import ConvDecoder
 
 __all__ = ["FORMATS", "export", "export_checkpoint", "jacobian", "linearize", "main"]
 
@@ -48,15 +49,14 @@ SUFFIX = {"pt2": ".pt2", "torchscript": ".torchscript.pt"}
 
 
 def _standalone_copy(module: nn.Module) -> nn.Module:
-    """An eval-mode copy in plain torch operations: modules with ``channels_last`` and ``native`` switches (the
-    :class:`~ssm_ms.nets.ConvDecoder`, whose native kernels and channels-last path are CPU training speed that
-    tracing cannot follow) get them turned off (same function, same parameters), and parameters and buffers are
-    made contiguous (a channels-last weight makes ``torch.export.load`` warn)."""
+    """An eval-mode copy in plain torch operations: every :class:`~ssm_ms.nets.ConvDecoder` in it runs its ``"plain"``
+    backend (torch's own layers: its native kernels and channels-last path are CPU training speed that tracing
+    cannot follow; same function, same parameters), and parameters and buffers are made contiguous (a channels-last
+    weight makes ``torch.export.load`` warn)."""
     copy_ = copy.deepcopy(module).eval()
     for sub in copy_.modules():
-        for switch in ("channels_last", "native"):
-            if isinstance(getattr(sub, switch, None), bool):
-                setattr(sub, switch, False)
+        if isinstance(sub, ConvDecoder):
+            sub.backend = "plain"
     with torch.no_grad():
         for tensor in list(copy_.parameters()) + list(copy_.buffers()):
             tensor.data = tensor.data.contiguous()

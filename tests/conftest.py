@@ -1,12 +1,11 @@
 """Shared fixtures: a tiny rotation system as a DataModule, trainer settings for fast CPU runs, and
-``decoder_path``, which runs a decoder test twice: through the native kernels and through the torch-only path.
+``decoder_path``, which runs a decoder test twice: with the backend ``"native"`` and with ``"torch"``.
 
-The ConvDecoder has two float32 CPU paths with the same values (ssm_ms/nets/native/): the native kernels, taken
-wherever they can be built (AVX-512 or AVX2 with FMA, a C compiler), and the torch-only path, taken everywhere else.
-A test run on one machine would otherwise exercise only one of them, so the other could rot unseen: a test that
-asks for ``decoder_path`` runs once per path in the same pytest process (``[native]`` is skipped, with the reason,
-where the kernels cannot be built; ``[torch-only]`` sets ``SSM_MS_NATIVE=0`` and forgets any loaded library for
-the test's duration, so subprocesses it starts take that path too)."""
+The ConvDecoder has two float32 CPU paths with the same values: the native kernels (ssm_ms/nets/native/), which
+backend ``"auto"`` takes where they build (AVX-512 or AVX2 with FMA, a C compiler) and are faster, and the torch
+path. A test run on one machine would otherwise exercise only one of them, so the other could rot unseen: a test
+that asks for ``decoder_path`` runs once per backend in the same pytest process (``[native]`` is skipped, with the
+reason, where the kernels cannot be built, and fails instead with ``SSM_MS_REQUIRE_NATIVE=1``)."""
 
 from __future__ import annotations
 
@@ -77,16 +76,29 @@ def fast_trainer(tmp_path, max_epochs: int, callbacks=(), **kwargs) -> pl.Traine
     return pl.Trainer(**args)
 
 
-@pytest.fixture(params=["native", "torch-only"])
-def decoder_path(request, monkeypatch) -> str:
-    """The ConvDecoder's float32 CPU path for this test: ``"native"`` or ``"torch-only"`` (see the module docstring)."""
+REQUIRE_NATIVE_ENV = "SSM_MS_REQUIRE_NATIVE"
+
+
+def native_or_skip() -> None:
+    """Skip the test, saying why, where the native kernels cannot be built; with ``SSM_MS_REQUIRE_NATIVE=1`` (on a
+    machine where they should build) fail it instead, so that a broken build cannot hide behind a skip."""
+    if native.library() is None:
+        message = f"native kernels unavailable: {native.unavailable_reason()}"
+        if os.environ.get(REQUIRE_NATIVE_ENV, "") == "1":
+            pytest.fail(f"{message} ({REQUIRE_NATIVE_ENV}=1 is set)")
+        pytest.skip(message)
+
+
+@pytest.fixture
+def needs_native() -> None:
+    native_or_skip()
+
+
+@pytest.fixture(params=["native", "torch"])
+def decoder_path(request) -> str:
+    """The ConvDecoder backend under test, ``"native"`` or ``"torch"`` (see the module docstring)."""
     if request.param == "native":
-        if native.library() is None:
-            pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
-    else:
-        monkeypatch.setenv("SSM_MS_NATIVE", "0")
-        monkeypatch.setattr(native.build, "_state", {})
-        assert native.library() is None
+        native_or_skip()
     return request.param
 
 

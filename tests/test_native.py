@@ -12,9 +12,6 @@ from ssm_ms.nets import ConvDecoder, native
 from ssm_ms.nets.native import NATIVE_SCRATCH, build
 from ssm_ms.nets.native import applies as native_applies
 
-NATIVE = native.library() is not None
-needs_native = pytest.mark.skipif(not NATIVE, reason=f"native kernels unavailable: {native.unavailable_reason()}")
-
 # (stem channels, stem size, layers, image_size): the pendulum's shape, a stride-1 first layer, a three-channel
 # image, a cropped image, 16 channels (exactly one 16-lane register), maps wider than a register (80 and 70
 # channels: several vectors per pixel, products of 630 columns), the quadruple pendulum's depth (three layer norms),
@@ -31,14 +28,14 @@ SPECS = [
 ]
 
 
-def _pair(state_dim, stem, size, layers, image_size, drop_bias=False):
+def _pair(state_dim, stem, size, layers, image_size, drop_bias=False, backend="native"):
     torch.manual_seed(0)
     kwargs = dict(preset=None, stem_channels=stem, stem_size=size, layers=layers, image_size=image_size)
-    fused = ConvDecoder(state_dim, **kwargs)
+    fused = ConvDecoder(state_dim, **kwargs, backend=backend)
     with torch.no_grad():  # non-trivial LayerNorm affine parameters: a wrong element order would show
         for p in fused.parameters():
             p.add_(0.2 * torch.randn_like(p))
-    plain = ConvDecoder(state_dim, **kwargs, channels_last=False).double()  # torch's own layers, NCHW, float64
+    plain = ConvDecoder(state_dim, **kwargs, backend="plain").double()  # torch's own layers, NCHW, float64
     if drop_bias:  # a transposed convolution without bias (not what ConvDecoder builds, but the kernels allow it)
         for dec in (fused, plain):
             dec.deconv[0].register_parameter("bias", None)
@@ -58,13 +55,13 @@ def _graph_names(t: torch.Tensor) -> list[str]:
     return names
 
 
-def _check_against_float64(stem, size, layers, image_size, native_ran: bool, drop_bias=False):
-    """The float32 decoder (native kernels where ``native_ran``, else the torch-only channels-last path), values
+def _check_against_float64(stem, size, layers, image_size, backend: str, drop_bias=False):
+    """The float32 decoder with ``backend`` (``"native"``: the kernels, ``"torch"``: the channels-last path), values
     and gradients, against torch's own NCHW layers in float64."""
-    fused, plain = _pair(5, stem, size, layers, image_size, drop_bias)
+    fused, plain = _pair(5, stem, size, layers, image_size, drop_bias, backend)
     x = torch.randn(9, 5, requires_grad=True)
     out = fused(x)
-    assert ("_ConvStackBackward" in _graph_names(out)) == native_ran  # the path under test ran
+    assert ("_ConvStackBackward" in _graph_names(out)) == (backend == "native")  # the path under test ran
     x64 = x.detach().double().requires_grad_()
     want = plain(x64)
     torch.testing.assert_close(out.double(), want, rtol=1e-5, atol=1e-5)
@@ -79,29 +76,30 @@ def _check_against_float64(stem, size, layers, image_size, native_ran: bool, dro
 
 @pytest.mark.parametrize("stem, size, layers, image_size", SPECS)
 def test_decoder_matches_torch_layers_in_float64(decoder_path, stem, size, layers, image_size):
-    _check_against_float64(stem, size, layers, image_size, native_ran=decoder_path == "native")
+    _check_against_float64(stem, size, layers, image_size, decoder_path)
 
 
 def test_a_transposed_convolution_without_bias_matches_too(decoder_path):
-    _check_against_float64(*SPECS[0], native_ran=decoder_path == "native", drop_bias=True)
+    _check_against_float64(*SPECS[0], decoder_path, drop_bias=True)
 
 
-@needs_native
-def test_only_stacks_whose_sample_fits_in_cache_run_natively():
+def test_only_stacks_whose_sample_fits_in_cache_run_natively(needs_native):
     # one sample's scratch: the largest products (H_in W_in k^2 C_out) plus three largest layer-normed maps, counted
     # here from the layer sizes by hand: pendulum 11x11 inputs x 3x3x12 products, maps 12x23x23
     assert ConvDecoder(4, "pendulum").native_scratch() == 11 * 11 * 9 * 12 + 3 * 12 * 23 * 23 <= NATIVE_SCRATCH
     assert ConvDecoder(4, "quad").native_scratch() == 23 * 23 * 9 * 12 + 3 * 12 * 47 * 47 <= NATIVE_SCRATCH
     assert ConvDecoder(4, "pendulum").native_fits and ConvDecoder(4, "quad").native_fits
-    mnist = ConvDecoder(4, "mnist")  # 15x15 inputs x 3x3x256 products, maps 256x31x31: far more than an L2 cache
+    mnist = ConvDecoder(4, "mnist")  # backend "auto"; 15x15 inputs x 3x3x256 products, maps 256x31x31: far more than an L2 cache
     assert not mnist.native_fits and 15 * 15 * 9 * 256 > NATIVE_SCRATCH
     x = torch.randn(2, 4, requires_grad=True)
     assert "_ConvStackBackward" not in _graph_names(mnist(x))  # the torch-only path, batched oneDNN convolutions
-    assert "_ConvStackBackward" in _graph_names(ConvDecoder(4, "quad")(x))
+    assert "_ConvStackBackward" in _graph_names(ConvDecoder(4, "quad", backend="native")(x))
+    with pytest.raises(ValueError, match="backend 'native' cannot run here: one sample of this stack needs"):
+        ConvDecoder(4, "mnist", backend="native")
 
 
 def test_decoder_gives_the_same_bits_twice_and_uses_every_thread_count(decoder_path):
-    fused, _ = _pair(5, *SPECS[0])
+    fused, _ = _pair(5, *SPECS[0], backend=decoder_path)
     x = torch.randn(64, 5, requires_grad=True)
     assert ("_ConvStackBackward" in _graph_names(fused(x))) == (decoder_path == "native")
     threads = torch.get_num_threads()
@@ -119,8 +117,7 @@ def test_decoder_gives_the_same_bits_twice_and_uses_every_thread_count(decoder_p
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
 
 
-@needs_native
-def test_native_path_steps_aside_where_it_cannot_run():
+def test_native_path_steps_aside_where_it_cannot_run(needs_native):
     fused, plain = _pair(5, *SPECS[0])
     x = torch.randn(4, 5)
     assert native_applies(x)
@@ -143,15 +140,16 @@ def test_native_path_steps_aside_where_it_cannot_run():
     _, want = jvp(lambda p: functional_call(plain, p, (x.double(),)),
                   ({k: v.double() for k, v in params.items()},), ({k: v.double() for k, v in tangents.items()},))
     torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)
-    # a trace cannot record a call through ctypes: tracing runs the torch-only path (here its NCHW layers, the
-    # ones ssm_ms.control exports), so the traced graph is whole
-    fused.channels_last = False
+    # a trace cannot record a call through ctypes: tracing runs the torch path (here the "plain" backend's NCHW
+    # layers, the ones ssm_ms.control exports), so the traced graph is whole
+    fused.backend = "plain"
     traced = torch.jit.trace(fused, (x,), check_trace=False)
     other = torch.randn(6, 5)
     torch.testing.assert_close(traced(other), fused(other), rtol=1e-5, atol=1e-6)
     exported = torch.export.export(fused.eval(), (x,)).module()  # fake tensors: the torch-only path too
     torch.testing.assert_close(exported(other[:4]), fused(other[:4]), rtol=1e-5, atol=1e-6)
-    off = ConvDecoder(5, preset=None, stem_channels=8, stem_size=3, layers=SPECS[0][2], native=False)
+    fused.backend = "native"
+    off = ConvDecoder(5, preset=None, stem_channels=8, stem_size=3, layers=SPECS[0][2], backend="torch")
     off.load_state_dict(fused.state_dict())
     y = off(x.requires_grad_())
     assert "_ConvStackBackward" not in _graph_names(y)
@@ -178,7 +176,7 @@ def test_the_avx2_build_matches_torch_too(fresh_native, monkeypatch):
     monkeypatch.setattr(build, "FLAG_SETS", (["-O3", "-mavx2", "-mfma", "-fopenmp"],))
     assert native.library() is not None, native.unavailable_reason()
     for spec in (SPECS[0], SPECS[4], SPECS[5], SPECS[6]):
-        _check_against_float64(*spec, native_ran=True)
+        _check_against_float64(*spec, "native")
 
 
 def test_a_cpu_without_vector_instructions_runs_the_torch_only_path_silently(fresh_native, monkeypatch):
@@ -192,7 +190,7 @@ def test_a_cpu_without_vector_instructions_runs_the_torch_only_path_silently(fre
     assert not list(fresh_native.glob("*.so"))
     x = torch.randn(3, 5)
     assert not native_applies(x)
-    fused, plain = _pair(5, *SPECS[0])  # the torch-only path, as right
+    fused, plain = _pair(5, *SPECS[0], backend="auto")  # the torch path, as right
     torch.testing.assert_close(fused(x).double(), plain(x.double()), rtol=1e-5, atol=1e-5)
 
 
@@ -205,22 +203,17 @@ def test_a_build_without_vector_instructions_is_refused_by_the_source(fresh_nati
 
 
 def test_unavailable_native_kernels_say_why(fresh_native, monkeypatch):
-    monkeypatch.setenv("SSM_MS_NATIVE", "0")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # switched off on purpose: no warning
-        assert native.library() is None
-    assert native.unavailable_reason() == "SSM_MS_NATIVE=0 is set"
-    monkeypatch.setattr(build, "_state", {})
-    monkeypatch.setenv("SSM_MS_NATIVE", "1")
     monkeypatch.setattr(build, "_compiler", lambda: None)
     with pytest.warns(RuntimeWarning, match="native kernels are off.*no C compiler") as seen:
         assert native.library() is None and "no C compiler" in native.unavailable_reason()
         native.library()  # said once, not per call
     assert len(seen) == 1
-    # without the kernels the decoder runs its torch-only path
+    # without the kernels backend "auto" runs the torch path; "native", asked for by name, is refused with the reason
     x = torch.randn(3, 5)
     assert not native_applies(x)
     assert ConvDecoder(5, "pendulum")(x).shape == (3, 1, 24, 24)
+    with pytest.raises(ValueError, match=r"backend 'native' cannot run here: no C compiler .* use backend 'auto'"):
+        ConvDecoder(5, "pendulum", backend="native")
 
 
 def test_a_compiler_error_is_reported_not_raised(fresh_native, monkeypatch):

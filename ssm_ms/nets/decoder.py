@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import functools
+import json
+import logging
+import os
+import tempfile
+import time
 from collections.abc import Sequence
 
 import torch
 from torch import nn
 
-from ssm_ms.nets import native  # the package ssm_ms.nets.native (build, ops)
+from ssm_ms.nets import native as kernels  # the package ssm_ms.nets.native (build, ops)
 from ssm_ms.nets.channels_last import conv_transpose2d, layer_norm_channels_last
 
 PRESETS: dict[str, tuple[int, int, list[tuple[int, int, int]]]] = {
@@ -40,16 +46,31 @@ class ConvDecoder(nn.Module):
             the strides; none at the sizes the stack draws exactly, e.g. the presets' 24, 48, 64). Sizes
             below what a 1x1 stem draws are refused with the sizes that work. Give ``stem_size`` or
             ``image_size``, not both.
-        channels_last: on the torch-only path, run the feature maps after the first transposed convolution in
-            channels-last memory layout (same results, same parameters), the layout oneDNN's CPU convolutions are
-            fastest in; the transposed convolutions then run through :func:`conv_transpose2d`. LayerNorm is applied
-            to the ``(H, W, C)``-ordered sample, a view, never a copy.
-        native: on a CPU with AVX-512 or AVX2, in float32 (no autocast, no forward-mode AD, no tracing), run the whole
-            stack after the stem (every transposed convolution, LayerNorm and ReLU) through the native kernels of
-            :mod:`ssm_ms.nets.native`, one sample at a time in cache (compiled on first use; same values up to
-            float rounding), where one sample's scratch fits in :data:`~ssm_ms.nets.native.NATIVE_SCRATCH` floats
-            (:attr:`native_fits`: the pendulum and quadruple-pendulum decoders, not Moving MNIST's). Elsewhere, or
-            where the kernels cannot be compiled, the torch-only path runs.
+        backend: how the layers after the stem run; one switch, same parameters and same values up to float rounding:
+
+            * ``"auto"`` (default): the native kernels where they can run and are faster on this CPU, else ``"torch"``.
+              Faster is measured, not assumed: the first forward that could run natively times both paths on this
+              decoder's layers (forward + backward of :data:`AUTO_PIXELS` pixels' worth of samples, about a second)
+              and keeps the faster; the choice is kept per CPU, kernel build, layer geometry and thread count in
+              ``<cache>/backend-choices.json`` (:func:`ssm_ms.nets.native.cache_dir`; delete it to measure again),
+              so it is measured once per machine, and logged (logger ``ssm_ms``). The pendulum decoder's kernels
+              took 91 ms against the torch path's 195 ms on an AVX-512 Xeon, but 873 against 508 ms on a
+              first-generation AMD EPYC (Zen 1, whose AVX2 runs as 128-bit halves):
+              ``benchmarks/results/decoder_profile*.md``.
+            * ``"native"``: the native kernels of :mod:`ssm_ms.nets.native` wherever they can run, without timing:
+              the whole stack after the stem (every transposed convolution, LayerNorm and ReLU) one sample at a time
+              in cache, float32 on a CPU with AVX-512 or AVX2 + FMA, where one sample's scratch fits in
+              :data:`~ssm_ms.nets.native.NATIVE_SCRATCH` floats (:attr:`native_fits`: the pendulum and
+              quadruple-pendulum decoders, not Moving MNIST's). Refused at construction where the kernels cannot be
+              built or the stack does not fit. Inputs they cannot take (float64, autocast, forward-mode AD,
+              tracing, other devices) run the ``"torch"`` path.
+            * ``"torch"``: torch operations on channels-last feature maps (:mod:`ssm_ms.nets.channels_last`), the
+              layout oneDNN's CPU convolutions are fastest in.
+            * ``"plain"``: torch's own ``nn`` layers on NCHW maps, as built: the reference the tests compare with,
+              and what :mod:`ssm_ms.control` exports.
+        native, channels_last: what checkpoints and configs of earlier versions recorded instead of ``backend``;
+            read so that they keep loading (``native=False`` means ``"torch"``, ``channels_last=False`` ``"plain"``;
+            ``True``, their old defaults, changes nothing). Give ``backend``.
     """
 
     def __init__(
@@ -60,11 +81,13 @@ class ConvDecoder(nn.Module):
         stem_size: int | None = None,
         layers: Sequence[Sequence[int]] | None = None,
         output: str = "sigmoid",
-        channels_last: bool = True,
         image_size: int | None = None,
-        native: bool = True,
+        backend: str = "auto",
+        native: bool | None = None,
+        channels_last: bool | None = None,
     ):
         super().__init__()
+        backend = _backend(backend, native, channels_last)
         if image_size is not None and stem_size is not None:
             raise ValueError(
                 f"ConvDecoder got stem_size={stem_size} and image_size={image_size}: give one (image_size chooses "
@@ -101,19 +124,35 @@ class ConvDecoder(nn.Module):
         self.drawn_size = s  # before the crop
         s = s if image_size is None else int(image_size)
         self.out_shape = (c, s, s)
-        self.channels_last = channels_last
-        self.native = native
-        if channels_last:
+        if backend != "plain":
             self.deconv.to(memory_format=torch.channels_last)
+        self.backend = backend
+        if backend == "native":
+            reason = kernels.unavailable_reason() or (None if self.native_fits else (
+                f"one sample of this stack needs {self.native_scratch()} floats of scratch, more than the kernels' "
+                f"{kernels.NATIVE_SCRATCH} (NATIVE_SCRATCH)"))
+            if reason is not None:
+                raise ValueError(f"ConvDecoder backend 'native' cannot run here: {reason}; use backend 'auto' (the "
+                                 "default: the kernels where they run and are faster) or 'torch'")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         lead = x.shape[:-1]
         h = self.stem(x.reshape(-1, self.state_dim))
-        if self.native and native.applies(h) and self.native_fits:
+        if self._runs_native(h):
             return self._centre(self._native_stack(h)).reshape(*lead, *self.out_shape)
+        return self._centre(self._torch_stack(h)).reshape(*lead, *self.out_shape)
+
+    def _runs_native(self, h: torch.Tensor) -> bool:
+        """Whether this forward takes the native kernels (``h``: the stem's output); see ``backend``."""
+        if self.backend not in ("auto", "native") or not kernels.applies(h) or not self.native_fits:
+            return False
+        return self.backend == "native" or _auto_prefers_native(self)
+
+    def _torch_stack(self, h: torch.Tensor) -> torch.Tensor:
+        """The layers after the stem in torch: the ``"plain"`` backend's ``nn`` layers, or the channels-last path."""
         h = h.view(-1, *self.stem_shape)
-        if not self.channels_last:
-            return self._centre(self.deconv(h)).reshape(*lead, *self.out_shape)
+        if self.backend == "plain":
+            return self.deconv(h)
         # the stem's small map stays in the Linear's NCHW order, the layout in which oneDNN convolves a 3x3 map
         # fastest (first layer forward+backward: pendulum 40 ms instead of 54, Moving MNIST 0.77 s instead of 1.1);
         # the transposed convolutions return channels-last maps
@@ -130,20 +169,20 @@ class ConvDecoder(nn.Module):
             else:
                 h = layer(h)
             i += 1
-        return self._centre(h).reshape(*lead, *self.out_shape)  # a view for one uncropped channel, else a copy
+        return h
 
     def native_scratch(self) -> int | None:
         """Floats of one sample's scratch in the native kernels (the largest products ``H_in W_in x k^2 C_out`` of a
         layer and three of the largest layer-normed maps), as the kernels count it; ``None`` without them."""
-        return native.ops.scratch_floats(self._geometry())
+        return kernels.ops.scratch_floats(self._geometry())
 
-    @property
+    @functools.cached_property
     def native_fits(self) -> bool:
-        """Whether :meth:`native_scratch` is at most :data:`~ssm_ms.nets.native.NATIVE_SCRATCH` floats: true for the pendulum and
-        quadruple-pendulum decoders, not for Moving MNIST's (512 and 256 channels: oneDNN's batched convolutions are
-        the faster way there)."""
+        """Whether :meth:`native_scratch` is at most :data:`~ssm_ms.nets.native.NATIVE_SCRATCH` floats: true for the
+        pendulum and quadruple-pendulum decoders, not for Moving MNIST's (512 and 256 channels: oneDNN's batched
+        convolutions are the faster way there). Asked once per decoder (the layers do not change)."""
         scratch = self.native_scratch()
-        return scratch is not None and scratch <= native.NATIVE_SCRATCH
+        return scratch is not None and scratch <= kernels.NATIVE_SCRATCH
 
     def _geometry(self) -> tuple[tuple[int, int, int, int, int, int], ...]:
         """``(C_in, C_out, kernel, stride, H_in, W_in)`` of each transposed convolution."""
@@ -156,7 +195,7 @@ class ConvDecoder(nn.Module):
         return tuple(geometry)
 
     def _native_stack(self, h: torch.Tensor) -> torch.Tensor:
-        """The transposed convolutions, layer norms and ReLUs after the stem through :class:`_ConvStack`, then the
+        """The transposed convolutions, layer norms and ReLUs after the stem through the native kernels, then the
         rest (the sigmoid) in torch; ``h`` is the stem's output ``[N, C S S]``."""
         c, s = self.stem_shape[0], self.stem_shape[1]
         n = h.shape[0]
@@ -172,7 +211,7 @@ class ConvDecoder(nn.Module):
                     params += [norm.weight, norm.bias]
                 eps.append(norm.eps if norm is not None else 0.0)
         geometry = self._geometry()
-        out = native.conv_stack(hwc, geometry, eps, params)
+        out = kernels.conv_stack(hwc, geometry, eps, params)
         out = out.view(n, self.drawn_size, self.drawn_size, geometry[-1][1]).permute(0, 3, 1, 2)
         return self.deconv[-1](out) if isinstance(self.deconv[-1], nn.Sigmoid) else out
 
@@ -182,6 +221,100 @@ class ConvDecoder(nn.Module):
         if size == self.drawn_size:
             return h
         return h[..., self.crop : self.crop + size, self.crop : self.crop + size]
+
+
+BACKENDS = ("auto", "native", "torch", "plain")
+AUTO_PIXELS = 1 << 18  # image pixels per timed forward + backward when backend "auto" chooses (455 pendulum samples)
+AUTO_ROUNDS = 3  # alternated rounds per path; the fastest of each counts
+CHOICES_FILE = "backend-choices.json"
+_log = logging.getLogger("ssm_ms")
+_choices: dict[str, dict] = {}  # this process's choices, by key (see _choice_key)
+
+
+def _backend(backend: str, native_flag: bool | None, channels_last: bool | None) -> str:
+    """``backend``, with the switches that earlier versions recorded (``native``, ``channels_last``) read into it."""
+    if backend not in BACKENDS:
+        raise ValueError(f"ConvDecoder backend must be one of {list(BACKENDS)}, got {backend!r}")
+    legacy = "plain" if channels_last is False else "torch" if native_flag is False else None
+    if legacy is None:
+        return backend
+    if backend not in ("auto", legacy):
+        raise ValueError(f"ConvDecoder got backend {backend!r} and native={native_flag}, channels_last={channels_last} "
+                         f"(an earlier version's switches, meaning {legacy!r}): give backend alone")
+    return legacy
+
+
+def _choice_key(decoder: ConvDecoder) -> str:
+    """What a timed choice holds for: the kernels' build (source, compiler, flags, CPU), the layers, the threads."""
+    return f"{kernels.build.library_key()}|{decoder._geometry()}|threads={torch.get_num_threads()}"
+
+
+def _auto_prefers_native(decoder: ConvDecoder) -> bool:
+    """Backend ``"auto"``: whether the native kernels beat the torch path for ``decoder``'s layers on this CPU,
+    timed once per key (:func:`_choice_key`) and kept in memory and in the cache folder's :data:`CHOICES_FILE`."""
+    key = _choice_key(decoder)
+    if key not in _choices:
+        path = kernels.cache_dir() / CHOICES_FILE
+        saved = _read_choices(path)
+        if key in saved:
+            _choices[key] = saved[key]
+        else:
+            native_s, torch_s = _time_paths(decoder)
+            _choices[key] = {"native": native_s < torch_s, "native_ms": round(1000 * native_s, 2),
+                             "torch_ms": round(1000 * torch_s, 2), "samples": _auto_samples(decoder)}
+            _write_choice(path, key, _choices[key])
+            choice = _choices[key]
+            _log.info("ConvDecoder backend 'auto' chose the %s path on this CPU: native kernels %.1f ms, torch %.1f ms "
+                      "per forward + backward of %d samples (kept in %s)", "native" if choice["native"] else "torch",
+                      choice["native_ms"], choice["torch_ms"], choice["samples"], path)
+    return bool(_choices[key]["native"])
+
+
+def _auto_samples(decoder: ConvDecoder) -> int:
+    """How many samples make :data:`AUTO_PIXELS` drawn pixels (at least 32)."""
+    return max(32, AUTO_PIXELS // decoder.drawn_size**2)
+
+
+def _time_paths(decoder: ConvDecoder) -> tuple[float, float]:
+    """Seconds of the native and the torch path's forward + backward (input and parameter gradients, none of them
+    accumulated) on :func:`_auto_samples` random stem outputs, the fastest of :data:`AUTO_ROUNDS` alternated
+    rounds."""
+    params = [p for p in decoder.deconv.parameters()]
+    with torch.inference_mode(False), torch.enable_grad():
+        gen = torch.Generator().manual_seed(0)
+        h = torch.rand(_auto_samples(decoder), decoder.stem[0].out_features, generator=gen).requires_grad_()
+        paths = {"native": decoder._native_stack, "torch": decoder._torch_stack}
+        best = {name: float("inf") for name in paths}
+        for round_ in range(AUTO_ROUNDS + 1):  # the first round warms up (allocations, oneDNN's primitives)
+            for name, path in paths.items():
+                start = time.perf_counter()
+                out = path(h)
+                torch.autograd.grad(out.square().sum(), [h, *params])
+                if round_:
+                    best[name] = min(best[name], time.perf_counter() - start)
+    return best["native"], best["torch"]
+
+
+def _read_choices(path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _write_choice(path, key: str, choice: dict) -> None:
+    """Add one choice to the file (atomic replace; a cache folder that cannot be written only costs a re-timing)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        data = _read_choices(path)
+        data[key] = choice
+        fd, tmp = tempfile.mkstemp(suffix=".json", dir=path.parent)
+        with os.fdopen(fd, "w") as fh:
+            json.dump(data, fh, indent=1, sort_keys=True)
+        os.replace(tmp, path)
+    except OSError:
+        pass
 
 
 def drawn_size(stem_size: int, layers: Sequence[Sequence[int]]) -> int:

@@ -12,10 +12,11 @@ none.
 
 The kernels are written for AVX-512 (16 lanes) and AVX2 with FMA (8 lanes, smaller tiles); in plain C loops they
 were slower than the torch-only path, so on other CPUs (ARM, x86 before AVX2) they are not built. Where the CPU
-has neither, no C compiler is found, compiling fails, or ``SSM_MS_NATIVE=0`` is set, :func:`library` returns
-``None`` and :func:`unavailable_reason` says why; the decoder then runs its torch-only path (same values). A
-missing compiler or a failed build is said once, as a ``RuntimeWarning`` (the decoder is slower than it could be);
-a CPU without those instructions and ``SSM_MS_NATIVE=0`` are not (nothing is lost).
+has neither, no C compiler is found or compiling fails, :func:`library` returns ``None`` and
+:func:`unavailable_reason` says why; a decoder with backend ``"auto"`` then runs its torch path (same values). A
+missing compiler or a failed build is said once, as a ``RuntimeWarning`` (the decoder may be slower than it could
+be); a CPU without those instructions is not (nothing is lost). Whether the kernels are used at all is the
+decoder's ``backend`` (:class:`ssm_ms.nets.ConvDecoder`): this module only builds them when asked.
 """
 
 from __future__ import annotations
@@ -94,14 +95,12 @@ def cache_dir() -> Path:
     return Path(base) / "ssm_ms"
 
 
-def _build() -> tuple[ctypes.CDLL | None, str | None]:
-    if os.environ.get("SSM_MS_NATIVE", "1") == "0":
-        return None, "SSM_MS_NATIVE=0 is set"
+def _build() -> tuple[ctypes.CDLL | None, str | None, str | None]:
     if not _has_simd():
-        return None, NO_SIMD
+        return None, NO_SIMD, None
     cc = _compiler()
     if cc is None:
-        return None, "no C compiler (cc, gcc or clang; or $CC) on PATH"
+        return None, "no C compiler (cc, gcc or clang; or $CC) on PATH", None
     source = SOURCE.read_bytes()
     errors = []
     for flags in FLAG_SETS:
@@ -130,8 +129,8 @@ def _build() -> tuple[ctypes.CDLL | None, str | None]:
             errors.append(f"cannot load {target}: {err}")
             continue
         _declare(lib)
-        return lib, None
-    return None, "compiling the native kernels failed (" + "; ".join(errors) + ")"
+        return lib, None, key
+    return None, "compiling the native kernels failed (" + "; ".join(errors) + ")", None
 
 
 def _declare(lib: ctypes.CDLL) -> None:
@@ -148,17 +147,23 @@ def library() -> ctypes.CDLL | None:
     """The compiled kernels, built on the first call (``None`` where unavailable: see :func:`unavailable_reason`)."""
     with _lock:
         if "lib" not in _state:
-            _state["lib"], _state["reason"] = _build()
-            on_purpose = _state["reason"] in ("SSM_MS_NATIVE=0 is set", NO_SIMD)
+            _state["lib"], _state["reason"], _state["key"] = _build()
+            on_purpose = _state["reason"] == NO_SIMD
             if _state["lib"] is None and not on_purpose:
-                warnings.warn(f"ssm_ms: the decoder's native kernels are off, running the slower torch-only path: "
-                              f"{_state['reason']} (SSM_MS_NATIVE=0 silences this)", RuntimeWarning, stacklevel=2)
+                warnings.warn(f"ssm_ms: the decoder's native kernels are off, running the torch path: {_state['reason']} "
+                              "(a ConvDecoder with backend 'torch' does not ask for them)", RuntimeWarning, stacklevel=2)
         return _state["lib"]  # type: ignore[return-value]
 
 
 def unavailable_reason() -> str | None:
     library()
     return _state["reason"]  # type: ignore[return-value]
+
+
+def library_key() -> str | None:
+    """What the loaded library was built from (source, compiler, flags, CPU), as a hex digest; ``None`` without one."""
+    library()
+    return _state["key"]  # type: ignore[return-value]
 
 
 def threads() -> int:
