@@ -138,7 +138,10 @@ def test_ukf_stage_from_the_cli(tmp_path):
     assert json.loads((tmp_path / "rows.jsonl").read_text()) == row
 
 
-BASELINE_CONFIGS = sorted((CPU / "baselines").glob("*.yaml"))
+# The Lorenz T-sweep's baselines (T = 10, 100) differ from lorenz_T1000's only in the data's piece length and the
+# training split: they are checked by test_lorenz_sweep_baselines_split_their_pieces, not trained here (~25 s each).
+SWEEP_BASELINES = ("lorenz_T10_", "lorenz_T100_")
+BASELINE_CONFIGS = sorted(p for p in (CPU / "baselines").glob("*.yaml") if not p.stem.startswith(SWEEP_BASELINES))
 
 
 @pytest.mark.parametrize("config", BASELINE_CONFIGS, ids=[p.stem for p in BASELINE_CONFIGS])
@@ -158,6 +161,19 @@ def test_cpu_baseline_config_fits_and_tests(tmp_path, config):
     assert f"| {model} |" in report and f"| {model} | " in report.split("## The paper")[1]
     assert "Valid prediction time" in report
     assert list((tmp_path / "figures").glob(f"{experiment}_{model.lower()}_*"))
+
+
+@pytest.mark.parametrize("config", sorted(p for folder in (CPU, ROOT / "configs") for p in
+                                          (folder / "baselines").glob("lorenz_T10*_*.yaml")
+                                          if p.stem.startswith(SWEEP_BASELINES)), ids=lambda p: str(p.relative_to(ROOT)))
+def test_lorenz_sweep_baselines_split_their_pieces(config, tmp_path):
+    """Pieces of T = 10 steps cannot hold the protocol's 10 predicted steps: 5 given, 5 predicted; pieces of 100 are
+    trained whole, 90 given and 10 predicted (the test protocol is the same for every T)."""
+    cli = main(["--config", str(config), "--trainer.logger.init_args.save_dir", str(tmp_path)], run=False)
+    piece = OmegaConf.load(config).data.init_args.piece_length
+    assert cli.model.train_window is None
+    assert cli.model.training_split(piece) == {10: 5, 100: 90}[piece]
+    assert (cli.model.n_filter, cli.model.n_predict) == (1990, 10)
 
 
 def oscillator_file(tmp: Path) -> Path:
