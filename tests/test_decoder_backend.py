@@ -13,13 +13,13 @@ from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import ConvDecoder, decoder
 from ssm_ms.nets.native import build
 from tests.test_cli import CPU, fit_tiny, outputs, run
-from tests.test_native import _graph_names
+from tests.test_native import NATIVE_NODE, _graph_names
 
 SPEC = dict(preset=None, stem_channels=8, stem_size=3, layers=[[6, 5, 3], [5, 3, 2], [1, 2, 1]])
 
 
 def ran_native(g: ConvDecoder, x: torch.Tensor) -> bool:
-    return "_ConvStackBackward" in _graph_names(g(x.requires_grad_()))
+    return NATIVE_NODE in _graph_names(g(x.requires_grad_()))
 
 
 def test_backend_names_are_checked():

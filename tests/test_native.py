@@ -43,6 +43,9 @@ def _pair(state_dim, stem, size, layers, image_size, drop_bias=False, backend="n
     return fused, plain
 
 
+NATIVE_NODE = "GeneratedBackwardFor_ssm_ms_conv_stack_defaultBackward"  # the kernels' node in an autograd graph
+
+
 def _graph_names(t: torch.Tensor) -> list[str]:
     """The class name of every node of ``t``'s autograd graph, once per node."""
     names, seen, todo = [], set(), [t.grad_fn]
@@ -61,7 +64,7 @@ def _check_against_float64(stem, size, layers, image_size, backend: str, drop_bi
     fused, plain = _pair(5, stem, size, layers, image_size, drop_bias, backend)
     x = torch.randn(9, 5, requires_grad=True)
     out = fused(x)
-    assert ("_ConvStackBackward" in _graph_names(out)) == (backend == "native")  # the path under test ran
+    assert (NATIVE_NODE in _graph_names(out)) == (backend == "native")  # the path under test ran
     x64 = x.detach().double().requires_grad_()
     want = plain(x64)
     torch.testing.assert_close(out.double(), want, rtol=1e-5, atol=1e-5)
@@ -92,8 +95,8 @@ def test_only_stacks_whose_sample_fits_in_cache_run_natively(needs_native):
     mnist = ConvDecoder(4, "mnist")  # backend "auto"; 15x15 inputs x 3x3x256 products, maps 256x31x31: far more than an L2 cache
     assert not mnist.native_fits and 15 * 15 * 9 * 256 > NATIVE_SCRATCH
     x = torch.randn(2, 4, requires_grad=True)
-    assert "_ConvStackBackward" not in _graph_names(mnist(x))  # the torch-only path, batched oneDNN convolutions
-    assert "_ConvStackBackward" in _graph_names(ConvDecoder(4, "quad", backend="native")(x))
+    assert NATIVE_NODE not in _graph_names(mnist(x))  # the torch-only path, batched oneDNN convolutions
+    assert NATIVE_NODE in _graph_names(ConvDecoder(4, "quad", backend="native")(x))
     with pytest.raises(ValueError, match="backend 'native' cannot run here: one sample of this stack needs"):
         ConvDecoder(4, "mnist", backend="native")
 
@@ -101,7 +104,7 @@ def test_only_stacks_whose_sample_fits_in_cache_run_natively(needs_native):
 def test_decoder_gives_the_same_bits_twice_and_uses_every_thread_count(decoder_path):
     fused, _ = _pair(5, *SPECS[0], backend=decoder_path)
     x = torch.randn(64, 5, requires_grad=True)
-    assert ("_ConvStackBackward" in _graph_names(fused(x))) == (decoder_path == "native")
+    assert (NATIVE_NODE in _graph_names(fused(x))) == (decoder_path == "native")
     threads = torch.get_num_threads()
     results = []
     try:
@@ -152,7 +155,7 @@ def test_native_path_steps_aside_where_it_cannot_run(needs_native):
     off = ConvDecoder(5, preset=None, stem_channels=8, stem_size=3, layers=SPECS[0][2], backend="torch")
     off.load_state_dict(fused.state_dict())
     y = off(x.requires_grad_())
-    assert "_ConvStackBackward" not in _graph_names(y)
+    assert NATIVE_NODE not in _graph_names(y)
     torch.testing.assert_close(y, fused(x), rtol=1e-5, atol=1e-6)
 
 
@@ -239,3 +242,40 @@ def test_the_cache_is_keyed_by_the_cpu(fresh_native, monkeypatch):
     monkeypatch.setattr(build, "_cpu_signature", lambda: "another CPU flags : avx2")
     assert native.library() is not None  # another CPU (a home directory shared between machines): its own build
     assert len(list(fresh_native.glob("*.so"))) == 2
+
+
+def test_the_kernels_are_a_custom_operator_that_opcheck_accepts(needs_native):
+    """Schema, fake (meta) implementation, autograd registration and AOT dispatch, checked by torch.library.opcheck
+    on the pendulum's layer shapes (scaled down) and on a stack with a bias-free layer and three layer norms."""
+    for stem, size, layers, _ in (SPECS[0], SPECS[6]):
+        dec = ConvDecoder(5, preset=None, stem_channels=stem, stem_size=size, layers=layers, backend="native")
+        geometry = [v for layer in dec._geometry() for v in layer]
+        params, eps, mods = [], [], list(dec.deconv)
+        for i, m in enumerate(mods):
+            if isinstance(m, torch.nn.ConvTranspose2d):
+                params += [m.weight.detach().clone().requires_grad_(), m.bias.detach().clone().requires_grad_()]
+                norm = mods[i + 1] if i + 1 < len(mods) and isinstance(mods[i + 1], torch.nn.LayerNorm) else None
+                if norm is not None:
+                    params += [norm.weight.detach().clone().requires_grad_(), norm.bias.detach().clone().requires_grad_()]
+                eps.append(norm.eps if norm else 0.0)
+        x = torch.randn(6, stem * size * size, requires_grad=True)
+        torch.library.opcheck(torch.ops.ssm_ms.conv_stack.default, (x, geometry, eps, params))
+
+
+def test_compile_and_export_record_the_operator(needs_native):
+    """torch.compile (AOT autograd, eager kernels: no C++ code generation) and torch.export trace the native backend
+    as one operator, forward and backward, and match the eager decoder."""
+    fused, _ = _pair(5, *SPECS[0])
+    x = torch.randn(7, 5, requires_grad=True)
+    want = fused(x)
+    want_grads = torch.autograd.grad(want.square().sum(), [x, *fused.parameters()])
+    compiled = torch.compile(fused, backend="aot_eager", fullgraph=True)
+    got = compiled(x)
+    got_grads = torch.autograd.grad(got.square().sum(), [x, *fused.parameters()])
+    torch.testing.assert_close(got, want)
+    for g, w in zip(got_grads, want_grads):
+        torch.testing.assert_close(g, w)
+    program = torch.export.export(fused.eval(), (x.detach(),))
+    assert "ssm_ms.conv_stack" in str(program.graph)
+    other = torch.randn(7, 5)
+    torch.testing.assert_close(program.module()(other), fused(other))

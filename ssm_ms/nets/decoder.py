@@ -62,8 +62,10 @@ class ConvDecoder(nn.Module):
               in cache, float32 on a CPU with AVX-512 or AVX2 + FMA, where one sample's scratch fits in
               :data:`~ssm_ms.nets.native.NATIVE_SCRATCH` floats (:attr:`native_fits`: the pendulum and
               quadruple-pendulum decoders, not Moving MNIST's). Refused at construction where the kernels cannot be
-              built or the stack does not fit. Inputs they cannot take (float64, autocast, forward-mode AD,
-              tracing, other devices) run the ``"torch"`` path.
+              built or the stack does not fit. They run as the custom operator ``torch.ops.ssm_ms.conv_stack``, which
+              ``torch.compile``, ``torch.export`` and ``torch.jit.trace`` record as one operator. Inputs they cannot
+              take (float64, autocast, ``torch.func`` transforms and forward-mode AD, other devices) run the
+              ``"torch"`` path. (``"auto"`` under ``torch.compile`` compiles the ``"torch"`` path.)
             * ``"torch"``: torch operations on channels-last feature maps (:mod:`ssm_ms.nets.channels_last`), the
               layout oneDNN's CPU convolutions are fastest in.
             * ``"plain"``: torch's own ``nn`` layers on NCHW maps, as built: the reference the tests compare with,
@@ -144,9 +146,11 @@ class ConvDecoder(nn.Module):
 
     def _runs_native(self, h: torch.Tensor) -> bool:
         """Whether this forward takes the native kernels (``h``: the stem's output); see ``backend``."""
-        if self.backend not in ("auto", "native") or not kernels.applies(h) or not self.native_fits:
+        if self.backend == "native":  # built and fitting: checked at construction
+            return kernels.applies(h)
+        if self.backend != "auto" or torch.compiler.is_compiling():  # auto, compiled: inductor's own kernels
             return False
-        return self.backend == "native" or _auto_prefers_native(self)
+        return kernels.applies(h) and self.native_fits and _auto_prefers_native(self)
 
     def _torch_stack(self, h: torch.Tensor) -> torch.Tensor:
         """The layers after the stem in torch: the ``"plain"`` backend's ``nn`` layers, or the channels-last path."""

@@ -508,6 +508,9 @@ int conv_stack_forward(int64_t L, const int64_t *geo, const float *const *ptrs, 
         for (int64_t l = 0; l < L - 1; ++l) {
             layer_forward(ly + l, in, prod, y);
             store_away(saved + r * S + soff[l], y, ly[l].dout);
+            /* the map's padding to 16 floats: zeros, so that every float of saved is defined (a custom operator's
+             * outputs are compared as a whole, e.g. by torch.library.opcheck) */
+            for (int64_t k = ly[l].dout; k < (ly[l].dout + 15) / 16 * 16; ++k) saved[r * S + soff[l] + k] = 0.f;
             row_stats(y, ly[l].dout, ly[l].eps, st, st + 1);
             norm_relu(y, ly[l].dout, ly[l].gamma, ly[l].beta, st[0], st[1], maps[l & 1]);
             in = maps[l & 1];

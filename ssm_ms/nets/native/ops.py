@@ -1,9 +1,11 @@
-"""The native kernels as a torch autograd function: the ConvDecoder's stack of transposed convolutions, layer norms
-and ReLUs after its stem, float32 on CPU, one sample at a time in cache (the C source: ``conv_stack.c``)."""
+"""The native kernels as PyTorch custom operators (``torch.ops.ssm_ms.conv_stack`` and its backward): the
+ConvDecoder's stack of transposed convolutions, layer norms and ReLUs after its stem, float32 on CPU, one sample at a
+time in cache (the C source: ``conv_stack.c``)."""
 
 from __future__ import annotations
 
 import ctypes
+from collections.abc import Sequence
 
 import torch
 
@@ -12,67 +14,120 @@ from ssm_ms.nets.native.build import check, library, threads
 NATIVE_SCRATCH = 1 << 18  # floats (1 MiB): what one sample of the native kernels may use, about a core's L2 cache
 
 
-class _ConvStack(torch.autograd.Function):
+# The kernels as two PyTorch custom operators, so that torch.compile, torch.export and torch.jit.trace see an
+# operator with a schema, a fake (meta) implementation and an autograd formula, not a Python function calling
+# ctypes. ``geometry`` is flat: ``(C_in, C_out, kernel, stride, H_in, W_in)`` per layer, 6 integers each.
+
+
+def _layers(geometry: Sequence[int]) -> list[tuple[int, ...]]:
+    return [tuple(geometry[i : i + 6]) for i in range(0, len(geometry), 6)]
+
+
+def _out_size(layers) -> int:
+    c_in, c_out, k, s, h, w = layers[-1]
+    return ((h - 1) * s + k) * ((w - 1) * s + k) * c_out
+
+
+def _geo(layers) -> ctypes.Array:
+    """The layers' sizes as the kernels read them: ``int64 [L][6]`` (a ctypes array, not a tensor: under fake tensors,
+    as in torch.compile's tracing, a tensor has no memory to read)."""
+    return (ctypes.c_int64 * (6 * len(layers)))(*[v for layer in layers for v in layer])
+
+
+def _saved_size(layers) -> int:
+    """Floats the forward saves per sample for the backward (each layer norm's input), as the kernels count it."""
+    return int(library().conv_stack_size(len(layers), _geo(layers), 0))
+
+
+@torch.library.custom_op("ssm_ms::conv_stack", mutates_args=(), device_types="cpu")
+def conv_stack_op(x: torch.Tensor, geometry: list[int], eps: list[float], params: list[torch.Tensor]
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A ConvDecoder's transposed convolutions, each but the last followed by ``LayerNorm((C, H, W))`` and a ReLU,
-    through the native kernels of :mod:`ssm_ms.nets.native` (float32, CPU), one sample at a time in cache.
+    one sample at a time in cache (float32, CPU).
 
-    ``x [N, S S C]`` is the stem's output as pixel-major rows; ``geometry`` holds ``(C_in, C_out, kernel, stride,
-    H_in, W_in)`` per layer, ``eps`` the layer norms' epsilons (any value for the last layer), ``params`` per layer
-    the ConvTranspose2d's weight and bias (or ``None``), and for all but the last the LayerNorm's weight and bias.
-    Returns the last layer's output as pixel-major rows ``[N, H W C]``. The maps are pixel-major inside the kernels,
-    the LayerNorm parameters permuted alike; the forward saves each layer norm's input, the backward normalises it
-    again. Same values as the torch-only path up to float rounding; first-order gradients only (forward-mode AD
-    takes the torch-only path: see :func:`native_applies`).
-    """
+    ``x [N, S S C]`` is the stem's output as pixel-major rows; ``geometry`` the layers' sizes (flat, 6 per layer);
+    ``eps`` the layer norms' epsilons (any value for the last layer); ``params`` per layer the ConvTranspose2d's
+    weight and bias and, for all but the last, the LayerNorm's weight and bias, as the modules hold them. Returns the last layer's output as pixel-major rows ``[N, H W C]``, and what the backward reads: each
+    layer norm's input ``[N, saved]`` and its statistics ``[N, 2 (L - 1)]``."""
+    layers = _layers(geometry)
+    lib = library()
+    packed, pointers, _, _ = _pack(layers, params)
+    n = x.shape[0]
+    x = x.contiguous()
+    geo = _geo(layers)
+    out = x.new_empty(n, _out_size(layers))
+    saved = x.new_empty(n, _saved_size(layers))
+    stats = x.new_empty(n, 2 * (len(layers) - 1))
+    eps_arr = (ctypes.c_float * len(layers))(*eps)
+    check(lib.conv_stack_forward(len(layers), geo, pointers, eps_arr, x.data_ptr(),
+                                 out.data_ptr(), saved.data_ptr(), stats.data_ptr(), n))
+    del packed  # held until the call returned: the kernels read the copies through ``pointers``
+    return out, saved, stats
 
-    @staticmethod
-    def forward(ctx, x, geometry, eps, *params):
-        lib = library()
-        packed, pointers, goff, gsize = _pack(geometry, params)
-        n, last = x.shape[0], geometry[-1]
-        out_size = ((last[4] - 1) * last[3] + last[2]) * ((last[5] - 1) * last[3] + last[2]) * last[1]
-        x = x.contiguous()
-        geo = torch.tensor(geometry, dtype=torch.int64)
-        out = x.new_empty(n, out_size)
-        saved = x.new_empty(n, lib.conv_stack_size(len(geometry), geo.data_ptr(), 0))
-        stats = x.new_empty(n, 2 * (len(geometry) - 1))
-        eps_arr = (ctypes.c_float * len(geometry))(*eps)
-        check(lib.conv_stack_forward(len(geometry), geo.data_ptr(), pointers, eps_arr, x.data_ptr(),
-                                            out.data_ptr(), saved.data_ptr(), stats.data_ptr(), n))
-        ctx.save_for_backward(x, saved, stats, *packed)
-        ctx.geometry, ctx.eps, ctx.goff, ctx.gsize = geometry, eps, goff, gsize
-        return out
 
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad):
-        x, saved, stats, *packed = ctx.saved_tensors
-        lib = library()
-        geometry = ctx.geometry
-        n = x.shape[0]
-        pointers = _pointers(packed)
-        count = max(1, min(threads(), n))
-        grads = x.new_zeros(count, ctx.gsize)
-        dx = x.new_empty(x.shape)
-        geo = torch.tensor(geometry, dtype=torch.int64)
-        goff = torch.tensor(ctx.goff, dtype=torch.int64)
-        eps_arr = (ctypes.c_float * len(geometry))(*ctx.eps)
-        grad = grad.contiguous()
-        check(lib.conv_stack_backward(len(geometry), geo.data_ptr(), pointers, eps_arr, x.data_ptr(),
-                                             saved.data_ptr(), stats.data_ptr(), grad.data_ptr(), dx.data_ptr(),
-                                             grads.data_ptr(), goff.data_ptr(), ctx.gsize, n, count))
-        total = grads.sum(0)
-        out: list[torch.Tensor | None] = []
-        for layer, (c_in, c_out, k, s, h, w) in enumerate(geometry):
-            o_w, o_b, o_g, o_be = ctx.goff[4 * layer : 4 * layer + 4]
-            out.append(total[o_w : o_w + c_in * k * k * c_out].view(k, k, c_out, c_in).permute(3, 2, 0, 1))
-            out.append(total[o_b : o_b + c_out] if o_b >= 0 else None)
-            if layer < len(geometry) - 1:
-                hw = ((h - 1) * s + k, (w - 1) * s + k)
-                size = hw[0] * hw[1] * c_out
-                out.append(total[o_g : o_g + size].view(*hw, c_out).permute(2, 0, 1))
-                out.append(total[o_be : o_be + size].view(*hw, c_out).permute(2, 0, 1))
-        return (dx, None, None, *out)
+@conv_stack_op.register_fake
+def _(x, geometry, eps, params):
+    layers = _layers(geometry)
+    n = x.shape[0]
+    return x.new_empty(n, _out_size(layers)), x.new_empty(n, _saved_size(layers)), x.new_empty(n, 2 * (len(layers) - 1))
+
+
+@torch.library.custom_op("ssm_ms::conv_stack_backward", mutates_args=(), device_types="cpu")
+def conv_stack_backward_op(x: torch.Tensor, saved: torch.Tensor, stats: torch.Tensor, grad: torch.Tensor,
+                           geometry: list[int], eps: list[float], params: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Gradients of :func:`conv_stack_op`'s first output: ``[dx, d(each param)...]``, shaped as ``x`` and the
+    parameters. Per-thread partial parameter gradients, summed in order: the same bits run to run for
+    a given thread count."""
+    layers = _layers(geometry)
+    lib = library()
+    packed, pointers, goff, gsize = _pack(layers, params)
+    n = x.shape[0]
+    count = max(1, min(threads(), n))
+    grads = x.new_zeros(count, gsize)
+    dx = x.new_empty(x.shape)
+    geo = _geo(layers)
+    goff_t = (ctypes.c_int64 * len(goff))(*goff)
+    eps_arr = (ctypes.c_float * len(layers))(*eps)
+    x, grad = x.contiguous(), grad.contiguous()  # held: the kernels read their memory
+    check(lib.conv_stack_backward(len(layers), geo, pointers, eps_arr, x.data_ptr(),
+                                  saved.data_ptr(), stats.data_ptr(), grad.data_ptr(), dx.data_ptr(),
+                                  grads.data_ptr(), goff_t, gsize, n, count))
+    del packed
+    total = grads.sum(0)
+    out = [dx]
+    for layer, (c_in, c_out, k, s, h, w) in enumerate(layers):
+        o_w, o_b, o_g, o_be = goff[4 * layer : 4 * layer + 4]
+        out.append(total[o_w : o_w + c_in * k * k * c_out].view(k, k, c_out, c_in).permute(3, 2, 0, 1).clone(memory_format=torch.contiguous_format))
+        out.append(total[o_b : o_b + c_out].clone())
+        if layer < len(layers) - 1:
+            hw = ((h - 1) * s + k, (w - 1) * s + k)
+            size = hw[0] * hw[1] * c_out
+            out.append(total[o_g : o_g + size].view(*hw, c_out).permute(2, 0, 1).clone(memory_format=torch.contiguous_format))
+            out.append(total[o_be : o_be + size].view(*hw, c_out).permute(2, 0, 1).clone(memory_format=torch.contiguous_format))
+    return out
+
+
+@conv_stack_backward_op.register_fake
+def _(x, saved, stats, grad, geometry, eps, params):
+    return [torch.empty_like(x)] + [torch.empty_like(p, memory_format=torch.contiguous_format) for p in params]
+
+
+def _setup_context(ctx, inputs, output):
+    x, geometry, eps, params = inputs
+    _, saved, stats = output
+    ctx.save_for_backward(x, saved, stats, *params)
+    ctx.geometry, ctx.eps = geometry, eps
+    ctx.mark_non_differentiable(saved, stats)
+    ctx.set_materialize_grads(False)  # no zero gradients for saved and stats (the pendulum's saved: 132 MB a step)
+
+
+def _backward(ctx, grad, _grad_saved, _grad_stats):
+    x, saved, stats, *params = ctx.saved_tensors
+    dx, *dparams = conv_stack_backward_op(x, saved, stats, grad, ctx.geometry, ctx.eps, params)
+    return dx, None, None, dparams
+
+
+conv_stack_op.register_autograd(_backward, setup_context=_setup_context)
 
 
 def _pack(geometry, params):
@@ -85,9 +140,9 @@ def _pack(geometry, params):
     for layer, (c_in, c_out, k, _, _, _) in enumerate(geometry):
         weight, bias = params[i], params[i + 1]
         w = weight.detach().permute(0, 2, 3, 1).reshape(c_in, k * k * c_out).contiguous()
-        packed += [w, w.t().contiguous(), None if bias is None else bias.detach().contiguous()]
-        goff += [size, -1 if bias is None else size + w.numel()]
-        size += w.numel() + (0 if bias is None else c_out)
+        packed += [w, w.t().contiguous(), bias.detach().contiguous()]
+        goff += [size, size + w.numel()]
+        size += w.numel() + c_out
         i += 2
         if layer < len(geometry) - 1:
             gamma, beta = params[i], params[i + 1]
@@ -107,13 +162,14 @@ def _pointers(packed):
 
 
 def applies(h: torch.Tensor) -> bool:
-    """Whether the native kernels can run on ``h`` (the stem's output): a plain float32 tensor on CPU, outside
-    autocast, forward-mode AD (``torch.func`` transforms or dual tensors) and tracing (``torch.compile``,
-    ``torch.export``, ``torch.jit.trace``: a graph cannot record a call through ctypes), with the kernels compiled."""
+    """Whether the native kernels can run on ``h`` (the stem's output): a float32 tensor on CPU (the fake tensors
+    torch.compile and torch.export trace with included: they record the operator), outside autocast and
+    outside ``torch.func`` transforms and forward-mode AD (the operators have a backward, no forward-mode formula and
+    no batching rule), with the kernels compiled."""
     if h.device.type != "cpu" or h.dtype != torch.float32 or torch.is_autocast_enabled("cpu"):
         return False
-    if type(h) is not torch.Tensor or torch.compiler.is_compiling() or torch.jit.is_tracing():
-        return False
+    if torch.compiler.is_compiling():  # torch.compile's tracing (fake tensors): it records the operator
+        return True
     if torch._C._functorch.is_functorch_wrapped_tensor(h):
         return False
     if torch.autograd.forward_ad._current_level >= 0 and torch.autograd.forward_ad.unpack_dual(h).tangent is not None:
@@ -122,8 +178,19 @@ def applies(h: torch.Tensor) -> bool:
 
 
 def conv_stack(x: torch.Tensor, geometry, eps, params) -> torch.Tensor:
-    """:class:`_ConvStack` on the stem's output ``x [N, S S C]`` (pixel-major rows): the last layer's output rows."""
-    return _ConvStack.apply(x, tuple(geometry), tuple(eps), *params)
+    """``torch.ops.ssm_ms.conv_stack`` on the stem's output ``x [N, S S C]`` (pixel-major rows), ``geometry`` one
+    ``(C_in, C_out, kernel, stride, H_in, W_in)`` per layer: the last layer's output rows."""
+    flat = [int(v) for layer in geometry for v in layer]
+    params = list(params)
+    for i, (layer, offset) in enumerate(_bias_slots(geometry)):
+        if params[offset] is None:  # a transposed convolution without bias: a zero one (the same values)
+            params[offset] = x.new_zeros(layer[1])
+    return torch.ops.ssm_ms.conv_stack(x, flat, [float(e) for e in eps], params)[0]
+
+
+def _bias_slots(geometry):
+    """``(layer, index of its bias in params)`` per layer (4 parameters per layer, 2 for the last)."""
+    return [(layer, 4 * i + 1) for i, layer in enumerate(geometry)]
 
 
 def scratch_floats(geometry) -> int | None:
@@ -132,5 +199,5 @@ def scratch_floats(geometry) -> int | None:
     lib = library()
     if lib is None:
         return None
-    geo = torch.tensor(tuple(geometry), dtype=torch.int64)  # held: the call reads its memory
-    return int(lib.conv_stack_size(geo.shape[0], geo.data_ptr(), 1))
+    layers = [tuple(layer) for layer in geometry]
+    return int(lib.conv_stack_size(len(layers), _geo(layers), 1))
