@@ -279,3 +279,19 @@ def test_compile_and_export_record_the_operator(needs_native):
     assert "ssm_ms.conv_stack" in str(program.graph)
     other = torch.randn(7, 5)
     torch.testing.assert_close(program.module()(other), fused(other))
+
+
+@pytest.mark.skipif(build._compiler() is None, reason="no C compiler here")
+def test_a_library_whose_argument_struct_differs_is_refused(fresh_native, monkeypatch, needs_native):
+    """The kernels take one struct, declared twice (conv_stack.c, build.ConvStackArgs): were a field added to one
+    only, every call would read the wrong memory, so the sizes are compared when the library loads."""
+    import ctypes
+
+    class Longer(build.ConvStackArgs):
+        _fields_ = [("extra", ctypes.c_int64)]
+
+    monkeypatch.setattr(build, "ConvStackArgs", Longer)
+    monkeypatch.setattr(build, "_state", {})  # needs_native loaded it already
+    with pytest.warns(RuntimeWarning, match="compiling the native kernels failed"):
+        assert native.library() is None
+    assert "must list the same fields" in native.unavailable_reason()

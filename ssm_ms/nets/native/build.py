@@ -128,19 +128,39 @@ def _build() -> tuple[ctypes.CDLL | None, str | None, str | None]:
         except OSError as err:
             errors.append(f"cannot load {target}: {err}")
             continue
-        _declare(lib)
+        problem = _declare(lib)
+        if problem is not None:
+            errors.append(f"{target}: {problem}")
+            continue
         return lib, None, key
     return None, "compiling the native kernels failed (" + "; ".join(errors) + ")", None
 
 
-def _declare(lib: ctypes.CDLL) -> None:
+class ConvStackArgs(ctypes.Structure):
+    """``conv_stack_args`` of ``conv_stack.c``: what one call of the kernels reads and writes, by name (the fields in
+    the C struct's order; a library whose struct has another size is refused)."""
+
+    _fields_ = [
+        ("layers", ctypes.c_int64), ("geo", ctypes.c_void_p), ("params", ctypes.c_void_p), ("eps", ctypes.c_void_p),
+        ("rows", ctypes.c_int64), ("x", ctypes.c_void_p), ("out", ctypes.c_void_p), ("saved", ctypes.c_void_p),
+        ("stats", ctypes.c_void_p), ("dout", ctypes.c_void_p), ("dx", ctypes.c_void_p), ("grads", ctypes.c_void_p),
+        ("goff", ctypes.c_void_p), ("gsize", ctypes.c_int64), ("threads", ctypes.c_int64),
+    ]
+
+
+def _declare(lib: ctypes.CDLL) -> str | None:
+    """Declare the library's functions; the reason it cannot be used, or ``None``."""
     p, i, n = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    args = ctypes.POINTER(ConvStackArgs)
     lib.conv_stack_threads.argtypes, lib.conv_stack_threads.restype = [], n
-    lib.conv_stack_forward.argtypes = [i, p, p, p, p, p, p, p, i]
-    lib.conv_stack_forward.restype = n
+    lib.conv_stack_args_size.argtypes, lib.conv_stack_args_size.restype = [], i
     lib.conv_stack_size.argtypes, lib.conv_stack_size.restype = [i, p, n], i
-    lib.conv_stack_backward.argtypes = [i, p, p, p, p, p, p, p, p, p, p, i, i, n]
-    lib.conv_stack_backward.restype = n
+    lib.conv_stack_forward.argtypes, lib.conv_stack_forward.restype = [args], n
+    lib.conv_stack_backward.argtypes, lib.conv_stack_backward.restype = [args], n
+    if lib.conv_stack_args_size() != ctypes.sizeof(ConvStackArgs):
+        return (f"its conv_stack_args has {lib.conv_stack_args_size()} bytes, ConvStackArgs "
+                f"{ctypes.sizeof(ConvStackArgs)}: the two must list the same fields")
+    return None
 
 
 def library() -> ctypes.CDLL | None:

@@ -18,11 +18,12 @@
  *
  * Written for AVX-512 and for AVX2 with FMA (below: vec, VL lanes): the matrix products run as register-blocked
  * tiles (AVX-512: 12 to 28 accumulators of 16 lanes; AVX2: 8 or 9 of 8) and a pixel's channels as masked vectors.
- * In plain C loops the kernels were slower than the torch-only path, so other CPUs run that (native.py does not
+ * In plain C loops the kernels were slower than the torch-only path, so other CPUs run that (build.py does not
  * build this file there, and it refuses to build without either). Compiled on first use by
- * ssm_ms/nets/native.py (plain C, no Python or torch headers) and called through ctypes. Rows are shared among
+ * ssm_ms/nets/native/build.py (plain C, no Python or torch headers) and called through ctypes with one
+ * conv_stack_args struct (ssm_ms/nets/native/ops.py's ConvStackArgs mirrors it; conv_stack_args_size lets it check). Rows are shared among
  * OpenMP threads: loaded into a process that has torch, the library binds to the libgomp that torch loaded (same
- * soname), so it uses torch's threads and follows torch.set_num_threads. native.py only loads builds with -fopenmp.
+ * soname), so it uses torch's threads and follows torch.set_num_threads. build.py only loads builds with -fopenmp.
  */
 #include <math.h>
 #include <stdint.h>
@@ -469,6 +470,28 @@ static float *thread_scratch(const stack_geo *st, float *buf[4])
     return scratch;
 }
 
+/* What a call of conv_stack_forward or conv_stack_backward reads and writes, by name (ssm_ms/nets/native/ops.py's
+ * ConvStackArgs is the same struct in ctypes; conv_stack_args_size lets it check that the two agree). */
+typedef struct {
+    int64_t layers;              /* L */
+    const int64_t *geo;          /* [L GEO]: Cin, Cout, K, S, Hin, Win per layer */
+    const float *const *params;  /* [L PTRS]: w, wt, bias, gamma, beta per layer (gamma, beta NULL for the last) */
+    const float *eps;            /* [L]: the layer norms' epsilons */
+    int64_t rows;                /* samples */
+    const float *x;              /* [rows, Din of layer 0] */
+    float *out;                  /* forward: [rows, Dout of the last layer] */
+    float *saved;                /* [rows, conv_stack_size(L, geo, 0)]: written by the forward, read by the backward */
+    float *stats;                /* [rows, 2 (L - 1)]: the same */
+    const float *dout;           /* backward: [rows, Dout of the last layer] */
+    float *dx;                   /* backward: [rows, Din of layer 0] */
+    float *grads;                /* backward: [threads, gsize], zeroed by the caller */
+    const int64_t *goff;         /* backward: [L GOFF] */
+    int64_t gsize;
+    int64_t threads;             /* backward: rows of grads (at most conv_stack_threads()) */
+} conv_stack_args;
+
+int64_t conv_stack_args_size(void) { return (int64_t)sizeof(conv_stack_args); }
+
 /* Floats per row of conv_stack_forward's saved (what = 0), or of one thread's scratch in either direction (what = 1),
  * for a stack's geometry; -2 for a bad layer count. */
 int64_t conv_stack_size(int64_t L, const int64_t *geo, int what)
@@ -484,12 +507,13 @@ int64_t conv_stack_size(int64_t L, const int64_t *geo, int what)
  * (saved [rows, conv_stack_size(L, geo, 0)], in layer order, each at a multiple of 16 floats) and its mean and 1/std
  * (stats [rows, 2 (L - 1)]).
  * Returns 0, -1 where scratch memory could not be allocated, -2 for a bad layer count. */
-int conv_stack_forward(int64_t L, const int64_t *geo, const float *const *ptrs, const float *eps,
-                       const float *restrict x, float *restrict out, float *restrict saved, float *restrict stats,
-                       int64_t rows)
+int conv_stack_forward(const conv_stack_args *a)
 {
+    const int64_t L = a->layers, rows = a->rows;
+    const float *restrict x = a->x;
+    float *restrict out = a->out, *restrict saved = a->saved, *restrict stats = a->stats;
     stack_geo st;
-    if (setup(L, geo, ptrs, eps, &st) != 0) return -2;
+    if (setup(L, a->geo, a->params, a->eps, &st) != 0) return -2;
     const layer_t *ly = st.ly;
     const int64_t S = st.S, *soff = st.soff;
     int failed = 0;
@@ -529,13 +553,14 @@ int conv_stack_forward(int64_t L, const int64_t *geo, const float *const *ptrs, 
  * caller's zeroed row t of grads [threads, gsize], at goff (weights as wt's gradient [Q, Cin], gamma and beta in
  * H W C order); the caller sums those rows in order, so that a given thread count always gives the same bits.
  * Returns 0, -1 where scratch memory could not be allocated, -2 for a bad layer count. */
-int conv_stack_backward(int64_t L, const int64_t *geo, const float *const *ptrs, const float *eps,
-                        const float *restrict x, const float *restrict saved, const float *restrict stats,
-                        const float *restrict dout, float *restrict dx, float *restrict grads,
-                        const int64_t *goff, int64_t gsize, int64_t rows, int threads)
+int conv_stack_backward(const conv_stack_args *a)
 {
+    const int64_t L = a->layers, rows = a->rows, gsize = a->gsize, *goff = a->goff;
+    const int threads = (int)a->threads;
+    const float *restrict x = a->x, *restrict saved = a->saved, *restrict stats = a->stats, *restrict dout = a->dout;
+    float *restrict dx = a->dx, *restrict grads = a->grads;
     stack_geo st;
-    if (setup(L, geo, ptrs, eps, &st) != 0) return -2;
+    if (setup(L, a->geo, a->params, a->eps, &st) != 0) return -2;
     const layer_t *ly = st.ly;
     const int64_t S = st.S, *soff = st.soff;
     int failed = 0;

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 
 import torch
 
-from ssm_ms.nets.native.build import check, library, threads
+from ssm_ms.nets.native.build import ConvStackArgs, check, library, threads
 
 NATIVE_SCRATCH = 1 << 18  # floats (1 MiB): what one sample of the native kernels may use, about a core's L2 cache
 
@@ -34,6 +34,10 @@ def _geo(layers) -> ctypes.Array:
     return (ctypes.c_int64 * (6 * len(layers)))(*[v for layer in layers for v in layer])
 
 
+def _address(array: ctypes.Array) -> int:
+    return ctypes.addressof(array)
+
+
 def _saved_size(layers) -> int:
     """Floats the forward saves per sample for the backward (each layer norm's input), as the kernels count it."""
     return int(library().conv_stack_size(len(layers), _geo(layers), 0))
@@ -54,13 +58,13 @@ def conv_stack_op(x: torch.Tensor, geometry: list[int], eps: list[float], params
     packed, pointers, _, _ = _pack(layers, params)
     n = x.shape[0]
     x = x.contiguous()
-    geo = _geo(layers)
     out = x.new_empty(n, _out_size(layers))
     saved = x.new_empty(n, _saved_size(layers))
     stats = x.new_empty(n, 2 * (len(layers) - 1))
-    eps_arr = (ctypes.c_float * len(layers))(*eps)
-    check(lib.conv_stack_forward(len(layers), geo, pointers, eps_arr, x.data_ptr(),
-                                 out.data_ptr(), saved.data_ptr(), stats.data_ptr(), n))
+    geo, eps_arr = _geo(layers), (ctypes.c_float * len(layers))(*eps)
+    args = ConvStackArgs(layers=len(layers), geo=_address(geo), params=_address(pointers), eps=_address(eps_arr),
+                         rows=n, x=x.data_ptr(), out=out.data_ptr(), saved=saved.data_ptr(), stats=stats.data_ptr())
+    check(lib.conv_stack_forward(ctypes.byref(args)))
     del packed  # held until the call returned: the kernels read the copies through ``pointers``
     return out, saved, stats
 
@@ -85,13 +89,14 @@ def conv_stack_backward_op(x: torch.Tensor, saved: torch.Tensor, stats: torch.Te
     count = max(1, min(threads(), n))
     grads = x.new_zeros(count, gsize)
     dx = x.new_empty(x.shape)
-    geo = _geo(layers)
-    goff_t = (ctypes.c_int64 * len(goff))(*goff)
-    eps_arr = (ctypes.c_float * len(layers))(*eps)
+    geo, eps_arr = _geo(layers), (ctypes.c_float * len(layers))(*eps)
+    goff_arr = (ctypes.c_int64 * len(goff))(*goff)
     x, grad = x.contiguous(), grad.contiguous()  # held: the kernels read their memory
-    check(lib.conv_stack_backward(len(layers), geo, pointers, eps_arr, x.data_ptr(),
-                                  saved.data_ptr(), stats.data_ptr(), grad.data_ptr(), dx.data_ptr(),
-                                  grads.data_ptr(), goff_t, gsize, n, count))
+    args = ConvStackArgs(layers=len(layers), geo=_address(geo), params=_address(pointers), eps=_address(eps_arr),
+                         rows=n, x=x.data_ptr(), saved=saved.data_ptr(), stats=stats.data_ptr(),
+                         dout=grad.data_ptr(), dx=dx.data_ptr(), grads=grads.data_ptr(), goff=_address(goff_arr),
+                         gsize=gsize, threads=count)
+    check(lib.conv_stack_backward(ctypes.byref(args)))
     del packed
     total = grads.sum(0)
     out = [dx]
