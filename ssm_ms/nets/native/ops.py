@@ -51,8 +51,9 @@ def conv_stack_op(x: torch.Tensor, geometry: list[int], eps: list[float], params
 
     ``x [N, S S C]`` is the stem's output as pixel-major rows; ``geometry`` the layers' sizes (flat, 6 per layer);
     ``eps`` the layer norms' epsilons (any value for the last layer); ``params`` per layer the ConvTranspose2d's
-    weight and bias and, for all but the last, the LayerNorm's weight and bias, as the modules hold them. Returns the last layer's output as pixel-major rows ``[N, H W C]``, and what the backward reads: each
-    layer norm's input ``[N, saved]`` and its statistics ``[N, 2 (L - 1)]``."""
+    weight and bias and, for all but the last, the LayerNorm's weight and bias, as the modules hold them. Returns
+    the last layer's output as pixel-major rows ``[N, H W C]``, and what the backward reads: each layer norm's input
+    ``[N, saved]`` and its statistics ``[N, 2 (L - 1)]``."""
     layers = _layers(geometry)
     lib = library()
     packed, pointers, _, _ = _pack(layers, params)
@@ -187,7 +188,7 @@ def conv_stack(x: torch.Tensor, geometry, eps, params) -> torch.Tensor:
     ``(C_in, C_out, kernel, stride, H_in, W_in)`` per layer: the last layer's output rows."""
     flat = [int(v) for layer in geometry for v in layer]
     params = list(params)
-    for i, (layer, offset) in enumerate(_bias_slots(geometry)):
+    for layer, offset in _bias_slots(geometry):
         if params[offset] is None:  # a transposed convolution without bias: a zero one (the same values)
             params[offset] = x.new_zeros(layer[1])
     return torch.ops.ssm_ms.conv_stack(x, flat, [float(e) for e in eps], params)[0]
