@@ -260,6 +260,7 @@ def _auto_prefers_native(decoder: ConvDecoder) -> bool:
     if key not in _choices:
         path = kernels.cache_dir() / CHOICES_FILE
         saved = _read_choices(path)
+        when = "measured earlier"
         if key in saved:
             _choices[key] = saved[key]
         else:
@@ -267,10 +268,11 @@ def _auto_prefers_native(decoder: ConvDecoder) -> bool:
             _choices[key] = {"native": native_s < torch_s, "native_ms": round(1000 * native_s, 2),
                              "torch_ms": round(1000 * torch_s, 2), "samples": _auto_samples(decoder)}
             _write_choice(path, key, _choices[key])
-            choice = _choices[key]
-            _log.info("ConvDecoder backend 'auto' chose the %s path on this CPU: native kernels %.1f ms, torch %.1f ms "
-                      "per forward + backward of %d samples (kept in %s)", "native" if choice["native"] else "torch",
-                      choice["native_ms"], choice["torch_ms"], choice["samples"], path)
+            when = "measured now"
+        choice = _choices[key]
+        _log.info("ConvDecoder backend 'auto' runs the %s path on this CPU: native kernels %s ms, torch %s ms per "
+                  "forward + backward of %s samples (%s, kept in %s)", "native" if choice.get("native") else "torch",
+                  choice.get("native_ms"), choice.get("torch_ms"), choice.get("samples"), when, path)
     return bool(_choices[key]["native"])
 
 
