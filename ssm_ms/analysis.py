@@ -133,7 +133,7 @@ def jacobian(fn: Fn, x: torch.Tensor) -> torch.Tensor:
 
 def linearize(f: Fn, g: Fn, x: torch.Tensor, flatten: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Local linear model ``x[t+1] ~ A x[t]``, ``y ~ C x`` around the states ``x [N, d]`` (for LQR, an EKF;
-    :mod:`ssm_ms.control` exports it with ``f`` and ``g``).
+    :mod:`ssm_ms.export` exports it with ``f`` and ``g``).
 
     Returns:
         ``(A, C)``: ``A = df/dx [N, d, d]`` and ``C = dg/dx [N, p, d]`` with ``g``'s output

@@ -1,4 +1,4 @@
-"""ssm_ms.control: Jacobians of f and g against finite differences, and exported f / g run in a fresh
+"""ssm_ms.export: Jacobians of f and g against finite differences, and exported f / g run in a fresh
 interpreter that never imports ssm_ms, against the modules."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from ssm_ms import control
+from ssm_ms import export as ssm_export
 from ssm_ms.nets import ConvDecoder, FullyConnectedTransition, LocallyLinearTransition, Projection
 from tests.conftest import RotationDataModule, fast_trainer, rotation_model
 
@@ -44,19 +44,19 @@ def test_jacobians_of_the_project_networks_match_finite_differences():
     observations = [small_decoder(d), Projection([0, 2])]
     for f in transitions:
         for g in observations:
-            a, c = control.linearize(f, g, x, flatten=False)
+            a, c = ssm_export.linearize(f, g, x, flatten=False)
             obs = tuple(g(x).shape[1:])
             assert a.shape == (4, d, d) and c.shape == (4, *obs, d)
             torch.testing.assert_close(a, central_differences(f, x), rtol=1e-6, atol=1e-8)
             torch.testing.assert_close(c, central_differences(g, x), rtol=1e-6, atol=1e-8)
-            _, flat = control.linearize(f, g, x)
+            _, flat = ssm_export.linearize(f, g, x)
             torch.testing.assert_close(flat, c.reshape(4, -1, d))
     # SSM-LL's A at x is its local matrix plus the derivative of the mixing weights: not I + sum beta A_k alone
     f = transitions[0]
-    a = control.linearize(f, observations[1], x)[0]
+    a = ssm_export.linearize(f, observations[1], x)[0]
     assert not torch.allclose(a, f.matrix(x), atol=1e-6)
     # Projection: C is the selection matrix, exactly
-    c = control.linearize(f, Projection([0, 2]), x)[1]
+    c = ssm_export.linearize(f, Projection([0, 2]), x)[1]
     assert torch.equal(c, torch.eye(d, dtype=F64)[[0, 2]].expand(4, 2, d))
 
 
@@ -103,7 +103,7 @@ def test_exported_f_and_g_run_without_ssm_ms_and_match_the_modules(tmp_path):
     cases, expected = {}, {}
     batches = {"7": torch.randn(7, d), "1": torch.randn(1, d)}  # neither the export's example (2) nor its check (5)
     for key, (f, g) in models.items():
-        written = control.export(f, g, d, tmp_path / key)
+        written = ssm_export.export(f, g, d, tmp_path / key)
         info = json.loads(written["model.json"].read_text())
         assert info["state_dim"] == d and info["obs_shape"] == list(g(batches["1"]).shape[1:])
         assert info["files"] == ["f.pt2", "f.torchscript.pt", "g.pt2", "g.torchscript.pt"]
@@ -126,7 +126,7 @@ def test_export_from_a_checkpoint_on_the_command_line(tmp_path, capsys):
     trainer.fit(model, dm)
     ckpt = tmp_path / "ssm.ckpt"
     trainer.save_checkpoint(ckpt)
-    assert control.main(["export", str(ckpt), "--out", str(tmp_path / "exported"), "--format", "pt2"]) == 0
+    assert ssm_export.main(["export", str(ckpt), "--out", str(tmp_path / "exported"), "--format", "pt2"]) == 0
     info = json.loads((tmp_path / "exported" / "model.json").read_text())
     assert info["files"] == ["f.pt2", "g.pt2"] and info["f_class"] == "LocallyLinearTransition"
     # the normalisation g's output needs, as the DataModule computed it from the training measurements
@@ -139,19 +139,19 @@ def test_export_from_a_checkpoint_on_the_command_line(tmp_path, capsys):
     with torch.no_grad():
         torch.testing.assert_close(got["f"], model.f(x))
         torch.testing.assert_close(got["g"], model.g(x))
-    torch.testing.assert_close(got["f:jacobian"], control.linearize(model.f, model.g, x)[0])
+    torch.testing.assert_close(got["f:jacobian"], ssm_export.linearize(model.f, model.g, x)[0])
 
 
 def test_export_refuses_bad_inputs(tmp_path, capsys):
-    assert control.main(["export", str(tmp_path / "missing.ckpt"), "--out", str(tmp_path / "o")]) == 1
+    assert ssm_export.main(["export", str(tmp_path / "missing.ckpt"), "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err
     assert err.startswith("error:") and "does not exist" in err and "Traceback" not in err
     (tmp_path / "broken.ckpt").write_bytes(b"not a checkpoint")
-    assert control.main(["export", str(tmp_path / "broken.ckpt"), "--out", str(tmp_path / "o")]) == 1
+    assert ssm_export.main(["export", str(tmp_path / "broken.ckpt"), "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err
     assert "not a readable checkpoint" in err and "Traceback" not in err
     torch.save({"state_dict": {"w": torch.zeros(1)}}, tmp_path / "other.ckpt")
-    assert control.main(["export", str(tmp_path / "other.ckpt"), "--out", str(tmp_path / "o")]) == 1
+    assert ssm_export.main(["export", str(tmp_path / "other.ckpt"), "--out", str(tmp_path / "o")]) == 1
     assert "not a checkpoint of a MultipleShootingModule" in capsys.readouterr().err
     with pytest.raises(ValueError, match="formats must be among"):
-        control.export(LocallyLinearTransition(2, 2, 4), Projection([0]), 2, tmp_path / "o", formats=["onnx"])
+        ssm_export.export(LocallyLinearTransition(2, 2, 4), Projection([0]), 2, tmp_path / "o", formats=["onnx"])

@@ -108,3 +108,17 @@ def test_moved_modules_keep_their_old_names():
     old = importlib.import_module("ssm_ms.nets.observation")
     for name in ("ConvDecoder", "LinearReadout", "Projection"):
         assert getattr(old, name) is getattr(nets, name)
+    from ssm_ms import export
+
+    control = importlib.import_module("ssm_ms.control")  # the export module's earlier name
+    for name in ("export", "export_checkpoint", "linearize", "main"):
+        assert getattr(control, name) is getattr(export, name)
+
+
+def test_the_old_export_command_still_runs():
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "ssm_ms.control", "export", "--help"], cwd=ROOT, capture_output=True,
+                         text=True)
+    assert out.returncode == 0 and "--out" in out.stdout, out.stderr

@@ -144,7 +144,7 @@ def test_native_path_steps_aside_where_it_cannot_run(needs_native):
                   ({k: v.double() for k, v in params.items()},), ({k: v.double() for k, v in tangents.items()},))
     torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)
     # a trace cannot record a call through ctypes: tracing runs the torch path (here the "plain" backend's NCHW
-    # layers, the ones ssm_ms.control exports), so the traced graph is whole
+    # layers, the ones ssm_ms.export writes), so the traced graph is whole
     fused.backend = "plain"
     traced = torch.jit.trace(fused, (x,), check_trace=False)
     other = torch.randn(6, 5)

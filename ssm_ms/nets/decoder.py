@@ -69,7 +69,7 @@ class ConvDecoder(nn.Module):
             * ``"torch"``: torch operations on channels-last feature maps (:mod:`ssm_ms.nets.channels_last`), the
               layout oneDNN's CPU convolutions are fastest in.
             * ``"plain"``: torch's own ``nn`` layers on NCHW maps, as built: the reference the tests compare with,
-              and what :mod:`ssm_ms.control` exports.
+              and what :mod:`ssm_ms.export` exports.
         native, channels_last: what checkpoints and configs of earlier versions recorded instead of ``backend``;
             read so that they keep loading (``native=False`` means ``"torch"``, ``channels_last=False`` ``"plain"``;
             ``True``, their old defaults, changes nothing). Give ``backend``.
