@@ -297,6 +297,38 @@ class MultipleShootingModule(pl.LightningModule):
             raise RuntimeError("the node table does not exist yet: set num_trajectories or call trainer.fit")
         return self.nodes(index).view(len(index), self.n_nodes, self.state_dim)
 
+    @torch.no_grad()
+    def shooting_predictions(self, index: torch.Tensor, y: torch.Tensor | None = None,
+                             seq_len: int | None = None) -> torch.Tensor:
+        """``g(f^k(s_i))`` for every shooting node ``s_i`` of the training trajectories ``index``, ``k = 0..n``.
+
+        Args:
+            index: ``LongTensor[B]`` training-trajectory indices.
+            y: measurements ``[B, T, ...]`` (only their length is used), or give ``seq_len`` instead.
+
+        Returns:
+            ``[B, m, n + 1, *obs_shape]`` with ``n = T / m`` (entry ``k = n`` is where sub-trajectory ``i``
+            ends up at the time node ``i + 1`` starts). Computed without gradients, in eval mode, on the
+            model's device (what :class:`ssm_ms.viz.ShootingPictureLogger` draws).
+        """
+        if (y is None) == (seq_len is None):
+            raise ValueError("give either y [B, T, ...] or seq_len to shooting_predictions")
+        t = int(y.shape[1]) if y is not None else int(seq_len)
+        m = self.n_nodes
+        if t % m != 0:
+            raise ValueError(f"trajectory length T={t} is not a multiple of model.n_nodes={m}")
+        n = t // m
+        was_training = self.training
+        self.eval()
+        try:
+            nodes = self.node_states(index.to(self.nodes.weight.device))  # [B, m, d]
+            b, _, d = nodes.shape
+            states = rollout(self.f, nodes.reshape(b * m, d), n + 1)  # [B*m, n+1, d]
+            out = decode(self.g, states, self.hparams.decode_chunk)
+        finally:
+            self.train(was_training)
+        return out.reshape(b, m, n + 1, *out.shape[2:])
+
     def shooting_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         return multiple_shooting_loss(
             self.f, self.g, self.node_states(batch["index"]), batch["y"], self.hparams.loss, self.hparams.decode_chunk,

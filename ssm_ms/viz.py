@@ -23,7 +23,6 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from PIL import Image, ImageDraw, ImageFont
 
-from ssm_ms.shooting import decode, rollout
 
 
 def image_grid(rows: Sequence[torch.Tensor], pad: int = 1, pad_value: float = 1.0) -> torch.Tensor:
@@ -547,49 +546,13 @@ def loss_curves_figure(log_dir) -> Figure:
 
 
 # ---------------------------------------------------------------------- multiple shooting
-@torch.no_grad()
-def shooting_predictions(
-    model, index: torch.Tensor, y: torch.Tensor | None = None, seq_len: int | None = None
-) -> torch.Tensor:
-    """``g(f^k(s_i))`` for every shooting node ``s_i`` of the training trajectories ``index``, ``k = 0..n``.
-
-    Args:
-        model: a ``MultipleShootingModule`` (uses ``f``, ``g``, ``node_states``, ``n_nodes``).
-        index: ``LongTensor[B]`` training-trajectory indices.
-        y: measurements ``[B, T, ...]`` (only their length is used), or give ``seq_len`` instead.
-
-    Returns:
-        ``[B, m, n + 1, *obs_shape]`` with ``n = T / m`` (entry ``k = n`` is where sub-trajectory ``i``
-        ends up at the time node ``i + 1`` starts). Computed without gradients, in eval mode, on the
-        model's device.
-    """
-    if (y is None) == (seq_len is None):
-        raise ValueError("give either y [B, T, ...] or seq_len to shooting_predictions")
-    t = int(y.shape[1]) if y is not None else int(seq_len)
-    m = model.n_nodes
-    if t % m != 0:
-        raise ValueError(f"trajectory length T={t} is not a multiple of model.n_nodes={m}")
-    n = t // m
-    was_training = model.training
-    model.eval()
-    try:
-        nodes = model.node_states(index.to(model.nodes.weight.device))  # [B, m, d]
-        b, _, d = nodes.shape
-        states = rollout(model.f, nodes.reshape(b * m, d), n + 1)  # [B*m, n+1, d]
-        chunk = getattr(model, "hparams", {}).get("decode_chunk")
-        out = decode(model.g, states, chunk)
-    finally:
-        model.train(was_training)
-    return out.reshape(b, m, n + 1, *out.shape[2:])
-
-
 def shooting_figure(y: torch.Tensor, node_predictions: torch.Tensor, n: int, title: str = "") -> Figure:
     """The multiple-shooting picture of one trajectory: measurements and every node's sub-trajectory.
 
     Args:
         y: ``[T]`` or ``[T, D]`` measurements (one panel per component).
         node_predictions: ``[m, n + 1]`` or ``[m, n + 1, D]``: ``g(f^k(s_i))``, ``k = 0..n`` (see
-            :func:`shooting_predictions`). Sub-trajectory ``i`` is drawn at steps ``i*n .. (i+1)*n`` in
+            ``MultipleShootingModule.shooting_predictions``). Sub-trajectory ``i`` is drawn at steps ``i*n .. (i+1)*n`` in
             its own colour (line ``gid`` ``"node{i}"``), its node as a dot at step ``i*n``
             (``gid`` ``"node{i}-start"``); where the last point of one misses the next node, the gap shows.
         n: steps per sub-trajectory, ``T = m * n``.
@@ -677,7 +640,7 @@ class ShootingPictureLogger(Callback):
             return
         k = self.n_trajectories
         index, y = batch["index"][:k], batch["y"][:k]
-        preds = shooting_predictions(pl_module, index, y=y)
+        preds = pl_module.shooting_predictions(index, y=y)
         n = y.shape[1] // pl_module.n_nodes
         images = []
         for b in range(len(index)):

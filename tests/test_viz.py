@@ -21,7 +21,6 @@ from ssm_ms.viz import (
     save_gif,
     save_png,
     shooting_figure,
-    shooting_predictions,
 )
 from tests.conftest import RotationDataModule, fast_trainer, rotation_model
 
@@ -214,9 +213,9 @@ def test_shooting_predictions_against_loop_and_figure():
         model.nodes.weight.normal_()
     index = torch.tensor([3, 0])
     y = torch.zeros(2, m * n, 2)
-    out = shooting_predictions(model, index, y=y)
+    out = model.shooting_predictions(index, y=y)
     assert out.shape == (2, m, n + 1, 2)
-    assert torch.equal(out, shooting_predictions(model, index, seq_len=m * n))
+    assert torch.equal(out, model.shooting_predictions(index, seq_len=m * n))
     with torch.no_grad():
         for b, j in enumerate(index.tolist()):
             table = model.nodes.weight[j]
@@ -226,7 +225,7 @@ def test_shooting_predictions_against_loop_and_figure():
                     torch.testing.assert_close(out[b, i, k], x[[0, 2]], rtol=1e-12, atol=1e-12)
                     x = f(x.unsqueeze(0)).squeeze(0)
     with pytest.raises(ValueError, match="multiple"):
-        shooting_predictions(model, index, seq_len=13)
+        model.shooting_predictions(index, seq_len=13)
 
     fig = shooting_figure(y[0], out[0], n, title="t")
     assert len(fig.axes) == 2
