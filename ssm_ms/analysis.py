@@ -35,7 +35,7 @@ Not implemented: the correlation dimension of the attractor (no maintained imple
 the project's dependencies: torch, lightning, numpy, matplotlib, tensorboard).
 
 Standard deviations over runs or sequences are population ones (``ddof = 0``), as in
-:mod:`ssm_ms.evaluation`.
+:mod:`ssm_ms.forecasting.protocol`.
 """
 
 from __future__ import annotations

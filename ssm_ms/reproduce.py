@@ -32,8 +32,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from ssm_ms.forecasting.results import write_pipeline
 from ssm_ms.machine import describe
-from ssm_ms.results import write_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 

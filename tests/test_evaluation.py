@@ -8,7 +8,7 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from ssm_ms.evaluation import ValidTimeAccumulator, bce_per_sequence, mse_per_sequence, split_sequence
+from ssm_ms.forecasting.protocol import ValidTimeAccumulator, bce_per_sequence, mse_per_sequence, split_sequence
 from ssm_ms.inference.encoder_module import StateEncoderModule
 from ssm_ms.inference.filter_module import FilterForecaster
 from ssm_ms.inference.ssm_forecaster import SSMForecaster

@@ -122,3 +122,20 @@ def test_the_old_export_command_still_runs():
     out = subprocess.run([sys.executable, "-m", "ssm_ms.control", "export", "--help"], cwd=ROOT, capture_output=True,
                          text=True)
     assert out.returncode == 0 and "--out" in out.stdout, out.stderr
+
+
+def test_the_forecasting_modules_keep_their_old_names():
+    """``ssm_ms.evaluation``, ``ssm_ms.predict`` and ``ssm_ms.results`` moved into ``ssm_ms.forecasting``; a command
+    line naming ``ssm_ms.predict.ForecastWriter`` and code importing the old modules still work."""
+    import importlib
+
+    from ssm_ms import forecasting
+    from ssm_ms.forecasting import protocol, results
+
+    assert importlib.import_module("ssm_ms.predict").ForecastWriter is forecasting.ForecastWriter
+    old = importlib.import_module("ssm_ms.evaluation")
+    for name in ("ForecastModule", "Forecast", "ValidTimeAccumulator", "split_sequence", "mse_per_sequence"):
+        assert getattr(old, name) is getattr(protocol, name)
+    old = importlib.import_module("ssm_ms.results")
+    for name in ("PAPER", "write_results", "write_pipeline", "render_markdown"):
+        assert getattr(old, name) is getattr(results, name)

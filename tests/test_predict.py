@@ -49,7 +49,7 @@ def stage_args(tmp: Path, ckpt: Path) -> list[str]:
 
 
 def writer(output: Path, figures: int = 0) -> list[str]:
-    return ["--trainer.callbacks+=ssm_ms.predict.ForecastWriter", "--trainer.callbacks.output", str(output),
+    return ["--trainer.callbacks+=ssm_ms.forecasting.ForecastWriter", "--trainer.callbacks.output", str(output),
             "--trainer.callbacks.figures", str(figures)]
 
 

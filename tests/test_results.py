@@ -1,4 +1,4 @@
-"""The paper's tables in ssm_ms.results, against the transcription beside the paper (../shared/paper/tables.md,
+"""The paper's tables in ssm_ms.forecasting.results, against the transcription beside the paper (../shared/paper/tables.md,
 read by this test only: the project itself never reads ../shared), and the table a results file renders."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from ssm_ms.results import PAPER, paper_key, paper_row, render_markdown
+from ssm_ms.forecasting.results import PAPER, paper_key, paper_row, render_markdown
 
 TABLES = Path(__file__).resolve().parents[2] / "shared" / "paper" / "tables.md"
 NUMBER = r"-?\d+(?:\.\d+)?"
@@ -97,7 +97,7 @@ def test_rendered_table_puts_the_paper_beside_each_method():
 
 
 def test_analysis_numbers_read_as_steps_not_exponents():
-    from ssm_ms.results import _num
+    from ssm_ms.forecasting.results import _num
 
     assert [_num(1000.0), _num(285.4, 2), _num(811.25), _num(0.0123), _num(3.5613), _num(float("inf")), _num(None)] == \
         ["1000", "285", "811", "0.0123", "3.56", "inf", "—"]

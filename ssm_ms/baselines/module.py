@@ -6,7 +6,7 @@ first ``k`` measurements of each training sequence and asks for all of them (the
 reconstructed, the rest predicted), with the loss of the experiment's SSM (``mse`` or ``bce``) or, for a
 network with a variance output, the Gaussian negative log-likelihood. Testing gives it the first
 ``n_filter`` measurements of each test sequence with the remaining steps unobserved, and the protocol
-of :mod:`ssm_ms.evaluation` scores the prediction like any other forecaster's.
+of :mod:`ssm_ms.forecasting.protocol` scores the prediction like any other forecaster's.
 
 The network is built when the data are known (``setup``): its input and output shapes come from the
 DataModule, so the same config works at any image size its presets support; the shape is recorded in
@@ -25,7 +25,7 @@ from torch import nn
 from ssm_ms.baselines.common import SequenceOutput
 from ssm_ms.baselines.lstm import Seq2SeqLSTM
 from ssm_ms.baselines.rkn import RecurrentKalmanNetwork
-from ssm_ms.evaluation import Forecast, ForecastModule
+from ssm_ms.forecasting.protocol import Forecast, ForecastModule
 
 LOSSES = ("mse", "bce", "gaussian_nll")
 
@@ -47,7 +47,7 @@ class BaselineForecaster(ForecastModule):
             (validation: its last window) instead of the whole sequence: cheaper steps for long sequences
             (a CPU-sized Lorenz twin: 200 of 1000); ``None`` (default, the paper's setting): whole sequences.
         obs_shape: shape of one measurement; ``None``: taken from the DataModule (recorded in the checkpoint).
-        metrics, n_predict, **kwargs: the protocol's arguments, see :class:`~ssm_ms.evaluation.ForecastModule`.
+        metrics, n_predict, **kwargs: the protocol's arguments, see :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
     """
 
     model_name = "baseline"

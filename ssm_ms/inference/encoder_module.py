@@ -32,7 +32,7 @@ class StateEncoderModule(SSMForecaster):
         metrics: scores of the test protocol.
         **kwargs: the protocol's other arguments (``n_predict``, ``bce_reduction``, ``original_units``,
             ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``), see
-            :class:`~ssm_ms.evaluation.ForecastModule`.
+            :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
     """
 
     method_kind = "encoder"

@@ -1,7 +1,7 @@
 """Forecasting with a trained SSM: infer the state from the first ``k`` measurements, iterate ``f`` from
 the last inferred state, decode with ``g``.
 
-:class:`SSMForecaster` is the :class:`~ssm_ms.evaluation.ForecastModule` of every inference method
+:class:`SSMForecaster` is the :class:`~ssm_ms.forecasting.protocol.ForecastModule` of every inference method
 over a frozen ``MultipleShootingModule`` checkpoint; subclasses implement :meth:`SSMForecaster.infer`
 (:class:`~ssm_ms.inference.StateEncoderModule`: a trained CNN-LSTM; :class:`~ssm_ms.inference.FilterForecaster`:
 UKF or particle filter). It also checks that the test data are the data the SSM learned, and uses the
@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from ssm_ms.checkpointing import read_checkpoint
-from ssm_ms.evaluation import Forecast, ForecastModule
+from ssm_ms.forecasting.protocol import Forecast, ForecastModule
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.shooting import decode, rollout
 
@@ -124,7 +124,7 @@ class SSMForecaster(ForecastModule):
         n_filter: measurements given to the inference method.
         **kwargs: the protocol's other arguments (``n_predict``, ``metrics``, ``bce_reduction``,
             ``original_units``, ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``), see
-            :class:`~ssm_ms.evaluation.ForecastModule`.
+            :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
     """
 
     # figures of the SSM alone: written once per experiment, whatever the inference method
