@@ -94,6 +94,18 @@ def test_auto_runs_the_path_it_measured_faster_and_keeps_the_choice(needs_native
     assert len(timed) == 3
 
 
+def test_a_damaged_choices_file_is_measured_again(needs_native, fresh_choices):
+    cache, timed, times = fresh_choices
+    (cache / decoder.CHOICES_FILE).write_text(json.dumps({decoder._choice_key(ConvDecoder(5, **SPEC)): "native"}))
+    times(native_s=0.2, torch_s=0.1)
+    assert not ran_native(ConvDecoder(5, **SPEC), torch.randn(3, 5))
+    assert len(timed) == 1
+    (cache / decoder.CHOICES_FILE).write_text("{not json")
+    decoder._choices.clear()
+    assert not ran_native(ConvDecoder(5, **SPEC), torch.randn(3, 5))
+    assert len(timed) == 2 and json.loads((cache / decoder.CHOICES_FILE).read_text())  # rewritten whole
+
+
 def test_auto_without_the_kernels_runs_torch_without_timing(fresh_choices, monkeypatch):
     _, timed, times = fresh_choices
     times(native_s=0.1, torch_s=0.2)

@@ -261,7 +261,7 @@ def _auto_prefers_native(decoder: ConvDecoder) -> bool:
         path = kernels.cache_dir() / CHOICES_FILE
         saved = _read_choices(path)
         when = "measured earlier"
-        if key in saved:
+        if isinstance(saved.get(key), dict) and isinstance(saved[key].get("native"), bool):
             _choices[key] = saved[key]
         else:
             native_s, torch_s = _time_paths(decoder)
