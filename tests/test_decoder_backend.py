@@ -106,6 +106,17 @@ def test_a_damaged_choices_file_is_measured_again(needs_native, fresh_choices):
     assert len(timed) == 2 and json.loads((cache / decoder.CHOICES_FILE).read_text())  # rewritten whole
 
 
+def test_a_traced_forward_never_times(needs_native, fresh_choices):
+    """torch.export traces with fake tensors: auto takes the torch path there, times nothing and records nothing."""
+    cache, timed, times = fresh_choices
+    times(native_s=0.1, torch_s=0.2)
+    g = ConvDecoder(5, **SPEC).eval()
+    program = torch.export.export(g, (torch.randn(3, 5),))
+    assert "ssm_ms.conv_stack" not in str(program.graph)
+    assert not timed and not (cache / decoder.CHOICES_FILE).exists()
+    assert ran_native(g, torch.randn(3, 5)) and len(timed) == 1  # a real forward measures (here: native faster)
+
+
 def test_auto_without_the_kernels_runs_torch_without_timing(fresh_choices, monkeypatch):
     _, timed, times = fresh_choices
     times(native_s=0.1, torch_s=0.2)

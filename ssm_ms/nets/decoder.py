@@ -65,7 +65,8 @@ class ConvDecoder(nn.Module):
               built or the stack does not fit. They run as the custom operator ``torch.ops.ssm_ms.conv_stack``, which
               ``torch.compile``, ``torch.export`` and ``torch.jit.trace`` record as one operator. Inputs they cannot
               take (float64, autocast, ``torch.func`` transforms and forward-mode AD, other devices) run the
-              ``"torch"`` path. (``"auto"`` under ``torch.compile`` compiles the ``"torch"`` path.)
+              ``"torch"`` path. (``"auto"`` under ``torch.compile`` and ``torch.export`` traces the ``"torch"`` path,
+              without timing anything.)
             * ``"torch"``: torch operations on channels-last feature maps (:mod:`ssm_ms.nets.channels_last`), the
               layout oneDNN's CPU convolutions are fastest in.
             * ``"plain"``: torch's own ``nn`` layers on NCHW maps, as built: the reference the tests compare with,
@@ -148,7 +149,7 @@ class ConvDecoder(nn.Module):
         """Whether this forward takes the native kernels (``h``: the stem's output); see ``backend``."""
         if self.backend == "native":  # built and fitting: checked at construction
             return kernels.applies(h)
-        if self.backend != "auto" or torch.compiler.is_compiling():  # auto, compiled: inductor's own kernels
+        if self.backend != "auto" or torch.compiler.is_compiling():  # compile / export: the torch path, no timing
             return False
         return kernels.applies(h) and self.native_fits and _auto_prefers_native(self)
 
