@@ -57,7 +57,7 @@ def fresh_choices(monkeypatch, tmp_path):
 
     def times(native_s: float, torch_s: float):
         def fake(dec):
-            timed.append(dec._geometry())
+            timed.append(dec.geometry)
             return native_s, torch_s
         monkeypatch.setattr(decoder, "_time_paths", fake)
 
@@ -74,7 +74,7 @@ def test_auto_runs_the_path_it_measured_faster_and_keeps_the_choice(needs_native
     saved = json.loads((cache / decoder.CHOICES_FILE).read_text())
     (key, choice), = saved.items()
     assert choice["native"] is True and choice["native_ms"] == 100.0 and choice["torch_ms"] == 200.0
-    assert key.startswith(build.library_key()) and str(ConvDecoder(5, **SPEC)._geometry()) in key
+    assert key.startswith(build.library_key()) and str(ConvDecoder(5, **SPEC).geometry) in key
     # a new process (no choice in memory) reads the file: still not timed again, even if the times would now differ
     monkeypatch.setattr(decoder, "_choices", {})
     times(native_s=0.3, torch_s=0.2)

@@ -10,14 +10,33 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def imported_modules(path: Path) -> set[str]:
-    """Every module a file imports, at any depth of its code (``from a.b import c`` gives ``a.b``)."""
+    """Every module a file imports, at any depth of its code (``from a.b import c`` gives ``a.b``, and ``a.b.c``
+    in case ``c`` is a submodule)."""
     out = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
             out.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             out.add(node.module)
+            out.update(f"{node.module}.{alias.name}" for alias in node.names)
     return out
+
+
+def assert_no_circle(graph: dict[str, set[str]]) -> None:
+    """Depth-first search of ``module -> modules it imports``; fails naming the first circle found."""
+    state: dict[str, int] = {}
+
+    def visit(name: str, path: list[str]) -> None:
+        state[name] = 1
+        for dep in sorted(graph[name]):
+            assert state.get(dep) != 1, f"import circle: {' -> '.join(path + [name, dep])}"
+            if dep not in state:
+                visit(dep, path + [name])
+        state[name] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [])
 
 
 def data_graph() -> dict[str, set[str]]:
@@ -34,19 +53,7 @@ def test_data_never_imports_the_method():
 def test_data_modules_import_each_other_without_a_circle():
     graph = data_graph()
     assert graph["datamodules.base"] >= {"datamodules.arrays", "datamodules.samplers"}  # the graph is read
-    state: dict[str, int] = {}
-
-    def visit(name: str, path: list[str]) -> None:
-        state[name] = 1
-        for dep in sorted(graph[name]):
-            assert state.get(dep) != 1, f"import circle: {' -> '.join(path + [name, dep])}"
-            if dep not in state:
-                visit(dep, path + [name])
-        state[name] = 2
-
-    for name in sorted(graph):
-        if name not in state:
-            visit(name, [])
+    assert_no_circle(graph)
 
 
 def test_the_circle_check_finds_a_circle(monkeypatch):
@@ -67,35 +74,14 @@ def method_graph() -> dict[str, set[str]]:
     for p in (ROOT / "ssm_ms").rglob("*.py"):
         parts = p.relative_to(ROOT).with_suffix("").parts
         files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = p
-    graph = {}
-    for name, path in files.items():
-        deps = set()
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.Import):
-                deps.update(alias.name for alias in node.names)
-            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                deps.add(node.module)
-                deps.update(f"{node.module}.{alias.name}" for alias in node.names)  # a submodule imported by name
-        graph[name] = {d for d in deps if d in files and d != name and not name.startswith(d + ".")}
-    return graph
+    return {name: {d for d in imported_modules(path) if d in files and d != name and not name.startswith(d + ".")}
+            for name, path in files.items()}
 
 
 def test_the_method_imports_without_a_circle():
     graph = method_graph()
     assert "ssm_ms.nets.native.build" in graph["ssm_ms.nets.native.ops"]  # the graph is read
-    state: dict[str, int] = {}
-
-    def visit(name: str, path: list[str]) -> None:
-        state[name] = 1
-        for dep in sorted(graph[name]):
-            assert state.get(dep) != 1, f"import circle: {' -> '.join(path + [name, dep])}"
-            if dep not in state:
-                visit(dep, path + [name])
-        state[name] = 2
-
-    for name in sorted(graph):
-        if name not in state:
-            visit(name, [])
+    assert_no_circle(graph)
 
 
 def test_moved_modules_keep_their_old_names():

@@ -92,7 +92,7 @@ def test_only_stacks_whose_sample_fits_in_cache_run_natively(needs_native):
     assert ConvDecoder(4, "pendulum").native_scratch() == 11 * 11 * 9 * 12 + 3 * 12 * 23 * 23 <= NATIVE_SCRATCH
     assert ConvDecoder(4, "quad").native_scratch() == 23 * 23 * 9 * 12 + 3 * 12 * 47 * 47 <= NATIVE_SCRATCH
     assert ConvDecoder(4, "pendulum").native_fits and ConvDecoder(4, "quad").native_fits
-    mnist = ConvDecoder(4, "mnist")  # backend "auto"; 15x15 inputs x 3x3x256 products, maps 256x31x31: far more than an L2 cache
+    mnist = ConvDecoder(4, "mnist")  # auto; 15x15 inputs x 3x3x256 products, maps 256x31x31: far more than an L2 cache
     assert not mnist.native_fits and 15 * 15 * 9 * 256 > NATIVE_SCRATCH
     x = torch.randn(2, 4, requires_grad=True)
     assert NATIVE_NODE not in _graph_names(mnist(x))  # the torch-only path, batched oneDNN convolutions
@@ -249,14 +249,14 @@ def test_the_kernels_are_a_custom_operator_that_opcheck_accepts(needs_native):
     on the pendulum's layer shapes (scaled down) and on a stack with a bias-free layer and three layer norms."""
     for stem, size, layers, _ in (SPECS[0], SPECS[6]):
         dec = ConvDecoder(5, preset=None, stem_channels=stem, stem_size=size, layers=layers, backend="native")
-        geometry = [v for layer in dec._geometry() for v in layer]
+        geometry = [v for layer in dec.geometry for v in layer]
         params, eps, mods = [], [], list(dec.deconv)
         for i, m in enumerate(mods):
             if isinstance(m, torch.nn.ConvTranspose2d):
                 params += [m.weight.detach().clone().requires_grad_(), m.bias.detach().clone().requires_grad_()]
                 norm = mods[i + 1] if i + 1 < len(mods) and isinstance(mods[i + 1], torch.nn.LayerNorm) else None
                 if norm is not None:
-                    params += [norm.weight.detach().clone().requires_grad_(), norm.bias.detach().clone().requires_grad_()]
+                    params += [t.detach().clone().requires_grad_() for t in (norm.weight, norm.bias)]
                 eps.append(norm.eps if norm else 0.0)
         x = torch.randn(6, stem * size * size, requires_grad=True)
         torch.library.opcheck(torch.ops.ssm_ms.conv_stack.default, (x, geometry, eps, params))

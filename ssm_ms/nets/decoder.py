@@ -179,7 +179,7 @@ class ConvDecoder(nn.Module):
     def native_scratch(self) -> int | None:
         """Floats of one sample's scratch in the native kernels (the largest products ``H_in W_in x k^2 C_out`` of a
         layer and three of the largest layer-normed maps), as the kernels count it; ``None`` without them."""
-        return kernels.ops.scratch_floats(self._geometry())
+        return kernels.ops.scratch_floats(self.geometry)
 
     @functools.cached_property
     def native_fits(self) -> bool:
@@ -189,8 +189,10 @@ class ConvDecoder(nn.Module):
         scratch = self.native_scratch()
         return scratch is not None and scratch <= kernels.NATIVE_SCRATCH
 
-    def _geometry(self) -> tuple[tuple[int, int, int, int, int, int], ...]:
-        """``(C_in, C_out, kernel, stride, H_in, W_in)`` of each transposed convolution."""
+    @functools.cached_property
+    def geometry(self) -> tuple[tuple[int, int, int, int, int, int], ...]:
+        """``(C_in, C_out, kernel, stride, H_in, W_in)`` of each transposed convolution (read on every forward:
+        computed once, the layers' sizes do not change)."""
         geometry, size = [], self.stem_shape[1]
         for layer in self.deconv:
             if isinstance(layer, nn.ConvTranspose2d):
@@ -209,13 +211,14 @@ class ConvDecoder(nn.Module):
         eps: list[float] = []
         layers = list(self.deconv)
         for i, layer in enumerate(layers):
-            if isinstance(layer, nn.ConvTranspose2d):
-                params += [layer.weight, layer.bias]
+            if isinstance(layer, nn.ConvTranspose2d):  # no bias: a zero one (the operator takes every tensor)
+                bias = layer.bias if layer.bias is not None else layer.weight.new_zeros(layer.out_channels)
+                params += [layer.weight, bias]
                 norm = layers[i + 1] if i + 1 < len(layers) and isinstance(layers[i + 1], nn.LayerNorm) else None
                 if norm is not None:
                     params += [norm.weight, norm.bias]
                 eps.append(norm.eps if norm is not None else 0.0)
-        geometry = self._geometry()
+        geometry = self.geometry
         out = kernels.conv_stack(hwc, geometry, eps, params)
         out = out.view(n, self.drawn_size, self.drawn_size, geometry[-1][1]).permute(0, 3, 1, 2)
         return self.deconv[-1](out) if isinstance(self.deconv[-1], nn.Sigmoid) else out
@@ -251,7 +254,7 @@ def _backend(backend: str, native_flag: bool | None, channels_last: bool | None)
 
 def _choice_key(decoder: ConvDecoder) -> str:
     """What a timed choice holds for: the kernels' build (source, compiler, flags, CPU), the layers, the threads."""
-    return f"{kernels.build.library_key()}|{decoder._geometry()}|threads={torch.get_num_threads()}"
+    return f"{kernels.build.library_key()}|{decoder.geometry}|threads={torch.get_num_threads()}"
 
 
 def _auto_prefers_native(decoder: ConvDecoder) -> bool:

@@ -1,4 +1,5 @@
-"""Vector read-outs ``g``: states ``[N, state_dim]`` -> measurement vectors ``[N, p]`` (Lorenz's x, a user's channels)."""
+"""Vector read-outs ``g``: states ``[N, state_dim]`` -> measurement vectors ``[N, p]`` (Lorenz's x, a user's
+channels)."""
 
 from __future__ import annotations
 

@@ -170,8 +170,9 @@ def library() -> ctypes.CDLL | None:
             _state["lib"], _state["reason"], _state["key"] = _build()
             on_purpose = _state["reason"] == NO_SIMD
             if _state["lib"] is None and not on_purpose:
-                warnings.warn(f"ssm_ms: the decoder's native kernels are off, running the torch path: {_state['reason']} "
-                              "(a ConvDecoder with backend 'torch' does not ask for them)", RuntimeWarning, stacklevel=2)
+                warnings.warn(f"ssm_ms: the decoder's native kernels are off, running the torch path: "
+                              f"{_state['reason']} (a ConvDecoder with backend 'torch' does not ask for them)",
+                              RuntimeWarning, stacklevel=2)
         return _state["lib"]  # type: ignore[return-value]
 
 

@@ -34,13 +34,24 @@ def _geo(layers) -> ctypes.Array:
     return (ctypes.c_int64 * (6 * len(layers)))(*[v for layer in layers for v in layer])
 
 
-def _address(array: ctypes.Array) -> int:
-    return ctypes.addressof(array)
-
-
 def _saved_size(layers) -> int:
     """Floats the forward saves per sample for the backward (each layer norm's input), as the kernels count it."""
     return int(library().conv_stack_size(len(layers), _geo(layers), 0))
+
+
+def _call(fn, layers, pointers, eps, x, saved, stats, **fields) -> None:
+    """One kernel call: a :class:`ConvStackArgs` of the fields both directions share and ``fields`` (the rest, as
+    addresses or integers); the ctypes arrays it points to live until the call returns."""
+    geo, eps_arr = _geo(layers), (ctypes.c_float * len(layers))(*eps)
+    args = ConvStackArgs(layers=len(layers), geo=ctypes.addressof(geo), params=ctypes.addressof(pointers),
+                         eps=ctypes.addressof(eps_arr), rows=x.shape[0], x=x.data_ptr(), saved=saved.data_ptr(),
+                         stats=stats.data_ptr(), **fields)
+    check(fn(ctypes.byref(args)))
+
+
+def _fresh(t: torch.Tensor) -> torch.Tensor:
+    """A contiguous copy: an operator's outputs may not be views of one another."""
+    return t.clone(memory_format=torch.contiguous_format)
 
 
 @torch.library.custom_op("ssm_ms::conv_stack", mutates_args=(), device_types="cpu")
@@ -62,10 +73,7 @@ def conv_stack_op(x: torch.Tensor, geometry: list[int], eps: list[float], params
     out = x.new_empty(n, _out_size(layers))
     saved = x.new_empty(n, _saved_size(layers))
     stats = x.new_empty(n, 2 * (len(layers) - 1))
-    geo, eps_arr = _geo(layers), (ctypes.c_float * len(layers))(*eps)
-    args = ConvStackArgs(layers=len(layers), geo=_address(geo), params=_address(pointers), eps=_address(eps_arr),
-                         rows=n, x=x.data_ptr(), out=out.data_ptr(), saved=saved.data_ptr(), stats=stats.data_ptr())
-    check(lib.conv_stack_forward(ctypes.byref(args)))
+    _call(lib.conv_stack_forward, layers, pointers, eps, x, saved, stats, out=out.data_ptr())
     del packed  # held until the call returned: the kernels read the copies through ``pointers``
     return out, saved, stats
 
@@ -90,26 +98,22 @@ def conv_stack_backward_op(x: torch.Tensor, saved: torch.Tensor, stats: torch.Te
     count = max(1, min(threads(), n))
     grads = x.new_zeros(count, gsize)
     dx = x.new_empty(x.shape)
-    geo, eps_arr = _geo(layers), (ctypes.c_float * len(layers))(*eps)
     goff_arr = (ctypes.c_int64 * len(goff))(*goff)
     x, grad = x.contiguous(), grad.contiguous()  # held: the kernels read their memory
-    args = ConvStackArgs(layers=len(layers), geo=_address(geo), params=_address(pointers), eps=_address(eps_arr),
-                         rows=n, x=x.data_ptr(), saved=saved.data_ptr(), stats=stats.data_ptr(),
-                         dout=grad.data_ptr(), dx=dx.data_ptr(), grads=grads.data_ptr(), goff=_address(goff_arr),
-                         gsize=gsize, threads=count)
-    check(lib.conv_stack_backward(ctypes.byref(args)))
+    _call(lib.conv_stack_backward, layers, pointers, eps, x, saved, stats, dout=grad.data_ptr(), dx=dx.data_ptr(),
+          grads=grads.data_ptr(), goff=ctypes.addressof(goff_arr), gsize=gsize, threads=count)
     del packed
     total = grads.sum(0)
     out = [dx]
     for layer, (c_in, c_out, k, s, h, w) in enumerate(layers):
         o_w, o_b, o_g, o_be = goff[4 * layer : 4 * layer + 4]
-        out.append(total[o_w : o_w + c_in * k * k * c_out].view(k, k, c_out, c_in).permute(3, 2, 0, 1).clone(memory_format=torch.contiguous_format))
-        out.append(total[o_b : o_b + c_out].clone())
+        out.append(_fresh(total[o_w : o_w + c_in * k * k * c_out].view(k, k, c_out, c_in).permute(3, 2, 0, 1)))
+        out.append(_fresh(total[o_b : o_b + c_out]))
         if layer < len(layers) - 1:
             hw = ((h - 1) * s + k, (w - 1) * s + k)
             size = hw[0] * hw[1] * c_out
-            out.append(total[o_g : o_g + size].view(*hw, c_out).permute(2, 0, 1).clone(memory_format=torch.contiguous_format))
-            out.append(total[o_be : o_be + size].view(*hw, c_out).permute(2, 0, 1).clone(memory_format=torch.contiguous_format))
+            out.append(_fresh(total[o_g : o_g + size].view(*hw, c_out).permute(2, 0, 1)))
+            out.append(_fresh(total[o_be : o_be + size].view(*hw, c_out).permute(2, 0, 1)))
     return out
 
 
@@ -187,16 +191,7 @@ def conv_stack(x: torch.Tensor, geometry, eps, params) -> torch.Tensor:
     """``torch.ops.ssm_ms.conv_stack`` on the stem's output ``x [N, S S C]`` (pixel-major rows), ``geometry`` one
     ``(C_in, C_out, kernel, stride, H_in, W_in)`` per layer: the last layer's output rows."""
     flat = [int(v) for layer in geometry for v in layer]
-    params = list(params)
-    for layer, offset in _bias_slots(geometry):
-        if params[offset] is None:  # a transposed convolution without bias: a zero one (the same values)
-            params[offset] = x.new_zeros(layer[1])
-    return torch.ops.ssm_ms.conv_stack(x, flat, [float(e) for e in eps], params)[0]
-
-
-def _bias_slots(geometry):
-    """``(layer, index of its bias in params)`` per layer (4 parameters per layer, 2 for the last)."""
-    return [(layer, 4 * i + 1) for i, layer in enumerate(geometry)]
+    return torch.ops.ssm_ms.conv_stack(x, flat, [float(e) for e in eps], list(params))[0]
 
 
 def scratch_floats(geometry) -> int | None:
