@@ -125,3 +125,21 @@ def test_the_forecasting_modules_keep_their_old_names():
     old = importlib.import_module("ssm_ms.results")
     for name in ("PAPER", "write_results", "write_pipeline", "render_markdown"):
         assert getattr(old, name) is getattr(results, name)
+
+
+def test_drawing_is_apart_from_the_callbacks():
+    """``ssm_ms.drawing`` draws without Lightning; ``ssm_ms.viz`` keeps the callbacks the configs name and, for code
+    of earlier versions, the drawing functions under their old names (the same functions)."""
+    import importlib
+
+    from ssm_ms import drawing
+
+    lightning = sorted(m for m in imported_modules(ROOT / "ssm_ms" / "drawing.py") if m.split(".")[0] == "lightning")
+    assert not lightning, f"ssm_ms/drawing.py imports {lightning}"
+    viz = importlib.import_module("ssm_ms.viz")
+    public = [n for n, v in vars(drawing).items() if callable(v) and not n.startswith("_")
+              and getattr(v, "__module__", None) == "ssm_ms.drawing"]
+    assert "prediction_mosaic" in public and "shooting_figure" in public
+    for name in public:
+        assert getattr(viz, name) is getattr(drawing, name), name
+    assert {"ReconstructionLogger", "ShootingPictureLogger"} <= set(vars(viz))

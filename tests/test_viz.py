@@ -1,4 +1,4 @@
-"""Forecasting figures of ssm_ms.viz, checked against layouts and loops recomputed here."""
+"""Forecasting figures of ssm_ms.drawing and the callbacks of ssm_ms.viz, checked against layouts and loops recomputed here."""
 
 from __future__ import annotations
 
@@ -11,8 +11,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import LocallyLinearTransition, Projection
-from ssm_ms.viz import (
-    ShootingPictureLogger,
+from ssm_ms.drawing import (
     attractor_figure,
     loss_curves_figure,
     lorenz_prediction_figure,
@@ -22,6 +21,7 @@ from ssm_ms.viz import (
     save_png,
     shooting_figure,
 )
+from ssm_ms.viz import ShootingPictureLogger
 from tests.conftest import RotationDataModule, fast_trainer, rotation_model
 
 

@@ -1,6 +1,6 @@
 """Figures of forecasts: what the test protocol logs to TensorBoard and writes to ``figures_dir``
 (:func:`log_forecast_figures`), and what ``predict`` draws per sequence (:func:`forecast_figure`). The drawing
-primitives (mosaics, GIFs, plots) are :mod:`ssm_ms.viz`'s."""
+primitives (mosaics, GIFs, plots) are :mod:`ssm_ms.drawing`'s."""
 
 from __future__ import annotations
 
@@ -15,9 +15,10 @@ def log_forecast_figures(module: Any, first: dict[str, torch.Tensor], n_sequence
     """``module``: a :class:`~ssm_ms.forecasting.protocol.ForecastModule` (not imported: the protocol calls this).
     Prediction mosaics / GIF (images) or the prediction plot over time (vectors), plus the forecaster's
     own figures (:meth:`ForecastModule.forecast_figures`), to TensorBoard and, with ``figures_dir``, to files."""
-    from ssm_ms import viz
+    from ssm_ms import drawing
+    from ssm_ms.viz import tensorboard_writer
 
-    writer = viz.tensorboard_writer(module.trainer) if module._trainer is not None else None
+    writer = tensorboard_writer(module.trainer) if module._trainer is not None else None
     out_dir = Path(module.figures_dir) if module.figures_dir else None
     name = f"{module.experiment_name()}_{module.method_name}"
     k = module.n_filter
@@ -25,23 +26,23 @@ def log_forecast_figures(module: Any, first: dict[str, torch.Tensor], n_sequence
     figures: dict[str, Any] = module.forecast_figures(first)
     if y.dim() == 5:  # images
         every = 1 if y.shape[1] <= 20 else 10
-        mosaic = viz.prediction_mosaic(y[:n_sequences], y_model[:n_sequences], k, every=every)
+        mosaic = drawing.prediction_mosaic(y[:n_sequences], y_model[:n_sequences], k, every=every)
         if writer is not None:
             writer.add_image(f"test/{module.method_name}/prediction_mosaic", mosaic, 0)
         if out_dir is not None:
-            viz.save_png(mosaic, out_dir / f"{name}_mosaic.png", scale=max(1, 256 // y.shape[-1]))
-            viz.save_gif(y[0], y_model[0], k, out_dir / f"{name}.gif")
+            drawing.save_png(mosaic, out_dir / f"{name}_mosaic.png", scale=max(1, 256 // y.shape[-1]))
+            drawing.save_gif(y[0], y_model[0], k, out_dir / f"{name}.gif")
     elif y.dim() == 3 and "lorenz_prediction" not in figures:  # vectors: the measured components over time
         norm = module.normalizer()
         to_units = (lambda t: norm.denormalize(t)) if norm is not None else (lambda t: t)
         clean = to_units(first["y_clean"]) if "y_clean" in first else None
         if y.shape[-1] == 1:
-            figures["lorenz_prediction"] = viz.lorenz_prediction_figure(
+            figures["lorenz_prediction"] = drawing.lorenz_prediction_figure(
                 to_units(y[0]), None if clean is None else clean[0], to_units(y_model[0]), k,
                 window=min(y.shape[1], 400),
             )
         else:
-            figures["prediction"] = viz.series_figure(
+            figures["prediction"] = drawing.series_figure(
                 to_units(y), to_units(y_model), clean, title=f"filtering {k} steps, then prediction"
             )
     shared = getattr(module, "shared_figures", ())
@@ -50,7 +51,7 @@ def log_forecast_figures(module: Any, first: dict[str, torch.Tensor], n_sequence
             writer.add_figure(f"test/{module.method_name}/{key}", fig, 0, close=False)
         if out_dir is not None:  # figures of the SSM alone do not depend on the inference method
             stem = module.experiment_name() if key in shared else name
-            viz.save_figure(fig, out_dir / f"{stem}_{key}.png")
+            drawing.save_figure(fig, out_dir / f"{stem}_{key}.png")
 
 
 def forecast_figure(measured: np.ndarray, filtered: np.ndarray, predicted: np.ndarray, title: str = ""):

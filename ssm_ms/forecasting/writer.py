@@ -94,7 +94,7 @@ class ForecastWriter(BasePredictionWriter):
 
     # ------------------------------------------------------------------ figures
     def _draw(self, part: dict[str, np.ndarray], pl_module: Any) -> None:
-        from ssm_ms import viz
+        from ssm_ms import drawing
         from ssm_ms.forecasting import figures
 
         for b, index in enumerate(part["index"]):
@@ -104,14 +104,14 @@ class ForecastWriter(BasePredictionWriter):
             path = self.figures_dir / f"sequence_{int(index):05d}.png"
             title = f"sequence {int(index)}: {pl_module.method_name}, {len(filtered)} given, {len(predicted)} forecast"
             if measured.ndim == 2:  # vectors [T, D]
-                viz.save_figure(figures.forecast_figure(measured, filtered, predicted, title), path)
+                drawing.save_figure(figures.forecast_figure(measured, filtered, predicted, title), path)
             else:  # images [T, C, H, W]: given then following frames over the model's frames
                 model = np.concatenate([filtered, predicted])
                 truth = np.ones_like(model)  # blank where the file holds nothing after the given frames
                 shown = min(len(measured), len(model))
                 truth[:shown] = measured[:shown]
                 every = max(1, len(model) // 20)
-                mosaic = viz.prediction_mosaic(torch.from_numpy(truth), torch.from_numpy(model), len(filtered),
+                mosaic = drawing.prediction_mosaic(torch.from_numpy(truth), torch.from_numpy(model), len(filtered),
                                                every=every)
-                viz.save_png(mosaic, path, scale=max(1, 96 // truth.shape[-1]))
+                drawing.save_png(mosaic, path, scale=max(1, 96 // truth.shape[-1]))
             self._drawn += 1

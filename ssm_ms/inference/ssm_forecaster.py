@@ -252,7 +252,7 @@ class SSMForecaster(ForecastModule):
     def forecast_figures(self, first: dict[str, torch.Tensor]) -> dict[str, Any]:
         """The Lorenz-style plot of the inferred and predicted states, the attractor of ``f`` iterated
         10,000 times from a shooting node, and the SSM's training curves."""
-        from ssm_ms import viz
+        from ssm_ms import drawing
 
         figures: dict[str, Any] = {}
         y = first["y"]
@@ -268,7 +268,7 @@ class SSMForecaster(ForecastModule):
                     states[:, s_i] = states[:, s_i] * norm.std[o_i] + norm.mean[o_i]
                 obs_index = s_i
             if states.shape[-1] == 3:
-                figures["lorenz_prediction"] = viz.lorenz_prediction_figure(
+                figures["lorenz_prediction"] = drawing.lorenz_prediction_figure(
                     to_units(y[0]), to_units(first["y_clean"][0]) if "y_clean" in first else to_units(y[0]),
                     states, self.n_filter, true_state=first["state"][0] if "state" in first else None,
                     measured_index=obs_index, window=min(y.shape[1], 400),
@@ -277,12 +277,12 @@ class SSMForecaster(ForecastModule):
             attractor = rollout(self.ssm.f, x0, 10_000)[0]
             if attractor.shape[-1] >= 3:
                 true = first["state"][:4] if "state" in first and first["state"].shape[-1] == 3 else None
-                figures["attractor"] = viz.attractor_figure(
+                figures["attractor"] = drawing.attractor_figure(
                     attractor[:, :3], title="f iterated 10,000 times from a node", true_states=true
                 )
         log_dir = Path(self.ssm_checkpoint).parent.parent
         try:
-            figures["ssm_training"] = viz.loss_curves_figure(log_dir)
+            figures["ssm_training"] = drawing.loss_curves_figure(log_dir)
         except (FileNotFoundError, ValueError):
             pass  # the SSM's TensorBoard logs are not beside its checkpoint
         return figures
