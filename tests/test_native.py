@@ -295,3 +295,17 @@ def test_a_library_whose_argument_struct_differs_is_refused(fresh_native, monkey
     with pytest.warns(RuntimeWarning, match="compiling the native kernels failed"):
         assert native.library() is None
     assert "must list the same fields" in native.unavailable_reason()
+
+
+def test_the_operators_refuse_a_parameter_list_of_the_wrong_length():
+    """The parameter order lives in ops.flat_params / ops.layer_params: a stack of 3 layers takes 4 + 4 + 2 tensors;
+    one missing (e.g. a layer norm's bias) is refused by name, not read past."""
+    from ssm_ms.nets.native import ops
+
+    layers = [(8, 4, 3, 2, 3, 3), (4, 4, 3, 2, 7, 7), (4, 1, 4, 2, 15, 15)]
+    tensors = [torch.zeros(1) for _ in range(10)]
+    groups = ops.layer_params(layers, tensors)
+    assert [sum(t is not None for t in g) for g in groups] == [4, 4, 2]
+    assert all(a is b for a, b in zip(ops.flat_params(groups), tensors))
+    with pytest.raises(ValueError, match="9 parameters for a stack of 3 layers: expected 10"):
+        ops.layer_params(layers, tensors[:9])

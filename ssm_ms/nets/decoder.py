@@ -207,17 +207,16 @@ class ConvDecoder(nn.Module):
         c, s = self.stem_shape[0], self.stem_shape[1]
         n = h.shape[0]
         hwc = h.view(n, c, s, s).permute(0, 2, 3, 1).reshape(n, s * s * c)  # the kernels' pixel-major rows
-        params: list[torch.Tensor | None] = []
+        per_layer: list[tuple] = []
         eps: list[float] = []
         layers = list(self.deconv)
         for i, layer in enumerate(layers):
             if isinstance(layer, nn.ConvTranspose2d):  # no bias: a zero one (the operator takes every tensor)
                 bias = layer.bias if layer.bias is not None else layer.weight.new_zeros(layer.out_channels)
-                params += [layer.weight, bias]
                 norm = layers[i + 1] if i + 1 < len(layers) and isinstance(layers[i + 1], nn.LayerNorm) else None
-                if norm is not None:
-                    params += [norm.weight, norm.bias]
+                per_layer.append((layer.weight, bias, *((norm.weight, norm.bias) if norm is not None else (None, None))))
                 eps.append(norm.eps if norm is not None else 0.0)
+        params = kernels.ops.flat_params(per_layer)
         geometry = self.geometry
         out = kernels.conv_stack(hwc, geometry, eps, params)
         out = out.view(n, self.drawn_size, self.drawn_size, geometry[-1][1]).permute(0, 3, 1, 2)

@@ -23,6 +23,28 @@ def _layers(geometry: Sequence[int]) -> list[tuple[int, ...]]:
     return [tuple(geometry[i : i + 6]) for i in range(0, len(geometry), 6)]
 
 
+# The operators' parameter order, in one place: per layer the ConvTranspose2d's weight and bias, then, for all but
+# the last layer, the LayerNorm's weight and bias. The decoder flattens its modules' tensors with
+# :func:`flat_params`; the operators read them back, and return their gradients, with :func:`layer_params`.
+
+
+def flat_params(per_layer: Sequence[Sequence[torch.Tensor | None]]) -> list[torch.Tensor]:
+    """``[(weight, bias, norm_weight, norm_bias), ...]`` (the last layer's norm tensors ``None``) as the operators'
+    flat parameter list."""
+    last = len(per_layer) - 1
+    return [t for i, group in enumerate(per_layer) for t in (group[:2] if i == last else group)]
+
+
+def layer_params(layers, params: Sequence) -> list[tuple]:
+    """The inverse of :func:`flat_params` for a stack of ``layers``: per layer ``(weight, bias, norm_weight,
+    norm_bias)``, the last layer's norm entries ``None``."""
+    expected = 4 * len(layers) - 2
+    if len(params) != expected:
+        raise ValueError(f"{len(params)} parameters for a stack of {len(layers)} layers: expected {expected}")
+    groups = [tuple(params[i : i + 4]) for i in range(0, expected - 2, 4)]
+    return [*groups, (params[-2], params[-1], None, None)]
+
+
 def _out_size(layers) -> int:
     c_in, c_out, k, s, h, w = layers[-1]
     return ((h - 1) * s + k) * ((w - 1) * s + k) * c_out
@@ -98,22 +120,25 @@ def conv_stack_backward_op(x: torch.Tensor, saved: torch.Tensor, stats: torch.Te
     count = max(1, min(threads(), n))
     grads = x.new_zeros(count, gsize)
     dx = x.new_empty(x.shape)
-    goff_arr = (ctypes.c_int64 * len(goff))(*goff)
+    goff_arr = (ctypes.c_int64 * (4 * len(goff)))(*[o for offsets in goff for o in offsets])
     x, grad = x.contiguous(), grad.contiguous()  # held: the kernels read their memory
     _call(lib.conv_stack_backward, layers, pointers, eps, x, saved, stats, dout=grad.data_ptr(), dx=dx.data_ptr(),
           grads=grads.data_ptr(), goff=ctypes.addressof(goff_arr), gsize=gsize, threads=count)
     del packed
     total = grads.sum(0)
-    out = [dx]
-    for layer, (c_in, c_out, k, s, h, w) in enumerate(layers):
-        o_w, o_b, o_g, o_be = goff[4 * layer : 4 * layer + 4]
-        out.append(_fresh(total[o_w : o_w + c_in * k * k * c_out].view(k, k, c_out, c_in).permute(3, 2, 0, 1)))
-        out.append(_fresh(total[o_b : o_b + c_out]))
-        if layer < len(layers) - 1:
+    per_layer = []
+    for (c_in, c_out, k, s, h, w), offsets in zip(layers, goff):
+        o_w, o_b, o_g, o_be = offsets
+        d_w = _fresh(total[o_w : o_w + c_in * k * k * c_out].view(k, k, c_out, c_in).permute(3, 2, 0, 1))
+        d_b = _fresh(total[o_b : o_b + c_out])
+        d_g = d_be = None
+        if o_g >= 0:
             hw = ((h - 1) * s + k, (w - 1) * s + k)
             size = hw[0] * hw[1] * c_out
-            out.append(_fresh(total[o_g : o_g + size].view(*hw, c_out).permute(2, 0, 1)))
-            out.append(_fresh(total[o_be : o_be + size].view(*hw, c_out).permute(2, 0, 1)))
+            d_g = _fresh(total[o_g : o_g + size].view(*hw, c_out).permute(2, 0, 1))
+            d_be = _fresh(total[o_be : o_be + size].view(*hw, c_out).permute(2, 0, 1))
+        per_layer.append((d_w, d_b, d_g, d_be))
+    out = [dx, *flat_params(per_layer)]
     return out
 
 
@@ -145,24 +170,20 @@ def _pack(geometry, params):
     the bias, and the LayerNorm's weight and bias in ``H W C`` order; their addresses; each layer's gradient offsets
     ``(w, bias, gamma, beta)`` in a row of the kernels' gradient buffer (-1: none), and that row's length."""
     packed: list[torch.Tensor | None] = []
-    goff: list[int] = []
-    size, i = 0, 0
-    for layer, (c_in, c_out, k, _, _, _) in enumerate(geometry):
-        weight, bias = params[i], params[i + 1]
+    goff: list[tuple[int, int, int, int]] = []
+    size = 0
+    for (c_in, c_out, k, _, _, _), (weight, bias, gamma, beta) in zip(geometry, layer_params(geometry, params)):
         w = weight.detach().permute(0, 2, 3, 1).reshape(c_in, k * k * c_out).contiguous()
         packed += [w, w.t().contiguous(), bias.detach().contiguous()]
-        goff += [size, size + w.numel()]
+        o_w, o_b = size, size + w.numel()
         size += w.numel() + c_out
-        i += 2
-        if layer < len(geometry) - 1:
-            gamma, beta = params[i], params[i + 1]
+        if gamma is not None:
             packed += [gamma.detach().permute(1, 2, 0).contiguous(), beta.detach().permute(1, 2, 0).contiguous()]
-            goff += [size, size + gamma.numel()]
+            goff.append((o_w, o_b, size, size + gamma.numel()))
             size += 2 * gamma.numel()
-            i += 2
         else:
             packed += [None, None]
-            goff += [-1, -1]
+            goff.append((o_w, o_b, -1, -1))
     return packed, _pointers(packed), goff, size
 
 
