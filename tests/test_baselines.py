@@ -62,6 +62,23 @@ def test_lstm_decoder_draws_the_data_image_size():
         Seq2SeqLSTM([1, 24, 30], hidden=8)
 
 
+def test_lstm_layers_given_as_mappings_instead_of_presets():
+    """A narrower CNN and decoder than the presets (a CPU-sized run): the layers are the ones asked for."""
+    net = Seq2SeqLSTM([1, 64, 64], hidden=8,
+                      encoder_preset={"conv_channels": [4, 8], "final_channels": 3, "final_relu": True},
+                      decoder_preset={"stem_channels": 6, "layers": [[5, 3, 2], [1, 4, 2]]})
+    convs = [m for m in net.frames.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert [c.out_channels for c in convs] == [4, 8, 3]
+    deconvs = [m for m in net.decoder.deconv if isinstance(m, torch.nn.ConvTranspose2d)]
+    assert [(d.in_channels, d.out_channels, d.kernel_size[0], d.stride[0]) for d in deconvs] == [(6, 5, 3, 2), (5, 1, 4, 2)]
+    y = torch.rand(2, 3, 1, 64, 64)
+    assert net(y, torch.ones(2, 3, dtype=torch.bool)).mean.shape == y.shape
+    with pytest.raises(ValueError, match=r"encoder_preset as a mapping takes .* unknown: \['channels'\]"):
+        Seq2SeqLSTM([1, 64, 64], hidden=8, encoder_preset={"channels": [4]})
+    with pytest.raises(ValueError, match="decoder_preset as a mapping takes 'layers'"):
+        Seq2SeqLSTM([1, 64, 64], hidden=8, decoder_preset={"stem_channels": 6})
+
+
 # ---------------------------------------------------------------------------- training and the protocol
 @pytest.fixture(scope="module", params=["lstm", "rkn"])
 def trained(request, tmp_path_factory):

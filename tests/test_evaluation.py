@@ -8,7 +8,15 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from ssm_ms.forecasting.protocol import ValidTimeAccumulator, bce_per_sequence, mse_per_sequence, split_sequence
+from ssm_ms.forecasting.protocol import (
+    ValidTimeAccumulator,
+    bce_per_sequence,
+    mse_per_sequence,
+    mse_sum_per_sequence,
+    sequence_metrics,
+    split_sequence,
+    ssim_per_sequence,
+)
 from ssm_ms.inference.encoder_module import StateEncoderModule
 from ssm_ms.inference.filter_module import FilterForecaster
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
@@ -36,6 +44,58 @@ def test_mse_and_bce_against_hand_computation():
         assert mse_per_sequence(pred, target)[b].item() == pytest.approx(se / 16)
         assert bce_per_sequence(pred, target, "mean")[b].item() == pytest.approx(bce_mean / 4)
         assert bce_per_sequence(pred, target, "sum")[b].item() == pytest.approx(bce_sum / 4)
+
+
+def test_mse_summed_over_a_frame_against_hand_computation():
+    torch.manual_seed(1)
+    pred, target = torch.rand(2, 3, 1, 2, 3, dtype=torch.float64), torch.rand(2, 3, 1, 2, 3, dtype=torch.float64)
+    for b in range(2):
+        frames = [sum((pred[b, t, 0, i, j].item() - target[b, t, 0, i, j].item()) ** 2 for i in range(2) for j in range(3))
+                  for t in range(3)]
+        assert mse_sum_per_sequence(pred, target)[b].item() == pytest.approx(sum(frames) / 3)
+
+
+def naive_ssim(a: list, b: list, k: int = 11, sigma: float = 1.5) -> float:
+    """Wang et al.'s SSIM of two grey frames by loops: Gaussian-weighted means, variances and covariance over every
+    window position that lies inside the frame, ``C1 = 0.01^2``, ``C2 = 0.03^2`` (data range 1), averaged."""
+    r = k // 2
+    g = [math.exp(-((i - r) ** 2) / (2 * sigma**2)) for i in range(k)]
+    g = [v / sum(g) for v in g]
+    h, w = len(a), len(a[0])
+    values = []
+    for i in range(r, h - r):
+        for j in range(r, w - r):
+            m = {"a": 0.0, "b": 0.0, "aa": 0.0, "bb": 0.0, "ab": 0.0}
+            for u in range(k):
+                for v in range(k):
+                    wt, pa, pb = g[u] * g[v], a[i - r + u][j - r + v], b[i - r + u][j - r + v]
+                    m["a"] += wt * pa
+                    m["b"] += wt * pb
+                    m["aa"] += wt * pa * pa
+                    m["bb"] += wt * pb * pb
+                    m["ab"] += wt * pa * pb
+            va, vb, cab = m["aa"] - m["a"] ** 2, m["bb"] - m["b"] ** 2, m["ab"] - m["a"] * m["b"]
+            values.append((2 * m["a"] * m["b"] + 1e-4) * (2 * cab + 9e-4)
+                          / ((m["a"] ** 2 + m["b"] ** 2 + 1e-4) * (va + vb + 9e-4)))
+    return sum(values) / len(values)
+
+
+def test_ssim_against_a_loop_over_windows():
+    torch.manual_seed(2)
+    target = torch.rand(2, 2, 1, 13, 14, dtype=torch.float64)
+    pred = (target + 0.3 * torch.randn_like(target)).clamp(0, 1)
+    got = ssim_per_sequence(pred, target)
+    for b in range(2):
+        frames = [naive_ssim(pred[b, t, 0].tolist(), target[b, t, 0].tolist()) for t in range(2)]
+        assert got[b].item() == pytest.approx(sum(frames) / 2, rel=1e-9)
+    assert 0.2 < got.min() < got.max() < 0.95  # a noisy copy: neither identical nor unrelated
+    assert ssim_per_sequence(target, target).tolist() == pytest.approx([1.0, 1.0])
+    assert sequence_metrics(pred, target, ["ssim", "mse_sum"], "mean")["ssim"].tolist() == got.tolist()
+
+
+def test_ssim_refuses_frames_it_cannot_score():
+    with pytest.raises(ValueError, match="metric 'ssim' needs image frames .* at least 11 x 11 pixels, got \\[2, 5, 3\\]"):
+        ssim_per_sequence(torch.zeros(2, 5, 3), torch.zeros(2, 5, 3))
 
 
 def test_bce_of_saturated_predictions_is_finite():
@@ -191,6 +251,16 @@ def test_encoder_stage_on_a_tiny_trained_checkpoint(exact_ssm):
     fast_trainer(tmp, max_epochs=1).test(enc, dm)
     saved = json.loads((tmp / "results" / "rot_enc.json").read_text())["runs"]["encoder"]["summary"]
     assert saved["encoder/clean/mse"]["mean"] < saved["mean/clean/mse"]["mean"]
+
+
+def test_ssim_on_vector_data_is_refused_before_any_sequence_is_scored(exact_ssm):
+    tmp, ckpt = exact_ssm
+    ukf = FilterForecaster(str(ckpt), n_filter=8, method="ukf", metrics=["mse", "ssim"],
+                           results_dir=str(tmp / "results"), experiment="rot_ssim")
+    ukf.test_step = lambda *a, **k: pytest.fail("a sequence was scored")
+    with pytest.raises(ValueError, match="metric 'ssim' needs image frames"):
+        fast_trainer(tmp, max_epochs=1).test(ukf, rotation_dm(tmp))
+    assert not (tmp / "results" / "rot_ssim.json").exists()
 
 
 def test_ukf_stage_tracks_the_exact_model(exact_ssm):

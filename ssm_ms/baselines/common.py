@@ -5,7 +5,8 @@ image size unless a config names them (the decoder drawn at the data's image siz
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from collections.abc import Mapping
+from typing import Any, NamedTuple, Optional
 
 from torch import Tensor
 
@@ -49,13 +50,23 @@ def decoder_preset_shape(preset: str) -> tuple[int, int, int]:
     return (channels, size, size)
 
 
-def image_decoder(in_features: int, obs_shape: tuple[int, ...], preset: Optional[str], output: str) -> ConvDecoder:
+def image_decoder(in_features: int, obs_shape: tuple[int, ...], preset: Optional[str | Mapping[str, Any]],
+                  output: str) -> ConvDecoder:
     """The paper's transposed-convolution decoder from ``in_features`` to images of ``obs_shape``
-    (``preset=None``: by image size), refusing a preset that draws another image size."""
+    (``preset=None``: by image size; a mapping: the layers themselves, as ``ConvDecoder``'s ``stem_channels`` and
+    ``layers``), refusing one that draws another image size."""
     if preset is None:
         preset = preset_for(obs_shape, "decoder_preset")
     square = len(obs_shape) == 3 and obs_shape[1] == obs_shape[2]
-    decoder = ConvDecoder(in_features, preset=preset, output=output, image_size=obs_shape[-1] if square else None)
+    image_size = obs_shape[-1] if square else None
+    if isinstance(preset, Mapping):
+        unknown = sorted(set(preset) - {"stem_channels", "layers"})
+        if unknown or "layers" not in preset:
+            raise ValueError(f"decoder_preset as a mapping takes 'layers' (and optionally 'stem_channels'), got "
+                             f"{sorted(preset)}: e.g. {{stem_channels: 64, layers: [[32, 3, 2], [1, 4, 2]]}}")
+        decoder = ConvDecoder(in_features, preset=None, output=output, image_size=image_size, **preset)
+    else:
+        decoder = ConvDecoder(in_features, preset=preset, output=output, image_size=image_size)
     if tuple(decoder.out_shape) != tuple(obs_shape):
         good = [name for name in DECODER_PRESETS if decoder_preset_shape(name)[0] == obs_shape[0]]
         hint = f"use decoder_preset={good[0]!r}" if good and square else "no ConvDecoder preset produces it"

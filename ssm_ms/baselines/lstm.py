@@ -13,8 +13,8 @@ filtering, a prediction afterwards -- the same convention as :class:`~ssm_ms.bas
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Optional
+from collections.abc import Mapping, Sequence
+from typing import Any, Optional
 
 import torch
 from torch import Tensor, nn
@@ -31,9 +31,11 @@ class Seq2SeqLSTM(nn.Module):
         hidden: LSTM hidden size (paper: 1024).
         encoder_preset: preset of the per-frame CNN; ``None``: ``"vector"`` for vectors, by image size for
             images (24 -> ``"pendulum"``, 48 -> ``"quad"``, 64 -> ``"mnist"``: the SSM encoders' CNNs; other
-            sizes: the nearest of these).
+            sizes: the nearest of these); or the CNN itself as a mapping of ``FrameEncoder``'s ``conv_channels``,
+            ``final_channels``, ``final_relu`` (e.g. a narrower CNN for a CPU-sized run).
         decoder_preset: images only: the ``ConvDecoder`` preset (``None``: by image size, as the encoder's),
-            drawn at the image size of ``obs_shape`` (``ConvDecoder(image_size=...)``).
+            drawn at the image size of ``obs_shape`` (``ConvDecoder(image_size=...)``); or the layers
+            themselves as a mapping of ``stem_channels`` and ``layers``.
         output: images: ``"sigmoid"`` (default) or ``"linear"``; vectors are always linear.
     """
 
@@ -41,8 +43,8 @@ class Seq2SeqLSTM(nn.Module):
         self,
         obs_shape: Sequence[int],
         hidden: int = 1024,
-        encoder_preset: Optional[str] = None,
-        decoder_preset: Optional[str] = None,
+        encoder_preset: Optional[str | Mapping[str, Any]] = None,
+        decoder_preset: Optional[str | Mapping[str, Any]] = None,
         output: str = "sigmoid",
     ):
         super().__init__()
@@ -55,7 +57,14 @@ class Seq2SeqLSTM(nn.Module):
         if encoder_preset is None:
             encoder_preset = preset_for(obs_shape, "encoder_preset") if is_image else "vector"
         self.obs_shape = obs_shape
-        self.frames = FrameEncoder(obs_shape, preset=encoder_preset)
+        if isinstance(encoder_preset, Mapping):
+            unknown = sorted(set(encoder_preset) - {"conv_channels", "final_channels", "final_relu"})
+            if unknown:
+                raise ValueError(f"encoder_preset as a mapping takes conv_channels, final_channels, final_relu; "
+                                 f"unknown: {unknown}")
+            self.frames = FrameEncoder(obs_shape, **encoder_preset)
+        else:
+            self.frames = FrameEncoder(obs_shape, preset=encoder_preset)
         self.lstm = nn.LSTM(self.frames.out_features + 1, hidden, batch_first=True)
         if is_image:
             if output not in ("sigmoid", "linear"):

@@ -221,7 +221,8 @@ class BaselineForecaster(ForecastModule):
 class LSTMBaseline(BaselineForecaster):
     """The paper's sequence-to-sequence CNN-LSTM (:class:`~ssm_ms.baselines.lstm.Seq2SeqLSTM`).
 
-    ``network``: ``hidden`` (paper: 1024), ``encoder_preset``, ``decoder_preset``, ``output``.
+    ``network``: ``hidden`` (paper: 1024), ``encoder_preset``, ``decoder_preset`` (preset names, or the layers as
+    mappings: see :class:`~ssm_ms.baselines.lstm.Seq2SeqLSTM`), ``output``.
     """
 
     model_name = "LSTM"

@@ -19,7 +19,12 @@ Metrics (per test sequence, then mean and std over sequences):
 * ``mse``: squared error averaged over the elements of a frame and the predicted frames;
 * ``bce``: ``-[t log(p + 1e-12) + (1 - t) log(1 - p + 1e-12)]`` (the reference code's clamping, no
   other clipping), averaged over the pixels of a frame (``bce_reduction: mean``) or summed over them
-  (``sum``, the paper's Moving MNIST Table 3 convention), then averaged over predicted frames.
+  (``sum``, the paper's Moving MNIST Table 3 convention), then averaged over predicted frames;
+* ``mse_sum``: squared error summed over the elements of a frame, averaged over the predicted frames (the
+  per-frame MSE of video-prediction papers and OpenSTL);
+* ``ssim`` (images in [0, 1]): the structural similarity of each predicted frame (Wang et al. 2004: an 11 x 11
+  Gaussian window of std 1.5, ``C1 = 0.01^2``, ``C2 = 0.03^2``, averaged over the window positions inside
+  the frame and over channels, as OpenSTL computes it), averaged over the predicted frames; higher is better.
 
 Two references are computed by the same code so the numbers can be read: ``last`` repeats the
 forecaster's estimate of the last given frame (``g(x[k-1])`` for an SSM); ``mean`` predicts the mean
@@ -50,7 +55,8 @@ from torchmetrics import CatMetric
 from ssm_ms.machine import describe
 
 BCE_EPS = 1e-12
-METRICS = ("mse", "bce")
+METRICS = ("mse", "bce", "mse_sum", "ssim")
+SSIM_WINDOW, SSIM_SIGMA, SSIM_K1, SSIM_K2 = 11, 1.5, 0.01, 0.03
 FLOOR_FRAMES = 10  # images: the valid time counts errors above the reconstruction error on the last 10 given frames
 # analysis: {section: {key: default}}; a section absent from the config is not computed
 ANALYSIS_DEFAULTS: dict[str, dict[str, Any]] = {
@@ -124,11 +130,40 @@ def bce_per_sequence(pred: torch.Tensor, target: torch.Tensor, reduction: str = 
     return per_frame.mean(1)
 
 
+def mse_sum_per_sequence(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``[B, p, ...]`` -> ``[B]``: squared error summed over a frame's elements, averaged over frames."""
+    return (pred - target).pow(2).flatten(2).sum(2).mean(1)
+
+
+def ssim_per_sequence(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``[B, p, C, H, W]`` images in [0, 1] -> ``[B]``: each frame's SSIM (see the module doc: the window positions
+    that lie inside the frame, no padding), averaged over frames. Computed in float64."""
+    if pred.dim() != 5 or min(pred.shape[-2:]) < SSIM_WINDOW:
+        raise ValueError(f"metric 'ssim' needs image frames [B, T, C, H, W] of at least {SSIM_WINDOW} x {SSIM_WINDOW} "
+                         f"pixels, got {list(pred.shape)}: leave 'ssim' out of metrics for this data")
+    b, p, c, h, w = pred.shape
+    x = pred.detach().reshape(b * p * c, 1, h, w).double()
+    y = target.detach().reshape(b * p * c, 1, h, w).double()
+    r = torch.arange(SSIM_WINDOW, dtype=torch.float64, device=x.device) - SSIM_WINDOW // 2
+    g = torch.exp(-(r**2) / (2 * SSIM_SIGMA**2))
+    g = g / g.sum()
+    window = (g[:, None] * g[None, :])[None, None]
+    mu_x, mu_y, xx, yy, xy = torch.nn.functional.conv2d(torch.cat([x, y, x * x, y * y, x * y]), window).split(len(x))
+    var_x, var_y, cov = xx - mu_x**2, yy - mu_y**2, xy - mu_x * mu_y
+    c1, c2 = SSIM_K1**2, SSIM_K2**2
+    ssim = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    return ssim.reshape(b, p, -1).mean(2).mean(1).to(pred.dtype)
+
+
 def sequence_metrics(pred: torch.Tensor, target: torch.Tensor, metrics: Sequence[str], bce_reduction: str) -> dict[str, torch.Tensor]:
-    out = {}
-    for name in metrics:
-        out[name] = mse_per_sequence(pred, target) if name == "mse" else bce_per_sequence(pred, target, bce_reduction)
-    return out
+    """``{metric: [B]}`` for the names in ``metrics`` (see :data:`METRICS` and the module doc)."""
+    per_sequence = {
+        "mse": mse_per_sequence,
+        "bce": lambda p, t: bce_per_sequence(p, t, bce_reduction),
+        "mse_sum": mse_sum_per_sequence,
+        "ssim": ssim_per_sequence,
+    }
+    return {name: per_sequence[name](pred, target) for name in metrics}
 
 
 # ---------------------------------------------------------------------------- the protocol
@@ -162,7 +197,7 @@ class ForecastModule(pl.LightningModule):
     Args:
         n_filter: measurements given to the forecaster (pendulum 50, Moving MNIST 10, Lorenz 1990).
         n_predict: frames predicted after them (default: the rest of the sequence).
-        metrics: among ``"mse"``, ``"bce"``.
+        metrics: among ``"mse"``, ``"bce"``, ``"mse_sum"``, ``"ssim"`` (see the module doc).
         bce_reduction: ``"mean"`` over the pixels of a frame, or ``"sum"`` (Moving MNIST convention).
         original_units: undo the data normalisation before scoring (Lorenz: MSE in original units).
         experiment: name of the results files (default: the data set's name).
@@ -240,9 +275,13 @@ class ForecastModule(pl.LightningModule):
         return getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
 
     def setup(self, stage: str) -> None:
-        """Refuse, before any work, a split that does not fit the test sequences."""
+        """Refuse, before any work, a split that does not fit the test sequences, and ``ssim`` on data that are not
+        images it can score."""
         if stage == "predict":
             self.prediction_split()
+        obs_shape = getattr(self.datamodule, "obs_shape", None) if "ssim" in self.metric_names and stage in ("fit", "test") else None
+        if obs_shape is not None:
+            ssim_per_sequence(torch.zeros(1, 1, *obs_shape), torch.zeros(1, 1, *obs_shape))
         test = getattr(self.datamodule, "datasets", {}).get("test") if stage == "test" else None
         seq_len = getattr(test, "seq_len", None)
         if seq_len is not None:
