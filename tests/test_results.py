@@ -115,3 +115,19 @@ def test_valid_time_row_after_a_json_round_trip():
     report = render_markdown("lorenz_T1000_noiseless_cpu", runs)
     assert "| SSM-LL + UKF | 811 ± 281 | 1000 | 4.06 | 3.56 | 0.61 | 1: 0.0014, 250: 0.062, 500: 0.21, 1000: 0.32 |" in report
     assert "## The paper" not in report  # no paper table for the noise-free variant
+
+
+def test_hand_written_notes_survive_every_rewrite(tmp_path):
+    """``<experiment>.notes.md`` beside a results file is appended to ``<experiment>.md`` each time a run or a
+    pipeline rewrites it (a note written into the .md itself would be lost)."""
+    from ssm_ms.forecasting.results import write_pipeline, write_results
+
+    info = {"experiment": "toy_cpu", "method": "encoder", "model": "SSM-LL", "inference": "encoder"}
+    md = write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}})
+    assert "## Notes" not in md.read_text()
+    (tmp_path / "toy_cpu.notes.md").write_text("The SSM stage was paused 70 minutes.\n")
+    write_pipeline(tmp_path, "toy_cpu", "make reproduce EXP=toy SIZE=cpu", {"stages": [], "total_seconds": 1.0})
+    info2 = {**info, "method": "lstm", "model": "LSTM", "inference": None}
+    text = write_results(tmp_path, info2, {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}}).read_text()
+    assert text.count("The SSM stage was paused 70 minutes.") == 1
+    assert text.index("| 0.5 ± 0.1 |") < text.index("| 0.7 ± 0.1 |") < text.index("## Notes")

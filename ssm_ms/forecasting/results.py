@@ -270,6 +270,9 @@ def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
     return lines
 
 
+NOTES_SUFFIX = ".notes.md"  # results/<experiment>.notes.md: hand-written notes appended to <experiment>.md
+
+
 def _load(json_path: Path) -> dict[str, Any]:
     if json_path.exists():
         try:
@@ -285,7 +288,11 @@ def _save(results_dir: Path, experiment: str, data: dict[str, Any]) -> Path:
     data["experiment"] = experiment
     (results_dir / f"{experiment}.json").write_text(json.dumps(data, indent=2, sort_keys=True))
     md_path = results_dir / f"{experiment}.md"
-    md_path.write_text(render_markdown(experiment, data.get("runs", {}), data.get("pipelines")))
+    text = render_markdown(experiment, data.get("runs", {}), data.get("pipelines"))
+    notes = results_dir / f"{experiment}{NOTES_SUFFIX}"
+    if notes.is_file():  # what a person wrote about the runs (pauses, measurements beside them): kept on every rewrite
+        text += f"\n## Notes\n\n(from `{notes.name}`, written by hand)\n\n{notes.read_text().strip()}\n"
+    md_path.write_text(text)
     return md_path
 
 
