@@ -5,6 +5,7 @@ instantiates as written; stage configs share their SSM config's data section."""
 from __future__ import annotations
 
 import importlib.util
+import math
 import json
 from pathlib import Path
 
@@ -138,9 +139,10 @@ def test_ukf_stage_from_the_cli(tmp_path):
     assert json.loads((tmp_path / "rows.jsonl").read_text()) == row
 
 
-# The Lorenz T-sweep's baselines (T = 10, 100) differ from lorenz_T1000's only in the data's piece length and the
-# training split: they are checked by test_lorenz_sweep_baselines_split_their_pieces, not trained here (~25 s each).
-SWEEP_BASELINES = ("lorenz_T10_", "lorenz_T100_")
+# The Lorenz T-sweep's baselines (T = 10, 100, 10,000) differ from lorenz_T1000's only in the data's piece length,
+# the training split and (T = 10,000 on CPU) the epochs: they are checked by test_lorenz_sweep_baselines_split_their_pieces
+# and test_cpu_lorenz_baselines_see_as_many_measurements_for_every_t, not trained here (~25 s each).
+SWEEP_BASELINES = ("lorenz_T10_", "lorenz_T100_", "lorenz_T10000_")
 BASELINE_CONFIGS = sorted(p for p in (CPU / "baselines").glob("*.yaml") if not p.stem.startswith(SWEEP_BASELINES))
 
 
@@ -168,12 +170,28 @@ def test_cpu_baseline_config_fits_and_tests(tmp_path, config):
                                           if p.stem.startswith(SWEEP_BASELINES)), ids=lambda p: str(p.relative_to(ROOT)))
 def test_lorenz_sweep_baselines_split_their_pieces(config, tmp_path):
     """Pieces of T = 10 steps cannot hold the protocol's 10 predicted steps: 5 given, 5 predicted; pieces of 100 are
-    trained whole, 90 given and 10 predicted (the test protocol is the same for every T)."""
+    trained whole, 90 given and 10 predicted; pieces of 10,000 whole at the paper's size, in 200-step windows (190
+    given) on CPU, as lorenz_T1000's CPU twin (the test protocol is the same for every T)."""
     cli = main(["--config", str(config), "--trainer.logger.init_args.save_dir", str(tmp_path)], run=False)
     piece = OmegaConf.load(config).data.init_args.piece_length
-    assert cli.model.train_window is None
-    assert cli.model.training_split(piece) == {10: 5, 100: 90}[piece]
+    cpu = config.parent.parent == CPU
+    window, given = {10: (None, 5), 100: (None, 90), 10000: (200, 190) if cpu else (None, 9990)}[piece]
+    assert cli.model.train_window == window
+    assert cli.model.training_split(window or piece) == given
     assert (cli.model.n_filter, cli.model.n_predict) == (1990, 10)
+
+
+def test_cpu_lorenz_baselines_see_as_many_measurements_for_every_t():
+    """The CPU twins' baselines for T = 1000 and 10,000 train on 200-step windows; the T = 10,000 data hold 4 pieces a
+    step (the SSM's batch) where T = 1000's hold 40, so its epochs are 10x: the same steps x windowed measurements."""
+    def seen(stem: str) -> int:
+        cfg = OmegaConf.load(CPU / "baselines" / f"{stem}.yaml")
+        data = cfg.data.init_args
+        steps_per_epoch = math.ceil(data.n_train * data.train_steps / data.piece_length / data.batch_size)
+        return cfg.trainer.max_epochs * steps_per_epoch * data.batch_size * cfg.model.init_args.train_window
+
+    for model in ("lstm", "rkn"):
+        assert seen(f"lorenz_T10000_{model}") == seen(f"lorenz_T1000_{model}")
 
 
 def oscillator_file(tmp: Path) -> Path:
