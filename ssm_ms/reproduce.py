@@ -6,9 +6,14 @@ every baseline of the experiment (fit -> test); or one baseline alone.
     python -m ssm_ms.reproduce pendulum_lstm       # configs/baselines/pendulum_lstm.yaml alone
     python -m ssm_ms.reproduce pendulum --no-baselines
     python -m ssm_ms.reproduce pendulum --encoder-epochs 120   # the encoder stage on a stated epoch budget
+    python -m ssm_ms.reproduce lorenz_T1000 --size cpu --seed 1  # another seed: results/lorenz_T1000_cpu_seed1.md
 
-(``make reproduce EXP=pendulum [SIZE=cpu]``.) Each stage is ``python cli.py ...`` in its own process,
-logged under ``runs/<name>/reproduce-<stamp>/``, so the checkpoints each stage hands to the next are
+(``make reproduce EXP=pendulum [SIZE=cpu] [SEED=1]``.) ``--seed N`` runs every stage with ``--seed_everything N``:
+the networks' and shooting nodes' initial values change; the data and their order do not (they follow the data
+section's own ``seed``). Its results go to ``results/<experiment>_seed<N>.md``; ``python -m ssm_ms.forecasting.seeds
+<experiment>`` gathers the seeds' scores as mean and std.
+
+Each stage is ``python cli.py ...`` in its own process, logged under ``runs/<name>/reproduce-<stamp>/``, so the checkpoints each stage hands to the next are
 known. Every method lands in the same ``results/<experiment>.md``, which ends with the commands and
 their durations.
 
@@ -111,9 +116,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--encoder-epochs", type=int, default=None, metavar="N",
                         help="train the encoder stage for N epochs instead of its config's max_epochs (a budget for "
                              "machines where the paper's count does not fit; the results file lists the command)")
+    parser.add_argument("--seed", type=int, default=None, metavar="N",
+                        help="every stage with --seed_everything N instead of the configs' seed; results go to "
+                             "results/<experiment>_seed<N>.md")
     opts = parser.parse_args(argv)
     if opts.encoder_epochs is not None and opts.encoder_epochs < 1:
         parser.error(f"--encoder-epochs must be >= 1, got {opts.encoder_epochs}")
+    if opts.seed is not None and opts.seed < 0:
+        parser.error(f"--seed must be >= 0, got {opts.seed}")
     folder = ROOT / "configs" / ("cpu" if opts.size == "cpu" else "")
     ssm_cfg = folder / f"{opts.experiment}.yaml"
     enc_cfg = folder / f"{opts.experiment}_encoder.yaml"
@@ -128,8 +138,15 @@ def main(argv: list[str] | None = None) -> None:
         known = sorted(p.stem[: -len("_encoder")] for p in folder.glob("*_encoder.yaml"))
         known += sorted(p.stem for p in (folder / "baselines").glob("*.yaml"))
         raise SystemExit(f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {known}")
-    version = "reproduce-" + datetime.now().strftime("%Y%m%d-%H%M%S")
+    seeded = "" if opts.seed is None else f"seed{opts.seed}"
+    version = "reproduce-" + (seeded + "-" if seeded else "") + datetime.now().strftime("%Y%m%d-%H%M%S")
     v = ["--trainer.logger.init_args.version", version]
+    if seeded:
+        v += ["--seed_everything", str(opts.seed)]
+
+    def named(cfg: Path) -> list[str]:
+        """A forecaster stage's results under the seed's own experiment name."""
+        return ["--model.init_args.experiment", f"{experiment_name(cfg)}_{seeded}"] if seeded else []
     stages: list[dict] = []
     configs = []
     if ssm_stages:
@@ -138,19 +155,21 @@ def main(argv: list[str] | None = None) -> None:
         run_stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v], stages)
         with_ssm = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt)]
         budget = [] if opts.encoder_epochs is None else ["--trainer.max_epochs", str(opts.encoder_epochs)]
-        run_stage(["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget, *v], stages)
-        run_stage(["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt), *v], stages)
+        run_stage(["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget, *named(enc_cfg), *v], stages)
+        run_stage(["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt),
+                   *named(enc_cfg), *v], stages)
         if ukf_cfg.exists():
-            run_stage(["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *v], stages)
+            run_stage(["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *named(ukf_cfg), *v], stages)
         configs.append(enc_cfg)
     for cfg in baselines:
         ckpt = logger_dir(cfg) / version / "checkpoints" / "last.ckpt"
-        run_stage(["fit", "--config", str(cfg.relative_to(ROOT)), *v], stages)
-        run_stage(["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *v], stages)
+        run_stage(["fit", "--config", str(cfg.relative_to(ROOT)), *named(cfg), *v], stages)
+        run_stage(["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *named(cfg), *v], stages)
         configs.append(cfg)
-    experiment = experiment_name(configs[0])
+    experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
     results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(configs[0]), "model.init_args.results_dir", default="results"))
-    command = f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
+    command = (f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
+               + (f" SEED={opts.seed}" if seeded else ""))
     md = write_pipeline(results_dir, experiment, command, {
         "stages": stages,
         "total_seconds": round(sum(s["seconds"] for s in stages), 1),

@@ -115,3 +115,17 @@ def test_a_failing_stage_is_one_error_line_not_a_traceback(tmp_path):
     assert proc.returncode == 2 and "Traceback" not in err and "CalledProcessError" not in err, err
     assert err.strip().splitlines()[-1].startswith("error: reproduce stopped: stage 1 (python cli.py fit --config ")
     assert "failed with status 2" in err
+
+
+def test_another_seed_seeds_every_stage_and_writes_its_own_results(recorded):
+    calls, written = recorded
+    reproduce.main(["lorenz_T1000", "--size", "cpu", "--seed", "2"])
+    assert all(option(a, "--seed_everything") == "2" for a in calls)
+    assert "seed2" in option(calls[0], "--trainer.logger.init_args.version")
+    assert "--model.init_args.experiment" not in calls[0]  # the SSM stage writes no results
+    assert all(option(a, "--model.init_args.experiment") == "lorenz_T1000_cpu_seed2" for a in calls[1:])
+    assert written["experiment"] == "lorenz_T1000_cpu_seed2"
+    assert written["command"] == "make reproduce EXP=lorenz_T1000 SIZE=cpu SEED=2"
+    calls.clear()
+    reproduce.main(["lorenz_T1000", "--size", "cpu"])  # without --seed: the configs' seed, the usual names
+    assert not any("--seed_everything" in a or "--model.init_args.experiment" in a for a in calls)

@@ -13,6 +13,7 @@ same method beside it (:func:`paper_row`).
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any, Union
 
@@ -84,7 +85,8 @@ PAPER: dict[str, dict[str, Any]] = {
 
 
 # what may follow a paper table's key in an experiment's name and keep it the paper's setting: the other
-# transition model, the CPU-sized twin (a variant such as lorenz_T1000_noiseless has no table in the paper)
+# transition model, the CPU-sized twin, another seed (seed<N>: reproduce --seed); a variant such as
+# lorenz_T1000_noiseless has no table in the paper
 SAME_SETTING = {"fc", "cpu"}
 
 
@@ -94,7 +96,8 @@ def paper_key(experiment: str) -> str | None:
     for key in sorted(PAPER, key=len, reverse=True):
         if experiment == key or experiment.startswith(key + "_"):
             rest = experiment[len(key) + 1:]
-            return key if not rest or set(rest.split("_")) <= SAME_SETTING else None
+            same = all(part in SAME_SETTING or re.fullmatch(r"seed\d+", part) for part in rest.split("_"))
+            return key if not rest or same else None
     return None
 
 
