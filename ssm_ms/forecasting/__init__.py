@@ -1,6 +1,7 @@
 """Forecasting, for every forecaster (an SSM with an inference method, a baseline): the paper's test protocol
 (:mod:`~ssm_ms.forecasting.protocol`: :class:`ForecastModule`, the split, the metrics, the valid time), the results
-files beside the paper's tables (:mod:`~ssm_ms.forecasting.results`), the ``predict`` writer
+files beside the paper's tables (:mod:`~ssm_ms.forecasting.results`) and over seeds
+(:mod:`~ssm_ms.forecasting.seeds`), the ``predict`` writer
 (:mod:`~ssm_ms.forecasting.writer`) and the forecast figures (:mod:`~ssm_ms.forecasting.figures`)."""
 
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
