@@ -138,8 +138,7 @@ def conv_stack_backward_op(x: torch.Tensor, saved: torch.Tensor, stats: torch.Te
             d_g = _fresh(total[o_g : o_g + size].view(*hw, c_out).permute(2, 0, 1))
             d_be = _fresh(total[o_be : o_be + size].view(*hw, c_out).permute(2, 0, 1))
         per_layer.append((d_w, d_b, d_g, d_be))
-    out = [dx, *flat_params(per_layer)]
-    return out
+    return [dx, *flat_params(per_layer)]
 
 
 @conv_stack_backward_op.register_fake
