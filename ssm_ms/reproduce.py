@@ -168,8 +168,12 @@ def main(argv: list[str] | None = None) -> None:
         configs.append(cfg)
     experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
     results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(configs[0]), "model.init_args.results_dir", default="results"))
-    command = (f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
-               + (f" SEED={opts.seed}" if seeded else ""))
+    if opts.no_baselines or opts.encoder_epochs is not None:  # options make does not pass: the module's command
+        command = shlex.join(["python", "-m", "ssm_ms.reproduce", *sys.argv[1:]] if argv is None else
+                             ["python", "-m", "ssm_ms.reproduce", *argv])
+    else:
+        command = (f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
+                   + (f" SEED={opts.seed}" if seeded else ""))
     md = write_pipeline(results_dir, experiment, command, {
         "stages": stages,
         "total_seconds": round(sum(s["seconds"] for s in stages), 1),

@@ -57,6 +57,7 @@ def test_a_baseline_alone_and_without_baselines(recorded):
     calls.clear()
     reproduce.main(["pendulum", "--no-baselines"])
     assert [option(a, "--config") for a in calls] == ["configs/pendulum.yaml"] + ["configs/pendulum_encoder.yaml"] * 2
+    assert written["command"] == "python -m ssm_ms.reproduce pendulum --no-baselines"  # not make's: it has no such option
 
 
 def test_unknown_experiment_lists_the_known_ones(recorded):
