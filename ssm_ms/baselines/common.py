@@ -12,6 +12,7 @@ from torch import Tensor
 
 from ssm_ms.nets.decoder import PRESETS as DECODER_PRESETS
 from ssm_ms.nets.decoder import ConvDecoder
+from ssm_ms.nets.encoder import FrameEncoder
 
 # Image side -> preset of both the encoder and the decoder (the paper's three image experiments).
 PRESET_BY_IMAGE_SIZE = {24: "pendulum", 48: "quad", 64: "mnist"}
@@ -48,6 +49,17 @@ def decoder_preset_shape(preset: str) -> tuple[int, int, int]:
     for channels, kernel, stride in layers:
         size = (size - 1) * stride + kernel
     return (channels, size, size)
+
+
+def frame_encoder(obs_shape: tuple[int, ...], preset: str | Mapping[str, Any]) -> FrameEncoder:
+    """The per-frame CNN of a preset name, or of the layers themselves as a mapping of ``FrameEncoder``'s
+    ``conv_channels``, ``final_channels``, ``final_relu``."""
+    if not isinstance(preset, Mapping):
+        return FrameEncoder(obs_shape, preset=preset)
+    unknown = sorted(set(preset) - {"conv_channels", "final_channels", "final_relu"})
+    if unknown:
+        raise ValueError(f"encoder_preset as a mapping takes conv_channels, final_channels, final_relu; unknown: {unknown}")
+    return FrameEncoder(obs_shape, **preset)
 
 
 def image_decoder(in_features: int, obs_shape: tuple[int, ...], preset: Optional[str | Mapping[str, Any]],

@@ -19,8 +19,7 @@ from typing import Any, Optional
 import torch
 from torch import Tensor, nn
 
-from ssm_ms.baselines.common import SequenceOutput, image_decoder, preset_for
-from ssm_ms.nets.encoder import FrameEncoder
+from ssm_ms.baselines.common import SequenceOutput, frame_encoder, image_decoder, preset_for
 
 
 class Seq2SeqLSTM(nn.Module):
@@ -57,14 +56,7 @@ class Seq2SeqLSTM(nn.Module):
         if encoder_preset is None:
             encoder_preset = preset_for(obs_shape, "encoder_preset") if is_image else "vector"
         self.obs_shape = obs_shape
-        if isinstance(encoder_preset, Mapping):
-            unknown = sorted(set(encoder_preset) - {"conv_channels", "final_channels", "final_relu"})
-            if unknown:
-                raise ValueError(f"encoder_preset as a mapping takes conv_channels, final_channels, final_relu; "
-                                 f"unknown: {unknown}")
-            self.frames = FrameEncoder(obs_shape, **encoder_preset)
-        else:
-            self.frames = FrameEncoder(obs_shape, preset=encoder_preset)
+        self.frames = frame_encoder(obs_shape, encoder_preset)
         self.lstm = nn.LSTM(self.frames.out_features + 1, hidden, batch_first=True)
         if is_image:
             if output not in ("sigmoid", "linear"):

@@ -41,8 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ssm_ms.baselines.common import SequenceOutput, image_decoder, preset_for
-from ssm_ms.nets.encoder import FrameEncoder
+from ssm_ms.baselines.common import SequenceOutput, frame_encoder, image_decoder, preset_for
 
 
 class FactorizedCovariance(NamedTuple):
@@ -353,7 +352,7 @@ class RecurrentKalmanNetwork(nn.Module):
         # --- encoder: frame -> (w, s)
         if encoder_preset is None:
             encoder_preset = preset_for(obs_shape, "encoder_preset") if is_image else "vector"
-        self.encoder = FrameEncoder(obs_shape, preset=encoder_preset)
+        self.encoder = frame_encoder(obs_shape, encoder_preset)
         if any(int(h) < 1 for h in encoder_hidden):
             raise ValueError(f"encoder_hidden widths must be >= 1, got {list(encoder_hidden)}")
         layers: list[nn.Module] = []
