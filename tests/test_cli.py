@@ -146,13 +146,21 @@ SWEEP_BASELINES = ("lorenz_T10_", "lorenz_T100_", "lorenz_T10000_")
 BASELINE_CONFIGS = sorted(p for p in (CPU / "baselines").glob("*.yaml") if not p.stem.startswith(SWEEP_BASELINES))
 
 
+@pytest.fixture(scope="module")
+def baseline_lorenz_data(tmp_path_factory) -> Path:
+    """One data folder for the Lorenz baselines' tests: the data and the true system's exponents (~15 s of Benettin
+    QR on 2 cores, cached beside the data) are made once for both."""
+    return tmp_path_factory.mktemp("lorenz_data")
+
+
 @pytest.mark.parametrize("config", BASELINE_CONFIGS, ids=[p.stem for p in BASELINE_CONFIGS])
-def test_cpu_baseline_config_fits_and_tests(tmp_path, config):
+def test_cpu_baseline_config_fits_and_tests(tmp_path, config, request):
     """Each CPU-sized baseline trains a few batches, then the test protocol writes its row beside the paper's."""
     extra = [*TINY[family(config.stem)], "--model.init_args.results_dir", str(tmp_path / "results"),
              "--model.init_args.figures_dir", str(tmp_path / "figures")]
     if family(config.stem) == "lorenz":  # 1000-step test forecasts on two sequences are enough here
-        extra += ["--data.init_args.n_test", "2", *CHEAP_BASELINE_ANALYSIS]
+        extra += ["--data.init_args.n_test", "2", *CHEAP_BASELINE_ANALYSIS,
+                  "--data.init_args.data_dir", str(request.getfixturevalue("baseline_lorenz_data"))]
     run(tmp_path, "fit", config, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
         "--trainer.limit_val_batches", "1", *extra)
     ckpt = outputs(tmp_path, config) / "checkpoints" / "last.ckpt"
