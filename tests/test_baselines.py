@@ -10,6 +10,7 @@ import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from ssm_ms.baselines import LSTMBaseline, RKNBaseline, Seq2SeqLSTM
+from ssm_ms.baselines.rkn import RecurrentKalmanNetwork
 from ssm_ms.inference.encoder_module import StateEncoderModule
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import Projection
@@ -62,21 +63,24 @@ def test_lstm_decoder_draws_the_data_image_size():
         Seq2SeqLSTM([1, 24, 30], hidden=8)
 
 
-def test_lstm_layers_given_as_mappings_instead_of_presets():
+@pytest.mark.parametrize("cls", [Seq2SeqLSTM, RecurrentKalmanNetwork], ids=["lstm", "rkn"])
+def test_baseline_layers_given_as_mappings_instead_of_presets(cls):
     """A narrower CNN and decoder than the presets (a CPU-sized run): the layers are the ones asked for."""
-    net = Seq2SeqLSTM([1, 64, 64], hidden=8,
-                      encoder_preset={"conv_channels": [4, 8], "final_channels": 3, "final_relu": True},
-                      decoder_preset={"stem_channels": 6, "layers": [[5, 3, 2], [1, 4, 2]]})
-    convs = [m for m in net.frames.modules() if isinstance(m, torch.nn.Conv2d)]
+    small = {"hidden": 8} if cls is Seq2SeqLSTM else {"latent_state_dim": 4, "n_basis": 2}
+    net = cls([1, 64, 64], **small,
+              encoder_preset={"conv_channels": [4, 8], "final_channels": 3, "final_relu": True},
+              decoder_preset={"stem_channels": 6, "layers": [[5, 3, 2], [1, 4, 2]]})
+    frames = net.frames if cls is Seq2SeqLSTM else net.encoder
+    convs = [m for m in frames.modules() if isinstance(m, torch.nn.Conv2d)]
     assert [c.out_channels for c in convs] == [4, 8, 3]
     deconvs = [m for m in net.decoder.deconv if isinstance(m, torch.nn.ConvTranspose2d)]
     assert [(d.in_channels, d.out_channels, d.kernel_size[0], d.stride[0]) for d in deconvs] == [(6, 5, 3, 2), (5, 1, 4, 2)]
     y = torch.rand(2, 3, 1, 64, 64)
     assert net(y, torch.ones(2, 3, dtype=torch.bool)).mean.shape == y.shape
     with pytest.raises(ValueError, match=r"encoder_preset as a mapping takes .* unknown: \['channels'\]"):
-        Seq2SeqLSTM([1, 64, 64], hidden=8, encoder_preset={"channels": [4]})
+        cls([1, 64, 64], **small, encoder_preset={"channels": [4]})
     with pytest.raises(ValueError, match="decoder_preset as a mapping takes 'layers'"):
-        Seq2SeqLSTM([1, 64, 64], hidden=8, decoder_preset={"stem_channels": 6})
+        cls([1, 64, 64], **small, decoder_preset={"stem_channels": 6})
 
 
 # ---------------------------------------------------------------------------- training and the protocol

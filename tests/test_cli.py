@@ -154,13 +154,13 @@ def baseline_lorenz_data(tmp_path_factory) -> Path:
 
 
 @pytest.mark.parametrize("config", BASELINE_CONFIGS, ids=[p.stem for p in BASELINE_CONFIGS])
-def test_cpu_baseline_config_fits_and_tests(tmp_path, config, request):
+def test_cpu_baseline_config_fits_and_tests(tmp_path, config, baseline_lorenz_data):
     """Each CPU-sized baseline trains a few batches, then the test protocol writes its row beside the paper's."""
     extra = [*TINY[family(config.stem)], "--model.init_args.results_dir", str(tmp_path / "results"),
              "--model.init_args.figures_dir", str(tmp_path / "figures")]
     if family(config.stem) == "lorenz":  # 1000-step test forecasts on two sequences are enough here
         extra += ["--data.init_args.n_test", "2", *CHEAP_BASELINE_ANALYSIS,
-                  "--data.init_args.data_dir", str(request.getfixturevalue("baseline_lorenz_data"))]
+                  "--data.init_args.data_dir", str(baseline_lorenz_data)]
     run(tmp_path, "fit", config, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
         "--trainer.limit_val_batches", "1", *extra)
     ckpt = outputs(tmp_path, config) / "checkpoints" / "last.ckpt"

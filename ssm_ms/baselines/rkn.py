@@ -34,8 +34,8 @@ prediction from the last observed frame where it was not.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import NamedTuple, Optional
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple, Optional
 
 import torch
 import torch.nn.functional as F
@@ -291,12 +291,13 @@ class RecurrentKalmanNetwork(nn.Module):
             :class:`RKNTransition` (defaults of the RKN code: 15, 3, ``()``, tanh, 0.1).
         encoder_preset: preset of the per-frame CNN (:class:`~ssm_ms.nets.encoder.FrameEncoder`):
             ``None`` picks ``"vector"`` for vectors and, for images, by size (ours): 24 -> ``"pendulum"``,
-            48 -> ``"quad"``, 64 -> ``"mnist"`` (other square sizes: the nearest of these).
+            48 -> ``"quad"``, 64 -> ``"mnist"`` (other square sizes: the nearest of these); or the CNN itself as
+            a mapping, as :class:`~ssm_ms.baselines.lstm.Seq2SeqLSTM`'s.
         encoder_hidden: widths of Linear + ReLU layers between the CNN features and the two heads of
             ``w`` (``m``) and ``s`` (``m``, ``elu + 1``); ``()`` by default (ours).
         decoder_preset: images only: the :class:`~ssm_ms.nets.decoder.ConvDecoder` preset; ``None``
-            picks it by size like the encoder. It draws the image size of ``obs_shape``; its channels must
-            match (checked here).
+            picks it by size like the encoder; or the layers as a mapping, as ``Seq2SeqLSTM``'s. It draws the
+            image size of ``obs_shape``; its channels must match (checked here).
         decoder_hidden: vectors only: ReLU hidden widths of the mean MLP (of the posterior mean) and of the
             variance MLP (of ``[upper, lower, side]``); ``(64,)`` by default (ours).
         initial_cov: initial ``upper`` and ``lower`` variances (10, the RKN code's ``initial_state_covar``);
@@ -313,9 +314,9 @@ class RecurrentKalmanNetwork(nn.Module):
         n_basis: int = 15,
         bandwidth: int = 3,
         coeff_hidden: Sequence[int] = (),
-        encoder_preset: Optional[str] = None,
+        encoder_preset: Optional[str | Mapping[str, Any]] = None,
         encoder_hidden: Sequence[int] = (),
-        decoder_preset: Optional[str] = None,
+        decoder_preset: Optional[str | Mapping[str, Any]] = None,
         decoder_hidden: Sequence[int] = (64,),
         initial_cov: float = 10.0,
         normalize_latent_obs: bool = True,
