@@ -91,6 +91,9 @@ class MultipleShootingModule(pl.LightningModule):
         compile_rollout: ``None`` (eager) or a ``torch.compile`` mode (``"default"``, ``"reduce-overhead"``
             = CUDA graphs on a GPU, ...): the rollout of ``f`` over a sub-trajectory runs as one compiled
             graph (:class:`ssm_ms.shooting.CompiledRollout`).
+        val_horizon: steps of the validation rollout (``val/rollout_mse``) from each validation trajectory's
+            first node (``None``: its whole length). On chaotic data set it to a few Lyapunov times: a rollout
+            far beyond them compares unrelated signals and the score saturates whatever the model learns.
     """
 
     # validation rolls out from the shooting nodes, which only training trajectories have
@@ -113,6 +116,7 @@ class MultipleShootingModule(pl.LightningModule):
         constraint: str = "penalty",
         constraint_options: dict[str, float] | None = None,
         compile_rollout: str | None = None,
+        val_horizon: int | None = None,
     ):
         super().__init__()
         # Built by LightningCLI, f and g are recorded as their config (class_path + init_args), so
@@ -129,6 +133,8 @@ class MultipleShootingModule(pl.LightningModule):
             raise ValueError(f"the learning rate must be > 0, got {lr}: set model.init_args.lr (the paper: 1e-3)")
         if num_trajectories is not None and num_trajectories < 1:
             raise ValueError(f"num_trajectories must be >= 1, got {num_trajectories}")
+        if val_horizon is not None and (int(val_horizon) != val_horizon or val_horizon < 1):
+            raise ValueError(f"val_horizon must be a number of steps >= 1 (or unset: the whole trajectory), got {val_horizon!r}")
         if node_init_map is not None:
             bad = [k for k in node_init_map if not 0 <= int(k) < state_dim]
             if bad:
@@ -377,16 +383,19 @@ class MultipleShootingModule(pl.LightningModule):
         )
 
     def validation_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
-        """Roll training trajectories out from their first node over their whole length."""
-        y = batch["y"]
+        """Roll training trajectories out from their first node over ``val_horizon`` steps (default: their
+        whole length) and score the rollout against the measurements (and the clean signal, where given)."""
+        horizon = self.hparams.get("val_horizon") or batch["y"].shape[1]
+        y = batch["y"][:, :horizon]
         x0 = self.node_states(batch["index"])[:, 0]
         _, y_hat = self(x0, y.shape[1])
         bs = len(y)
         self.log("val/rollout_mse", F.mse_loss(y_hat, y), batch_size=bs, prog_bar=True)
         out = {"index": batch["index"], "y": y, "y_hat": y_hat}
         if "y_clean" in batch:
-            self.log("val/rollout_mse_clean", F.mse_loss(y_hat, batch["y_clean"]), batch_size=bs)
-            out["y_clean"] = batch["y_clean"]
+            y_clean = batch["y_clean"][:, :horizon]
+            self.log("val/rollout_mse_clean", F.mse_loss(y_hat, y_clean), batch_size=bs)
+            out["y_clean"] = y_clean
         return out
 
     def configure_optimizers(self) -> torch.optim.Optimizer:

@@ -1,5 +1,7 @@
 """MultipleShootingModule: node lookup, node initialisation, checks before training, NaN handling."""
 
+import math
+
 import pytest
 import torch
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint
@@ -98,6 +100,35 @@ def test_constructor_rejects_impossible_settings():
         MultipleShootingModule(torch.nn.Linear(2, 3), Projection([0]), state_dim=2)
     with pytest.raises(ValueError, match="node_init_map names state components"):
         rotation_model(node_init_map={5: 0})
+
+
+@pytest.mark.parametrize("val_horizon", [None, 5])
+def test_validation_rolls_out_the_first_node_over_val_horizon_steps(tmp_path, val_horizon):
+    """val/rollout_mse against a plain loop: the true rotation from each validation trajectory's first node,
+    over its whole length (12 steps) or over the first val_horizon steps only."""
+    dm = RotationDataModule(data_dir=str(tmp_path), val_trajectories=4)
+    model = MultipleShootingModule(ExactRotation(learnable=False), Projection([0]), state_dim=2, n_nodes=3,
+                                   num_trajectories=8, val_horizon=val_horizon)
+    with torch.no_grad():
+        model.nodes.weight.copy_(torch.randn(8, 6, generator=torch.Generator().manual_seed(1)))
+    logged = fast_trainer(tmp_path, max_epochs=1).validate(model, dm, verbose=False)[0]
+    dm.setup("validate")
+    errors = []
+    c, s = math.cos(0.3), math.sin(0.3)
+    for batch in dm.val_dataloader():
+        for j, y in zip(batch["index"].tolist(), batch["y"]):
+            a, b = model.nodes.weight[j, :2].tolist()
+            for t in range(val_horizon or 12):
+                errors.append((a - float(y[t, 0])) ** 2)
+                a, b = c * a - s * b, s * a + c * b
+    assert len(errors) == 4 * (val_horizon or 12)
+    assert logged["val/rollout_mse"] == pytest.approx(sum(errors) / len(errors), rel=1e-5)
+
+
+def test_val_horizon_must_be_a_positive_number_of_steps():
+    for bad in (0, -3, 2.5):
+        with pytest.raises(ValueError, match="val_horizon must be a number of steps >= 1"):
+            rotation_model(val_horizon=bad)
 
 
 def test_any_module_works_as_f_and_g(tmp_path):
