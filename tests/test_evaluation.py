@@ -14,6 +14,7 @@ from ssm_ms.forecasting.protocol import (
     mse_per_sequence,
     mse_sum_per_sequence,
     sequence_metrics,
+    sequence_summary,
     split_sequence,
     ssim_per_sequence,
 )
@@ -193,6 +194,55 @@ def test_protocol_bookkeeping_with_the_exact_model(exact_ssm):
     assert saved["oracle/noisy/mse"]["mean"] == pytest.approx(expected_noisy.mean().item(), rel=1e-4)
     report = (tmp / "results" / "rot.md").read_text()
     assert "| SSM (ExactRotation) + oracle |" in report and "| last (reference, with SSM (ExactRotation) + oracle) |" in report
+
+
+def test_sequence_summary_leaves_diverged_sequences_out_and_counts_them():
+    scores = [0.5, float("nan"), 1.5, float("inf"), 4.0]
+    finite = [0.5, 1.5, 4.0]
+    mean = sum(finite) / 3
+    got = sequence_summary(torch.tensor(scores))
+    assert (got["n"], got["non_finite"]) == (5, 2)
+    assert got["mean"] == pytest.approx(mean)
+    assert got["std"] == pytest.approx(math.sqrt(sum((v - mean) ** 2 for v in finite) / 3))
+    none = sequence_summary(torch.full((3,), float("nan")))
+    assert (none["n"], none["non_finite"]) == (3, 3) and math.isnan(none["mean"])
+
+
+class DivergingOracle(Oracle):
+    """The true states, except for the test sequences whose index is in ``diverged``: NaN (a filter that blew up)."""
+
+    def __init__(self, *args, diverged=(), **kwargs):
+        super().__init__(*args, **kwargs)
+        self.diverged = set(diverged)
+
+    def infer(self, y_filter):
+        states = super().infer(y_filter).clone()
+        for row, index in enumerate(self.batch["index"].tolist()):
+            if index in self.diverged:
+                states[row] = float("nan")
+        return states
+
+
+@pytest.mark.parametrize("diverged", [(1, 3), (0, 1, 2, 3)], ids=["some", "all"])
+def test_a_forecast_that_diverges_is_reported_not_averaged(exact_ssm, diverged):
+    """A test run whose forecasts are NaN on some sequences (or all) still writes its results: the scores of the
+    others, and how many diverged."""
+    tmp, ckpt = exact_ssm
+    name = f"rot_nan{len(diverged)}"
+    oracle = DivergingOracle(str(ckpt), n_filter=8, metrics=["mse"], results_dir=str(tmp / "results"), experiment=name,
+                             diverged=diverged, analysis={"valid_time": {}})
+    fast_trainer(tmp, max_epochs=1).test(oracle, rotation_dm(tmp))
+    saved = json.loads((tmp / "results" / f"{name}.json").read_text())["runs"]["oracle"]["summary"]
+    entry = saved["oracle/clean/mse"]
+    assert (entry["n"], entry["non_finite"]) == (4, len(diverged))
+    assert saved["last/clean/mse"]["non_finite"] == len(diverged)  # the reference uses the method's last estimate
+    assert saved["mean/clean/mse"]["non_finite"] == 0
+    report = (tmp / "results" / f"{name}.md").read_text()
+    if len(diverged) == 4:
+        assert "non-finite on all 4 sequences" in report
+    else:
+        assert entry["mean"] < 1e-10  # the two others are exact
+        assert f"(non-finite on {len(diverged)} of 4 sequences, left out)" in report
 
 
 def test_analysis_of_the_exact_model(exact_ssm):

@@ -40,6 +40,7 @@ reconstruction error on its last given frames: see :class:`ValidTimeAccumulator`
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -311,7 +312,7 @@ class ForecastModule(pl.LightningModule):
     def _record(self, key: str, values: torch.Tensor) -> None:
         name = key.replace("/", "__")  # ModuleDict keys cannot hold "/"
         if name not in self._metrics:
-            self._metrics[name] = CatMetric().to(values.device)
+            self._metrics[name] = CatMetric(nan_strategy="disable").to(values.device)  # NaN: a diverged forecast
         self._metrics[name].update(values.detach())
 
     def on_test_epoch_start(self) -> None:
@@ -420,8 +421,7 @@ class ForecastModule(pl.LightningModule):
         summary: dict[str, dict[str, float]] = {}
         for name, metric in self._metrics.items():
             key = name.replace("__", "/")
-            values = metric.compute().flatten().double()
-            summary[key] = {"mean": values.mean().item(), "std": values.std(unbiased=False).item(), "n": values.numel()}
+            summary[key] = sequence_summary(metric.compute())
             self.log(f"test/{key}", summary[key]["mean"])
         analysis = self.analyze() if self.trainer.is_global_zero and self.analysis_settings else {}
         for name, value in flat_scalars(analysis).items():
@@ -587,6 +587,15 @@ class ValidTimeAccumulator:
         curve = self.normalised_errors().mean(0)
         h = len(curve)
         return {str(step): float(curve[step - 1]) for step in sorted({1, max(1, h // 4), max(1, h // 2), h})}
+
+
+def sequence_summary(values: torch.Tensor) -> dict[str, float]:
+    """``{"mean", "std", "n", "non_finite"}`` of per-sequence scores: ``n`` sequences, of which ``non_finite`` scored
+    NaN or inf (a forecast that diverged); mean and std are over the finite ones (NaN when none is)."""
+    values = torch.as_tensor(values).flatten().double()
+    finite = values[torch.isfinite(values)]
+    mean, std = (finite.mean().item(), finite.std(unbiased=False).item()) if finite.numel() else (math.nan, math.nan)
+    return {"mean": mean, "std": std, "n": values.numel(), "non_finite": values.numel() - finite.numel()}
 
 
 def reference_exponents(dm: Any, settings: Mapping[str, int] | None = None) -> dict[str, Any] | None:

@@ -119,9 +119,14 @@ def paper_row(key: str, info: dict[str, Any]) -> str | None:
 
 
 def _cell(entry: dict[str, float] | None) -> str:
+    """``mean ± std`` over the test sequences, saying how many diverged (a NaN or inf score) and were left out."""
     if entry is None:
         return "—"
-    return f"{entry['mean']:.4g} ± {entry['std']:.2g}"
+    bad, n = entry.get("non_finite", 0), entry.get("n")
+    if bad and bad == n:
+        return f"non-finite on all {n} sequences"
+    cell = f"{entry['mean']:.4g} ± {entry['std']:.2g}"
+    return f"{cell} (non-finite on {bad} of {n} sequences, left out)" if bad else cell
 
 
 def render_markdown(
