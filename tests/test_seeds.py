@@ -47,6 +47,18 @@ def test_seeds_are_gathered_as_mean_and_sample_std(tmp_path, capsys):
     assert json.loads((tmp_path / "lor_cpu_seeds.json").read_text())["seeds"] == table["seeds"]
 
 
+def test_a_seed_whose_forecasts_diverged_on_some_sequences_says_how_many(tmp_path):
+    for seed, values in SCORES.items():
+        write_seed(tmp_path, "lor_cpu" if seed == "config seed" else f"lor_cpu_{seed}", *values)
+    data = json.loads((tmp_path / "lor_cpu_seed2.json").read_text())
+    data["runs"]["ukf"]["summary"]["ukf/clean/mse"]["non_finite"] = 3  # its mean is over the 61 others
+    (tmp_path / "lor_cpu_seed2.json").write_text(json.dumps(data))
+    main(["lor_cpu", "--results-dir", str(tmp_path)])
+    table = json.loads((tmp_path / "lor_cpu_seeds.json").read_text())
+    assert table["rows"]["ukf: clean/mse, non-finite sequences"] == {"seed2": 3.0}
+    assert table["summary"]["ukf: clean/mse"]["n"] == 3  # the three seeds' scores are still gathered
+
+
 def test_no_results_is_one_message(tmp_path):
     with pytest.raises(SystemExit, match="no results for 'nothing_cpu'"):
         main(["nothing_cpu", "--results-dir", str(tmp_path)])

@@ -52,7 +52,9 @@ def read_quantities(data: dict[str, Any]) -> dict[str, float]:
         for key, entry in sorted(run.get("summary", {}).items()):
             row, rest = key.split("/", 1)
             if row == method and isinstance(entry, dict) and isinstance(entry.get("mean"), (int, float)):
-                out[f"{method}: {rest}"] = float(entry["mean"])
+                out[f"{method}: {rest}"] = float(entry["mean"])  # over the finite sequences
+                if entry.get("non_finite"):  # diverged forecasts, left out of that mean: say how many, per seed
+                    out[f"{method}: {rest}, non-finite sequences"] = float(entry["non_finite"])
         flat = flat_scalars(run.get("analysis") or {})
         for label, key in PER_METHOD:
             if key in flat:
@@ -99,7 +101,8 @@ def render(table: dict[str, Any]) -> str:
     seeds = table["seeds"]
     lines = [f"# {table['experiment']} over {len(seeds)} seeds", "",
              "Each seed's results file: " + ", ".join(f"{s}: `{f}`" for s, f in table["files"].items())
-             + ". Scores are each run's mean over its test sequences; the last column is the mean ± sample std over "
+             + ". Scores are each run's mean over its test sequences (the finite ones: a row `..., non-finite sequences` "
+             "counts, per seed, those whose forecast diverged, where any did); the last column is the mean ± sample std over "
              "seeds (`n`: seeds with a finite value). Made by `python -m ssm_ms.forecasting.seeds "
              f"{table['experiment']}`.", "",
              "| quantity | " + " | ".join(seeds) + " | mean ± std over seeds |",
