@@ -22,9 +22,12 @@ What the command line adds to Lightning's:
 - **Trainer settings.** An invalid ``trainer`` value that Lightning refuses when it builds the Trainer
   (a ``MisconfigurationException`` or ``ValueError``, e.g. ``--trainer.max_epochs -5``) is a user's
   mistake: one ``error: trainer: ...`` line, status 1.
-- **Ctrl-C.** An interrupted ``fit`` exits with status 130 and prints the command that resumes it from
+- **Ctrl-C, SIGTERM.** An interrupted ``fit`` exits with status 130 and prints the command that resumes it from
   the last completed epoch's ``last.ckpt`` (written every epoch by
-  :class:`ssm_ms.checkpointing.EpochCheckpoint`).
+  :class:`ssm_ms.checkpointing.EpochCheckpoint`). SIGTERM (``kill <pid>``: what scripts and job schedulers send,
+  and the way to stop a run started in the background, where SIGINT is ignored) stops it the same way: Lightning
+  finishes the batch under way and raises its ``SIGTERMException``, which :meth:`SSMCLI.fit` turns into the same
+  message.
 - **Interpolation** (``${model.init_args.state_dim}``) is resolved after the command line is applied
   (jsonargparse's ``omegaconf+`` mode), so ``--model.init_args.state_dim 5`` reaches f and g too, and
   ``--print_config`` shows the values the run uses.
@@ -67,7 +70,7 @@ class CommandLineError(ArgumentError):
 
 
 class Interrupted(Exception):
-    """``fit`` was stopped by Ctrl-C (SIGINT); the message says how to resume."""
+    """``fit`` was stopped by Ctrl-C (SIGINT) or SIGTERM; the message says how to resume."""
 
 
 class _Parser(LightningArgumentParser):
@@ -152,7 +155,8 @@ class SSMCLI(LightningCLI):
         try:
             self.trainer.fit(model, **kwargs)
         except SystemExit:
-            # Lightning answers Ctrl-C by shutting down gracefully and calling sys.exit(1)
+            # Lightning answers Ctrl-C by shutting down gracefully and calling sys.exit(1), and SIGTERM by raising
+            # SIGTERMException (a SystemExit) after the batch under way
             if self.trainer.state.status == TrainerStatus.INTERRUPTED:
                 raise Interrupted(self._resume_message()) from None
             raise

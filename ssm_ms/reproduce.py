@@ -17,7 +17,8 @@ Each stage is ``python cli.py ...`` in its own process, logged under ``runs/<nam
 known. Every method lands in the same ``results/<experiment>.md``, which ends with the commands and
 their durations.
 
-Ctrl-C during a stage stops the stage as ``fit`` stops (its last completed epoch kept); this process waits
+Ctrl-C (or SIGTERM: ``kill <pid>``) during a stage stops the stage as ``fit`` stops (its last completed epoch
+kept); this process waits
 for it, prints which stage was interrupted and the command that resumes that stage (``--ckpt_path`` its
 ``last.ckpt``), and exits with status 130. A failing stage ends in one ``error:`` line naming it, with the
 stage's status. No traceback either way; the later stages do not run (there is no pipeline-level resume:
@@ -73,8 +74,10 @@ def _stage_checkpoint(args: list[str]) -> Path | None:
 def run_stage(args: list[str], stages: list[dict]) -> None:
     """Run ``python cli.py *args`` from the root; on success append its command and duration to ``stages``.
 
-    Ctrl-C reaches the stage and this process together (one process group): the stage stops as ``fit`` does
-    (keeping its last completed epoch), this process waits for it, then says which stage was interrupted and
+    Ctrl-C reaches the stage and this process together (one process group); SIGTERM sent to this process alone
+    (``kill <pid>``, what scripts and job schedulers send; also where a background job ignores SIGINT) is forwarded
+    to the stage. Either way the stage stops as ``fit`` does (keeping its last completed epoch), this process waits
+    for it, then says which stage was interrupted and
     the command that resumes it (``--ckpt_path`` its ``last.ckpt`` for a ``fit`` that saved one, else the
     stage's own command) and exits with status 130; a second Ctrl-C stops the stage at once. A stage that
     fails exits with its status after one ``error:`` line naming it (its own message is printed above).
@@ -84,14 +87,24 @@ def run_stage(args: list[str], stages: list[dict]) -> None:
     start = time.time()
     proc = subprocess.Popen(cmd, cwd=ROOT)
     interrupted = False
-    while True:
-        try:
-            code = proc.wait()
-            break
-        except KeyboardInterrupt:
-            if interrupted:  # a second Ctrl-C: do not wait for the stage to stop cleanly
-                proc.kill()
-            interrupted = True
+
+    def forward_sigterm(signum, frame):  # `kill <this pid>`, a scheduler's stop: the stage stops as on Ctrl-C
+        nonlocal interrupted
+        interrupted = True
+        proc.send_signal(signal.SIGTERM)
+
+    previous = signal.signal(signal.SIGTERM, forward_sigterm)
+    try:
+        while True:
+            try:
+                code = proc.wait()
+                break
+            except KeyboardInterrupt:
+                if interrupted:  # a second Ctrl-C: do not wait for the stage to stop cleanly
+                    proc.kill()
+                interrupted = True
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     stage = f"stage {len(stages) + 1} (python cli.py {shlex.join(args)})"
     if interrupted or code in (130, -signal.SIGINT):
         ckpt = _stage_checkpoint(args)

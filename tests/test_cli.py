@@ -5,8 +5,10 @@ instantiates as written; stage configs share their SSM config's data section."""
 from __future__ import annotations
 
 import importlib.util
-import math
 import json
+import math
+import os
+import signal
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -287,7 +289,8 @@ data:
 
 
 class StopAt(Callback):
-    """Ctrl-C (KeyboardInterrupt, as SIGINT raises it) or a diverging f (NaN parameters) in the middle of an epoch."""
+    """Ctrl-C (KeyboardInterrupt, as SIGINT raises it), a real SIGTERM to this process, or a diverging f (NaN
+    parameters) in the middle of an epoch."""
 
     def __init__(self, epoch: int, how: str = "interrupt"):
         self.epoch, self.how = epoch, how
@@ -296,6 +299,9 @@ class StopAt(Callback):
         if trainer.current_epoch == self.epoch and batch_idx == 1:
             if self.how == "interrupt":
                 raise KeyboardInterrupt
+            if self.how == "sigterm":  # what `kill <pid>` sends; Lightning's handler stops after this batch
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
             with torch.no_grad():
                 for p in pl_module.f.parameters():
                     p.fill_(float("nan"))
@@ -352,11 +358,13 @@ def test_nan_stop_names_the_last_good_epoch(rotation, capsys):
     assert saved["epoch"] == 1 and all(torch.isfinite(v).all() for v in saved["state_dict"].values())
 
 
-def test_ctrl_c_then_resume_equals_an_uninterrupted_run(rotation, capsys):
+@pytest.mark.parametrize("how", ["interrupt", "sigterm"])
+def test_ctrl_c_or_sigterm_then_resume_equals_an_uninterrupted_run(rotation, capsys, how):
     root, fit = rotation
+    sigterm = signal.getsignal(signal.SIGTERM)
     main([*fit, "--trainer.logger.init_args.version", "full"])
     interrupted = [*fit, "--trainer.logger.init_args.version", "cut", "--trainer.callbacks+=tests.test_cli.StopAt",
-                   "--trainer.callbacks.epoch=2"]
+                   "--trainer.callbacks.epoch=2", f"--trainer.callbacks.how={how}"]
     with pytest.raises(SystemExit) as stop:
         main(interrupted)
     err = capsys.readouterr().err
@@ -365,6 +373,7 @@ def test_ctrl_c_then_resume_equals_an_uninterrupted_run(rotation, capsys):
     assert torch.load(ckpt, weights_only=True)["epoch"] == 1  # the last completed epoch, not the half one
     command = err.split("Resume with:")[1].strip()
     assert command == "python cli.py " + " ".join(interrupted) + f" --ckpt_path {ckpt}"
+    assert signal.getsignal(signal.SIGTERM) == sigterm  # the process's own SIGTERM handling is back
     main([*fit, "--trainer.logger.init_args.version", "cut", "--ckpt_path", str(ckpt)])  # the command, less the Ctrl-C
     full = torch.load(last_ckpt(root, "full"), weights_only=True)
     resumed = torch.load(ckpt, weights_only=True)

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from ssm_ms import reproduce
@@ -78,9 +80,11 @@ def _stage_in_own_group(tmp_path, args):
                             stderr=subprocess.PIPE, text=True, env=env)
 
 
-def test_ctrl_c_during_a_stage_names_it_and_the_command_that_resumes_it(tmp_path):
-    """Ctrl-C reaches the stage and reproduce together (SIGINT to the process group): no traceback, status 130,
-    the stage named and the command that resumes it from the last completed epoch."""
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm"])
+def test_ctrl_c_or_sigterm_during_a_stage_names_it_and_the_command_that_resumes_it(tmp_path, how):
+    """Ctrl-C reaches the stage and reproduce together (SIGINT to the process group); SIGTERM to reproduce alone
+    (``kill <pid>``) is forwarded to the stage. Either way: no traceback, status 130, the stage stopped (not left
+    running), named, and the command that resumes it from the last completed epoch."""
     import os
     import shlex
     import signal
@@ -99,14 +103,32 @@ def test_ctrl_c_during_a_stage_names_it_and_the_command_that_resumes_it(tmp_path
     while not ckpt.is_file() and proc.poll() is None and time.time() < deadline:
         time.sleep(0.2)
     assert ckpt.is_file(), proc.poll()
-    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in the terminal does
-    _, err = proc.communicate(timeout=120)
+    stage = _children(proc.pid)
+    assert len(stage) == 1
+    if how == "ctrl-c":
+        os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in the terminal does
+    else:
+        proc.send_signal(signal.SIGTERM)  # reproduce's pid only
+    try:
+        _, err = proc.communicate(timeout=120)
+        assert not Path(f"/proc/{stage[0]}").exists() or _state(stage[0]) == "Z", "the stage was left running"
+    finally:  # a failure must not leave the stage training beside the next tests
+        if Path(f"/proc/{stage[0]}").exists():
+            os.kill(stage[0], signal.SIGKILL)
     assert proc.returncode == 130 and "Traceback" not in err, err
     assert f"reproduce was interrupted during stage 1 (python cli.py {shlex.join(args)}); its last completed epoch " \
            f"is saved in {ckpt}. Resume that stage with:" in err, err
     resume = err.split("Resume that stage with:")[1].strip().splitlines()[0]
     assert resume == "python cli.py " + shlex.join(args) + f" --ckpt_path {ckpt}"
     assert torch.load(ckpt, weights_only=True)["epoch"] >= 0  # a completed epoch to resume from
+
+
+def _children(pid: int) -> list[int]:
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+def _state(pid: int) -> str:
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
 
 
 def test_a_failing_stage_is_one_error_line_not_a_traceback(tmp_path):
