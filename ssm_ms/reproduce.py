@@ -18,16 +18,23 @@ known. Every method lands in the same ``results/<experiment>.md``, which ends wi
 their durations.
 
 Ctrl-C (or SIGTERM: ``kill <pid>``) during a stage stops the stage as ``fit`` stops (its last completed epoch
-kept); this process waits
-for it, prints which stage was interrupted and the command that resumes that stage (``--ckpt_path`` its
-``last.ckpt``), and exits with status 130. A failing stage ends in one ``error:`` line naming it, with the
-stage's status. No traceback either way; the later stages do not run (there is no pipeline-level resume:
-run them after the resumed stage, or reproduce again). See :func:`run_stage`.
+kept); this process waits for it, prints which stage was interrupted, the command that resumes that stage alone
+(``--ckpt_path`` its ``last.ckpt``) and the one that resumes the whole pipeline, and exits with status 130. A failing
+stage ends in one ``error:`` line naming it, with the stage's status. No traceback either way; the later stages do
+not run. See :func:`run_stage`.
+
+    python -m ssm_ms.reproduce pendulum --resume reproduce-20261125-040251   # finish that run (make: RESUME=...)
+
+``--resume VERSION`` finishes a run that stopped, whatever stopped it (Ctrl-C, ``kill``, a crash, the machine going
+away while ``runs/`` stays): the stages it finished are not run again, its interrupted ``fit`` continues from its
+last completed epoch, then the remaining stages and the results file run as usual. Each run keeps its record in
+``<first stage's run folder>/reproduce.json`` (see :class:`Pipeline`).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import signal
 import subprocess
@@ -68,20 +75,37 @@ def _stage_checkpoint(args: list[str]) -> Path | None:
         ckpt = logger_dir(config) / version / "checkpoints" / "last.ckpt"
     except (IndexError, ValueError, OSError):
         return None
-    return ckpt if (ckpt if ckpt.is_absolute() else ROOT / ckpt).is_file() else None
+    return ckpt if _absolute(ckpt).is_file() else None
 
 
-def run_stage(args: list[str], stages: list[dict]) -> None:
-    """Run ``python cli.py *args`` from the root; on success append its command and duration to ``stages``.
+def _without_option(args: list[str], name: str) -> list[str]:
+    """``args`` less ``name VALUE`` (and ``name=VALUE``)."""
+    out, skip = [], False
+    for arg in args:
+        if skip:
+            skip = False
+        elif arg == name:
+            skip = True
+        elif not arg.startswith(name + "="):
+            out.append(arg)
+    return out
+
+
+def _absolute(path: Path) -> Path:
+    return path if path.is_absolute() else ROOT / path
+
+
+def run_stage(args: list[str], number: int, resume_pipeline: str | None = None) -> float:
+    """Run ``python cli.py *args`` from the root (stage ``number`` of the pipeline); return its duration in seconds.
 
     Ctrl-C reaches the stage and this process together (one process group); SIGTERM sent to this process alone
     (``kill <pid>``, what scripts and job schedulers send; also where a background job ignores SIGINT) is forwarded
     to the stage. Either way the stage stops as ``fit`` does (keeping its last completed epoch), this process waits
-    for it, then says which stage was interrupted and
-    the command that resumes it (``--ckpt_path`` its ``last.ckpt`` for a ``fit`` that saved one, else the
-    stage's own command) and exits with status 130; a second Ctrl-C stops the stage at once. A stage that
-    fails exits with its status after one ``error:`` line naming it (its own message is printed above).
-    Either way no traceback: the later stages and the results file do not run."""
+    for it, then says which stage was interrupted, the command that resumes that stage alone (``--ckpt_path`` its
+    ``last.ckpt`` for a ``fit`` that saved one, else the stage's own command) and ``resume_pipeline`` (the
+    reproduce command that resumes it and runs the stages after it), and exits with status 130; a second Ctrl-C
+    stops the stage at once. A stage that fails exits with its status after one ``error:`` line naming it (its
+    own message is printed above). Either way no traceback: the later stages and the results file do not run."""
     cmd = [sys.executable, "cli.py", *args]
     print("\n>>> " + " ".join(cmd), flush=True)
     start = time.time()
@@ -105,20 +129,87 @@ def run_stage(args: list[str], stages: list[dict]) -> None:
                 interrupted = True
     finally:
         signal.signal(signal.SIGTERM, previous)
-    stage = f"stage {len(stages) + 1} (python cli.py {shlex.join(args)})"
+    stage = f"stage {number} (python cli.py {shlex.join(args)})"
+    later = (f"Resume the whole pipeline (this stage, then the stages after it and the results file) with:\n"
+             f"  {resume_pipeline}" if resume_pipeline else
+             "(the stages after it and the results file did not run: run them after it, or reproduce again)")
     if interrupted or code in (130, -signal.SIGINT):
         ckpt = _stage_checkpoint(args)
-        resume = shlex.join(["python", "cli.py", *args, *(["--ckpt_path", str(ckpt)] if ckpt else [])])
+        alone = _without_option(args, "--ckpt_path") if ckpt else args
+        resume = shlex.join(["python", "cli.py", *alone, *(["--ckpt_path", str(ckpt)] if ckpt else [])])
         saved = f"; its last completed epoch is saved in {ckpt}" if ckpt else ""
-        print(f"\nreproduce was interrupted during {stage}{saved}. Resume that stage with:\n  {resume}\n"
-              "(the stages after it and the results file did not run: run them after it, or reproduce again)",
+        print(f"\nreproduce was interrupted during {stage}{saved}. Resume that stage with:\n  {resume}\n{later}",
               file=sys.stderr)
         raise SystemExit(130)
     if code != 0:
         print(f"error: reproduce stopped: {stage} failed with status {code} (its message is above); the "
-              "stages after it and the results file did not run", file=sys.stderr)
+              f"stages after it and the results file did not run. {later}", file=sys.stderr)
         raise SystemExit(code)
-    stages.append({"command": "python " + " ".join(cmd[1:]), "seconds": round(time.time() - start, 1)})
+    return round(time.time() - start, 1)
+
+
+class Pipeline:
+    """The stages of one reproduce command, recorded in ``record`` (a JSON file in the first stage's run folder) as
+    they start and finish, so that the same command with ``--resume <version>`` runs only what is left.
+
+    Resumed, a stage recorded as finished is not run again (its recorded duration is kept); a ``fit`` stage that
+    has a ``last.ckpt`` continues from it (``--ckpt_path``); every other stage runs as new. A stage's seconds add,
+    over the runs it took, the time up to its last completed epoch's checkpoint (the work kept), so a resumed
+    stage's duration is the training it holds, not the work lost in the interrupted epoch."""
+
+    def __init__(self, record: Path, options: dict, resume_pipeline: str, resume: bool):
+        self.record, self.options, self.resume_pipeline = record, options, resume_pipeline
+        self.done: list[dict] = []
+        self.running: dict | None = None
+        if resume:
+            if not record.is_file():
+                raise SystemExit(f"error: --resume: {record.parent.name} has no record of a reproduce run "
+                                 f"({record} does not exist): give the version printed when it stopped "
+                                 "(reproduce-<date>-<time>), with the experiment and options it was started with")
+            try:
+                saved = json.loads(record.read_text())
+                done, running, started_with = saved["stages"], saved.get("running"), saved["options"]
+            except (ValueError, KeyError, TypeError):
+                raise SystemExit(f"error: --resume: {record} is not a reproduce record (unreadable): reproduce "
+                                 "again without --resume") from None
+            differ = [f"{k} {started_with.get(k)!r}, not {v!r}" for k, v in options.items() if started_with.get(k) != v]
+            if differ:
+                raise SystemExit(f"error: --resume: {record.parent.name} was started with other options ("
+                                 f"{'; '.join(differ)}): resume it with the experiment and options it was started with")
+            self.done, self.running = done, running
+        self.stages: list[dict] = []
+
+    def _write(self) -> None:
+        self.record.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.record.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"options": self.options, "stages": self.stages + [
+            s for s in self.done if s not in self.stages], "running": self.running}, indent=2) + "\n")
+        tmp.replace(self.record)
+
+    def stage(self, args: list[str]) -> None:
+        """Run ``python cli.py *args`` unless the resumed run finished it; record it."""
+        command = "python cli.py " + " ".join(args)
+        number = len(self.stages) + 1
+        finished = next((s for s in self.done if s["command"] == command), None)
+        if finished is not None:
+            print(f"\n>>> stage {number} finished in the run resumed ({finished['seconds']} s): {command}", flush=True)
+            self.stages.append(finished)
+            return
+        kept, runs = 0.0, 1
+        earlier = self.running if self.running is not None and self.running["command"] == command else None
+        ckpt = _stage_checkpoint(args)
+        if earlier is not None:
+            runs = earlier["runs"] + 1
+            kept = earlier["seconds"] + (max(0.0, _absolute(ckpt).stat().st_mtime - earlier["started"]) if ckpt else 0.0)
+        self.running = {"command": command, "started": time.time(), "seconds": kept, "runs": runs}
+        self._write()
+        seconds = run_stage(args + (["--ckpt_path", str(ckpt)] if ckpt else []), number, self.resume_pipeline)
+        entry = {"command": command, "seconds": round(kept + seconds, 1)}
+        if runs > 1:
+            entry["runs"] = runs
+        self.stages.append(entry)
+        self.running = None
+        self._write()
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -132,6 +223,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=None, metavar="N",
                         help="every stage with --seed_everything N instead of the configs' seed; results go to "
                              "results/<experiment>_seed<N>.md")
+    parser.add_argument("--resume", default=None, metavar="VERSION",
+                        help="finish the run of this version (reproduce-<date>-<time>, printed when it stopped; the "
+                             "same experiment and options): its finished stages are not run again, its interrupted "
+                             "fit continues from its last.ckpt")
     opts = parser.parse_args(argv)
     if opts.encoder_epochs is not None and opts.encoder_epochs < 1:
         parser.error(f"--encoder-epochs must be >= 1, got {opts.encoder_epochs}")
@@ -152,7 +247,15 @@ def main(argv: list[str] | None = None) -> None:
         known += sorted(p.stem for p in (folder / "baselines").glob("*.yaml"))
         raise SystemExit(f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {known}")
     seeded = "" if opts.seed is None else f"seed{opts.seed}"
-    version = "reproduce-" + (seeded + "-" if seeded else "") + datetime.now().strftime("%Y%m%d-%H%M%S")
+    version = opts.resume or "reproduce-" + (seeded + "-" if seeded else "") + datetime.now().strftime("%Y%m%d-%H%M%S")
+    if "/" in version or not version.startswith("reproduce-"):
+        parser.error(f"--resume takes the version folder's name (reproduce-<date>-<time>), got {version!r}")
+    options = _without_option(list(sys.argv[1:] if argv is None else argv), "--resume")
+    first = ssm_cfg if ssm_stages else baselines[0]
+    pipeline = Pipeline(_absolute(logger_dir(first)) / version / "reproduce.json",
+                        {k: v for k, v in vars(opts).items() if k != "resume"},
+                        shlex.join(["python", "-m", "ssm_ms.reproduce", *options, "--resume", version]),
+                        resume=opts.resume is not None)
     v = ["--trainer.logger.init_args.version", version]
     if seeded:
         v += ["--seed_everything", str(opts.seed)]
@@ -160,36 +263,34 @@ def main(argv: list[str] | None = None) -> None:
     def named(cfg: Path) -> list[str]:
         """A forecaster stage's results under the seed's own experiment name."""
         return ["--model.init_args.experiment", f"{experiment_name(cfg)}_{seeded}"] if seeded else []
-    stages: list[dict] = []
     configs = []
     if ssm_stages:
         ssm_ckpt = logger_dir(ssm_cfg) / version / "checkpoints" / "last.ckpt"
         enc_ckpt = logger_dir(enc_cfg) / version / "checkpoints" / "last.ckpt"
-        run_stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v], stages)
+        pipeline.stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v])
         with_ssm = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt)]
         budget = [] if opts.encoder_epochs is None else ["--trainer.max_epochs", str(opts.encoder_epochs)]
-        run_stage(["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget, *named(enc_cfg), *v], stages)
-        run_stage(["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt),
-                   *named(enc_cfg), *v], stages)
+        pipeline.stage(["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget, *named(enc_cfg), *v])
+        pipeline.stage(["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt),
+                        *named(enc_cfg), *v])
         if ukf_cfg.exists():
-            run_stage(["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *named(ukf_cfg), *v], stages)
+            pipeline.stage(["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *named(ukf_cfg), *v])
         configs.append(enc_cfg)
     for cfg in baselines:
         ckpt = logger_dir(cfg) / version / "checkpoints" / "last.ckpt"
-        run_stage(["fit", "--config", str(cfg.relative_to(ROOT)), *named(cfg), *v], stages)
-        run_stage(["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *named(cfg), *v], stages)
+        pipeline.stage(["fit", "--config", str(cfg.relative_to(ROOT)), *named(cfg), *v])
+        pipeline.stage(["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *named(cfg), *v])
         configs.append(cfg)
     experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
     results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(configs[0]), "model.init_args.results_dir", default="results"))
     if opts.no_baselines or opts.encoder_epochs is not None:  # options make does not pass: the module's command
-        command = shlex.join(["python", "-m", "ssm_ms.reproduce", *sys.argv[1:]] if argv is None else
-                             ["python", "-m", "ssm_ms.reproduce", *argv])
+        command = shlex.join(["python", "-m", "ssm_ms.reproduce", *options])
     else:
         command = (f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
                    + (f" SEED={opts.seed}" if seeded else ""))
     md = write_pipeline(results_dir, experiment, command, {
-        "stages": stages,
-        "total_seconds": round(sum(s["seconds"] for s in stages), 1),
+        "stages": pipeline.stages,
+        "total_seconds": round(sum(s["seconds"] for s in pipeline.stages), 1),
         "machine": describe(),
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "command": command,

@@ -6,16 +6,19 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from lightning.pytorch.callbacks import Callback
 
 from ssm_ms import reproduce
 
 
 @pytest.fixture
-def recorded(monkeypatch):
+def recorded(monkeypatch, tmp_path):
+    """Stages recorded, not run (each takes 0 s); run folders (runs/...) under tmp_path."""
     calls: list[list[str]] = []
-    monkeypatch.setattr(reproduce, "run_stage", lambda args, stages: (calls.append(args), stages.append(
-        {"command": " ".join(args), "seconds": 0.0})))
     written = {}
+    monkeypatch.setattr(reproduce, "run_stage", lambda args, number, resume_pipeline=None: calls.append(args) or
+                        written.update(resume_pipeline=resume_pipeline) or 0.0)
+    monkeypatch.setattr(reproduce, "_absolute", lambda path: tmp_path / path)
     monkeypatch.setattr(reproduce, "write_pipeline", lambda results_dir, experiment, command, pipeline: written.update(
         experiment=experiment, command=command, pipeline=pipeline) or reproduce.ROOT / "README.md")
     return calls, written
@@ -48,6 +51,7 @@ def test_an_experiment_runs_its_ssm_stages_then_every_baseline(recorded, capsys)
     assert "--model.init_args.ssm_checkpoint" not in calls[4] + calls[5]
     assert written["experiment"] == "lorenz_T1000_cpu" and written["command"] == "make reproduce EXP=lorenz_T1000 SIZE=cpu"
     assert len(written["pipeline"]["stages"]) == 8
+    assert all(s["command"] == "python cli.py " + " ".join(a) for s, a in zip(written["pipeline"]["stages"], calls))
 
 
 def test_a_baseline_alone_and_without_baselines(recorded):
@@ -73,7 +77,7 @@ def _stage_in_own_group(tmp_path, args):
     import subprocess
     import sys
 
-    script = f"from ssm_ms import reproduce; reproduce.run_stage({args!r}, [])"
+    script = f"from ssm_ms import reproduce; reproduce.run_stage({args!r}, 1)"
     out = open(tmp_path / "stage.log", "w")
     env = dict(__import__("os").environ, OMP_NUM_THREADS="1")
     return subprocess.Popen([sys.executable, "-c", script], cwd=reproduce.ROOT, start_new_session=True, stdout=out,
@@ -152,3 +156,116 @@ def test_another_seed_seeds_every_stage_and_writes_its_own_results(recorded):
     calls.clear()
     reproduce.main(["lorenz_T1000", "--size", "cpu"])  # without --seed: the configs' seed, the usual names
     assert not any("--seed_everything" in a or "--model.init_args.experiment" in a for a in calls)
+
+
+# ---------------------------------------------------------------------------- --resume
+class KillAt(Callback):
+    """SIGKILL to the whole process group (reproduce and its stage: the machine going away) at the start of epoch
+    ``$KILL_AT_EPOCH``; each epoch started appended to the file ``$EPOCH_LOG``; nothing without those variables."""
+
+    def on_train_epoch_start(self, trainer, pl_module):
+        import os
+        import signal
+
+        if "EPOCH_LOG" in os.environ:
+            with open(os.environ["EPOCH_LOG"], "a") as log:
+                log.write(f"{trainer.current_epoch}\n")
+        if os.environ.get("KILL_AT_EPOCH") == str(trainer.current_epoch):
+            os.killpg(os.getpgrp(), signal.SIGKILL)
+
+
+def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tmp_path):
+    """A run stopped during its encoder fit (record: SSM fit finished, encoder fit running, its last.ckpt written 100 s
+    after that stage started): resumed, the SSM fit is not run again, the encoder fit continues from its last.ckpt,
+    every later stage runs; the encoder stage's seconds are the 100 kept plus the resumed run's."""
+    import json
+    import os
+
+    calls, written = recorded
+    reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-baselines"])
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    record = tmp_path / "runs" / "lorenz_T1000_cpu" / version / "reproduce.json"
+    finished = json.loads(record.read_text())
+    assert finished["running"] is None and len(finished["stages"]) == 4
+    assert finished["options"]["experiment"] == "lorenz_T1000" and finished["options"]["no_baselines"] is True
+    # as the record reads when the machine stopped during stage 2
+    stage1, stage2 = finished["stages"][0], finished["stages"][1]
+    started = 1_700_000_000.0
+    record.write_text(json.dumps({"options": finished["options"], "stages": [{**stage1, "seconds": 3000.0}],
+                                  "running": {"command": stage2["command"], "started": started, "seconds": 0.0,
+                                              "runs": 1}}))
+    enc_ckpt = tmp_path / "runs" / "lorenz_T1000_encoder_cpu" / version / "checkpoints" / "last.ckpt"
+    enc_ckpt.parent.mkdir(parents=True)
+    enc_ckpt.write_bytes(b"")
+    os.utime(enc_ckpt, (started + 100, started + 100))
+    calls.clear()
+    reproduce.main(["lorenz_T1000", "--no-baselines", "--size", "cpu", "--resume", version])  # options in any order
+    assert [(a[0], option(a, "--config")) for a in calls] == [
+        ("fit", "configs/cpu/lorenz_T1000_encoder.yaml"),
+        ("test", "configs/cpu/lorenz_T1000_encoder.yaml"),
+        ("test", "configs/cpu/lorenz_T1000_ukf.yaml"),
+    ]
+    assert option(calls[0], "--ckpt_path") == f"runs/lorenz_T1000_encoder_cpu/{version}/checkpoints/last.ckpt"
+    stages = written["pipeline"]["stages"]
+    assert [s["seconds"] for s in stages] == [3000.0, 100.0, 0.0, 0.0] and stages[1]["runs"] == 2
+    assert stages[1]["command"] == stage2["command"]  # the stage's command, without the --ckpt_path it resumed with
+    assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --no-baselines --size cpu"  # no --resume
+    assert written["resume_pipeline"] == f"python -m ssm_ms.reproduce lorenz_T1000 --no-baselines --size cpu " \
+                                         f"--resume {version}"  # what an interrupted stage prints
+    assert json.loads(record.read_text())["running"] is None
+
+
+def test_resume_refuses_another_run_or_other_options(recorded, tmp_path):
+    calls, _ = recorded
+    with pytest.raises(SystemExit, match=r"--resume: reproduce-20990101-000000 has no record of a reproduce run"):
+        reproduce.main(["pendulum_rkn", "--resume", "reproduce-20990101-000000"])
+    reproduce.main(["lorenz_T1000", "--size", "cpu", "--seed", "1"])
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    calls.clear()
+    with pytest.raises(SystemExit, match=r"was started with other options \(seed 1, not 2\)"):
+        reproduce.main(["lorenz_T1000", "--size", "cpu", "--seed", "2", "--resume", version])
+    assert calls == []  # refused before any stage
+
+
+def test_a_pipeline_killed_mid_fit_resumes_to_the_same_model_as_an_uninterrupted_run(tmp_path, monkeypatch):
+    """SIGKILL (the machine going away) during a fit stage, then the same stage resumed through the pipeline's
+    record: it continues from the last completed epoch and ends with the parameters of a run never stopped."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import torch
+
+    from tests.test_cli import ROTATION
+
+    config = tmp_path / "rot.yaml"
+    config.write_text(ROTATION.format(root=tmp_path).replace("max_epochs: 4", "max_epochs: 6"))
+
+    def args(version):
+        return ["fit", "--config", str(config), "--trainer.logger.init_args.version", version,
+                "--trainer.callbacks+=tests.test_reproduce.KillAt"]
+
+    def ckpt(version):
+        return tmp_path / "runs" / "rot" / version / "checkpoints" / "last.ckpt"
+
+    record = tmp_path / "reproduce.json"
+    script = (f"from pathlib import Path; from ssm_ms import reproduce; "
+              f"reproduce.Pipeline(Path({str(record)!r}), {{}}, 'resume', resume=False).stage({args('cut')!r})")
+    env = dict(os.environ, OMP_NUM_THREADS="1", KILL_AT_EPOCH="3")
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=reproduce.ROOT, start_new_session=True, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    assert proc.wait(timeout=300) == -signal.SIGKILL
+    assert torch.load(ckpt("cut"), weights_only=True)["epoch"] == 2  # epochs 0-2 kept, the run stopped in epoch 3
+
+    monkeypatch.setenv("EPOCH_LOG", str(tmp_path / "epochs.txt"))
+    pipeline = reproduce.Pipeline(record, {}, "resume", resume=True)
+    pipeline.stage(args("cut"))
+    assert (tmp_path / "epochs.txt").read_text().split() == ["3", "4", "5"]  # continued, not started again
+    assert pipeline.stages[0]["runs"] == 2
+    monkeypatch.delenv("EPOCH_LOG")
+    reproduce.run_stage(args("full"), 1)
+    full, resumed = (torch.load(ckpt(v), weights_only=True) for v in ("full", "cut"))
+    assert resumed["epoch"] == full["epoch"] == 5 and resumed["global_step"] == full["global_step"]
+    for key, value in full["state_dict"].items():
+        torch.testing.assert_close(resumed["state_dict"][key], value, rtol=0, atol=0)

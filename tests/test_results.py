@@ -131,3 +131,13 @@ def test_hand_written_notes_survive_every_rewrite(tmp_path):
     text = write_results(tmp_path, info2, {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}}).read_text()
     assert text.count("The SSM stage was paused 70 minutes.") == 1
     assert text.index("| 0.5 ± 0.1 |") < text.index("| 0.7 ± 0.1 |") < text.index("## Notes")
+
+
+def test_a_resumed_stage_says_so_in_the_pipeline_table(tmp_path):
+    from ssm_ms.forecasting.results import write_pipeline
+
+    md = write_pipeline(tmp_path, "toy_cpu", "make reproduce EXP=toy SIZE=cpu", {"total_seconds": 9.0, "stages": [
+        {"command": "python cli.py fit --config a.yaml", "seconds": 7.5, "runs": 3},
+        {"command": "python cli.py test --config a.yaml", "seconds": 1.5}]}).read_text()
+    assert "| `python cli.py fit --config a.yaml` | 7.5 (in 3 runs: resumed from its last completed epoch) |" in md
+    assert "| `python cli.py test --config a.yaml` | 1.5 |" in md

@@ -194,7 +194,8 @@ def render_markdown(
             lines += [f"`{pipeline.get('command', '')}` on {pipeline.get('machine', '?')}, "
                       f"{pipeline.get('date', '?')}: {pipeline.get('total_seconds', '?')} s in all.", ""]
             lines += ["| stage | seconds |", "|---|---|"]
-            lines += [f"| `{st['command']}` | {st['seconds']} |" for st in pipeline.get("stages", [])]
+            lines += [f"| `{st['command']}` | {st['seconds']}" + (f" (in {st['runs']} runs: resumed from its last "
+                      "completed epoch)" if st.get("runs", 1) > 1 else "") + " |" for st in pipeline.get("stages", [])]
             lines.append("")
     return "\n".join(lines)
 
