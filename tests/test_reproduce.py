@@ -73,7 +73,10 @@ def test_unknown_experiment_lists_the_known_ones(recorded):
 
 # ---------------------------------------------------------------------------- a stage interrupted or failing
 def _stage_in_own_group(tmp_path, args):
-    """``reproduce.run_stage(args)`` in a new process group (as a terminal runs ``make reproduce``)."""
+    """``reproduce.run_stage(args)`` in a new process group, with SIGINT's default disposition (as a terminal runs
+    ``make reproduce``; the tests themselves may run where SIGINT is ignored, e.g. started in the background by a
+    script, and a child inherits that)."""
+    import signal
     import subprocess
     import sys
 
@@ -81,7 +84,8 @@ def _stage_in_own_group(tmp_path, args):
     out = open(tmp_path / "stage.log", "w")
     env = dict(__import__("os").environ, OMP_NUM_THREADS="1")
     return subprocess.Popen([sys.executable, "-c", script], cwd=reproduce.ROOT, start_new_session=True, stdout=out,
-                            stderr=subprocess.PIPE, text=True, env=env)
+                            stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 @pytest.mark.parametrize("how", ["ctrl-c", "sigterm"])
@@ -116,7 +120,9 @@ def test_ctrl_c_or_sigterm_during_a_stage_names_it_and_the_command_that_resumes_
     try:
         _, err = proc.communicate(timeout=120)
         assert not Path(f"/proc/{stage[0]}").exists() or _state(stage[0]) == "Z", "the stage was left running"
-    finally:  # a failure must not leave the stage training beside the next tests
+    finally:  # a failure must not leave reproduce or its stage training beside the next tests
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
         if Path(f"/proc/{stage[0]}").exists():
             os.kill(stage[0], signal.SIGKILL)
     assert proc.returncode == 130 and "Traceback" not in err, err
