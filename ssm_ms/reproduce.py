@@ -172,7 +172,8 @@ class Pipeline:
             except (ValueError, KeyError, TypeError):
                 raise SystemExit(f"error: --resume: {record} is not a reproduce record (unreadable): reproduce "
                                  "again without --resume") from None
-            differ = [f"{k} {started_with.get(k)!r}, not {v!r}" for k, v in options.items() if started_with.get(k) != v]
+            differ = [f"{k.replace('_', '-')}: {started_with.get(k)} then, {v} now" for k, v in options.items()
+                      if started_with.get(k) != v]
             if differ:
                 raise SystemExit(f"error: --resume: {record.parent.name} was started with other options ("
                                  f"{'; '.join(differ)}): resume it with the experiment and options it was started with")
@@ -256,6 +257,7 @@ def main(argv: list[str] | None = None) -> None:
                         {k: v for k, v in vars(opts).items() if k != "resume"},
                         shlex.join(["python", "-m", "ssm_ms.reproduce", *options, "--resume", version]),
                         resume=opts.resume is not None)
+    print(f"reproduce run {version}; if it stops, finish it with:\n  {pipeline.resume_pipeline}", flush=True)
     v = ["--trainer.logger.init_args.version", version]
     if seeded:
         v += ["--seed_everything", str(opts.seed)]

@@ -180,7 +180,7 @@ class KillAt(Callback):
             os.killpg(os.getpgrp(), signal.SIGKILL)
 
 
-def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tmp_path):
+def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tmp_path, capsys):
     """A run stopped during its encoder fit (record: SSM fit finished, encoder fit running, its last.ckpt written 100 s
     after that stage started): resumed, the SSM fit is not run again, the encoder fit continues from its last.ckpt,
     every later stage runs; the encoder stage's seconds are the 100 kept plus the resumed run's."""
@@ -192,6 +192,8 @@ def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tm
     version = option(calls[0], "--trainer.logger.init_args.version")
     record = tmp_path / "runs" / "lorenz_T1000_cpu" / version / "reproduce.json"
     finished = json.loads(record.read_text())
+    assert f"finish it with:\n  python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --resume {version}" \
+        in capsys.readouterr().out  # said at the start: a run killed outright prints nothing at its end
     assert finished["running"] is None and len(finished["stages"]) == 4
     assert finished["options"]["experiment"] == "lorenz_T1000" and finished["options"]["no_baselines"] is True
     # as the record reads when the machine stopped during stage 2
@@ -228,7 +230,7 @@ def test_resume_refuses_another_run_or_other_options(recorded, tmp_path):
     reproduce.main(["lorenz_T1000", "--size", "cpu", "--seed", "1"])
     version = option(calls[0], "--trainer.logger.init_args.version")
     calls.clear()
-    with pytest.raises(SystemExit, match=r"was started with other options \(seed 1, not 2\)"):
+    with pytest.raises(SystemExit, match=r"was started with other options \(seed: 1 then, 2 now\)"):
         reproduce.main(["lorenz_T1000", "--size", "cpu", "--seed", "2", "--resume", version])
     assert calls == []  # refused before any stage
 
