@@ -6,6 +6,7 @@ every baseline of the experiment (fit -> test); or one baseline alone.
     python -m ssm_ms.reproduce pendulum_lstm       # configs/baselines/pendulum_lstm.yaml alone
     python -m ssm_ms.reproduce pendulum --no-baselines
     python -m ssm_ms.reproduce pendulum --encoder-epochs 120   # the encoder stage on a stated epoch budget
+    python -m ssm_ms.reproduce pendulum_lstm --baseline-epochs 120   # a baseline on a stated epoch budget
     python -m ssm_ms.reproduce lorenz_T1000 --size cpu --seed 1  # another seed: results/lorenz_T1000_cpu_seed1.md
 
 (``make reproduce EXP=pendulum [SIZE=cpu] [SEED=1]``.) ``--seed N`` runs every stage with ``--seed_everything N``:
@@ -221,6 +222,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--encoder-epochs", type=int, default=None, metavar="N",
                         help="train the encoder stage for N epochs instead of its config's max_epochs (a budget for "
                              "machines where the paper's count does not fit; the results file lists the command)")
+    parser.add_argument("--baseline-epochs", type=int, default=None, metavar="N",
+                        help="train each baseline (LSTM, RKN) for N epochs instead of its config's max_epochs (the "
+                             "same kind of budget)")
     parser.add_argument("--seed", type=int, default=None, metavar="N",
                         help="every stage with --seed_everything N instead of the configs' seed; results go to "
                              "results/<experiment>_seed<N>.md")
@@ -229,8 +233,9 @@ def main(argv: list[str] | None = None) -> None:
                              "same experiment and options): its finished stages are not run again, its interrupted "
                              "fit continues from its last.ckpt")
     opts = parser.parse_args(argv)
-    if opts.encoder_epochs is not None and opts.encoder_epochs < 1:
-        parser.error(f"--encoder-epochs must be >= 1, got {opts.encoder_epochs}")
+    for name in ("encoder_epochs", "baseline_epochs"):
+        if getattr(opts, name) is not None and getattr(opts, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(opts, name)}")
     if opts.seed is not None and opts.seed < 0:
         parser.error(f"--seed must be >= 0, got {opts.seed}")
     folder = ROOT / "configs" / ("cpu" if opts.size == "cpu" else "")
@@ -278,14 +283,15 @@ def main(argv: list[str] | None = None) -> None:
         if ukf_cfg.exists():
             pipeline.stage(["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *named(ukf_cfg), *v])
         configs.append(enc_cfg)
+    baseline_budget = [] if opts.baseline_epochs is None else ["--trainer.max_epochs", str(opts.baseline_epochs)]
     for cfg in baselines:
         ckpt = logger_dir(cfg) / version / "checkpoints" / "last.ckpt"
-        pipeline.stage(["fit", "--config", str(cfg.relative_to(ROOT)), *named(cfg), *v])
+        pipeline.stage(["fit", "--config", str(cfg.relative_to(ROOT)), *baseline_budget, *named(cfg), *v])
         pipeline.stage(["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *named(cfg), *v])
         configs.append(cfg)
     experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
     results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(configs[0]), "model.init_args.results_dir", default="results"))
-    if opts.no_baselines or opts.encoder_epochs is not None:  # options make does not pass: the module's command
+    if opts.no_baselines or opts.encoder_epochs is not None or opts.baseline_epochs is not None:  # options make does not pass: the module's command
         command = shlex.join(["python", "-m", "ssm_ms.reproduce", *options])
     else:
         command = (f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
