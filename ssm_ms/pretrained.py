@@ -1,8 +1,8 @@
 """Pretrained checkpoints: a training checkpoint stripped to what inference needs.
 
-    python -m ssm_ms.pretrained runs/pendulum/<version>/checkpoints/last.ckpt pretrained/pendulum_ssm.ckpt
+    python -m ssm_ms.pretrained runs/pendulum/<version>/checkpoints/last.ckpt pretrained/pendulum.ckpt
     python -m ssm_ms.pretrained runs/pendulum_encoder/<version>/checkpoints/last.ckpt \\
-        pretrained/pendulum_encoder.ckpt --ssm-checkpoint pretrained/pendulum_ssm.ckpt \
+        pretrained/pendulum_encoder.ckpt --ssm-checkpoint pretrained/pendulum.ckpt \
         --results-dir runs/pretrained --half
 
 What is dropped: the optimizer states, the learning-rate schedulers, the loops' progress and the callbacks'

@@ -8,9 +8,12 @@ from pathlib import Path
 import pytest
 import torch
 
+from ssm_ms.cli import main as cli_main
 from ssm_ms.pretrained import DROPPED, HALF_KEY, HALF_MIN_NUMEL, main, strip
 
-
+ROOT = Path(__file__).resolve().parent.parent
+# pretrained/<name>.ckpt was trained with configs/<name>.yaml (an encoder's records pretrained/<its SSM>.ckpt)
+COMMITTED = sorted((ROOT / "pretrained").glob("*.ckpt"))
 
 
 def fake_checkpoint() -> dict:
@@ -70,3 +73,53 @@ def test_strip_command(tmp_path, capsys):
         main([str(tmp_path / "missing.ckpt"), str(dst)])
     assert err.value.code == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def model_of_config(name: str, tmp_path: Path):
+    """The module ``configs/<name>.yaml`` builds, as ``cli.py`` builds it (nothing trained, no data made)."""
+    config = ROOT / "configs" / f"{name}.yaml"
+    assert config.exists(), f"pretrained/{name}.ckpt has no configs/{name}.yaml"
+    args = ["--config", str(config), "--trainer.logger.init_args.save_dir", str(tmp_path)]
+    saved = torch.load(ROOT / "pretrained" / f"{name}.ckpt", weights_only=True, map_location="cpu")
+    ssm = saved["hyper_parameters"].get("ssm_checkpoint")
+    if ssm is not None:
+        assert (ROOT / ssm).exists() and Path(ssm).parent == Path("pretrained"), ssm
+        args += ["--model.init_args.ssm_checkpoint", str(ROOT / ssm)]
+    return cli_main(args, run=False), saved
+
+
+def load_into(module: torch.nn.Module, saved: dict) -> None:
+    """What ``--ckpt_path`` does with the weights: the module's own checks, then a strict load."""
+    module.on_load_checkpoint(saved)
+    module.load_state_dict(saved["state_dict"], strict=True)
+
+
+@pytest.mark.parametrize("path", COMMITTED, ids=lambda p: p.name)
+def test_committed_checkpoint_matches_its_config(path, tmp_path):
+    """Every tensor of the file has the shape the config's networks give it (strict load: no key missing or left
+    over), the training run's structural settings equal the config's, the file is stripped, and a node table has
+    one row per training trajectory of the config's data."""
+    cli, saved = model_of_config(path.stem, tmp_path)
+    assert not set(DROPPED) & set(saved)
+    load_into(cli.model, saved)
+    if "nodes.weight" in saved["state_dict"]:
+        assert cli.model.nodes.num_embeddings == cli.datamodule.n_train
+    for key in ("state_dim", "n_nodes", "loss", "n_filter"):
+        if key in saved["hyper_parameters"] and key in cli.model.hparams:
+            assert saved["hyper_parameters"][key] == cli.model.hparams[key], key
+    assert path.stat().st_size < 10e6  # a few MB
+
+
+@pytest.mark.parametrize("path", COMMITTED[:1], ids=lambda p: p.name)
+def test_committed_checkpoint_check_fails_on_another_architecture(path, tmp_path):
+    """The check above can fail: a tensor of another shape, or one missing, is refused."""
+    cli, saved = model_of_config(path.stem, tmp_path)
+    state = dict(saved["state_dict"])
+    key = next(k for k, v in state.items() if v.ndim == 2 and k != "nodes.weight")
+    bad = dict(saved, state_dict={**state, key: state[key][:, :-1]})
+    with pytest.raises((RuntimeError, ValueError)):
+        load_into(cli.model, bad)
+    cli, _ = model_of_config(path.stem, tmp_path)
+    missing = dict(saved, state_dict={k: v for k, v in state.items() if k != key})
+    with pytest.raises((RuntimeError, ValueError), match="[Mm]issing"):
+        load_into(cli.model, missing)
