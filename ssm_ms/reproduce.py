@@ -291,7 +291,8 @@ def main(argv: list[str] | None = None) -> None:
         configs.append(cfg)
     experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
     results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(configs[0]), "model.init_args.results_dir", default="results"))
-    if opts.no_baselines or opts.encoder_epochs is not None or opts.baseline_epochs is not None:  # options make does not pass: the module's command
+    # options make does not pass: the module's command
+    if opts.no_baselines or opts.encoder_epochs is not None or opts.baseline_epochs is not None:
         command = shlex.join(["python", "-m", "ssm_ms.reproduce", *options])
     else:
         command = (f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")

@@ -66,7 +66,6 @@ def test_a_baseline_alone_and_without_baselines(recorded):
     assert written["command"] == "python -m ssm_ms.reproduce pendulum --no-baselines"  # not make's: it has no such option
 
 
-
 def test_epoch_budgets_go_to_their_own_stages_only(recorded, capsys):
     """--encoder-epochs sets the encoder fit's max_epochs, --baseline-epochs each baseline fit's; the SSM fit and
     the tests keep their configs' (they take no epochs), and the results file names the command with the budgets."""
@@ -80,6 +79,7 @@ def test_epoch_budgets_go_to_their_own_stages_only(recorded, capsys):
     with pytest.raises(SystemExit):
         reproduce.main(["pendulum_lstm", "--baseline-epochs", "0"])
     assert "--baseline-epochs must be >= 1, got 0" in capsys.readouterr().err
+
 
 def test_unknown_experiment_lists_the_known_ones(recorded):
     with pytest.raises(SystemExit, match=r"no configs for experiment 'pendulm'.*'pendulum'.*'pendulum_lstm'"):
