@@ -134,3 +134,20 @@ def test_sparse_nodes_follow_the_schedule_and_resume_exactly(tmp_path):
     sb = resumed.trainer.optimizers[0].state[resumed.nodes.weight]
     for key in ("exp_avg", "exp_avg_sq", "step"):
         torch.testing.assert_close(sb[key], sa[key], rtol=0, atol=0)
+
+
+def test_a_run_too_short_to_raise_alpha_is_warned_about(tmp_path, rotation_dm):
+    """max_epochs <= alpha_epoch: the schedule would never enforce continuity; the user is told before training."""
+    probe = Probe()
+    with pytest.warns(UserWarning, match=r"raises alpha at epoch 2 but training stops after 2 epochs"):
+        fast_trainer(tmp_path, max_epochs=2, callbacks=[schedule(), probe]).fit(rotation_model(lr=LR), rotation_dm)
+    assert [probe.seen[e][0] for e in range(2)] == [1.0, 1.0]  # what the warning says happens
+
+
+def test_a_run_that_reaches_the_raise_is_not_warned_about(tmp_path, rotation_dm):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        warnings.filterwarnings("ignore", message=r"(?!ShootingSchedule)")  # Lightning's own hints are not ours
+        fast_trainer(tmp_path, max_epochs=3, callbacks=[schedule()]).fit(rotation_model(lr=LR), rotation_dm)
