@@ -29,7 +29,9 @@ not run. See :func:`run_stage`.
 ``--resume VERSION`` finishes a run that stopped, whatever stopped it (Ctrl-C, ``kill``, a crash, the machine going
 away while ``runs/`` stays): the stages it finished are not run again, its interrupted ``fit`` continues from its
 last completed epoch, then the remaining stages and the results file run as usual. Each run keeps its record in
-``<first stage's run folder>/reproduce.json`` (see :class:`Pipeline`).
+``<first stage's run folder>/reproduce.json`` (see :class:`Pipeline`). The epoch budgets may be raised on resume
+(``--resume VERSION --encoder-epochs 330``): that fit continues to the new count and the stages depending on it run
+again.
 """
 
 from __future__ import annotations
@@ -50,6 +52,9 @@ from ssm_ms.forecasting.results import write_pipeline
 from ssm_ms.machine import describe
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+BUDGETS = ("encoder_epochs", "baseline_epochs")  # options a resumed run may raise: its fits continue to the new count
 
 
 def logger_dir(config: Path) -> Path:
@@ -174,10 +179,16 @@ class Pipeline:
                 raise SystemExit(f"error: --resume: {record} is not a reproduce record (unreadable): reproduce "
                                  "again without --resume") from None
             differ = [f"{k.replace('_', '-')}: {started_with.get(k)} then, {v} now" for k, v in options.items()
-                      if started_with.get(k) != v]
+                      if started_with.get(k) != v and k not in BUDGETS]
             if differ:
                 raise SystemExit(f"error: --resume: {record.parent.name} was started with other options ("
                                  f"{'; '.join(differ)}): resume it with the experiment and options it was started with")
+            lowered = [f"--{k.replace('_', '-')} {options[k]} (it was run with {started_with[k]})" for k in BUDGETS
+                       if isinstance(options.get(k), int) and isinstance(started_with.get(k), int)
+                       and options[k] < started_with[k]]
+            if lowered:
+                raise SystemExit(f"error: --resume: {record.parent.name} cannot be cut back to {'; '.join(lowered)}: "
+                                 "its checkpoints are past that; give the same budget or a larger one")
             self.done, self.running = done, running
         self.stages: list[dict] = []
 
@@ -188,19 +199,36 @@ class Pipeline:
             s for s in self.done if s not in self.stages], "running": self.running}, indent=2) + "\n")
         tmp.replace(self.record)
 
-    def stage(self, args: list[str]) -> None:
-        """Run ``python cli.py *args`` unless the resumed run finished it; record it."""
+    def stage(self, args: list[str], again: bool = False) -> bool:
+        """Run ``python cli.py *args`` unless the resumed run finished it (``again``: run it all the same, an
+        earlier stage it depends on ran again); record it. Return whether it ran.
+
+        A ``fit`` the resumed run finished with another ``--trainer.max_epochs`` (a budget raised on resume)
+        continues from its ``last.ckpt`` to the new count, its seconds added to the earlier ones."""
         command = "python cli.py " + " ".join(args)
         number = len(self.stages) + 1
         finished = next((s for s in self.done if s["command"] == command), None)
-        if finished is not None:
+        if finished is not None and not again:
             print(f"\n>>> stage {number} finished in the run resumed ({finished['seconds']} s): {command}", flush=True)
             self.stages.append(finished)
-            return
+            return False
         kept, runs = 0.0, 1
-        earlier = self.running if self.running is not None and self.running["command"] == command else None
         ckpt = _stage_checkpoint(args)
-        if earlier is not None:
+
+        def same_fit(recorded: str) -> bool:  # this fit, whatever its epoch budget (commands are " "-joined)
+            unbudgeted = _without_option(recorded.split(" ")[2:], "--trainer.max_epochs")
+            return args[0] == "fit" and ckpt is not None and unbudgeted == _without_option(args, "--trainer.max_epochs")
+        earlier = self.running if self.running is not None and (
+            self.running["command"] == command or same_fit(self.running["command"])) else None
+        extended = next((s for s in self.done if s["command"] != command and same_fit(s["command"])), None)
+        if finished is not None:  # run again from scratch (a test after its checkpoint changed)
+            self.done.remove(finished)
+        elif extended is not None:
+            print(f"\n>>> stage {number} finished in the run resumed with another epoch budget; continued: {command}",
+                  flush=True)
+            self.done.remove(extended)
+            runs, kept = extended.get("runs", 1) + 1, extended["seconds"]
+        elif earlier is not None:
             runs = earlier["runs"] + 1
             kept = earlier["seconds"] + (max(0.0, _absolute(ckpt).stat().st_mtime - earlier["started"]) if ckpt else 0.0)
         self.running = {"command": command, "started": time.time(), "seconds": kept, "runs": runs}
@@ -212,6 +240,7 @@ class Pipeline:
         self.stages.append(entry)
         self.running = None
         self._write()
+        return True
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -230,8 +259,8 @@ def main(argv: list[str] | None = None) -> None:
                              "results/<experiment>_seed<N>.md")
     parser.add_argument("--resume", default=None, metavar="VERSION",
                         help="finish the run of this version (reproduce-<date>-<time>, printed when it stopped; the "
-                             "same experiment and options): its finished stages are not run again, its interrupted "
-                             "fit continues from its last.ckpt")
+                             "same experiment and options; the epoch budgets may be raised): its finished stages are not run "
+                             "again, its interrupted fit, or a fit whose budget was raised, continues from its last.ckpt")
     opts = parser.parse_args(argv)
     for name in ("encoder_epochs", "baseline_epochs"):
         if getattr(opts, name) is not None and getattr(opts, name) < 1:
@@ -274,20 +303,23 @@ def main(argv: list[str] | None = None) -> None:
     if ssm_stages:
         ssm_ckpt = logger_dir(ssm_cfg) / version / "checkpoints" / "last.ckpt"
         enc_ckpt = logger_dir(enc_cfg) / version / "checkpoints" / "last.ckpt"
-        pipeline.stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v])
+        ssm_ran = pipeline.stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v])
         with_ssm = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt)]
         budget = [] if opts.encoder_epochs is None else ["--trainer.max_epochs", str(opts.encoder_epochs)]
-        pipeline.stage(["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget, *named(enc_cfg), *v])
+        enc_ran = pipeline.stage(["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget,
+                                  *named(enc_cfg), *v], again=ssm_ran)
         pipeline.stage(["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt),
-                        *named(enc_cfg), *v])
+                        *named(enc_cfg), *v], again=ssm_ran or enc_ran)
         if ukf_cfg.exists():
-            pipeline.stage(["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *named(ukf_cfg), *v])
+            pipeline.stage(["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *named(ukf_cfg), *v],
+                           again=ssm_ran)
         configs.append(enc_cfg)
     baseline_budget = [] if opts.baseline_epochs is None else ["--trainer.max_epochs", str(opts.baseline_epochs)]
     for cfg in baselines:
         ckpt = logger_dir(cfg) / version / "checkpoints" / "last.ckpt"
-        pipeline.stage(["fit", "--config", str(cfg.relative_to(ROOT)), *baseline_budget, *named(cfg), *v])
-        pipeline.stage(["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *named(cfg), *v])
+        fit_ran = pipeline.stage(["fit", "--config", str(cfg.relative_to(ROOT)), *baseline_budget, *named(cfg), *v])
+        pipeline.stage(["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *named(cfg), *v],
+                       again=fit_ran)
         configs.append(cfg)
     experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
     results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(configs[0]), "model.init_args.results_dir", default="results"))

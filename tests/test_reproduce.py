@@ -293,3 +293,91 @@ def test_a_pipeline_killed_mid_fit_resumes_to_the_same_model_as_an_uninterrupted
     assert resumed["epoch"] == full["epoch"] == 5 and resumed["global_step"] == full["global_step"]
     for key, value in full["state_dict"].items():
         torch.testing.assert_close(resumed["state_dict"][key], value, rtol=0, atol=0)
+
+
+# ---------------------------------------------------------------------------- --resume with a larger epoch budget
+def test_a_budget_raised_on_resume_continues_that_fit_and_tests_again(recorded, tmp_path, capsys):
+    """A finished run resumed with a larger --encoder-epochs: the encoder fit continues from its last.ckpt to the new
+    count (its earlier seconds kept), its test runs again on the new checkpoint; the SSM fit and the UKF test, which
+    do not depend on the encoder, are not run again. Lowering a budget, or changing another option, is refused."""
+    import json
+
+    calls, written = recorded
+    reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-baselines", "--encoder-epochs", "7"])
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    record = tmp_path / "runs" / "lorenz_T1000_cpu" / version / "reproduce.json"
+    saved = json.loads(record.read_text())
+    saved["stages"][1]["seconds"] = 500.0  # the 7 epochs took 500 s
+    record.write_text(json.dumps(saved))
+    enc_ckpt = tmp_path / "runs" / "lorenz_T1000_encoder_cpu" / version / "checkpoints" / "last.ckpt"
+    enc_ckpt.parent.mkdir(parents=True)
+    enc_ckpt.write_bytes(b"")
+
+    calls.clear()
+    with pytest.raises(SystemExit, match=r"cannot be cut back to --encoder-epochs 5 \(it was run with 7\)"):
+        reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-baselines", "--encoder-epochs", "5", "--resume", version])
+    with pytest.raises(SystemExit, match=r"other options \(seed: None then, 1 now\)"):
+        reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-baselines", "--encoder-epochs", "9", "--seed", "1",
+                        "--resume", version])
+    assert calls == []
+
+    reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-baselines", "--encoder-epochs", "9", "--resume", version])
+    assert [(a[0], option(a, "--config")) for a in calls] == [
+        ("fit", "configs/cpu/lorenz_T1000_encoder.yaml"), ("test", "configs/cpu/lorenz_T1000_encoder.yaml")]
+    assert option(calls[0], "--trainer.max_epochs") == "9"
+    assert option(calls[0], "--ckpt_path") == f"runs/lorenz_T1000_encoder_cpu/{version}/checkpoints/last.ckpt"
+    stages = written["pipeline"]["stages"]
+    assert len(stages) == 4 and stages[1]["seconds"] == 500.0 and stages[1]["runs"] == 2
+    assert "--trainer.max_epochs 9" in stages[1]["command"] and "--ckpt_path" not in stages[1]["command"]
+    assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --encoder-epochs 9"
+    # the record now holds the raised budget: resuming it again with that budget runs nothing
+    assert json.loads(record.read_text())["options"]["encoder_epochs"] == 9
+    assert len(json.loads(record.read_text())["stages"]) == 4
+    calls.clear()
+    reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-baselines", "--encoder-epochs", "9", "--resume", version])
+    assert calls == []
+
+
+def test_a_baseline_budget_raised_on_resume_continues_the_fit_and_tests_again(recorded, tmp_path):
+    calls, written = recorded
+    reproduce.main(["pendulum_lstm", "--baseline-epochs", "5"])
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    ckpt = tmp_path / "runs" / "pendulum_lstm" / version / "checkpoints" / "last.ckpt"
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_bytes(b"")
+    calls.clear()
+    reproduce.main(["pendulum_lstm", "--baseline-epochs", "8", "--resume", version])
+    assert [(a[0], option(a, "--trainer.max_epochs") if a[0] == "fit" else None) for a in calls] == [
+        ("fit", "8"), ("test", None)]
+    assert option(calls[0], "--ckpt_path").endswith(f"pendulum_lstm/{version}/checkpoints/last.ckpt")
+
+
+def test_a_fit_extended_on_resume_ends_as_a_fit_given_that_budget_from_the_start(tmp_path, monkeypatch):
+    """Real fits: 2 epochs, then the pipeline resumed with 5: epochs 2-4 run (not 0-4 again) and the parameters
+    equal those of a 5-epoch run (the schedule's milestone at epoch 2 falls in the extension)."""
+    import torch
+
+    from ssm_ms.cli import main as cli_main
+    from tests.test_cli import ROTATION
+
+    config = tmp_path / "rot.yaml"
+    config.write_text(ROTATION.format(root=tmp_path))
+
+    def args(version, epochs):
+        return ["fit", "--config", str(config), "--trainer.max_epochs", str(epochs),
+                "--trainer.logger.init_args.version", version, "--trainer.callbacks+=tests.test_reproduce.KillAt"]
+
+    record = tmp_path / "reproduce.json"
+    reproduce.Pipeline(record, {}, "resume", resume=False).stage(args("cut", 2))  # a process of its own, as reproduce's
+    monkeypatch.setenv("EPOCH_LOG", str(tmp_path / "epochs.txt"))
+    resumed = reproduce.Pipeline(record, {}, "resume", resume=True)
+    assert resumed.stage(args("cut", 5)) is True
+    assert (tmp_path / "epochs.txt").read_text().split() == ["2", "3", "4"]  # continued, not started again
+    assert resumed.stages[0]["runs"] == 2
+    monkeypatch.delenv("EPOCH_LOG")
+    cli_main(args("full", 5))
+    ckpt = tmp_path / "runs" / "rot" / "{}" / "checkpoints" / "last.ckpt"
+    full, cut = (torch.load(str(ckpt).format(v), weights_only=True) for v in ("full", "cut"))
+    assert cut["epoch"] == full["epoch"] == 4 and cut["global_step"] == full["global_step"]
+    for key, value in full["state_dict"].items():
+        torch.testing.assert_close(cut["state_dict"][key], value, rtol=0, atol=0)
