@@ -141,3 +141,43 @@ def test_a_resumed_stage_says_so_in_the_pipeline_table(tmp_path):
         {"command": "python cli.py test --config a.yaml", "seconds": 1.5}]}).read_text()
     assert "| `python cli.py fit --config a.yaml` | 7.5 (in 3 runs: resumed from its last completed epoch) |" in md
     assert "| `python cli.py test --config a.yaml` | 1.5 |" in md
+
+
+def _markdown_table(lines: list[str], first_header: str) -> list[dict[str, str]]:
+    """The rows of the markdown table whose first header is ``first_header``, as {header: cell}."""
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"| {first_header} |"))
+    header = [c.strip() for c in lines[start].strip("|").split("|")]
+    rows = []
+    for line in lines[start + 2:]:
+        if not line.startswith("|"):
+            break
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        assert len(cells) == len(header), line
+        rows.append(dict(zip(header, cells)))
+    return rows
+
+
+def test_analysis_tables_leave_out_columns_no_method_fills():
+    """An image experiment's f has no x statistics (W1, both wings) and its system no known exponent in Lyapunov
+    times: those columns go; in a file where one SSM has them, they stay, "—" where another has not."""
+    from ssm_ms.forecasting.results import render_analysis
+
+    def run(label, free_run, lyap_times=None):
+        vt = {"threshold": 0.5, "truth": "noiseless", "n_filter": 50, "horizon": 50, "mean_steps": 40.0, "std_steps": 3.0,
+              "median_steps": 41.0, "mean_seconds": 4.0, "mean_lyapunov_times": lyap_times, "censored_share": 0.5}
+        dyn = {"lyapunov": {"exponents": [0.1, -0.2], "largest": 0.1}, "free_run": free_run}
+        return (label, {"info": {"label": label}, "analysis": {"valid_time": vt, "dynamics": dyn}})
+
+    images = run("SSM-LL", {"runs": 16, "steps": 500})
+    lines = render_analysis([images])
+    (timed,) = _markdown_table(lines, "method")
+    assert "mean (Lyapunov times)" not in timed and timed["mean ± std (steps)"] == "40 ± 3"
+    (dyn,) = _markdown_table(lines, "SSM (via)")
+    assert list(dyn) == ["SSM (via)", "Lyapunov exponents", "largest (true)", "free runs"] and dyn["free runs"] == "16 x 500"
+
+    lorenz = run("SSM-LL + UKF", {"runs": 64, "steps": 10000, "model_mean": [0.1], "model_std": [7.9],
+                                  "reference_mean": [0.0], "reference_std": [7.8], "wasserstein": [0.42],
+                                  "both_wings_share": 1.0}, lyap_times=3.2)
+    rows = _markdown_table(render_analysis([images, lorenz]), "SSM (via)")
+    assert [r["W1 (x)"] for r in rows] == ["—", "0.42"] and [r["both wings"] for r in rows] == ["—", "1"]
+    assert rows[1]["x: data mean ± std"] == "0 ± 7.8"

@@ -210,6 +210,14 @@ def _num(value: Any, digits: int = 3) -> str:
     return f"{value:.{digits}g}" if isinstance(value, (int, float)) else str(value)
 
 
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    """A markdown table less the columns after the first that read "—" on every row (a Lorenz-only statistic in an
+    image experiment's file, say)."""
+    keep = [0] + [j for j in range(1, len(header)) if any(row[j] != "—" for row in rows)]
+    return ["| " + " | ".join(header[j] for j in keep) + " |", "|" + "---|" * len(keep),
+            *("| " + " | ".join(row[j] for j in keep) + " |" for row in rows)]
+
+
 def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
     """The ``## Analysis`` section: valid prediction times of every method, then what each SSM's ``f`` does alone."""
     runs = [(run["info"].get("label", method), run["analysis"]) for method, run in ordered if run.get("analysis")]
@@ -233,36 +241,33 @@ def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
             lines.append(" Images: the error counted is the part above the sequence's own reconstruction error on its last "
                          "10 given frames (`given`: that floor, normalised the same way), since a decoder's blur alone "
                          "would read as invalid from the first frame.")
-        lines += ["", "| method | mean ± std (steps) | median (steps) | mean (s) | mean (Lyapunov times) | censored | "
-                  "error at step |", "|---|---|---|---|---|---|---|"]
+        rows = []
         for label, vt in timed:
             steps = sorted((vt.get("error_at_step") or {}).items(), key=lambda kv: int(kv[0]))  # JSON keys are strings
             growth = ", ".join(f"{k}: {_num(v, 2)}" for k, v in steps)
-            lines.append(f"| {label} | {_num(vt['mean_steps'])} ± {_num(vt['std_steps'], 2)} | {_num(vt['median_steps'])} | "
-                         f"{_num(vt.get('mean_seconds'))} | {_num(vt.get('mean_lyapunov_times'))} | "
-                         f"{_num(vt['censored_share'], 2)} | {growth or '—'}"
-                         + (f"; given: {_num(vt['given_error'], 2)}" if vt.get("given_error") is not None else "") + " |")
-        lines.append("")
+            rows.append([label, f"{_num(vt['mean_steps'])} ± {_num(vt['std_steps'], 2)}", _num(vt['median_steps']),
+                         _num(vt.get('mean_seconds')), _num(vt.get('mean_lyapunov_times')), _num(vt['censored_share'], 2),
+                         (growth or '—') + (f"; given: {_num(vt['given_error'], 2)}"
+                                            if vt.get("given_error") is not None else "")])
+        lines += ["", *_table(["method", "mean ± std (steps)", "median (steps)", "mean (s)", "mean (Lyapunov times)",
+                               "censored", "error at step"], rows), ""]
     dyn = [(label, a["dynamics"]) for label, a in runs if a.get("dynamics")]
     if dyn:
         lines.append("**The learned f on its own**, iterated from shooting nodes (the same for every inference method "
                      "of one SSM): Lyapunov exponents per time unit (Benettin QR on the Jacobians of f), and long free "
                      "runs decoded by g against the data's noiseless training measurements.")
-        lines += ["", "| SSM (via) | Lyapunov exponents | largest (true) | free runs | x: model mean ± std | "
-                  "x: data mean ± std | W1 (x) | both wings |", "|---|---|---|---|---|---|---|---|"]
+        rows = []
         for label, d in dyn:
             ly, fr = d["lyapunov"], d.get("free_run", {})
             truth = d.get("lyapunov_true", true) or {}
-            exps = ", ".join(_num(e) for e in ly["exponents"])
-            lines.append(
-                f"| {label} | {exps} | {_num(ly['largest'])} ({_num(truth.get('largest'))}) | "
-                f"{fr.get('runs', '—')} x {fr.get('steps', '—')} | "
-                f"{_num(fr['model_mean'][0]) + ' ± ' + _num(fr['model_std'][0]) if 'model_mean' in fr else '—'} | "
-                f"{_num(fr['reference_mean'][0]) + ' ± ' + _num(fr['reference_std'][0]) if 'reference_mean' in fr else '—'} | "
-                f"{_num(fr['wasserstein'][0]) if 'wasserstein' in fr else '—'} | "
-                f"{_num(fr.get('both_wings_share'), 2)} |"
-            )
-        lines.append("")
+            rows.append([
+                label, ", ".join(_num(e) for e in ly["exponents"]), f"{_num(ly['largest'])} ({_num(truth.get('largest'))})",
+                f"{fr.get('runs', '—')} x {fr.get('steps', '—')}",
+                _num(fr['model_mean'][0]) + ' ± ' + _num(fr['model_std'][0]) if 'model_mean' in fr else '—',
+                _num(fr['reference_mean'][0]) + ' ± ' + _num(fr['reference_std'][0]) if 'reference_mean' in fr else '—',
+                _num(fr['wasserstein'][0]) if 'wasserstein' in fr else '—', _num(fr.get('both_wings_share'), 2)])
+        lines += ["", *_table(["SSM (via)", "Lyapunov exponents", "largest (true)", "free runs", "x: model mean ± std",
+                               "x: data mean ± std", "W1 (x)", "both wings"], rows), ""]
         periodic = [(label, d["oscillation"]) for label, d in dyn if d.get("oscillation")]
         if periodic:
             lines += ["**Period and amplitude** of the free runs of f from the nodes of training trajectories, decoded, "
