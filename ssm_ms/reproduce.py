@@ -163,8 +163,10 @@ class Pipeline:
     over the runs it took, the time up to its last completed epoch's checkpoint (the work kept), so a resumed
     stage's duration is the training it holds, not the work lost in the interrupted epoch."""
 
-    def __init__(self, record: Path, options: dict, resume_pipeline: str, resume: bool):
+    def __init__(self, record: Path, options: dict, resume_pipeline: str, resume: bool, command: str | None = None):
         self.record, self.options, self.resume_pipeline = record, options, resume_pipeline
+        self.command = command  # the results file's record of this run is keyed by it
+        self.started_command: str | None = None  # a resumed run's, when it was started with other budgets
         self.done: list[dict] = []
         self.running: dict | None = None
         if resume:
@@ -190,12 +192,13 @@ class Pipeline:
                 raise SystemExit(f"error: --resume: {record.parent.name} cannot be cut back to {'; '.join(lowered)}: "
                                  "its checkpoints are past that; give the same budget or a larger one")
             self.done, self.running = done, running
+            self.started_command = saved.get("command")
         self.stages: list[dict] = []
 
     def _write(self) -> None:
         self.record.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.record.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"options": self.options, "stages": self.stages + [
+        tmp.write_text(json.dumps({"options": self.options, "command": self.command, "stages": self.stages + [
             s for s in self.done if s not in self.stages], "running": self.running}, indent=2) + "\n")
         tmp.replace(self.record)
 
@@ -287,10 +290,16 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--resume takes the version folder's name (reproduce-<date>-<time>), got {version!r}")
     options = _without_option(list(sys.argv[1:] if argv is None else argv), "--resume")
     first = ssm_cfg if ssm_stages else baselines[0]
+    # options make does not pass: the module's command
+    if opts.no_baselines or opts.encoder_epochs is not None or opts.baseline_epochs is not None:
+        command = shlex.join(["python", "-m", "ssm_ms.reproduce", *options])
+    else:
+        command = (f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
+                   + (f" SEED={opts.seed}" if seeded else ""))
     pipeline = Pipeline(_absolute(logger_dir(first)) / version / "reproduce.json",
                         {k: v for k, v in vars(opts).items() if k != "resume"},
                         shlex.join(["python", "-m", "ssm_ms.reproduce", *options, "--resume", version]),
-                        resume=opts.resume is not None)
+                        resume=opts.resume is not None, command=command)
     print(f"reproduce run {version}; if it stops, finish it with:\n  {pipeline.resume_pipeline}", flush=True)
     v = ["--trainer.logger.init_args.version", version]
     if seeded:
@@ -323,13 +332,9 @@ def main(argv: list[str] | None = None) -> None:
         configs.append(cfg)
     experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
     results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(configs[0]), "model.init_args.results_dir", default="results"))
-    # options make does not pass: the module's command
-    if opts.no_baselines or opts.encoder_epochs is not None or opts.baseline_epochs is not None:
-        command = shlex.join(["python", "-m", "ssm_ms.reproduce", *options])
-    else:
-        command = (f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
-                   + (f" SEED={opts.seed}" if seeded else ""))
-    md = write_pipeline(results_dir, experiment, command, {
+    # a budget raised on resume: this record replaces the one of the command the run was started with
+    replaces = pipeline.started_command if pipeline.started_command != command else None
+    md = write_pipeline(results_dir, experiment, command, replaces=replaces, pipeline={
         "stages": pipeline.stages,
         "total_seconds": round(sum(s["seconds"] for s in pipeline.stages), 1),
         "machine": describe(),

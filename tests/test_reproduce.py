@@ -19,8 +19,9 @@ def recorded(monkeypatch, tmp_path):
     monkeypatch.setattr(reproduce, "run_stage", lambda args, number, resume_pipeline=None: calls.append(args) or
                         written.update(resume_pipeline=resume_pipeline) or 0.0)
     monkeypatch.setattr(reproduce, "_absolute", lambda path: tmp_path / path)
-    monkeypatch.setattr(reproduce, "write_pipeline", lambda results_dir, experiment, command, pipeline: written.update(
-        experiment=experiment, command=command, pipeline=pipeline) or reproduce.ROOT / "README.md")
+    monkeypatch.setattr(reproduce, "write_pipeline", lambda results_dir, experiment, command, pipeline, replaces=None:
+                        written.update(experiment=experiment, command=command, pipeline=pipeline, replaces=replaces)
+                        or reproduce.ROOT / "README.md")
     return calls, written
 
 
@@ -330,6 +331,8 @@ def test_a_budget_raised_on_resume_continues_that_fit_and_tests_again(recorded, 
     assert len(stages) == 4 and stages[1]["seconds"] == 500.0 and stages[1]["runs"] == 2
     assert "--trainer.max_epochs 9" in stages[1]["command"] and "--ckpt_path" not in stages[1]["command"]
     assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --encoder-epochs 9"
+    # the results file keeps one record of this run: the 9-epoch command's replaces the 7-epoch one's
+    assert written["replaces"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --encoder-epochs 7"
     # the record now holds the raised budget: resuming it again with that budget runs nothing
     assert json.loads(record.read_text())["options"]["encoder_epochs"] == 9
     assert len(json.loads(record.read_text())["stages"]) == 4

@@ -143,6 +143,24 @@ def test_a_resumed_stage_says_so_in_the_pipeline_table(tmp_path):
     assert "| `python cli.py test --config a.yaml` | 1.5 |" in md
 
 
+def test_a_record_replaces_the_one_its_run_was_started_with_and_keeps_the_others(tmp_path):
+    """Each command keeps its own record; a run resumed with a larger budget replaces its first command's."""
+    import json
+
+    from ssm_ms.forecasting.results import write_pipeline
+
+    def pipeline(seconds):
+        return {"total_seconds": seconds, "stages": [{"command": "python cli.py fit --config a.yaml", "seconds": seconds}]}
+
+    write_pipeline(tmp_path, "toy", "reproduce toy --encoder-epochs 8", pipeline(8.0))
+    write_pipeline(tmp_path, "toy", "reproduce toy_lstm", pipeline(3.0))
+    md = write_pipeline(tmp_path, "toy", "reproduce toy --encoder-epochs 10", pipeline(10.0),
+                        replaces="reproduce toy --encoder-epochs 8").read_text()
+    records = json.loads((tmp_path / "toy.json").read_text())["pipelines"]
+    assert sorted(records) == ["reproduce toy --encoder-epochs 10", "reproduce toy_lstm"]
+    assert "--encoder-epochs 8" not in md and md.count("## How this was produced") == 1
+
+
 def _markdown_table(lines: list[str], first_header: str) -> list[dict[str, str]]:
     """The rows of the markdown table whose first header is ``first_header``, as {header: cell}."""
     start = next(i for i, line in enumerate(lines) if line.startswith(f"| {first_header} |"))

@@ -324,11 +324,15 @@ def write_results(
     return _save(results_dir, experiment, data)
 
 
-def write_pipeline(results_dir: Path, experiment: str, command: str, pipeline: dict[str, Any]) -> Path:
+def write_pipeline(results_dir: Path, experiment: str, command: str, pipeline: dict[str, Any],
+                   replaces: str | None = None) -> Path:
     """Record how (part of) the experiment was produced -- the stages of one ``make reproduce`` command, their
-    durations, the machine -- and rewrite the table. Each command keeps its own record."""
+    durations, the machine -- and rewrite the table. Each command keeps its own record; ``replaces`` names the
+    command of a record this one supersedes (the same run, resumed with a larger epoch budget)."""
     results_dir.mkdir(parents=True, exist_ok=True)
     data = _load(results_dir / f"{experiment}.json")
     data.pop("pipeline", None)  # the single record of earlier versions
+    if replaces is not None:
+        data.get("pipelines", {}).pop(replaces, None)
     data.setdefault("pipelines", {})[command] = pipeline
     return _save(results_dir, experiment, data)
