@@ -8,6 +8,12 @@ million and ~0.4 s when the memory is kept for reuse (see benchmarks/results/tra
 :func:`configure_allocator` tells glibc to serve large blocks from the heap and keep freed memory
 (the process's resident memory then stays at its peak). ``cli.py`` calls it; call it yourself at the
 start of a Python training script. ``SSM_MS_MALLOC_TUNING=0`` disables it.
+
+Trimming is switched off, not merely raised: glibc gives the top of the heap back whenever more than
+``M_TRIM_THRESHOLD`` bytes lie free there, and ``mallopt`` takes an ``int``, so the highest threshold is
+2 GiB. A step of the quadruple pendulum's encoder (100 frames of 48x48 for 40 trajectories) frees ~2.7 GB
+of activations, more than that: with a 2 GiB threshold its heap shrank and page-faulted back every step
+(half a million page faults a step; benchmarks/results/allocator_quad_encoder.md).
 """
 
 from __future__ import annotations
@@ -21,8 +27,12 @@ M_MMAP_THRESHOLD = -3
 _configured: bool | None = None
 
 
-def configure_allocator(mmap_threshold: int = 1 << 30, trim_threshold: int = (1 << 31) - 1) -> bool:
+def configure_allocator(mmap_threshold: int = 1 << 30, trim_threshold: int = -1) -> bool:
     """Keep large freed blocks for reuse (glibc ``mallopt``). Returns whether it applied.
+
+    ``trim_threshold=-1`` (the default) never gives the heap's free top back to the system; blocks of at
+    least ``mmap_threshold`` bytes still come from (and go back to) ``mmap``. The first call in a process
+    decides: later calls return its result and change nothing.
 
     Does nothing (and returns False) off glibc, or when ``SSM_MS_MALLOC_TUNING=0``.
     """

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks import bench_train_step, bench_ukf, profile_decoder
+from benchmarks import bench_allocator, bench_train_step, bench_ukf, profile_decoder
 from ssm_ms.nets import native
 from benchmarks.reference_structure import RefDecoder, RefLocallyLinear, RefTrainer, ref_ukf
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
@@ -183,3 +183,21 @@ def test_epoch_profile_shares_from_a_profiler_table():
     assert got["data set generation and set-up (first run of a config only)"] == 6.0
     assert got["the rest (logging, progress bar, set-up)"] == pytest.approx(100.0 - 75 - 3 - 5.5 - 2 - 6)
     assert sum(got.values()) == pytest.approx(total)
+
+
+def test_allocator_benchmark_runs_at_a_tiny_size(tmp_path):
+    """The README's oscillator example stands in for the quad: an SSM fitted one epoch, then its encoder's steps."""
+    from tests.test_cli import ROOT as CLI_ROOT, oscillator_file, outputs, run
+
+    data = ["--data.init_args.train_path", str(oscillator_file(tmp_path))]
+    ssm_config = CLI_ROOT / "configs" / "oscillator.yaml"
+    run(tmp_path, "fit", ssm_config, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
+        "--trainer.limit_val_batches", "1", *data)
+    out = tmp_path / "allocator.md"
+    bench_allocator.main(["--config", "configs/oscillator_encoder.yaml", "--rounds", "1", "--warm", "1",
+                          "--steps", "1", "--settings", "trim 2 GiB",
+                          "--ssm", str(outputs(tmp_path, ssm_config) / "checkpoints" / "last.ckpt"),
+                          "--out", str(out), *data])
+    rows = [line for line in out.read_text().splitlines() if line.startswith("| trim")]
+    assert [row.split(" | ")[0] for row in rows] == ["| trim off", "| trim 2 GiB"]  # the base is always measured
+    assert rows[0].split(" | ")[5] == "1.00"  # the base's ratio to itself
