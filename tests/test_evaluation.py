@@ -130,6 +130,23 @@ def test_valid_time_of_images_scales_by_the_mean_per_pixel_variance():
     assert 0 < sum(e != math.inf for e in expected) < 6  # the case is not trivial
 
 
+def test_error_growth_leaves_out_a_diverged_forecast():
+    """A forecast that turned NaN (a filter that diverged) is left out of the mean error curve, as out of the
+    scores; the others' curve is their plain mean of |error| / std (vectors: per component, then averaged)."""
+    torch.manual_seed(1)
+    truth = torch.randn(4, 8, 2, dtype=torch.float64)
+    pred = truth + 0.1 * torch.randn_like(truth) * torch.arange(1, 9, dtype=torch.float64).view(1, 8, 1)
+    pred[2, 5:] = math.nan
+    acc = ValidTimeAccumulator()
+    acc.update(pred[:2], truth[:2])
+    acc.update(pred[2:], truth[2:])
+    std = truth.reshape(-1, 2).std(0, unbiased=False)
+    kept = [0, 1, 3]
+    curve = [sum(((pred[i, t] - truth[i, t]) ** 2 / std**2).mean().sqrt().item() for i in kept) / 3 for t in range(8)]
+    assert acc.growth() == pytest.approx({"1": curve[0], "2": curve[1], "4": curve[3], "8": curve[7]})
+    assert acc.steps(10.0)[0].tolist() == [math.inf, math.inf, 5, math.inf]  # still counted, invalid from its NaN
+
+
 def test_filter_lengths_longer_than_the_sequences_are_refused():
     y = torch.zeros(2, 20, 1)
     assert [t.shape[1] for t in split_sequence(y, 15)] == [15, 5]

@@ -583,8 +583,12 @@ class ValidTimeAccumulator:
         return valid_steps(errors, threshold), errors.shape[1]
 
     def growth(self) -> dict[str, float]:
-        """The mean normalised error at the first, a quarter, half and last forecast step: how errors grow."""
-        curve = self.normalised_errors().mean(0)
+        """The mean normalised error at the first, a quarter, half and last forecast step: how errors grow.
+
+        Over the sequences whose forecast stayed finite at every step: a diverged one is left out, as the scores
+        leave it out (NaN where none stayed finite)."""
+        errors = self.normalised_errors()
+        curve = errors[torch.isfinite(errors).all(1)].mean(0)
         h = len(curve)
         return {str(step): float(curve[step - 1]) for step in sorted({1, max(1, h // 4), max(1, h // 2), h})}
 
