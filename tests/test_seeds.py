@@ -55,7 +55,9 @@ def test_a_seed_whose_forecasts_diverged_on_some_sequences_says_how_many(tmp_pat
     (tmp_path / "lor_cpu_seed2.json").write_text(json.dumps(data))
     main(["lor_cpu", "--results-dir", str(tmp_path)])
     table = json.loads((tmp_path / "lor_cpu_seeds.json").read_text())
-    assert table["rows"]["ukf: clean/mse, non-finite sequences"] == {"seed2": 3.0}
+    assert table["rows"]["ukf: clean/mse, non-finite sequences"] == {"config seed": 0.0, "seed1": 0.0, "seed2": 3.0}
+    assert table["summary"]["ukf: clean/mse, non-finite sequences"]["mean"] == pytest.approx(1.0)  # per seed
+    assert "encoder: clean/mse, non-finite sequences" not in table["rows"]  # no seed's encoder diverged
     assert table["summary"]["ukf: clean/mse"]["n"] == 3  # the three seeds' scores are still gathered
 
 

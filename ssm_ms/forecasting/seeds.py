@@ -29,6 +29,7 @@ PER_SEED = [
     ("f: free runs visiting both wings", "dynamics/free_run/both_wings_share"),
     ("true system: largest Lyapunov exponent", "true_system/largest"),
 ]
+NON_FINITE = ", non-finite sequences"  # suffix of the row that counts a score's diverged forecasts
 
 
 def seed_files(results_dir: Path, experiment: str) -> dict[str, Path]:
@@ -54,7 +55,7 @@ def read_quantities(data: dict[str, Any]) -> dict[str, float]:
             if row == method and isinstance(entry, dict) and isinstance(entry.get("mean"), (int, float)):
                 out[f"{method}: {rest}"] = float(entry["mean"])  # over the finite sequences
                 if entry.get("non_finite"):  # diverged forecasts, left out of that mean: say how many, per seed
-                    out[f"{method}: {rest}, non-finite sequences"] = float(entry["non_finite"])
+                    out[f"{method}: {rest}{NON_FINITE}"] = float(entry["non_finite"])
         flat = flat_scalars(run.get("analysis") or {})
         for label, key in PER_METHOD:
             if key in flat:
@@ -84,6 +85,9 @@ def gather(results_dir: Path, experiment: str) -> dict[str, Any]:
     for seed, path in files.items():
         for label, value in read_quantities(json.loads(path.read_text())).items():
             rows.setdefault(label, {})[seed] = value
+    for label in [label for label in rows if label.endswith(NON_FINITE)]:  # where one seed diverged somewhere,
+        scored = rows.get(label[: -len(NON_FINITE)], {})  # the seeds that have the score and no such count had none
+        rows[label] = {seed: rows[label].get(seed, 0.0) for seed in files if seed in scored or seed in rows[label]}
     summary = {}
     for label, values in rows.items():
         finite = [v for v in values.values() if math.isfinite(v)]
@@ -102,7 +106,7 @@ def render(table: dict[str, Any]) -> str:
     lines = [f"# {table['experiment']} over {len(seeds)} seeds", "",
              "Each seed's results file: " + ", ".join(f"{s}: `{f}`" for s, f in table["files"].items())
              + ". Scores are each run's mean over its test sequences (the finite ones: a row `..., non-finite sequences` "
-             "counts, per seed, those whose forecast diverged, where any did); the last column is the mean ± sample std over "
+             "counts, per seed, those whose forecast diverged, where any seed's did); the last column is the mean ± sample std over "
              "seeds (`n`: seeds with a finite value). Made by `python -m ssm_ms.forecasting.seeds "
              f"{table['experiment']}`.", "",
              "| quantity | " + " | ".join(seeds) + " | mean ± std over seeds |",
