@@ -74,7 +74,8 @@ def run_once(label: str, args: argparse.Namespace, overrides: list[str], callbac
            "--model.init_args.ssm_checkpoint", args.ssm, "--trainer.max_epochs", "1",
            "--trainer.limit_train_batches", str(args.warm + args.steps), "--trainer.limit_val_batches", "0",
            "--trainer.logger", "false", "--trainer.enable_checkpointing", "false",
-           "--trainer.enable_progress_bar", "false", "--trainer.callbacks", "[{class_path: step_usage.StepUsage}]", *overrides]
+           "--trainer.enable_progress_bar", "false", "--trainer.callbacks", "[{class_path: step_usage.StepUsage}]",
+           "--trainer.default_root_dir", str(callback_dir), *overrides]  # its config.yaml: not in the repository
     out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
     rows = [json.loads(line[5:]) for line in out.stdout.splitlines() if line.startswith("STEP ")]
     if out.returncode != 0 or len(rows) < args.warm + args.steps:

@@ -13,7 +13,7 @@ Trimming is switched off, not merely raised: glibc gives the top of the heap bac
 ``M_TRIM_THRESHOLD`` bytes lie free there, and ``mallopt`` takes an ``int``, so the highest threshold is
 2 GiB. A step of the quadruple pendulum's encoder (100 frames of 48x48 for 40 trajectories) frees ~2.7 GB
 of activations, more than that: with a 2 GiB threshold its heap shrank and page-faulted back every step
-(half a million page faults a step; benchmarks/results/allocator_quad_encoder.md).
+(140,000 page faults and 11% of a step on a quiet 2-core machine; benchmarks/results/allocator_quad_encoder.md).
 """
 
 from __future__ import annotations

@@ -1,5 +1,7 @@
 """The benchmark scripts run (tiny sizes), and the reference structure they time is the same model as ours."""
 
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -190,6 +192,7 @@ def test_allocator_benchmark_runs_at_a_tiny_size(tmp_path):
     from tests.test_cli import ROOT as CLI_ROOT, oscillator_file, outputs, run
 
     data = ["--data.init_args.train_path", str(oscillator_file(tmp_path))]
+    started = time.time()
     ssm_config = CLI_ROOT / "configs" / "oscillator.yaml"
     run(tmp_path, "fit", ssm_config, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
         "--trainer.limit_val_batches", "1", *data)
@@ -201,3 +204,4 @@ def test_allocator_benchmark_runs_at_a_tiny_size(tmp_path):
     rows = [line for line in out.read_text().splitlines() if line.startswith("| trim")]
     assert [row.split(" | ")[0] for row in rows] == ["| trim off", "| trim 2 GiB"]  # the base is always measured
     assert rows[0].split(" | ")[5] == "1.00"  # the base's ratio to itself
+    assert not (CLI_ROOT / "config.yaml").exists() or (CLI_ROOT / "config.yaml").stat().st_mtime < started
