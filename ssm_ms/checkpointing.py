@@ -36,6 +36,26 @@ class EpochCheckpoint(ModelCheckpoint):
         )
 
 
+INT8_KEY = "ssm_ms_int8"  # {name: per-row scales} of the weights a pretrained file stores in int8
+
+
+def restore_float_weights(checkpoint: dict[str, Any]) -> dict[str, Any]:
+    """Turn the int8 weights of a file written by ``python -m ssm_ms.pretrained --weights int8`` back into
+    float32 (in place; a checkpoint without them is left alone), and return ``checkpoint``.
+
+    Each such tensor ``q`` is stored with its scales shaped to broadcast (one per row): the weight is
+    ``q * scale``. Every loader calls this before the weights reach a module: :func:`read_checkpoint`
+    and the modules' ``on_load_checkpoint`` (Lightning's ``--ckpt_path`` and ``load_from_checkpoint``).
+    """
+    scales = checkpoint.pop(INT8_KEY, None)
+    if scales:
+        state = dict(checkpoint["state_dict"])
+        for name, scale in scales.items():
+            state[name] = state[name].to(torch.float32) * scale
+        checkpoint["state_dict"] = state
+    return checkpoint
+
+
 class CheckpointError(ValueError):
     """A file given as a checkpoint cannot be read as one."""
 
@@ -65,4 +85,4 @@ def read_checkpoint(path: str | Path, what: str = "the checkpoint") -> dict[str,
             f"{what} {path} is a torch file but not a Lightning checkpoint (no state_dict): give the last.ckpt "
             "of a run, e.g. runs/<name>/version_N/checkpoints/last.ckpt"
         )
-    return checkpoint
+    return restore_float_weights(checkpoint)

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ssm_ms import distributed
-from ssm_ms.checkpointing import read_checkpoint
+from ssm_ms.checkpointing import read_checkpoint, restore_float_weights
 from ssm_ms.constraints import (
     AugmentedLagrangianOptions,
     augmented_lagrangian,
@@ -488,6 +488,7 @@ class MultipleShootingModule(pl.LightningModule):
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse a checkpoint of another configuration with a message that says what differs."""
+        restore_float_weights(checkpoint)
         if checkpoint.get("forecaster"):
             raise ValueError(
                 f"the checkpoint is a {checkpoint['forecaster']}'s (a baseline), not an SSM's: resume an SSM from "

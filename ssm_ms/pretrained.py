@@ -3,7 +3,7 @@
     python -m ssm_ms.pretrained runs/pendulum/<version>/checkpoints/last.ckpt pretrained/pendulum.ckpt
     python -m ssm_ms.pretrained runs/pendulum_encoder/<version>/checkpoints/last.ckpt \\
         pretrained/pendulum_encoder.ckpt --ssm-checkpoint pretrained/pendulum.ckpt \
-        --results-dir runs/pretrained --half
+        --results-dir runs/pretrained --weights int8
 
 What is dropped: the optimizer states, the learning-rate schedulers, the loops' progress and the callbacks'
 states (a stripped checkpoint tests, predicts and exports; it does not resume training). What is kept: the
@@ -14,10 +14,14 @@ generator parameters), Lightning's version, epoch and step.
 run's ``runs/...`` path does not exist in a fresh clone), so ``--ckpt_path`` of the stripped file loads
 the pretrained SSM beside it. ``--results-dir`` sets where a test of the stripped file writes its results
 and figures (``--ckpt_path`` restores the checkpoint's own settings over the command line's, so a
-pretrained model would otherwise rewrite the committed ``results/`` files it came from). ``--half`` stores the large floating-point tensors (at least
-:data:`HALF_MIN_NUMEL` values: the encoder's 1024-unit LSTM) in float16, halving the file; they load
-back into the module's float32 parameters (rounded to float16's 11 significant bits, a relative error of
-at most 2**-11); the results file of a pretrained model says how much that moves the test scores.
+pretrained model would otherwise rewrite the committed ``results/`` files it came from).
+
+``--weights`` sets how the large floating-point tensors (at least :data:`NARROW_MIN_NUMEL` values: the
+encoder's 1024-unit LSTM) are stored: ``float32`` (default, as trained), ``float16`` (half the size;
+rounded to float16's 11 significant bits, a relative error of at most 2**-11) or ``int8`` (a quarter; one
+float32 scale per row, ``max |row| / 127``, so each weight moves by at most half a step, ``max |row| / 254``;
+a 1-D tensor is one row). They load back into the module's float32 parameters (:func:`ssm_ms.checkpointing.restore_float_weights`);
+the results file of a pretrained model says how much that moves the test scores.
 """
 
 from __future__ import annotations
@@ -28,24 +32,44 @@ from typing import Any
 
 import torch
 
-from ssm_ms.checkpointing import read_checkpoint
+from ssm_ms.checkpointing import INT8_KEY, read_checkpoint
 
 DROPPED = ("optimizer_states", "lr_schedulers", "loops", "callbacks")
-HALF_MIN_NUMEL = 1 << 16
+NARROW_MIN_NUMEL = 1 << 16  # tensors this large or larger are stored as --weights says
 HALF_KEY = "ssm_ms_float16"  # names of the tensors stored in float16 (for whoever reads the file)
+WEIGHTS = ("float32", "float16", "int8")
+
+
+def quantize_rows(weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``weight`` as int8 and one float32 scale per row (first dimension; a 1-D tensor is one row), shaped to
+    broadcast: ``q * scale`` is within ``max |row| / 254`` of every weight of its row (an all-zero row gets
+    scale 1 and stays exact)."""
+    w = weight.detach().to(torch.float32)
+    dims = tuple(range(1, w.ndim)) if w.ndim > 1 else (0,)
+    scale = w.abs().amax(dim=dims, keepdim=True) / 127
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    return torch.round(w / scale).clamp(-127, 127).to(torch.int8), scale
 
 
 def strip(
-    ckpt: dict[str, Any], ssm_checkpoint: str | None = None, half: bool = False, results_dir: str | None = None
+    ckpt: dict[str, Any], ssm_checkpoint: str | None = None, weights: str = "float32",
+    results_dir: str | None = None,
 ) -> dict[str, Any]:
-    """A copy of a Lightning checkpoint dict without training state (see the module doc)."""
+    """A copy of a Lightning checkpoint dict without training state, its large tensors stored as ``weights``
+    says (see the module doc)."""
+    if weights not in WEIGHTS:
+        raise ValueError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
     out = {key: value for key, value in ckpt.items() if key not in DROPPED}
     state = dict(out["state_dict"])
-    if half:
-        narrowed = [k for k, v in state.items() if v.is_floating_point() and v.numel() >= HALF_MIN_NUMEL]
+    narrowed = [k for k, v in state.items() if v.is_floating_point() and v.numel() >= NARROW_MIN_NUMEL]
+    if weights == "float16":
         for key in narrowed:
             state[key] = state[key].to(torch.float16)
         out[HALF_KEY] = narrowed
+    elif weights == "int8":
+        out[INT8_KEY] = {}
+        for key in narrowed:
+            state[key], out[INT8_KEY][key] = quantize_rows(state[key])
     out["state_dict"] = state
     hparams = dict(out.get("hyper_parameters") or {})
     if ssm_checkpoint is not None:
@@ -68,11 +92,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("target", help="where the stripped checkpoint goes")
     parser.add_argument("--ssm-checkpoint", help="the path the stripped encoder / filter records for its SSM")
     parser.add_argument("--results-dir", help="where a test of the stripped forecaster writes results (and figures/)")
-    parser.add_argument("--half", action="store_true", help=f"large tensors (>= {HALF_MIN_NUMEL} values) in float16")
+    parser.add_argument("--weights", choices=WEIGHTS, default="float32",
+                        help=f"how tensors of >= {NARROW_MIN_NUMEL} values are stored (default: float32, as trained)")
     opts = parser.parse_args(argv)
     try:
         ckpt = read_checkpoint(opts.source, "source")
-        out = strip(ckpt, opts.ssm_checkpoint, opts.half, opts.results_dir)
+        out = strip(ckpt, opts.ssm_checkpoint, opts.weights, opts.results_dir)
     except (OSError, ValueError) as err:  # CheckpointError is a ValueError
         parser.exit(2, f"error: {err}\n")
     Path(opts.target).parent.mkdir(parents=True, exist_ok=True)

@@ -9,6 +9,7 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from ssm_ms import pretrained
 from ssm_ms.baselines import LSTMBaseline, RKNBaseline, Seq2SeqLSTM
 from ssm_ms.baselines.rkn import RecurrentKalmanNetwork
 from ssm_ms.inference.encoder_module import StateEncoderModule
@@ -159,6 +160,30 @@ def test_baseline_checkpoint_reloads_on_its_own(trained):
     first = json.loads((tmp / "results" / "rot.json").read_text())["runs"][name]["summary"]
     again = json.loads((tmp / "results2" / "rot.json").read_text())["runs"][name]["summary"]
     assert again[f"{name}/clean/mse"]["mean"] == pytest.approx(first[f"{name}/clean/mse"]["mean"], rel=1e-6)
+
+
+def test_an_int8_pretrained_baseline_tests_through_ckpt_path(trained, monkeypatch):
+    """``python -m ssm_ms.pretrained --weights int8`` (threshold lowered: these networks are small): the trainer's
+    ``--ckpt_path`` gives the module each stored weight within half an int8 step of its row, the rest exactly."""
+    name, cls, _, tmp, _, _ = trained
+    monkeypatch.setattr(pretrained, "NARROW_MIN_NUMEL", 64)
+    saved = torch.load(tmp / "ckpt" / "last.ckpt", weights_only=True)
+    torch.save(pretrained.strip(saved, weights="int8"), tmp / "int8.ckpt")
+    fresh = cls(n_filter=8, network=LSTM_NET if name == "lstm" else RKN_NET, metrics=["mse"],
+                results_dir=str(tmp / "results_int8"), experiment="rot")
+    fast_trainer(tmp, max_epochs=1).test(fresh, rotation(tmp), ckpt_path=str(tmp / "int8.ckpt"))
+    rounded = 0
+    for key, value in fresh.state_dict().items():
+        ref = saved["state_dict"][key]
+        if ref.is_floating_point() and ref.numel() >= 64:
+            rows = [ref] if ref.ndim == 1 else list(ref)
+            half_step = torch.stack([torch.full_like(r, r.abs().max().item() / 254) for r in rows]).reshape(ref.shape)
+            assert ((value - ref).abs() <= half_step * (1 + 1e-4)).all(), key
+            rounded += not torch.equal(value, ref)
+        else:
+            assert torch.equal(value, ref), key
+    assert rounded > 0
+    assert (tmp / "results_int8" / "rot.json").exists()
 
 
 # ---------------------------------------------------------------------------- bad input

@@ -9,7 +9,9 @@ import pytest
 import torch
 
 from ssm_ms.cli import main as cli_main
-from ssm_ms.pretrained import DROPPED, HALF_KEY, HALF_MIN_NUMEL, main, strip
+from ssm_ms.checkpointing import INT8_KEY, read_checkpoint
+from ssm_ms.module import MultipleShootingModule
+from ssm_ms.pretrained import DROPPED, HALF_KEY, NARROW_MIN_NUMEL, main, strip
 
 ROOT = Path(__file__).resolve().parent.parent
 # pretrained/<name>.ckpt was trained with configs/<name>.yaml (an encoder's records pretrained/<its SSM>.ckpt)
@@ -19,7 +21,7 @@ COMMITTED = sorted((ROOT / "pretrained").glob("*.ckpt"))
 def fake_checkpoint() -> dict:
     return {
         "epoch": 3, "global_step": 30, "pytorch-lightning_version": "2.6.0",
-        "state_dict": {"big": torch.randn(HALF_MIN_NUMEL + 1), "small": torch.randn(7), "count": torch.tensor(4)},
+        "state_dict": {"big": torch.randn(NARROW_MIN_NUMEL + 1), "small": torch.randn(7), "count": torch.tensor(4)},
         "optimizer_states": [{"state": {0: {"exp_avg": torch.randn(3)}}}], "lr_schedulers": [{}],
         "loops": {"fit_loop": {}}, "callbacks": {"EpochCheckpoint": {}},
         "hyper_parameters": {"ssm_checkpoint": "runs/x/version_0/checkpoints/last.ckpt", "n_filter": 50,
@@ -41,13 +43,13 @@ def test_strip_drops_training_state_and_keeps_the_rest():
 
 def test_strip_half_and_ssm_path():
     ckpt = fake_checkpoint()
-    out = strip(ckpt, ssm_checkpoint="pretrained/x_ssm.ckpt", half=True, results_dir="runs/pretrained")
+    out = strip(ckpt, ssm_checkpoint="pretrained/x_ssm.ckpt", weights="float16", results_dir="runs/pretrained")
     big = out["state_dict"]["big"]
     assert big.dtype == torch.float16 and torch.equal(big, ckpt["state_dict"]["big"].to(torch.float16))
     assert out["state_dict"]["small"].dtype == torch.float32 and out["state_dict"]["count"].dtype == torch.int64
     assert out[HALF_KEY] == ["big"]
     # float16 loads back into a float32 parameter, rounded by at most 2**-11 relatively
-    back = torch.empty(HALF_MIN_NUMEL + 1).copy_(big)
+    back = torch.empty(NARROW_MIN_NUMEL + 1).copy_(big)
     ref = ckpt["state_dict"]["big"]
     assert ((back - ref).abs() <= ref.abs() * 2.0**-11 + 2.0**-24).all()
     assert out["hyper_parameters"]["ssm_checkpoint"] == "pretrained/x_ssm.ckpt"
@@ -58,6 +60,57 @@ def test_strip_half_and_ssm_path():
         strip({"state_dict": {}, "hyper_parameters": {}}, ssm_checkpoint="x")
     with pytest.raises(ValueError, match="writes no results"):
         strip({"state_dict": {}, "hyper_parameters": {}}, results_dir="x")
+
+
+def naive_int8_bound(weight: torch.Tensor) -> torch.Tensor:
+    """Half an int8 step of each weight's row (first dimension; a 1-D tensor is one row), by a loop."""
+    rows = [weight] if weight.ndim == 1 else list(weight)
+    return torch.stack([torch.full_like(r, r.abs().max().item() / 254) for r in rows]).reshape(weight.shape)
+
+
+def test_strip_int8_reads_back_within_half_a_step_of_each_row(tmp_path):
+    torch.manual_seed(0)
+    mat = torch.randn(300, 250)
+    mat[3] *= 100  # rows of very different ranges keep their own precision
+    mat[7] = 0  # an all-zero row stays exact
+    vec = torch.randn(NARROW_MIN_NUMEL)
+    conv = torch.randn(64, 32, 6, 6)
+    ckpt = fake_checkpoint()
+    ckpt["state_dict"].update(mat=mat, vec=vec, conv=conv)
+    del ckpt["state_dict"]["big"]
+    out = strip(ckpt, weights="int8")
+    assert {k for k, v in out["state_dict"].items() if v.dtype == torch.int8} == {"mat", "vec", "conv"} == set(out[INT8_KEY])
+    assert out["state_dict"]["small"].dtype == torch.float32 and out["state_dict"]["count"].dtype == torch.int64
+    torch.save(out, tmp_path / "int8.ckpt")
+    torch.save(strip(ckpt), tmp_path / "float32.ckpt")
+    assert (tmp_path / "int8.ckpt").stat().st_size < 0.3 * (tmp_path / "float32.ckpt").stat().st_size
+    back = read_checkpoint(tmp_path / "int8.ckpt")
+    assert INT8_KEY not in back
+    for key, ref in (("mat", mat), ("vec", vec), ("conv", conv)):
+        got = back["state_dict"][key]
+        assert got.dtype == torch.float32 and got.shape == ref.shape
+        assert ((got - ref).abs() <= naive_int8_bound(ref) * (1 + 1e-4)).all(), key
+        assert (got - ref).abs().max() > 0  # it did round
+    assert torch.equal(back["state_dict"]["mat"][7], torch.zeros(250))
+    assert torch.equal(back["state_dict"]["small"], ckpt["state_dict"]["small"])
+    with pytest.raises(ValueError, match="float32, float16, int8"):
+        strip(ckpt, weights="int4")
+
+
+def test_an_int8_ssm_loads_through_load_from_checkpoint(tmp_path):
+    """SSM-FC's 512 x 512 transition layers are large enough to be stored in int8; the module loads them back."""
+    src = ROOT / "pretrained" / "pendulum_fc.ckpt"
+    if not src.exists():
+        pytest.skip("pretrained/pendulum_fc.ckpt is not committed")
+    main([str(src), str(tmp_path / "fc_int8.ckpt"), "--weights", "int8"])
+    ref = torch.load(src, weights_only=True)["state_dict"]
+    assert any(v.numel() >= NARROW_MIN_NUMEL and v.is_floating_point() for v in ref.values())
+    model = MultipleShootingModule.load_from_checkpoint(tmp_path / "fc_int8.ckpt")
+    for key, value in model.state_dict().items():
+        if ref[key].numel() >= NARROW_MIN_NUMEL:
+            assert ((value - ref[key]).abs() <= naive_int8_bound(ref[key]) * (1 + 1e-4)).all(), key
+        else:
+            assert torch.equal(value, ref[key]), key
 
 
 def test_strip_command(tmp_path, capsys):

@@ -203,6 +203,7 @@ class BaselineForecaster(ForecastModule):
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse, with a message that says what the file is, a checkpoint of anything but this baseline."""
+        super().on_load_checkpoint(checkpoint)
         kind = checkpoint.get("forecaster")
         state = checkpoint.get("state_dict", {})
         if kind != type(self).__name__:

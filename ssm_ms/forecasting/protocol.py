@@ -53,6 +53,7 @@ import numpy as np
 import torch
 from torchmetrics import CatMetric
 
+from ssm_ms.checkpointing import restore_float_weights
 from ssm_ms.machine import describe
 
 BCE_EPS = 1e-12
@@ -407,6 +408,10 @@ class ForecastModule(pl.LightningModule):
         if out.state_covs is not None:
             result["state_cov"], result["predicted_state_cov"] = out.state_covs[:, :k], out.state_covs[:, k:]
         return result
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """A pretrained file's int8 weights become float32 before Lightning loads them (``--weights int8``)."""
+        restore_float_weights(checkpoint)
 
     def configure_callbacks(self):
         """``predict`` without a :class:`~ssm_ms.forecasting.writer.ForecastWriter` among the trainer's callbacks gets one
