@@ -9,6 +9,8 @@ uninterrupted). Every shipped config that trains uses it.
 
 from __future__ import annotations
 
+import hashlib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +56,21 @@ def restore_float_weights(checkpoint: dict[str, Any]) -> dict[str, Any]:
             state[name] = state[name].to(torch.float32) * scale
         checkpoint["state_dict"] = state
     return checkpoint
+
+
+SSM_DIGEST_KEY = "ssm_ms_ssm_digest"  # a forecaster file stored without its SSM: the digest of the SSM it needs
+
+
+def state_digest(state: Mapping[str, torch.Tensor]) -> str:
+    """A fingerprint of a module's weights as the module holds them (names, shapes, values; floating-point
+    tensors as float32, so a file stored in float16 and the module it loads into agree)."""
+    digest = hashlib.sha256()
+    for name in sorted(state):
+        value = state[name].detach().cpu()
+        value = value.to(torch.float32) if value.is_floating_point() else value
+        digest.update(f"{name}:{tuple(value.shape)}:{value.dtype}".encode())
+        digest.update(value.contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
 
 
 class CheckpointError(ValueError):

@@ -12,7 +12,9 @@ generator parameters), Lightning's version, epoch and step.
 
 ``--ssm-checkpoint`` rewrites the path an encoder or filter checkpoint records for its SSM (a training
 run's ``runs/...`` path does not exist in a fresh clone), so ``--ckpt_path`` of the stripped file loads
-the pretrained SSM beside it. ``--results-dir`` sets where a test of the stripped file writes its results
+the pretrained SSM beside it; the SSM's weights then leave the file (they are that SSM file's: stored once),
+once that file is checked to hold them, and the file records the SSM's :func:`~ssm_ms.checkpointing.state_digest`,
+which loading checks (:meth:`ssm_ms.inference.ssm_forecaster.SSMForecaster.on_load_checkpoint`). ``--results-dir`` sets where a test of the stripped file writes its results
 and figures (``--ckpt_path`` restores the checkpoint's own settings over the command line's, so a
 pretrained model would otherwise rewrite the committed ``results/`` files it came from).
 
@@ -32,12 +34,13 @@ from typing import Any
 
 import torch
 
-from ssm_ms.checkpointing import INT8_KEY, read_checkpoint
+from ssm_ms.checkpointing import INT8_KEY, SSM_DIGEST_KEY, read_checkpoint, state_digest
 
 DROPPED = ("optimizer_states", "lr_schedulers", "loops", "callbacks")
 NARROW_MIN_NUMEL = 1 << 16  # tensors this large or larger are stored as --weights says
 HALF_KEY = "ssm_ms_float16"  # names of the tensors stored in float16 (for whoever reads the file)
 WEIGHTS = ("float32", "float16", "int8")
+SSM_PREFIX = "ssm."  # a forecaster's SSM (SSMForecaster.ssm) within its state_dict
 
 
 def quantize_rows(weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -51,6 +54,33 @@ def quantize_rows(weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.round(w / scale).clamp(-127, 127).to(torch.int8), scale
 
 
+def _same(trained: torch.Tensor, stored: torch.Tensor) -> bool:
+    """``stored`` is ``trained`` up to a stripped file's rounding (within 1/200 of each row's largest value:
+    float16 and int8 storage are; the weights of another training run are not)."""
+    if stored.shape != trained.shape:
+        return False
+    if not trained.is_floating_point():
+        return torch.equal(stored, trained)
+    rows = trained.reshape(trained.shape[0], -1) if trained.ndim > 1 else trained.reshape(1, -1)
+    error = (stored.to(torch.float32) - trained).reshape(rows.shape).abs()
+    return bool((error <= rows.abs().amax(dim=1, keepdim=True) / 200).all())
+
+
+def _without_ssm(state: dict[str, torch.Tensor], ssm_checkpoint: str) -> tuple[dict[str, torch.Tensor], str]:
+    """A forecaster's weights without its SSM's, and the digest of the SSM file ``ssm_checkpoint`` that supplies
+    them on loading; refused unless that file holds this forecaster's SSM (up to its own storage's rounding)."""
+    ssm_state = read_checkpoint(ssm_checkpoint, "--ssm-checkpoint")["state_dict"]
+    own = {key[len(SSM_PREFIX):]: value for key, value in state.items() if key.startswith(SSM_PREFIX)}
+    differs = sorted(set(own) ^ set(ssm_state)) or [key for key, value in own.items() if not _same(value, ssm_state[key])]
+    if differs:
+        raise ValueError(
+            f"--ssm-checkpoint {ssm_checkpoint} does not hold the SSM this forecaster was trained with (it differs "
+            f"in {differs[0]}): give the stripped file of that SSM's own run"
+        )
+    kept = {key: value for key, value in state.items() if not key.startswith(SSM_PREFIX)}
+    return kept, state_digest(ssm_state)
+
+
 def strip(
     ckpt: dict[str, Any], ssm_checkpoint: str | None = None, weights: str = "float32",
     results_dir: str | None = None,
@@ -61,6 +91,8 @@ def strip(
         raise ValueError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
     out = {key: value for key, value in ckpt.items() if key not in DROPPED}
     state = dict(out["state_dict"])
+    if ssm_checkpoint is not None and any(key.startswith(SSM_PREFIX) for key in state):
+        state, out[SSM_DIGEST_KEY] = _without_ssm(state, ssm_checkpoint)
     narrowed = [k for k, v in state.items() if v.is_floating_point() and v.numel() >= NARROW_MIN_NUMEL]
     if weights == "float16":
         for key in narrowed:

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from ssm_ms.cli import main as cli_main
-from ssm_ms.checkpointing import INT8_KEY, read_checkpoint
+from ssm_ms.checkpointing import INT8_KEY, SSM_DIGEST_KEY, read_checkpoint
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.pretrained import DROPPED, HALF_KEY, NARROW_MIN_NUMEL, main, strip
 
@@ -111,6 +111,41 @@ def test_an_int8_ssm_loads_through_load_from_checkpoint(tmp_path):
             assert ((value - ref[key]).abs() <= naive_int8_bound(ref[key]) * (1 + 1e-4)).all(), key
         else:
             assert torch.equal(value, ref[key]), key
+
+
+def encoder_of_config(tmp_path: Path, ssm: Path):
+    args = ["--config", str(ROOT / "configs" / "pendulum_encoder.yaml"), "--trainer.logger.init_args.save_dir",
+            str(tmp_path), "--model.init_args.ssm_checkpoint", str(ssm)]
+    return cli_main(args, run=False).model
+
+
+def test_an_encoder_stripped_without_its_ssm_loads_it_from_the_ssm_file(tmp_path):
+    """With --ssm-checkpoint the SSM's weights leave the encoder's file (they are the SSM file's); loading puts
+    them back from that file: the module ends as it began. Another SSM is refused, when stripping and loading."""
+    ssm = ROOT / "pretrained" / "pendulum.ckpt"
+    model = encoder_of_config(tmp_path, ssm)
+    trained = {"state_dict": model.state_dict(), "hyper_parameters": {"ssm_checkpoint": "runs/x/last.ckpt"},
+               "optimizer_states": []}
+    out = strip(trained, ssm_checkpoint=str(ssm))
+    assert not [k for k in out["state_dict"] if k.startswith("ssm.")] and SSM_DIGEST_KEY in out
+    assert len(out["state_dict"]) < len(trained["state_dict"])
+    fresh = encoder_of_config(tmp_path, ssm)
+    with torch.no_grad():  # (the config seeds the initial weights: move them so that the load has to restore them)
+        for parameter in fresh.encoder.parameters():
+            parameter.add_(1.0)
+    load_into(fresh, out)
+    for key, value in model.state_dict().items():
+        assert torch.equal(fresh.state_dict()[key], value), key
+    # an SSM file that is not this encoder's: refused when stripping ...
+    with pytest.raises(ValueError, match="does not hold the SSM"):
+        strip(trained, ssm_checkpoint=str(ROOT / "pretrained" / "pendulum_fc.ckpt"))
+    # ... and when loading (one weight of the SSM file changed after stripping)
+    other = torch.load(ssm, weights_only=True)
+    key = next(k for k, v in other["state_dict"].items() if v.is_floating_point())
+    other["state_dict"][key] = other["state_dict"][key] + 1e-3
+    torch.save(other, tmp_path / "other_ssm.ckpt")
+    with pytest.raises(ValueError, match="holds another one"):
+        load_into(encoder_of_config(tmp_path, tmp_path / "other_ssm.ckpt"), out)
 
 
 def test_strip_command(tmp_path, capsys):

@@ -25,6 +25,7 @@ from torch import nn
 from ssm_ms.baselines.common import SequenceOutput
 from ssm_ms.baselines.lstm import Seq2SeqLSTM
 from ssm_ms.baselines.rkn import RecurrentKalmanNetwork
+from ssm_ms.checkpointing import SSM_DIGEST_KEY
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
 
 LOSSES = ("mse", "bce", "gaussian_nll")
@@ -207,7 +208,7 @@ class BaselineForecaster(ForecastModule):
         kind = checkpoint.get("forecaster")
         state = checkpoint.get("state_dict", {})
         if kind != type(self).__name__:
-            if "nodes.weight" in state or any(k.startswith("ssm.") for k in state):
+            if "nodes.weight" in state or SSM_DIGEST_KEY in checkpoint or any(k.startswith("ssm.") for k in state):
                 what = "an SSM (or one of its encoder stages)"
             else:
                 what = f"a {kind}" if kind else "not a checkpoint of this project's baselines"

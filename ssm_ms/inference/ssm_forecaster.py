@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ssm_ms.checkpointing import read_checkpoint
+from ssm_ms.checkpointing import SSM_DIGEST_KEY, read_checkpoint, state_digest
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.shooting import decode, rollout
@@ -134,6 +134,22 @@ class SSMForecaster(ForecastModule):
         super().__init__(n_filter, **kwargs)
         self.ssm, self._ssm_checkpoint = load_ssm(ssm_checkpoint)
         self.ssm_checkpoint = str(ssm_checkpoint)
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """A file stripped without its SSM (``python -m ssm_ms.pretrained --ssm-checkpoint``) takes the SSM's weights
+        from ``ssm_checkpoint``, loaded above, once they are checked to be the ones it was stripped with."""
+        super().on_load_checkpoint(checkpoint)
+        digest = checkpoint.get(SSM_DIGEST_KEY)
+        if digest is None:
+            return
+        own = self.ssm.state_dict()
+        if state_digest(own) != digest:
+            raise ValueError(
+                f"this {self.method_name} checkpoint was stored without its SSM, to be loaded with the SSM it was "
+                f"stripped with; ssm_checkpoint {self.ssm_checkpoint} holds another one: give "
+                f"model.init_args.ssm_checkpoint the file named in the checkpoint's hyperparameters"
+            )
+        checkpoint["state_dict"] = {**checkpoint["state_dict"], **{f"ssm.{k}": v for k, v in own.items()}}
 
     # ------------------------------------------------------------------ to implement
     def infer(self, y_filter: torch.Tensor) -> torch.Tensor:
