@@ -12,18 +12,21 @@ generator parameters), Lightning's version, epoch and step.
 
 ``--ssm-checkpoint`` rewrites the path an encoder or filter checkpoint records for its SSM (a training
 run's ``runs/...`` path does not exist in a fresh clone), so ``--ckpt_path`` of the stripped file loads
-the pretrained SSM beside it; the SSM's weights then leave the file (they are that SSM file's: stored once),
-once that file is checked to hold them, and the file records the SSM's :func:`~ssm_ms.checkpointing.state_digest`,
-which loading checks (:meth:`ssm_ms.inference.ssm_forecaster.SSMForecaster.on_load_checkpoint`). ``--results-dir`` sets where a test of the stripped file writes its results
-and figures (``--ckpt_path`` restores the checkpoint's own settings over the command line's, so a
-pretrained model would otherwise rewrite the committed ``results/`` files it came from).
+the pretrained SSM beside it; the SSM's weights then leave the file (they are that SSM file's: stored
+once), once that file is checked to hold them, and the file records the SSM's
+:func:`~ssm_ms.checkpointing.state_digest`, which loading checks
+(:meth:`ssm_ms.inference.ssm_forecaster.SSMForecaster.on_load_checkpoint`). ``--results-dir`` sets where a
+test of the stripped file writes its results and figures (``--ckpt_path`` restores the checkpoint's own
+settings over the command line's, so a pretrained model would otherwise rewrite the committed
+``results/`` files it came from).
 
 ``--weights`` sets how the large floating-point tensors (at least :data:`NARROW_MIN_NUMEL` values: the
 encoder's 1024-unit LSTM) are stored: ``float32`` (default, as trained), ``float16`` (half the size;
 rounded to float16's 11 significant bits, a relative error of at most 2**-11) or ``int8`` (a quarter; one
 float32 scale per row, ``max |row| / 127``, so each weight moves by at most half a step, ``max |row| / 254``;
-a 1-D tensor is one row). They load back into the module's float32 parameters (:func:`ssm_ms.checkpointing.restore_float_weights`);
-the results file of a pretrained model says how much that moves the test scores.
+a 1-D tensor is one row). They load back into the module's float32 parameters
+(:func:`ssm_ms.checkpointing.restore_float_weights`); the results file of a pretrained model says how much
+that moves the test scores.
 """
 
 from __future__ import annotations
