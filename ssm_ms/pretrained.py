@@ -46,13 +46,17 @@ WEIGHTS = ("float32", "float16", "int8")
 SSM_PREFIX = "ssm."  # a forecaster's SSM (SSMForecaster.ssm) within its state_dict
 
 
+def _row_absmax(w: torch.Tensor) -> torch.Tensor:
+    """The largest ``|w|`` of each row (first dimension; a 1-D or 0-D tensor is one row), shaped to broadcast."""
+    return w.abs().amax(dim=tuple(range(1, w.ndim)) if w.ndim > 1 else tuple(range(w.ndim)), keepdim=True)
+
+
 def quantize_rows(weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``weight`` as int8 and one float32 scale per row (first dimension; a 1-D tensor is one row), shaped to
     broadcast: ``q * scale`` is within ``max |row| / 254`` of every weight of its row (an all-zero row gets
     scale 1 and stays exact)."""
     w = weight.detach().to(torch.float32)
-    dims = tuple(range(1, w.ndim)) if w.ndim > 1 else (0,)
-    scale = w.abs().amax(dim=dims, keepdim=True) / 127
+    scale = _row_absmax(w) / 127
     scale = torch.where(scale > 0, scale, torch.ones_like(scale))
     return torch.round(w / scale).clamp(-127, 127).to(torch.int8), scale
 
@@ -64,9 +68,7 @@ def _same(trained: torch.Tensor, stored: torch.Tensor) -> bool:
         return False
     if not trained.is_floating_point():
         return torch.equal(stored, trained)
-    rows = trained.reshape(trained.shape[0], -1) if trained.ndim > 1 else trained.reshape(1, -1)
-    error = (stored.to(torch.float32) - trained).reshape(rows.shape).abs()
-    return bool((error <= rows.abs().amax(dim=1, keepdim=True) / 200).all())
+    return bool(((stored.to(torch.float32) - trained).abs() <= _row_absmax(trained) / 200).all())
 
 
 def _without_ssm(state: dict[str, torch.Tensor], ssm_checkpoint: str) -> tuple[dict[str, torch.Tensor], str]:

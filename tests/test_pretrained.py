@@ -100,8 +100,6 @@ def test_strip_int8_reads_back_within_half_a_step_of_each_row(tmp_path):
 def test_an_int8_ssm_loads_through_load_from_checkpoint(tmp_path):
     """SSM-FC's 512 x 512 transition layers are large enough to be stored in int8; the module loads them back."""
     src = ROOT / "pretrained" / "pendulum_fc.ckpt"
-    if not src.exists():
-        pytest.skip("pretrained/pendulum_fc.ckpt is not committed")
     main([str(src), str(tmp_path / "fc_int8.ckpt"), "--weights", "int8"])
     ref = torch.load(src, weights_only=True)["state_dict"]
     assert any(v.numel() >= NARROW_MIN_NUMEL and v.is_floating_point() for v in ref.values())
