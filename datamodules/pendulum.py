@@ -53,7 +53,9 @@ std ``1/(255 sqrt 12) ~ 1.1e-3`` is negligible next to ``noise_std = 0.2``).
 Generation is deterministic given ``seed``: trajectory ``i`` of split ``s`` draws its initial state
 and its noise from ``np.random.default_rng([seed, s, i])`` (``s = 0`` train, ``1`` test), and the
 simulation of a trajectory involves only element-wise arithmetic and its own ``pin.aba`` calls,
-so the arrays do not depend on ``workers`` or on how trajectories are grouped.
+so the arrays do not depend on ``workers`` or on how trajectories are grouped. On another installation
+(numpy build, CPU) the noise may differ: numpy guarantees its streams only within one build and
+machine (docs/datasets.md has a measured case).
 """
 
 from __future__ import annotations
