@@ -306,6 +306,14 @@ def test_stage_given_a_checkpoint_that_is_not_an_ssm(setup, capsys):
                    "--data.init_args.train_path", str(root / "good.npz")], 1, "not of an SSM", "last.ckpt of an SSM run")
 
 
+def test_stage_without_its_ssm(setup, capsys):
+    """ssm_checkpoint may be left out only where a --ckpt_path supplies it: else one message naming both ways."""
+    root, _ = setup
+    fails(capsys, ["test", "--config", str(ROOT / "configs" / "oscillator_encoder.yaml"),
+                   "--data.init_args.train_path", str(root / "good.npz")], 1,
+          "model.init_args.ssm_checkpoint is not set", "--ckpt_path")
+
+
 # ---------------------------------------------------------------------------- bugs keep their traceback
 class Buggy(Callback):
     """Raises from code that is not the project's validation (a stand-in for a bug)."""

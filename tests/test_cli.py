@@ -105,7 +105,8 @@ def test_encoder_stage_and_test_protocol_from_the_cli(pendulum_ssm):
         "--trainer.limit_val_batches", "1", *stage)
     enc_ckpt = outputs(tmp, config) / "checkpoints" / "last.ckpt"
     assert enc_ckpt.is_file()
-    run(tmp, "test", config, "--ckpt_path", str(enc_ckpt), *stage)
+    # the SSM's checkpoint need not be given again: --ckpt_path's recorded one is used
+    run(tmp, "test", config, "--ckpt_path", str(enc_ckpt), *stage[2:])
     report = (tmp / "results" / "pendulum_cpu.md").read_text()
     assert "| SSM-LL + CNN-LSTM encoder |" in report  # and the paper's SSM-LL row of Table 1 beside it:
     assert "| SSM-LL | 0.2895 ± 0.0064 | 0.0152 ± 0.0022 |" in report

@@ -40,7 +40,8 @@ class StateEncoderModule(SSMForecaster):
 
     def __init__(
         self,
-        ssm_checkpoint: str,
+        ssm_checkpoint: str | None = None,
+        *,
         n_filter: int,
         encoder: dict[str, Any] | None = None,
         lr: float = 1e-3,
@@ -49,7 +50,7 @@ class StateEncoderModule(SSMForecaster):
     ):
         if not lr > 0:
             raise ValueError(f"the learning rate must be > 0, got {lr}: set model.init_args.lr (e.g. 1e-3)")
-        super().__init__(ssm_checkpoint, n_filter, metrics=metrics, **kwargs)
+        super().__init__(ssm_checkpoint, n_filter=n_filter, metrics=metrics, **kwargs)
         kwargs = dict(encoder or {"preset": "vector" if len(self.ssm.obs_shape()) == 1 else None})
         for reserved in ("state_dim", "obs_shape"):
             if reserved in kwargs:

@@ -47,7 +47,8 @@ class FilterForecaster(SSMForecaster):
 
     def __init__(
         self,
-        ssm_checkpoint: str,
+        ssm_checkpoint: str | None = None,
+        *,
         n_filter: int,
         method: str = "ukf",
         process_var: float = 1e-6,
@@ -73,7 +74,7 @@ class FilterForecaster(SSMForecaster):
             raise ValueError(f"unscented takes alpha, beta and kappa, got {sorted(unknown)}")
         if unscented and method != "ukf":
             raise ValueError("unscented sets the UKF's sigma points: it has no effect with method 'pf', remove it")
-        super().__init__(ssm_checkpoint, n_filter, metrics=metrics, method_name=method_name or method, **kwargs)
+        super().__init__(ssm_checkpoint, n_filter=n_filter, metrics=metrics, method_name=method_name or method, **kwargs)
         self.method_kind = method
         f, g = self.ssm.f, self.ssm.g
         if method == "ukf":

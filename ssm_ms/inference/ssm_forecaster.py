@@ -120,7 +120,8 @@ class SSMForecaster(ForecastModule):
     Subclasses implement :meth:`infer`. The prediction of ``y[k + j]`` is ``g(f^{j+1}(x[k-1]))``.
 
     Args:
-        ssm_checkpoint: checkpoint of the trained ``MultipleShootingModule``.
+        ssm_checkpoint: checkpoint of the trained ``MultipleShootingModule``. Optional on the command line with
+            ``--ckpt_path``: that checkpoint's recorded one is used (and wins over a given one, as every setting).
         n_filter: measurements given to the inference method.
         **kwargs: the protocol's other arguments (``n_predict``, ``metrics``, ``bce_reduction``,
             ``original_units``, ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``), see
@@ -130,7 +131,13 @@ class SSMForecaster(ForecastModule):
     # figures of the SSM alone: written once per experiment, whatever the inference method
     shared_figures = ("attractor", "ssm_training")
 
-    def __init__(self, ssm_checkpoint: str, n_filter: int, **kwargs: Any):
+    def __init__(self, ssm_checkpoint: str | None = None, *, n_filter: int, **kwargs: Any):
+        if ssm_checkpoint is None:
+            raise ValueError(
+                "model.init_args.ssm_checkpoint is not set: give the last.ckpt of the SSM run (python cli.py fit "
+                "--config configs/<experiment>.yaml); a checkpoint of this stage given with --ckpt_path supplies "
+                "the one it was trained with"
+            )
         super().__init__(n_filter, **kwargs)
         self.ssm, self._ssm_checkpoint = load_ssm(ssm_checkpoint)
         self.ssm_checkpoint = str(ssm_checkpoint)
