@@ -77,8 +77,9 @@ class CheckpointError(ValueError):
     """A file given as a checkpoint cannot be read as one."""
 
 
-def read_checkpoint(path: str | Path, what: str = "the checkpoint") -> dict[str, Any]:
-    """Load a Lightning checkpoint's dictionary with ``weights_only=True`` (no arbitrary code runs).
+def read_checkpoint(path: str | Path, what: str = "the checkpoint", restore: bool = True) -> dict[str, Any]:
+    """Load a Lightning checkpoint's dictionary with ``weights_only=True`` (no arbitrary code runs), its int8
+    weights turned back into float32 (:func:`restore_float_weights`) unless ``restore`` is false.
 
     Raises :class:`CheckpointError` naming the file for a missing, truncated or foreign file; never
     suggests unsafe loading.
@@ -102,4 +103,4 @@ def read_checkpoint(path: str | Path, what: str = "the checkpoint") -> dict[str,
             f"{what} {path} is a torch file but not a Lightning checkpoint (no state_dict): give the last.ckpt "
             "of a run, e.g. runs/<name>/version_N/checkpoints/last.ckpt"
         )
-    return restore_float_weights(checkpoint)
+    return restore_float_weights(checkpoint) if restore else checkpoint

@@ -21,10 +21,12 @@ settings over the command line's, so a pretrained model would otherwise rewrite 
 ``results/`` files it came from).
 
 ``--weights`` sets how the large floating-point tensors (at least :data:`NARROW_MIN_NUMEL` values: the
-encoder's 1024-unit LSTM) are stored: ``float32`` (default, as trained), ``float16`` (half the size;
+encoder's 1024-unit LSTM) are stored: ``float32`` (as trained), ``float16`` (half the size;
 rounded to float16's 11 significant bits, a relative error of at most 2**-11) or ``int8`` (a quarter; one
 float32 scale per row, ``max |row| / 127``, so each weight moves by at most half a step, ``max |row| / 254``;
-a 1-D tensor is one row). They load back into the module's float32 parameters
+a 1-D tensor is one row). Without ``--weights`` a file keeps its source's storage (:func:`stored_as`): a
+training checkpoint stays float32, an int8 file stripped again (say, to record another ``--ssm-checkpoint``)
+stays int8, its integers unchanged. They load back into the module's float32 parameters
 (:func:`ssm_ms.checkpointing.restore_float_weights`); the results file of a pretrained model says how much
 that moves the test scores.
 """
@@ -37,9 +39,9 @@ from typing import Any
 
 import torch
 
-from ssm_ms.checkpointing import INT8_KEY, SSM_DIGEST_KEY, read_checkpoint, state_digest
+from ssm_ms.checkpointing import INT8_KEY, SSM_DIGEST_KEY, read_checkpoint, restore_float_weights, state_digest
 
-DROPPED = ("optimizer_states", "lr_schedulers", "loops", "callbacks")
+DROPPED = frozenset({"optimizer_states", "lr_schedulers", "loops", "callbacks"})
 NARROW_MIN_NUMEL = 1 << 16  # tensors this large or larger are stored as --weights says
 HALF_KEY = "ssm_ms_float16"  # names of the tensors stored in float16 (for whoever reads the file)
 WEIGHTS = ("float32", "float16", "int8")
@@ -86,16 +88,24 @@ def _without_ssm(state: dict[str, torch.Tensor], ssm_checkpoint: str) -> tuple[d
     return kept, state_digest(ssm_state)
 
 
+def stored_as(ckpt: dict[str, Any]) -> str:
+    """How a checkpoint dict, as read from its file (int8 weights not yet restored), stores its large tensors:
+    one of :data:`WEIGHTS`."""
+    return "int8" if ckpt.get(INT8_KEY) else "float16" if ckpt.get(HALF_KEY) else "float32"
+
+
 def strip(
-    ckpt: dict[str, Any], ssm_checkpoint: str | None = None, weights: str = "float32",
+    ckpt: dict[str, Any], ssm_checkpoint: str | None = None, weights: str | None = None,
     results_dir: str | None = None,
 ) -> dict[str, Any]:
     """A copy of a Lightning checkpoint dict without training state, its large tensors stored as ``weights``
-    says (see the module doc)."""
+    says (``None``: as ``ckpt`` stores them; see the module doc). ``ckpt`` is as read from its file."""
+    weights = stored_as(ckpt) if weights is None else weights
     if weights not in WEIGHTS:
         raise ValueError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
-    out = {key: value for key, value in ckpt.items() if key not in DROPPED}
-    state = dict(out["state_dict"])
+    out = restore_float_weights({key: value for key, value in ckpt.items() if key not in DROPPED | {HALF_KEY}})
+    state = {key: value.to(torch.float32) if key in ckpt.get(HALF_KEY, ()) else value
+             for key, value in out["state_dict"].items()}  # every weight in float32 before it is narrowed again
     if ssm_checkpoint is not None and any(key.startswith(SSM_PREFIX) for key in state):
         state, out[SSM_DIGEST_KEY] = _without_ssm(state, ssm_checkpoint)
     narrowed = [k for k, v in state.items() if v.is_floating_point() and v.numel() >= NARROW_MIN_NUMEL]
@@ -129,11 +139,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("target", help="where the stripped checkpoint goes")
     parser.add_argument("--ssm-checkpoint", help="the path the stripped encoder / filter records for its SSM")
     parser.add_argument("--results-dir", help="where a test of the stripped forecaster writes results (and figures/)")
-    parser.add_argument("--weights", choices=WEIGHTS, default="float32",
-                        help=f"how tensors of >= {NARROW_MIN_NUMEL} values are stored (default: float32, as trained)")
+    parser.add_argument("--weights", choices=WEIGHTS,
+                        help=f"how tensors of >= {NARROW_MIN_NUMEL} values are stored (default: as in the source; "
+                             "float32 for a training checkpoint)")
     opts = parser.parse_args(argv)
     try:
-        ckpt = read_checkpoint(opts.source, "source")
+        ckpt = read_checkpoint(opts.source, "source", restore=False)
         out = strip(ckpt, opts.ssm_checkpoint, opts.weights, opts.results_dir)
     except (OSError, ValueError) as err:  # CheckpointError is a ValueError
         parser.exit(2, f"error: {err}\n")

@@ -97,6 +97,34 @@ def test_strip_int8_reads_back_within_half_a_step_of_each_row(tmp_path):
         strip(ckpt, weights="int4")
 
 
+def test_a_stripped_file_stripped_again_keeps_its_storage_unless_told(tmp_path):
+    """Re-stripping a pretrained file (say, to record another SSM path) keeps how it stores its weights: an int8
+    file's integers and scales are unchanged; ``--weights float32`` widens it to exactly integer * scale; a
+    float16 file stays float16."""
+    torch.manual_seed(1)
+    mat = torch.randn(300, 250)
+    ckpt = fake_checkpoint()
+    ckpt["state_dict"].update(mat=mat)
+    for weights in ("int8", "float16"):
+        torch.save(strip(ckpt, weights=weights), tmp_path / f"{weights}.ckpt")
+    main([str(tmp_path / "int8.ckpt"), str(tmp_path / "again.ckpt")])
+    first, again = (torch.load(tmp_path / n, weights_only=True) for n in ("int8.ckpt", "again.ckpt"))
+    for key in ("mat", "big"):
+        assert again["state_dict"][key].dtype == torch.int8
+        assert torch.equal(again["state_dict"][key], first["state_dict"][key]), key
+        assert torch.allclose(again[INT8_KEY][key], first[INT8_KEY][key], rtol=1e-6, atol=0), key
+    main([str(tmp_path / "int8.ckpt"), str(tmp_path / "wide.ckpt"), "--weights", "float32"])
+    wide = torch.load(tmp_path / "wide.ckpt", weights_only=True)
+    assert INT8_KEY not in wide
+    q, scale = first["state_dict"]["mat"], first[INT8_KEY]["mat"]
+    naive = torch.stack([q[i].to(torch.float32) * scale[i] for i in range(q.shape[0])])
+    assert wide["state_dict"]["mat"].dtype == torch.float32 and torch.equal(wide["state_dict"]["mat"], naive)
+    main([str(tmp_path / "float16.ckpt"), str(tmp_path / "half_again.ckpt")])
+    half = torch.load(tmp_path / "half_again.ckpt", weights_only=True)
+    assert half["state_dict"]["mat"].dtype == torch.float16 and set(half[HALF_KEY]) == {"mat", "big"}
+    assert torch.equal(half["state_dict"]["mat"], mat.to(torch.float16))
+
+
 def test_an_int8_ssm_loads_through_load_from_checkpoint(tmp_path):
     """SSM-FC's 512 x 512 transition layers are large enough to be stored in int8; the module loads them back."""
     src = ROOT / "pretrained" / "pendulum_fc.ckpt"
