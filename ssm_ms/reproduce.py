@@ -166,7 +166,9 @@ class Pipeline:
     def __init__(self, record: Path, options: dict, resume_pipeline: str, resume: bool, command: str | None = None):
         self.record, self.options, self.resume_pipeline = record, options, resume_pipeline
         self.command = command  # the results file's record of this run is keyed by it
-        self.started_command: str | None = None  # a resumed run's, when it was started with other budgets
+        # the command under which the results file holds this run's record (the last one that finished it; None
+        # before it first finishes): a budget raised on resume replaces that record, however often it is resumed
+        self.recorded_command: str | None = None
         self.done: list[dict] = []
         self.running: dict | None = None
         if resume:
@@ -192,15 +194,32 @@ class Pipeline:
                 raise SystemExit(f"error: --resume: {record.parent.name} cannot be cut back to {'; '.join(lowered)}: "
                                  "its checkpoints are past that; give the same budget or a larger one")
             self.done, self.running = done, running
-            self.started_command = saved.get("command")
+            # (a record written before "recorded" was kept: the command it was last run with)
+            self.recorded_command = saved.get("recorded", saved.get("command"))
         self.stages: list[dict] = []
 
     def _write(self) -> None:
         self.record.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.record.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"options": self.options, "command": self.command, "stages": self.stages + [
-            s for s in self.done if s not in self.stages], "running": self.running}, indent=2) + "\n")
+        tmp.write_text(json.dumps({"options": self.options, "command": self.command, "recorded": self.recorded_command,
+                                   "stages": self.stages + [s for s in self.done if s not in self.stages],
+                                   "running": self.running}, indent=2) + "\n")
         tmp.replace(self.record)
+
+    def finished(self, results_dir: Path, experiment: str) -> Path:
+        """Record the finished run in ``results_dir``'s results file, in place of the record of the command it was
+        last finished with (a budget raised on resume), and note that command; return the results table's path."""
+        replaces = self.recorded_command if self.recorded_command != self.command else None
+        md = write_pipeline(results_dir, experiment, self.command, replaces=replaces, pipeline={
+            "stages": self.stages,
+            "total_seconds": round(sum(s["seconds"] for s in self.stages), 1),
+            "machine": describe(),
+            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "command": self.command,
+        })
+        self.recorded_command = self.command
+        self._write()
+        return md
 
     def stage(self, args: list[str], again: bool = False) -> bool:
         """Run ``python cli.py *args`` unless the resumed run finished it (``again``: run it all the same, an
@@ -332,15 +351,7 @@ def main(argv: list[str] | None = None) -> None:
         configs.append(cfg)
     experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
     results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(configs[0]), "model.init_args.results_dir", default="results"))
-    # a budget raised on resume: this record replaces the one of the command the run was started with
-    replaces = pipeline.started_command if pipeline.started_command != command else None
-    md = write_pipeline(results_dir, experiment, command, replaces=replaces, pipeline={
-        "stages": pipeline.stages,
-        "total_seconds": round(sum(s["seconds"] for s in pipeline.stages), 1),
-        "machine": describe(),
-        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "command": command,
-    })
+    md = pipeline.finished(results_dir, experiment)
     print(f"\nresults: {md.relative_to(ROOT)}\n")
     print(md.read_text())
 

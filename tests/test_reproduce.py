@@ -341,6 +341,35 @@ def test_a_budget_raised_on_resume_continues_that_fit_and_tests_again(recorded, 
     assert calls == []
 
 
+def test_a_raised_budget_interrupted_and_resumed_again_still_replaces_the_first_record(recorded, tmp_path, monkeypatch):
+    """Started with --encoder-epochs 7 (finished: the results file holds its record), resumed with 9 and stopped
+    during that fit, resumed with 9 again: the finished run's record replaces the 7-epoch one's, not a record of
+    the 9-epoch command that was never written (which would leave both in the results file)."""
+    calls, written = recorded
+    base = ["lorenz_T1000", "--size", "cpu", "--no-baselines"]
+    reproduce.main([*base, "--encoder-epochs", "7"])
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    first = written["command"]
+    enc_ckpt = tmp_path / "runs" / "lorenz_T1000_encoder_cpu" / version / "checkpoints" / "last.ckpt"
+    enc_ckpt.parent.mkdir(parents=True)
+    enc_ckpt.write_bytes(b"")
+
+    def stopped(args, number, resume_pipeline=None):
+        raise KeyboardInterrupt  # the machine stops during the extended fit
+    with monkeypatch.context() as patch:
+        patch.setattr(reproduce, "run_stage", stopped)
+        with pytest.raises(KeyboardInterrupt):
+            reproduce.main([*base, "--encoder-epochs", "9", "--resume", version])
+    written.clear()
+    reproduce.main([*base, "--encoder-epochs", "9", "--resume", version])
+    assert written["command"] == first.replace("--encoder-epochs 7", "--encoder-epochs 9")
+    assert written["replaces"] == first
+    written.clear()
+    calls.clear()
+    reproduce.main([*base, "--encoder-epochs", "11", "--resume", version])  # raised once more, uninterrupted
+    assert written["replaces"] == first.replace("--encoder-epochs 7", "--encoder-epochs 9")
+
+
 def test_a_baseline_budget_raised_on_resume_continues_the_fit_and_tests_again(recorded, tmp_path):
     calls, written = recorded
     reproduce.main(["pendulum_lstm", "--baseline-epochs", "5"])
