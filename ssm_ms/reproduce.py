@@ -18,7 +18,7 @@ Each stage is ``python cli.py ...`` in its own process, logged under ``runs/<nam
 known. Every method lands in the same ``results/<experiment>.md``, which ends with the commands and
 their durations.
 
-Ctrl-C (or SIGTERM: ``kill <pid>``) during a stage stops the stage as ``fit`` stops (its last completed epoch
+Ctrl-C (or ``kill <pid>``, SIGTERM or SIGINT) during a stage stops the stage as ``fit`` stops (its last completed epoch
 kept); this process waits for it, prints which stage was interrupted, the command that resumes that stage alone
 (``--ckpt_path`` its ``last.ckpt``) and the one that resumes the whole pipeline, and exits with status 130. A failing
 stage ends in one ``error:`` line naming it, with the stage's status. No traceback either way; the later stages do
@@ -104,9 +104,9 @@ def _absolute(path: Path) -> Path:
 def run_stage(args: list[str], number: int, resume_pipeline: str | None = None) -> float:
     """Run ``python cli.py *args`` from the root (stage ``number`` of the pipeline); return its duration in seconds.
 
-    Ctrl-C reaches the stage and this process together (one process group); SIGTERM sent to this process alone
-    (``kill <pid>``, what scripts and job schedulers send; also where a background job ignores SIGINT) is forwarded
-    to the stage. Either way the stage stops as ``fit`` does (keeping its last completed epoch), this process waits
+    Ctrl-C reaches the stage and this process together (one process group); a SIGTERM or SIGINT sent to this process
+    alone (``kill <pid>``, what scripts and job schedulers send, or ``kill -INT <pid>``) reaches the stage as SIGTERM.
+    Either way the stage stops as ``fit`` does (keeping its last completed epoch), this process waits
     for it, then says which stage was interrupted, the command that resumes that stage alone (``--ckpt_path`` its
     ``last.ckpt`` for a ``fit`` that saved one, else the stage's own command) and ``resume_pipeline`` (the
     reproduce command that resumes it and runs the stages after it), and exits with status 130; a second Ctrl-C
@@ -132,6 +132,11 @@ def run_stage(args: list[str], number: int, resume_pipeline: str | None = None) 
             except KeyboardInterrupt:
                 if interrupted:  # a second Ctrl-C: do not wait for the stage to stop cleanly
                     proc.kill()
+                else:
+                    # a terminal's Ctrl-C reached the stage too, a `kill -INT <pid>` this process alone: which one
+                    # is not known here, and SIGTERM stops the stage the same way in both cases (one already
+                    # stopping on its Ctrl-C only notes it: Lightning's handler sets a flag while it trains)
+                    proc.send_signal(signal.SIGTERM)
                 interrupted = True
     finally:
         signal.signal(signal.SIGTERM, previous)

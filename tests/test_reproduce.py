@@ -104,11 +104,12 @@ def _stage_in_own_group(tmp_path, args):
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
-@pytest.mark.parametrize("how", ["ctrl-c", "sigterm"])
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm", "sigint-alone"])
 def test_ctrl_c_or_sigterm_during_a_stage_names_it_and_the_command_that_resumes_it(tmp_path, how):
-    """Ctrl-C reaches the stage and reproduce together (SIGINT to the process group); SIGTERM to reproduce alone
-    (``kill <pid>``) is forwarded to the stage. Either way: no traceback, status 130, the stage stopped (not left
-    running), named, and the command that resumes it from the last completed epoch."""
+    """Ctrl-C reaches the stage and reproduce together (SIGINT to the process group); SIGTERM or SIGINT to reproduce
+    alone (``kill <pid>``, ``kill -INT <pid>``) is forwarded to the stage. Either way: no traceback, status 130, the
+    stage stopped (not left running: the stage trains for 100000 epochs), named, and the command that resumes it
+    from the last completed epoch."""
     import os
     import shlex
     import signal
@@ -131,8 +132,8 @@ def test_ctrl_c_or_sigterm_during_a_stage_names_it_and_the_command_that_resumes_
     assert len(stage) == 1
     if how == "ctrl-c":
         os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in the terminal does
-    else:
-        proc.send_signal(signal.SIGTERM)  # reproduce's pid only
+    else:  # reproduce's pid only
+        proc.send_signal(signal.SIGTERM if how == "sigterm" else signal.SIGINT)
     try:
         _, err = proc.communicate(timeout=120)
         assert not Path(f"/proc/{stage[0]}").exists() or _state(stage[0]) == "Z", "the stage was left running"
