@@ -133,6 +133,47 @@ def test_hand_written_notes_survive_every_rewrite(tmp_path):
     assert text.index("| 0.5 ± 0.1 |") < text.index("| 0.7 ± 0.1 |") < text.index("## Notes")
 
 
+def test_an_interrupted_write_leaves_the_results_file_as_it_was(tmp_path, monkeypatch):
+    """Ctrl-C (or SIGTERM, a full disk) while a results file is written leaves the file with every run it held,
+    not a truncated one (which the next run would have replaced by its own row alone)."""
+    import json
+
+    from ssm_ms.forecasting.results import write_results
+
+    info = {"experiment": "toy", "method": "encoder", "model": "SSM-LL", "inference": "encoder"}
+    write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}})
+    before = {p.name: p.read_text() for p in tmp_path.iterdir()}
+    written = Path.write_text
+
+    def cut_short(self, text, *args, **kwargs):  # half the text reaches the disk, then the interrupt
+        written(self, text[: len(text) // 2], *args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Path, "write_text", cut_short)
+    with pytest.raises(KeyboardInterrupt):
+        write_results(tmp_path, {**info, "method": "lstm", "model": "LSTM", "inference": None},
+                      {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}})
+    monkeypatch.undo()
+    assert {p.name: p.read_text() for p in tmp_path.iterdir()} == before  # no half file, no leftover
+    assert list(json.loads((tmp_path / "toy.json").read_text())["runs"]) == ["encoder"]
+
+
+def test_an_unreadable_results_file_is_moved_aside_not_overwritten(tmp_path):
+    """A results file that is not JSON (cut short by an older version, edited by hand) is kept as
+    ``<name>.unreadable`` with a warning that names it; the new run starts a new file."""
+    import json
+
+    from ssm_ms.forecasting.results import write_results
+
+    broken = '{"experiment": "toy", "runs": {"encoder": {"summary": {"encoder/noisy/mse": {"mean": 0.'
+    (tmp_path / "toy.json").write_text(broken)
+    info = {"experiment": "toy", "method": "lstm", "model": "LSTM", "inference": None}
+    with pytest.warns(UserWarning, match=r"toy\.json is not a results file .* moved to .*toy\.json\.unreadable"):
+        write_results(tmp_path, info, {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}})
+    assert (tmp_path / "toy.json.unreadable").read_text() == broken
+    assert list(json.loads((tmp_path / "toy.json").read_text())["runs"]) == ["lstm"]
+
+
 def test_a_resumed_stage_says_so_in_the_pipeline_table(tmp_path):
     from ssm_ms.forecasting.results import write_pipeline
 

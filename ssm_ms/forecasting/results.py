@@ -13,7 +13,9 @@ same method beside it (:func:`paper_row`).
 from __future__ import annotations
 
 import json
+import os
 import re
+import warnings
 from pathlib import Path
 from typing import Any, Union
 
@@ -288,25 +290,44 @@ NOTES_SUFFIX = ".notes.md"  # results/<experiment>.notes.md: hand-written notes 
 
 
 def _load(json_path: Path) -> dict[str, Any]:
-    if json_path.exists():
-        try:
-            data = json.loads(json_path.read_text())
-            if isinstance(data, dict):
-                return data
-        except json.JSONDecodeError:
-            pass
+    """The results file's content; ``{}`` where there is none yet. A file that is not a results file (not a JSON
+    object: written by hand, or cut short by an older version's interrupted write) is moved aside to
+    ``<name>.unreadable``, with a warning, rather than overwritten: the runs it held stay to be restored."""
+    if not json_path.exists():
+        return {}
+    try:
+        data = json.loads(json_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        data = None
+    if isinstance(data, dict):
+        return data
+    aside = json_path.with_name(json_path.name + ".unreadable")
+    os.replace(json_path, aside)
+    warnings.warn(f"{json_path} is not a results file (not a JSON object): moved to {aside} and a new one started; "
+                  "restore the runs it held from that file (or from git)", stacklevel=2)
     return {}
+
+
+def _replace_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` whole or not at all: an interrupted write (Ctrl-C, SIGTERM, a full disk) leaves
+    the file as it was."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _save(results_dir: Path, experiment: str, data: dict[str, Any]) -> Path:
     data["experiment"] = experiment
-    (results_dir / f"{experiment}.json").write_text(json.dumps(data, indent=2, sort_keys=True))
+    _replace_text(results_dir / f"{experiment}.json", json.dumps(data, indent=2, sort_keys=True))
     md_path = results_dir / f"{experiment}.md"
     text = render_markdown(experiment, data.get("runs", {}), data.get("pipelines"))
     notes = results_dir / f"{experiment}{NOTES_SUFFIX}"
     if notes.is_file():  # what a person wrote about the runs (pauses, measurements beside them): kept on every rewrite
         text += f"\n## Notes\n\n(from `{notes.name}`, written by hand)\n\n{notes.read_text().strip()}\n"
-    md_path.write_text(text)
+    _replace_text(md_path, text)
     return md_path
 
 
