@@ -365,3 +365,26 @@ def test_short_sequences_from_off_attractor_starts_are_not_the_attractors_distri
     train_like = torch.from_numpy(lorenz_states(100, 10_000, seed=7, transient=0)[..., 0].reshape(-1))
     assert 1.5 < wasserstein_1d(long_runs, test_like) < 2.3
     assert wasserstein_1d(long_runs, train_like) < 0.6
+
+
+def test_the_true_systems_exponents_are_computed_again_over_a_cache_cut_short(tmp_path):
+    """``reference_exponents`` caches the true system's exponents in the data's cache folder; a cache file cut short
+    (a run stopped while writing it) is computed again, not a crash at the end of a test run. The system: a diagonal
+    linear map, whose exponents are ``log|a_i| / dt`` in closed form."""
+    import json
+    from types import SimpleNamespace
+
+    from ssm_ms.forecasting.protocol import reference_exponents
+
+    scale, dt = torch.tensor([1.5, 0.5], dtype=torch.float64), 0.1
+    test = SimpleNamespace(arrays={"state": np.ones((4, 3, 2))})
+    dm = SimpleNamespace(true_transition=lambda: (lambda x: x * scale), sample_period=dt, cache_dir=str(tmp_path),
+                         datasets={"test": test})
+    settings = {"runs": 4, "lyapunov_steps": 20, "transient": 0, "align": 0}
+    first = reference_exponents(dm, settings)
+    (cache,) = tmp_path.glob("true_exponents_*.json")
+    cache.write_text(cache.read_text()[:10])  # cut short
+    again = reference_exponents(dm, settings)
+    expected = (torch.log(scale) / dt).tolist()
+    assert again["exponents"] == pytest.approx(expected) and first["exponents"] == pytest.approx(expected)
+    assert json.loads(cache.read_text())["exponents"] == pytest.approx(expected)  # and cached whole again

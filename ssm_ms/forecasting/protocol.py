@@ -621,7 +621,10 @@ def reference_exponents(dm: Any, settings: Mapping[str, int] | None = None) -> d
         name = "true_exponents_" + "_".join(f"{k}{v}" for k, v in sorted(settings.items())) + ".json"
         cache = Path(dm.cache_dir) / name if hasattr(dm, "cache_dir") else None
         if cache is not None and cache.is_file():
-            return json.loads(cache.read_text())
+            try:
+                return json.loads(cache.read_text())
+            except ValueError:  # cut short (a run stopped while it wrote it): computed again below
+                pass
         test = dm.datasets.get("test") if hasattr(dm, "datasets") else None
         states = getattr(test, "arrays", {}).get("state") if test is not None else None
         if states is None:
