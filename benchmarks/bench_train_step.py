@@ -133,12 +133,16 @@ def worker(impl: str, model: str, tiny: bool, threads: int, device: str = "cpu")
 
 
 class Worker:
-    def __init__(self, impl: str, model: str, tiny: bool, threads: int, device: str = "cpu"):
+    """One implementation's worker process (``env``: variables added to its environment)."""
+
+    def __init__(self, impl: str, model: str, tiny: bool, threads: int, device: str = "cpu",
+                 env: dict[str, str] | None = None):
         self.impl = impl
         cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", impl, model, "--threads", str(threads),
                "--device", device]
         self.proc = subprocess.Popen(
             cmd + (["--tiny"] if tiny else []), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT,
+            env={**os.environ, **(env or {})},
         )
         self._read()
 
@@ -148,10 +152,17 @@ class Worker:
             raise RuntimeError(f"benchmark worker {self.impl!r} died (exit code {self.proc.wait()})")
         return json.loads(line)
 
-    def run(self, k: int) -> list[float]:
+    def start(self, k: int) -> None:
+        """Ask for ``k`` timed steps; :meth:`times` reads them (several workers can run at once)."""
         self.proc.stdin.write(f"run {k}\n")
         self.proc.stdin.flush()
+
+    def times(self) -> list[float]:
         return self._read()["times"]
+
+    def run(self, k: int) -> list[float]:
+        self.start(k)
+        return self.times()
 
     def close(self) -> None:
         self.proc.stdin.close()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks import bench_allocator, bench_train_step, bench_ukf, profile_decoder
+from benchmarks import bench_allocator, bench_train_step, bench_two_jobs, bench_ukf, profile_decoder
 from ssm_ms.nets import native
 from benchmarks.reference_structure import RefDecoder, RefLocallyLinear, RefTrainer, ref_ukf
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
@@ -65,7 +65,7 @@ def test_reference_ukf_agrees_with_ours_on_a_linear_system():
     torch.testing.assert_close(ours.means, ref)
 
 
-@pytest.mark.parametrize("script", ["train_step", "ukf", "profile_decoder"])
+@pytest.mark.parametrize("script", ["train_step", "ukf", "profile_decoder", "two_jobs"])
 def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
     out = tmp_path / f"{script}.md"
     if script == "train_step":
@@ -77,6 +77,11 @@ def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
         assert "| decoder, native kernels |" in text and "| decoder, torch-only |" in text
         assert ("| native kernels, all calls |" in text) == (native.library() is not None)
         assert "native.build.FLAG_SETS (-march=native)" in text
+    elif script == "two_jobs":
+        bench_two_jobs.main(["--tiny", "--rounds", "1", "--steps", "1", "--out", str(out)])
+        rows = [line.split(" | ") for line in out.read_text().splitlines() if line.startswith(("| one", "| two"))]
+        assert [row[0][2:] for row in rows] == [label for label, *_ in bench_two_jobs.VARIANTS]
+        assert all(float(row[2]) > 0 for row in rows) and rows[0][3].strip(" |") == "1.00"  # the lone job is the unit
     else:
         bench_ukf.main(["--tiny", "--threads", "1", "--out", str(out)])
         text = out.read_text()
