@@ -49,6 +49,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_ukf.py
 	$(PY) benchmarks/bench_ddp_nodes.py
 	$(PY) benchmarks/bench_allocator.py
+	$(PY) benchmarks/bench_two_jobs.py
 	$(PY) benchmarks/bench_constraints.py --experiments pendulum --fraction $(CONSTRAINTS_PENDULUM) \
 		--out benchmarks/results/constraints_pendulum.md
 	$(PY) benchmarks/bench_constraints.py --experiments lorenz_T1000 --fraction $(CONSTRAINTS_LORENZ) \
