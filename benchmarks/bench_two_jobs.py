@@ -80,6 +80,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--tiny", action="store_true", help="tiny sizes, to check that the script runs")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "two_jobs.md"))
     args = parser.parse_args(argv)
+    small = [f"--{k} {getattr(args, k)}" for k in ("rounds", "steps") if getattr(args, k) < 1]
+    if small or args.discard < 0:
+        parser.error(f"{', '.join(small) or f'--discard {args.discard}'}: give at least 1 round and 1 step "
+                     "(and 0 or more untimed rounds)")
 
     from ssm_ms.machine import CpuWatch, describe, quiet_note
 

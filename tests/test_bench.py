@@ -89,6 +89,12 @@ def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
     assert "TINY sizes" in out.read_text()
 
 
+def test_two_jobs_benchmark_refuses_zero_rounds_before_starting_workers(capsys):
+    with pytest.raises(SystemExit) as stop:
+        bench_two_jobs.main(["--tiny", "--rounds", "0"])
+    assert stop.value.code == 2 and "--rounds 0: give at least 1 round and 1 step" in capsys.readouterr().err
+
+
 def _train_step_rows(out, compiled: bool) -> list[str]:
     """Run the train-step benchmark at its tiny size; its SSM-LL rows (reference first, then ours)."""
     bench_train_step.main(["--tiny", "--rounds", "1", "--steps", "1", "--threads", "1", "--models", "SSM-LL",

@@ -172,6 +172,11 @@ def test_an_unreadable_results_file_is_moved_aside_not_overwritten(tmp_path):
         write_results(tmp_path, info, {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}})
     assert (tmp_path / "toy.json.unreadable").read_text() == broken
     assert list(json.loads((tmp_path / "toy.json").read_text())["runs"]) == ["lstm"]
+    (tmp_path / "toy.json").write_text("[]")  # broken again: the first file set aside is kept beside the second
+    with pytest.warns(UserWarning, match=r"moved to .*toy\.json\.unreadable-2"):
+        write_results(tmp_path, info, {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}})
+    assert (tmp_path / "toy.json.unreadable").read_text() == broken
+    assert (tmp_path / "toy.json.unreadable-2").read_text() == "[]"
 
 
 def test_a_resumed_stage_says_so_in_the_pipeline_table(tmp_path):

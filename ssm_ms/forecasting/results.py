@@ -302,6 +302,10 @@ def _load(json_path: Path) -> dict[str, Any]:
     if isinstance(data, dict):
         return data
     aside = json_path.with_name(json_path.name + ".unreadable")
+    n = 1
+    while aside.exists():  # an earlier file set aside stays too
+        n += 1
+        aside = json_path.with_name(f"{json_path.name}.unreadable-{n}")
     os.replace(json_path, aside)
     warnings.warn(f"{json_path} is not a results file (not a JSON object): moved to {aside} and a new one started; "
                   "restore the runs it held from that file (or from git)", stacklevel=2)
