@@ -26,17 +26,17 @@ trajectory, ~1 ms rendering, 1-2 ms noise, on one core of this project's machine
 Images, two renderings (``rendering``):
 
 - ``"paper"`` (the default; the paper's public generator, ``ssm_ms/data/n_link.py`` of
-  machines-in-motion/ssm_multiple_shooting, re-implemented): the chain is drawn on a
-  ``128 x 128`` canvas as hard-edged rectangles (no caps) ``8`` canvas pixels wide, pivot at the
-  canvas centre, the whole chain ``64`` canvas pixels long, so a straight chain reaches the edge of
-  the frame; a canvas pixel is lit (1) when its centre lies in a rectangle. The canvas is then
-  resized to ``image_size`` with a separable Lanczos-3 filter (PIL's ``Image.LANCZOS``: support
-  ``3 * 128 / image_size`` canvas pixels, weights normalised per output pixel), which rings: clean
-  values reach about -0.1 and 1.2. ``line_width`` is in output pixels (default ``image_size / 16``,
-  the paper's 8 of 128: 1.5 px at 24, 3 px at 48). PIL truncates a line's end points to whole canvas
-  pixels and rounds its half widths along the axes, so its ink varies by up to ~10 % with the angle;
-  this rasteriser draws exact rectangles (measured over 200 random frames against PIL: mean absolute
-  difference 0.005 per pixel, mean total intensity within 1.5 %; ``tests/test_pendulum.py``).
+  machines-in-motion/ssm_multiple_shooting): drawn with the generator's own calls, PIL's
+  ``ImageDraw.line(width=8)`` on a ``128 x 128`` float canvas, pivot at canvas point ``(64, 64)``, the whole
+  chain ``64`` canvas pixels long (a straight chain reaches the edge of the frame), then
+  ``Image.resize(..., Image.LANCZOS)`` to ``image_size`` (which rings: clean values reach about -0.1 and 1.2).
+  PIL's conventions are kept with it: a coordinate names a pixel index (pixel ``64`` is lit at the pivot,
+  whose centre is 64.5 canvas pixels from the edge), end points are truncated to whole pixels, and an
+  8-pixel line covers 3 pixels on one side of its axis and 4 on the other, so a hanging chain lights
+  columns 61-68. Equal to the reference's ``create_image`` (without its noise) to the last bit on 2000
+  random states per system (``tests/test_pendulum.py`` pins the pivot pixel against a closed form).
+  ``line_width`` is in output pixels (default ``image_size / 16``, the paper's 8 of 128), drawn as the
+  nearest whole number of canvas pixels.
 - ``"analytic"`` (this project's first rendering, kept for the CPU twins' committed results):
   anti-aliased thick lines with round caps; a pixel's intensity is
   ``clip(line_width / 2 + 0.5 - distance, 0, 1)`` where ``distance`` is from the pixel centre to the
@@ -73,7 +73,7 @@ from datamodules.base import TrajectoryDataModule
 GRAVITY = 9.81
 SPLIT_IDS = {"train": 0, "test": 1}
 CHUNK_SIZE = 32  # trajectories per worker task (simulated together to amortise Python overhead)
-GENERATOR_VERSION = 1  # bump when the generated arrays change for the same parameters
+GENERATOR_VERSION = 2  # bump when the generated arrays change for the same parameters
 
 
 # ---------------------------------------------------------------------------------------- model
@@ -185,63 +185,48 @@ def default_line_width(rendering: str, image_size: int) -> float:
     return 8.0 * image_size / PAPER_CANVAS if rendering == "paper" else 2.0
 
 
-def lanczos_matrix(size: int, source: int, lobes: int = 3) -> np.ndarray:
-    """``[size, source]`` resampling matrix of a Lanczos filter, as PIL builds it for ``Image.resize``.
-
-    Output pixel ``i`` is centred at ``(i + 0.5) * scale`` source pixels (``scale = source / size``);
-    when shrinking, the kernel is stretched by ``scale`` (an anti-aliasing low-pass); source pixels whose
-    centres fall within the support contribute ``L((x + 0.5 - centre) / stretch)``, normalised to sum 1.
-    """
-    scale = source / size
-    stretch = max(scale, 1.0)
-    support = lobes * stretch
-    out = np.zeros((size, source))
-    for i in range(size):
-        centre = (i + 0.5) * scale
-        lo, hi = max(int(centre - support + 0.5), 0), min(int(centre + support + 0.5), source)
-        x = (np.arange(lo, hi) + 0.5 - centre) / stretch
-        w = np.where(np.abs(x) < lobes, np.sinc(x) * np.sinc(x / lobes), 0.0)
-        out[i, lo:hi] = w / w.sum()
-    return out
+def paper_canvas_width(line_width: float, image_size: int) -> int:
+    """The line width in canvas pixels that PIL draws (a whole number): ``line_width`` output pixels scaled to the
+    128-pixel canvas (the paper's 8 for ``image_size / 16``)."""
+    return max(1, int(round(line_width * PAPER_CANVAS / image_size)))
 
 
 def render_paper(angles: np.ndarray, image_size: int, line_width: float | None = None) -> np.ndarray:
-    """Render chains as the paper's generator does (see the module doc): hard rectangles on a 128 x 128
-    canvas, the chain as long as half the canvas, Lanczos-resized to ``image_size``.
+    """Render chains as the paper's generator does, with its own drawing calls (see the module doc): PIL's
+    ``ImageDraw.line`` on a 128 x 128 float canvas, pivot at canvas point ``(64, 64)``, the chain half the canvas
+    long, then ``Image.resize(..., Image.LANCZOS)`` to ``image_size``.
 
     Args:
         angles: joint angles ``[T, n]`` (relative, as in :func:`pendulum_model`).
         image_size: output height and width in pixels.
-        line_width: thickness in output pixels (default ``image_size / 16``).
+        line_width: thickness in output pixels (default ``image_size / 16``, the paper's 8 canvas pixels); drawn
+            as :func:`paper_canvas_width` whole canvas pixels.
 
     Returns:
         float32 ``[T, 1, H, W]``, not clipped (the filter rings slightly outside [0, 1]).
     """
+    from PIL import Image, ImageDraw  # Pillow: a dependency of matplotlib, listed in pyproject.toml
+
     angles = np.asarray(angles, dtype=np.float64)
     if angles.ndim != 2:
         raise ValueError(f"angles must be [T, n_links], got shape {angles.shape}")
     if line_width is None:
         line_width = default_line_width("paper", image_size)
+    width = paper_canvas_width(line_width, image_size)
     frames, n = angles.shape
-    canvas = PAPER_CANVAS
-    half_width = 0.5 * line_width * canvas / image_size
     phi = np.cumsum(angles, axis=-1)
-    steps = np.stack([np.sin(phi), np.cos(phi)], axis=-1) * (canvas / 2 / n)
-    pts = np.concatenate([np.zeros((frames, 1, 2)), np.cumsum(steps, axis=-2)], axis=-2) + canvas / 2
-    centres = (np.arange(canvas) + 0.5).astype(np.float32)
-    lit = np.zeros((frames, canvas, canvas), dtype=bool)
-    for s in range(n):
-        a = pts[:, s].astype(np.float32)
-        d = (pts[:, s + 1] - pts[:, s]).astype(np.float32)  # every link has length canvas / 2 / n > 0
-        length = np.float32(canvas / 2 / n)
-        rx = centres[None, None, :] - a[:, 0, None, None]  # [T, 1, W]
-        ry = centres[None, :, None] - a[:, 1, None, None]  # [T, H, 1]
-        along = (rx * d[:, 0, None, None] + ry * d[:, 1, None, None]) / length
-        across = np.abs(rx * d[:, 1, None, None] - ry * d[:, 0, None, None]) / length
-        lit |= (along >= 0) & (along <= length) & (across <= half_width)
-    resize = lanczos_matrix(image_size, canvas).astype(np.float32)
-    img = resize @ lit.astype(np.float32) @ resize.T
-    return img[:, None]
+    # joint positions in canvas coordinates (x right, y down: image down is gravity); PIL lights the pixel whose
+    # index is the (truncated) coordinate, so the pivot (64, 64) is pixel 64, as in the reference generator
+    steps = np.stack([np.sin(phi), np.cos(phi)], axis=-1) * (PAPER_CANVAS / 2 / n)
+    pts = np.concatenate([np.zeros((frames, 1, 2)), np.cumsum(steps, axis=-2)], axis=-2) + PAPER_CANVAS / 2
+    out = np.empty((frames, 1, image_size, image_size), np.float32)
+    for t in range(frames):
+        canvas = Image.new("F", (PAPER_CANVAS, PAPER_CANVAS), 0.0)
+        draw = ImageDraw.Draw(canvas)
+        for s in range(n):
+            draw.line([tuple(pts[t, s]), tuple(pts[t, s + 1])], fill=1.0, width=width)
+        out[t, 0] = np.asarray(canvas.resize((image_size, image_size), resample=Image.LANCZOS))
+    return out
 
 
 def chain_length_pixels(image_size: int, line_width: float) -> float:

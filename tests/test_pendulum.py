@@ -200,58 +200,95 @@ def test_frames_match_states(data, length, request):
 
 
 # ------------------------------------------------------------------ the paper's rendering
-def pil_render(angles: np.ndarray, size: int) -> np.ndarray:
-    """The paper generator's drawing, with PIL itself: 8-px lines on a 128-px float canvas, LANCZOS resize."""
+def reference_image(theta: np.ndarray, size: int) -> np.ndarray:
+    """The reference generator's ``create_image`` (machines-in-motion/ssm_multiple_shooting, ``n_link.py``) without
+    its noise, in its own angle convention (zero is upright), with PIL: what the paper's images are."""
     from PIL import Image, ImageDraw
 
-    n = angles.shape[1]
-    out = []
-    for theta in angles:
-        canvas = Image.new("F", (128, 128), 0.0)
-        draw = ImageDraw.Draw(canvas)
-        pts = np.concatenate([[[0.0, 0.0]], np.cumsum(np.stack([np.sin(np.cumsum(theta)), np.cos(np.cumsum(theta))], 1), 0)])
-        pts = 64 + 64 / n * pts  # x right, y down, the chain half the canvas long
-        for a, b in zip(pts[:-1], pts[1:]):
-            draw.line([tuple(a), tuple(b)], fill=1.0, width=8)
-        out.append(np.asarray(canvas.resize((size, size), resample=Image.LANCZOS)))
-    return np.stack(out)[:, None]
+    n = len(theta)
+    img = Image.new("F", (128, 128), 0.0)
+    draw = ImageDraw.Draw(img)
+    cx, cy, length = 64.0, 64.0, 128 / 2 / n
+    x0 = y0 = 0.0
+    for k in range(n):
+        x1 = x0 - np.sin(np.sum(theta[: k + 1]) - np.pi)
+        y1 = y0 - np.cos(np.sum(theta[: k + 1]) - np.pi)
+        draw.line([(cx + length * x0, cy - length * y0), (cx + length * x1, cy - length * y1)], fill=1.0, width=8)
+        x0, y0 = x1, y1
+    return np.asarray(img.resize((size, size), resample=Image.LANCZOS))
 
 
-def test_lanczos_resize_is_pils():
-    Image = pytest.importorskip("PIL.Image")
+def lanczos_matrix(size: int, source: int, lobes: int = 3) -> np.ndarray:
+    """``[size, source]`` Lanczos-3 resampling matrix written from the filter's definition (pixel ``j`` centred at
+    ``j + 0.5``; when shrinking the kernel is stretched by the scale and the weights normalised per output)."""
+    scale = source / size
+    stretch = max(scale, 1.0)
+    out = np.zeros((size, source))
+    for i in range(size):
+        centre = (i + 0.5) * scale
+        x = (np.arange(source) + 0.5 - centre) / stretch
+        w = np.where(np.abs(x) < lobes, np.sinc(x) * np.sinc(x / lobes), 0.0)
+        out[i] = w / w.sum()
+    return out
+
+
+def test_lanczos_matrix_is_pils_resize():
+    """The closed-form filter below is PIL's ``Image.LANCZOS`` (so the pivot test compares with a formula)."""
+    from PIL import Image
+
     rng = np.random.default_rng(0)
-    for size, source in [(24, 128), (48, 128), (7, 30), (40, 20)]:
+    for size, source in [(24, 128), (48, 128), (7, 30)]:
         img = rng.uniform(-1, 2, (source, source)).astype(np.float32)
         expected = np.asarray(Image.fromarray(img, mode="F").resize((size, size), resample=Image.LANCZOS))
-        resize = P.lanczos_matrix(size, source)
+        resize = lanczos_matrix(size, source)
         np.testing.assert_allclose(resize @ img @ resize.T, expected, atol=2e-5)
 
 
 @pytest.mark.parametrize("n,size", [(1, 24), (4, 48)])
-def test_paper_rendering_matches_pil(n, size):
-    """Against PIL's own line drawing and resize. PIL truncates end points to whole canvas pixels and rounds the
-    line's half widths to 3 and 4 pixels along the axes, so its ink varies by up to ~10% with the angle; ours is
-    an exact 8-pixel rectangle: a small per-pixel difference and the same ink on average."""
-    pytest.importorskip("PIL")
-    angles = np.random.default_rng(n).uniform(-math.pi, math.pi, (40, n))
-    ours, pil = P.render_paper(angles, size), pil_render(angles, size)
-    assert ours.shape == pil.shape == (40, 1, size, size) and ours.dtype == np.float32
-    assert np.abs(ours - pil).mean() < 0.008
-    assert ours.sum() == pytest.approx(pil.sum(), rel=0.025)
-    assert ours.min() < -0.05 and ours.max() > 1.05  # the filter rings outside [0, 1], as PIL's does
-    assert pil.min() < -0.05 and pil.max() > 1.05
+def test_paper_rendering_is_the_reference_generators(n, size):
+    """Pixel for pixel the reference's images: our angles (zero hanging, right positive) map to its (zero upright)
+    by ``phi_ref = pi - phi``, i.e. ``theta_ref = (pi - theta_1, -theta_2, ...)``."""
+    angles = np.random.default_rng(n).uniform(-math.pi, math.pi, (60, n))
+    theirs = -angles
+    theirs[:, 0] += math.pi
+    ours = P.render_paper(angles, size)
+    expected = np.stack([reference_image(t, size) for t in theirs])[:, None]
+    assert ours.shape == expected.shape == (60, 1, size, size) and ours.dtype == np.float32
+    np.testing.assert_array_equal(ours, expected)
+    assert ours.min() < -0.05 and ours.max() > 1.05  # the filter rings outside [0, 1]
+
+
+@pytest.mark.parametrize("angle", [0.0, math.pi / 2])
+def test_paper_pivot_pixel_convention(angle):
+    """A hanging chain and one pointing right, against the closed form of PIL's convention: a coordinate names a
+    pixel index (the pivot (64, 64) lights pixel 64) and an 8-pixel line covers 3 pixels left of its axis and 4
+    right, so the hanging chain lights canvas columns 61..68 from row 64 down (the right-pointing one the
+    transpose). Every output pixel is compared, the pivot's (12, 12) by name: the old rasteriser (a centred
+    rectangle with the pivot at the canvas' corner point 64.0) gave it 0.09 less."""
+    canvas = np.zeros((128, 128))
+    canvas[64:, 61:69] = 1.0
+    if angle:
+        canvas = canvas.T
+    resize = lanczos_matrix(24, 128)
+    expected = resize @ canvas @ resize.T
+    got = P.render_paper(np.array([[angle]]), 24)[0, 0]
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+    assert got[12, 12] == pytest.approx(expected[12, 12], abs=1e-5)
+    assert abs(expected[12, 12] - expected[12, 11]) > 0.1  # the pixel the convention decides
 
 
 @pytest.mark.parametrize("n,size", [(1, 24), (4, 48)])
 def test_paper_geometry(n, size):
     """A straight chain pointing right: as long as half the frame (it reaches the edge), 8/128 of the frame thick,
-    its ink the rectangle's area (the resize keeps the sum), its centroid half way."""
+    its ink the band's area (the resize keeps the sum), its centroid one canvas pixel below the axis (half a pixel
+    for PIL's pivot at pixel 64's centre, half for its 3-and-4 split of the width)."""
     angles = np.zeros((1, n))
     angles[0, 0] = math.pi / 2
     img = P.render_paper(angles, size)[0, 0].astype(np.float64)
     width, length = size / 16, size / 2
     assert img.sum() == pytest.approx(width * length, rel=0.02)
-    np.testing.assert_allclose(centroid(img), [size / 2 + length / 2, size / 2], atol=0.05)
+    below = size / 128  # one canvas pixel, in output pixels
+    np.testing.assert_allclose(centroid(img), [size / 2 + length / 2, size / 2 + below], atol=0.05)
     mid = size // 2 + int(length // 2)
     assert img[:, mid].sum() == pytest.approx(width, rel=0.02)  # the cross-section of the rod
     rows = slice(size // 2 - 1, size // 2 + 1)
