@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
+import queue as queue_module
 import statistics
 import sys
 import time
@@ -59,6 +60,34 @@ def _worker(rank: int, world: int, reps: int, port: int, queue) -> None:
     dist.destroy_process_group()
 
 
+def gather_results(procs: list, queue, poll: float = 1.0) -> list:
+    """Rank 0's results from ``queue``, then every rank joined. A rank that exits without them (an error, printed
+    above by the rank itself; its peer is then stuck in a collective) ends the run at once: the other ranks are
+    terminated and a ``RuntimeError`` names the exit codes (``queue.get()`` alone would wait forever)."""
+    while True:
+        try:
+            results = queue.get(timeout=poll)
+            break
+        except queue_module.Empty:
+            failed = [(r, p.exitcode) for r, p in enumerate(procs) if p.exitcode not in (None, 0)]
+            if failed or all(p.exitcode is not None for p in procs):
+                try:  # rank 0 may have put its results just before it exited
+                    results = queue.get(timeout=poll)
+                    break
+                except queue_module.Empty:
+                    pass
+                for p in procs:
+                    if p.is_alive():
+                        p.terminate()
+                for p in procs:
+                    p.join()
+                said = ", ".join(f"rank {r} exited with code {c}" for r, c in failed) or "every rank exited"
+                raise RuntimeError(f"bench_ddp_nodes: {said} without the results (see its error above)") from None
+    for p in procs:
+        p.join()
+    return results
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reps", type=int, default=10)
@@ -70,9 +99,7 @@ def main() -> None:
     procs = [ctx.Process(target=_worker, args=(r, 2, args.reps, port, queue)) for r in range(2)]
     for p in procs:
         p.start()
-    results = queue.get()
-    for p in procs:
-        p.join()
+    results = gather_results(procs, queue)
     from ssm_ms.machine import describe
 
     lines = [

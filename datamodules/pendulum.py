@@ -63,6 +63,10 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import os
+import signal
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 import numpy as np
@@ -313,10 +317,25 @@ def quantize(img: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------- generation
 _WORKER: dict[str, Any] = {}
+PINOCCHIO_HINT = (
+    "Pinocchio is the PyPI package `pin`, one of pyproject.toml's dependencies: install it in this environment "
+    "with `pip install 'pin>=3.4'` or `make install`"
+)
+
+
+class DataGenerationError(ValueError):
+    """Generating a data set failed, in this process or in a worker: one message naming the cause.
+
+    A ``ValueError`` so that ``cli.py`` prints it as one ``error:`` line (a user-error type of ``ssm_ms/cli.py``):
+    a worker's failure is mostly the installation's (a missing ``pin`` package) or the machine's (a worker killed
+    for memory). The original exception is its ``__cause__``, with a worker's own traceback under it
+    (``SSM_MS_TRACEBACK=1`` shows them).
+    """
 
 
 def _init_worker(n_links: int) -> None:
-    """Pool initializer: every worker builds its own Pinocchio model (nothing is pickled)."""
+    """Build this process's Pinocchio model (nothing is pickled): :func:`generate_chunk` calls it on a process's
+    first task, so a failure here (``pinocchio`` missing) is that task's exception."""
     model = pendulum_model(n_links)
     _WORKER.update(n_links=n_links, model=model, data=model.createData())
 
@@ -362,6 +381,65 @@ def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int)
 def _run_chunk(task: tuple[dict[str, Any], int, int, int]) -> tuple[int, dict[str, np.ndarray]]:
     params, split_id, start, stop = task
     return start, generate_chunk(params, split_id, start, stop)
+
+
+def _worker_signals() -> None:
+    """Pool worker initializer: Ctrl-C is the parent's to handle (it ends the pool), and SIGTERM ends the worker
+    (a handler inherited through fork, e.g. Lightning's, would keep it alive when the pool ends it)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _failure(exc: BaseException, processes: list = ()) -> DataGenerationError:
+    """The one message for a failed generation (the same from a worker as from this process); ``processes``: the
+    pool's, ended, for a dead worker's exit code."""
+    if isinstance(exc, BrokenProcessPool):
+        # the pool ends the other workers with SIGTERM: the codes left are the dead worker's
+        codes = sorted({p.exitcode for p in processes if p.exitcode not in (None, 0, -signal.SIGTERM)})
+        how = f" (exit code {', '.join(map(str, codes))})" if codes else ""
+        cause = (f"a worker process died{how}: killed (e.g. by the out-of-memory killer: try fewer `workers`) "
+                 "or crashed")
+    else:
+        cause = f"{type(exc).__name__}: {exc}"
+        if isinstance(exc, ImportError) and "pinocchio" in f"{exc.name} {exc}":
+            cause += f" ({PINOCCHIO_HINT})"
+    return DataGenerationError(f"pendulum data generation failed: {cause}")
+
+
+def _run_tasks(tasks: list, workers: int, store: Callable[[int, dict[str, np.ndarray]], None]) -> None:
+    """Run :func:`_run_chunk` on every task, here (``workers == 1``) or in a pool of ``workers`` processes, and
+    ``store(start, arrays)`` each result as it comes (in completion order: where a chunk goes depends only on its
+    ``start``).
+
+    Any failure stops the generation at once with one :class:`DataGenerationError` naming the cause: a task's
+    exception (re-raised here from its worker), a worker that died (``BrokenProcessPool``). The pool is ended
+    before this returns or raises (also on Ctrl-C): tasks not started are dropped, a worker finishes the chunk it
+    is on (about a second) and exits; a worker that died makes the pool end the others at once.
+    """
+    if workers <= 1:
+        for task in tasks:
+            try:
+                start, arrays = _run_chunk(task)
+            except Exception as exc:
+                raise _failure(exc) from exc
+            store(start, arrays)
+        return
+    # fork: workers start instantly (no re-import of torch); spawn elsewhere
+    ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else None)
+    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_signals)
+    try:
+        futures = [pool.submit(_run_chunk, task) for task in tasks]
+        # for a dead worker's exit code in the message (a private attribute: the message does without it if missing)
+        processes = list((getattr(pool, "_processes", None) or {}).values())
+        for future in as_completed(futures):
+            try:
+                start, arrays = future.result()
+            except Exception as exc:
+                pool.shutdown(wait=True, cancel_futures=True)  # first: an exit code is known once its process is joined
+                raise _failure(exc, processes) from exc
+            store(start, arrays)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def available_cores() -> int:
@@ -550,22 +628,14 @@ class PendulumDataModule(TrajectoryDataModule):
         tasks = [(params, SPLIT_IDS[split], s, min(s + CHUNK_SIZE, count)) for s in range(0, count, CHUNK_SIZE)]
         workers = min(self.workers, len(tasks))
         bar = tqdm(total=count, desc=f"pendulum {split} ({n} link{'s' * (n > 1)}, {workers} workers)", unit="traj")
-        pool = None
+
+        def store(start: int, arrays: dict[str, np.ndarray]) -> None:
+            for key, a in arrays.items():
+                out[key][start : start + len(a)] = a
+            bar.update(len(arrays["y"]))
+
         try:
-            if workers > 1:
-                # fork: workers start instantly (no re-import of torch); spawn elsewhere
-                ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else None)
-                pool = ctx.Pool(workers, initializer=_init_worker, initargs=(n,))
-                results = pool.imap_unordered(_run_chunk, tasks)
-            else:
-                results = map(_run_chunk, tasks)
-            for start, arrays in results:
-                for key, a in arrays.items():
-                    out[key][start : start + len(a)] = a
-                bar.update(len(arrays["y"]))
+            _run_tasks(tasks, workers, store)  # a failure: one DataGenerationError, the pool ended
         finally:
             bar.close()
-            if pool is not None:
-                pool.terminate()
-                pool.join()
         return out
