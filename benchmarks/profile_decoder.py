@@ -12,7 +12,11 @@ On the paper's pendulum step sizes (4000 frames of 24x24 = batch 40 x m 4 x n 25
   transposed convolutions), taken around the library's own functions;
 * f's rollout forward + backward;
 * the quadruple-pendulum (1000 frames of 48x48) and Moving MNIST (100 frames of 64x64) decoders, forward +
-  backward, with and without the native kernels.
+  backward, with and without the native kernels;
+* the check of ``ConvDecoder(backend="auto")``'s rule (:func:`ssm_ms.nets.decoder.auto_path`: the native kernels on a
+  CPU with AVX-512, the torch path on one with AVX2 only): this CPU's instruction set, the path the rule picks here
+  and the path an ``auto`` decoder actually ran for each preset, beside the native / torch time ratio measured in
+  this run, so that each machine's results file says whether the rule picks the faster path there.
 
 Writes benchmarks/results/decoder_profile.md with the machine, command and date.
 """
@@ -144,11 +148,92 @@ def main(argv: list[str] | None = None) -> None:
               "|---|---:|---:|---:|"]
     for preset, res in others.items():
         lines.append(f"| {preset} | {size[preset]} | {res['native']:.1f} | {res['torch']:.1f} |")
+    measured = {"pendulum": {"native": ms["decoder, native kernels"], "torch": ms["decoder, torch-only"]}, **others}
+    lines += auto_check(size, measured, lib is not None, args.cflags)
     text = "\n".join(lines) + "\n"
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(text)
     print(text)
     print(f"wrote {args.out}")
+
+
+SIMD_NAMES = {"avx512": "AVX-512 (avx512f)", "avx2": "AVX2 with FMA, no AVX-512",
+              None: "neither AVX-512 nor AVX2 with FMA"}
+
+
+def auto_check(size: dict, measured: dict[str, dict[str, float]], built: bool, cflags: str | None) -> list[str]:
+    """The results file's section on backend ``"auto"``: the rule's pick on this CPU beside the measured times."""
+    from ssm_ms.nets import ConvDecoder, native
+    from ssm_ms.nets.decoder import auto_path
+
+    simd = native.build.cpu_simd()
+    rule = auto_path("cpu", simd)
+    lines = [
+        "",
+        "## Backend `auto` on this machine",
+        "",
+        f"- this CPU: {cpu_family_model()}; its instruction set (`ssm_ms.nets.native.build.cpu_simd()`, "
+        f"/proc/cpuinfo): {SIMD_NAMES[simd]}",
+        f"- the rule (`ssm_ms.nets.decoder.auto_path('cpu', {simd!r})`): **{rule}** (native kernels on a CPU with "
+        "AVX-512, the torch path on AVX2 only or neither, and on any other device)",
+    ]
+    if cflags:
+        lines.append(f"- the kernels timed here (and run by `auto` below) were built with `{cflags}`, not "
+                     "`-march=native` as elsewhere: the rule reads the CPU's instruction set, not the build's")
+    lines += ["", "| decoder | frames | native kernels, ms | torch-only, ms | native / torch | faster here | "
+              "`auto` ran | `auto` took the faster |", "|---|---:|---:|---:|---:|---|---|---|"]
+    for preset, res in measured.items():
+        ran = auto_ran(size["d"], preset)
+        frames = size["frames"] if preset == "pendulum" else size[preset]
+        if not (built and ConvDecoder(size["d"], preset, backend="torch").native_fits):  # both columns: torch
+            reason = "the kernels are not built" if not built else "one sample does not fit the kernels"
+            lines.append(f"| {preset} | {frames} | ({reason}) | {res['torch']:.1f} | - | - | {ran} | - |")
+            continue
+        faster = "native" if res["native"] < res["torch"] else "torch"
+        lines.append(f"| {preset} | {frames} | {res['native']:.1f} | {res['torch']:.1f} | "
+                     f"{res['native'] / res['torch']:.2f} | {faster} | {ran} | {'yes' if ran == faster else '**no**'} |")
+    return lines
+
+
+def cpu_family_model() -> str:
+    """``family F model M`` from /proc/cpuinfo (what tells AMD's Zen generations apart: 23/1 Zen 1, 25/17 Zen 4,
+    26/2 Zen 5), or ``family and model unknown``."""
+    fields = {}
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                key, _, value = line.partition(":")
+                if key.strip() in ("cpu family", "model") and key.strip() not in fields:
+                    fields[key.strip()] = value.strip()
+                if line.strip() == "":
+                    break
+    except OSError:
+        pass
+    if len(fields) < 2:
+        return "family and model unknown"
+    return f"family {fields['cpu family']} model {fields['model']}"
+
+
+def auto_ran(d: int, preset: str) -> str:
+    """Which path a ``ConvDecoder(d, preset)`` with backend ``"auto"`` runs on a float32 CPU batch here: ``"native"``
+    if its forward called the kernels' operator, else ``"torch"``."""
+    import torch
+
+    from ssm_ms.nets import ConvDecoder, native
+
+    calls = []
+    original = native.conv_stack
+
+    def counted(*a, **k):
+        calls.append(1)
+        return original(*a, **k)
+
+    native.conv_stack = counted  # the decoder calls it through the package (ssm_ms.nets.native.conv_stack)
+    try:
+        ConvDecoder(d, preset)(torch.randn(2, d, requires_grad=True))
+    finally:
+        native.conv_stack = original
+    return "native" if calls else "torch"
 
 
 def kernels_or_torch(d: int, preset: str):

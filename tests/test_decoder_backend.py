@@ -1,16 +1,15 @@
 """The ConvDecoder's one switch, ``backend``: names checked, the earlier versions' switches read into it, ``"auto"``
-taking the path it measured faster (once per machine, kept in the cache folder), and a checkpoint of an earlier
-version (``native`` / ``channels_last`` in its hyperparameters) still loading."""
+deciding its path from the device and the CPU's instruction set alone (no timing, nothing written: a frozen decoder
+on a fresh home directory runs), the same values from every path, and a checkpoint of an earlier version
+(``native`` / ``channels_last`` in its hyperparameters) still loading."""
 
 from __future__ import annotations
-
-import json
 
 import pytest
 import torch
 
 from ssm_ms.module import MultipleShootingModule
-from ssm_ms.nets import ConvDecoder, decoder
+from ssm_ms.nets import ConvDecoder, decoder, native
 from ssm_ms.nets.native import build
 from tests.test_cli import CPU, fit_tiny, outputs, run
 from tests.test_native import NATIVE_NODE, _graph_names
@@ -38,7 +37,8 @@ def test_the_earlier_switches_are_read_into_backend():
 
 
 def test_every_backend_draws_the_same_images(decoder_path):
-    """The plain NCHW layers in float64 as the reference; the backend under test in float32."""
+    """The plain NCHW layers in float64 as the reference; the backend under test in float32; and ``"auto"``, whichever
+    path it takes here, gives the explicit path's images and gradients (input and every parameter) up to rounding."""
     torch.manual_seed(0)
     ref = ConvDecoder(5, **SPEC, backend="plain").double()
     g = ConvDecoder(5, **SPEC, backend=decoder_path)
@@ -46,92 +46,91 @@ def test_every_backend_draws_the_same_images(decoder_path):
     x = torch.randn(7, 5)
     assert ran_native(g, x.clone()) == (decoder_path == "native")
     torch.testing.assert_close(g(x).double(), ref(x.double()), rtol=1e-5, atol=1e-5)
+    auto = ConvDecoder(5, **SPEC)
+    auto.load_state_dict(ref.state_dict())
+    weight = torch.rand(7, *g.out_shape)
+    results = []
+    for dec in (g, auto):
+        xg = x.clone().requires_grad_()
+        out = dec(xg)
+        results.append((out.detach(), *torch.autograd.grad((out * weight).sum(), [xg, *dec.parameters()])))
+    names = ["output", "x", *(name for name, _ in g.named_parameters())]
+    for name, got, want in zip(names, results[1], results[0]):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5, msg=lambda m, n=name: f"{n}: {m}")
 
 
-@pytest.fixture
-def fresh_choices(monkeypatch, tmp_path):
-    """No choice made yet in this process, the cache folder in tmp_path, and _time_paths replaced by given times."""
-    monkeypatch.setattr(decoder, "_choices", {})
-    monkeypatch.setenv("SSM_MS_CACHE", str(tmp_path))
-    timed = []
-
-    def times(native_s: float, torch_s: float):
-        def fake(dec):
-            timed.append(dec.geometry)
-            return native_s, torch_s
-        monkeypatch.setattr(decoder, "_time_paths", fake)
-
-    return tmp_path, timed, times
+def test_auto_is_a_rule_of_the_device_and_the_instruction_set():
+    """The native kernels on a CPU with AVX-512 (faster there: Xeon, Zen 4, Zen 5), the torch path on an AVX2-only CPU
+    (the kernels lost on Zen 1), on a CPU with neither, and on any other device whatever the CPU."""
+    assert decoder.auto_path("cpu", "avx512") == "native"
+    assert decoder.auto_path("cpu", "avx2") == "torch"
+    assert decoder.auto_path("cpu", None) == "torch"
+    for device in ("cuda", "mps", "xpu", "meta"):
+        for simd in ("avx512", "avx2", None):
+            assert decoder.auto_path(device, simd) == "torch"
 
 
-def test_auto_runs_the_path_it_measured_faster_and_keeps_the_choice(needs_native, fresh_choices, monkeypatch):
-    cache, timed, times = fresh_choices
+def test_auto_follows_the_cpus_instruction_set(needs_native, monkeypatch):
+    """The CPU-feature probe (ssm_ms.nets.native.build.cpu_simd) decides, read through at each forward; an explicit
+    backend is not second-guessed."""
     x = torch.randn(3, 5)
-    times(native_s=0.1, torch_s=0.2)
+    monkeypatch.setattr(build, "cpu_simd", lambda: "avx512")
     assert ran_native(ConvDecoder(5, **SPEC), x.clone())
-    assert ran_native(ConvDecoder(5, **SPEC), x.clone())  # another decoder of the same layers: not timed again
-    assert len(timed) == 1
-    saved = json.loads((cache / decoder.CHOICES_FILE).read_text())
-    (key, choice), = saved.items()
-    assert choice["native"] is True and choice["native_ms"] == 100.0 and choice["torch_ms"] == 200.0
-    assert key.startswith(build.library_key()) and str(ConvDecoder(5, **SPEC).geometry) in key
-    # a new process (no choice in memory) reads the file: still not timed again, even if the times would now differ
-    monkeypatch.setattr(decoder, "_choices", {})
-    times(native_s=0.3, torch_s=0.2)
-    assert ran_native(ConvDecoder(5, **SPEC), x.clone())
-    assert len(timed) == 1
-    # other layers: their own timing, here the torch path wins
-    other = dict(SPEC, layers=[[6, 3, 2], [5, 3, 2], [1, 2, 1]])
-    assert not ran_native(ConvDecoder(5, **other), x.clone())
-    assert len(timed) == 2 and len(json.loads((cache / decoder.CHOICES_FILE).read_text())) == 2
-    # another thread count is another key: timed again
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(2 if threads == 1 else 1)
-        assert not ran_native(ConvDecoder(5, **SPEC), x.clone())
-    finally:
-        torch.set_num_threads(threads)
-    assert len(timed) == 3
+    monkeypatch.setattr(build, "cpu_simd", lambda: "avx2")
+    assert not ran_native(ConvDecoder(5, **SPEC), x.clone())
+    assert ran_native(ConvDecoder(5, **SPEC, backend="native"), x.clone())  # asked for by name: runs on AVX2 too
+    monkeypatch.setattr(build, "cpu_simd", lambda: None)
+    assert not ran_native(ConvDecoder(5, **SPEC), x.clone())
+    monkeypatch.undo()
+    assert build.cpu_simd() in ("avx512", "avx2")  # the kernels build here: the real probe names one of them
 
 
-def test_a_damaged_choices_file_is_measured_again(needs_native, fresh_choices):
-    cache, timed, times = fresh_choices
-    (cache / decoder.CHOICES_FILE).write_text(json.dumps({decoder._choice_key(ConvDecoder(5, **SPEC)): "native"}))
-    times(native_s=0.2, torch_s=0.1)
-    assert not ran_native(ConvDecoder(5, **SPEC), torch.randn(3, 5))
-    assert len(timed) == 1
-    (cache / decoder.CHOICES_FILE).write_text("{not json")
-    decoder._choices.clear()
-    assert not ran_native(ConvDecoder(5, **SPEC), torch.randn(3, 5))
-    assert len(timed) == 2 and json.loads((cache / decoder.CHOICES_FILE).read_text())  # rewritten whole
+def test_auto_does_not_probe_the_cpu_for_another_devices_tensors(monkeypatch):
+    def probe():
+        raise AssertionError("the CPU was probed for a tensor on another device")
+
+    monkeypatch.setattr(build, "cpu_simd", probe)
+    g = ConvDecoder(5, **SPEC).to("meta")  # a device other than the CPU, without a GPU
+    assert g(torch.randn(3, 5, device="meta")).shape == (3, 1, 24, 24)
 
 
-def test_a_traced_forward_never_times(needs_native, fresh_choices):
-    """torch.export traces with fake tensors: auto takes the torch path there, times nothing and records nothing."""
-    cache, timed, times = fresh_choices
-    times(native_s=0.1, torch_s=0.2)
+def test_a_frozen_auto_decoder_runs_on_a_fresh_home_and_writes_nothing(monkeypatch, tmp_path):
+    """The encoder stage freezes the SSM (``requires_grad_(False)``): ``cli.py test`` of an encoder on a machine whose
+    cache held no backend choice failed in g's first forward, when ``auto`` timed both paths' gradients with respect
+    to the parameters. Now nothing is timed and choosing a path writes nothing under the home directory."""
+    built = native.library() is not None  # the kernels' own build cache is not a backend choice: built before
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    monkeypatch.delenv("SSM_MS_CACHE", raising=False)
+    assert native.cache_dir() == home / ".cache" / "ssm_ms"
+    torch.manual_seed(0)
+    g = ConvDecoder(10, "pendulum").requires_grad_(False)
+    with torch.inference_mode():  # what ``test`` runs under
+        assert g(torch.randn(1, 10)).shape == (1, 1, 24, 24)
+    x = torch.randn(4, 10, requires_grad=True)  # the encoder's states, trained through the frozen g
+    out = g(x)
+    (grad,) = torch.autograd.grad(out.square().sum(), [x])
+    assert grad.shape == x.shape and all(p.grad is None for p in g.parameters())
+    want_native = built and decoder.auto_path("cpu", build.cpu_simd()) == "native"
+    assert (NATIVE_NODE in _graph_names(out)) == want_native
+    assert not list(home.rglob("*")), "choosing a backend wrote under HOME"
+
+
+def test_a_traced_forward_takes_the_torch_path(needs_native, monkeypatch):
+    """torch.export traces with fake tensors: auto takes the torch path there; a real forward then follows the rule."""
+    monkeypatch.setattr(build, "cpu_simd", lambda: "avx512")
     g = ConvDecoder(5, **SPEC).eval()
     program = torch.export.export(g, (torch.randn(3, 5),))
     assert "ssm_ms.conv_stack" not in str(program.graph)
-    assert not timed and not (cache / decoder.CHOICES_FILE).exists()
-    assert ran_native(g, torch.randn(3, 5)) and len(timed) == 1  # a real forward measures (here: native faster)
+    assert ran_native(g, torch.randn(3, 5))
 
 
-def test_auto_without_the_kernels_runs_torch_without_timing(fresh_choices, monkeypatch):
-    _, timed, times = fresh_choices
-    times(native_s=0.1, torch_s=0.2)
+def test_auto_without_the_kernels_runs_torch(monkeypatch):
+    monkeypatch.setattr(build, "cpu_simd", lambda: "avx512")  # the rule says native, but nothing is built
     monkeypatch.setattr(build, "_state", {"lib": None, "reason": "no C compiler", "key": None})
     assert not ran_native(ConvDecoder(5, **SPEC), torch.randn(3, 5))
-    assert not timed
-
-
-def test_the_timing_runs_both_paths_and_leaves_no_gradient(needs_native):
-    g = ConvDecoder(5, "pendulum")
-    native_s, torch_s = decoder._time_paths(g)
-    assert 0 < native_s < 60 and 0 < torch_s < 60
-    assert all(p.grad is None for p in g.parameters())  # the timing's gradients are not accumulated
-    with torch.inference_mode():  # a first forward under inference mode (a test or predict run) can time too
-        assert decoder._time_paths(g)[0] > 0
 
 
 def test_a_checkpoint_of_an_earlier_version_loads(tmp_path):

@@ -3,11 +3,7 @@
 from __future__ import annotations
 
 import functools
-import json
 import logging
-import os
-import tempfile
-import time
 from collections.abc import Sequence
 
 import torch
@@ -48,16 +44,26 @@ class ConvDecoder(nn.Module):
             ``image_size``, not both.
         backend: how the layers after the stem run; one switch, same parameters and same values up to float rounding:
 
-            * ``"auto"`` (default): the native kernels where they can run and are faster on this CPU, else ``"torch"``.
-              Faster is measured, not assumed: the first forward that could run natively times both paths on this
-              decoder's layers (forward + backward of :data:`AUTO_PIXELS` pixels' worth of samples, about a second)
-              and keeps the faster; the choice is kept per CPU, kernel build, layer geometry and thread count in
-              ``<cache>/backend-choices.json`` (:func:`ssm_ms.nets.native.cache_dir`; delete it to measure again),
-              so it is measured once per machine, and logged (logger ``ssm_ms``). The pendulum decoder's kernels
-              took 91 ms against the torch path's 195 ms on an AVX-512 Xeon, but 873 against 508 ms on a
-              first-generation AMD EPYC (Zen 1, whose AVX2 runs as 128-bit halves):
-              ``benchmarks/results/decoder_profile*.md``.
-            * ``"native"``: the native kernels of :mod:`ssm_ms.nets.native` wherever they can run, without timing:
+            * ``"auto"`` (default): the native kernels on a CPU with AVX-512, the ``"torch"`` path everywhere else (a
+              CPU with AVX2 but not AVX-512, a CPU with neither, CUDA or any other device). Decided from the device and
+              the CPU's instruction set alone (:func:`auto_path`, a pure function of the two; the instruction set is
+              :func:`ssm_ms.nets.native.build.cpu_simd`, /proc/cpuinfo read once per process, and not read at all
+              for a tensor on another device): nothing is timed and nothing is written. Where the native path cannot
+              run it is the ``"torch"`` path anyway, as for ``"native"`` (below), and also where the kernels are not
+              built, where one sample does not fit them (:attr:`native_fits`: Moving MNIST's decoder), and under
+              ``torch.compile`` and ``torch.export`` tracing. The figures behind the rule (decoder forward +
+              backward, native kernels against the torch path, same run, 2 threads; ``make bench`` writes the table
+              for the machine it runs on): AVX-512 Intel Xeon, pendulum 91 against 195 ms and quadruple pendulum
+              94 against 199 ms (``benchmarks/results/decoder_profile.md``); AVX-512 AMD Zen 4, 313 against 850 ms and
+              344 against 920 ms, the kernels 0.37x the torch path's time on a machine shared with a training job
+              (``benchmarks/results/decoder_profile_zen4.md``); AVX-512 AMD Zen 5, 7.3 against 17.5 ms per 455
+              pendulum frames (``benchmarks/results/pendulum_epoch_profile_zen5.md``); AVX2-only AMD Zen 1 (whose
+              AVX2 runs as two 128-bit halves), 873 against 508 ms and 799 against 468 ms: the kernels lose there
+              (``benchmarks/results/decoder_profile_zen1.md``). Zen 1 is the only AVX2-only CPU measured; the AVX2
+              build of the kernels on the AVX-512 Xeon beat its torch path (137 against 205 ms,
+              ``decoder_profile_avx2.md``), so on AVX2 CPUs with full-width vector units (AMD Zen 2/3, desktop Intel)
+              the kernels may win: there give ``"native"`` if ``python benchmarks/profile_decoder.py`` says so.
+            * ``"native"``: the native kernels of :mod:`ssm_ms.nets.native` wherever they can run (AVX2 CPUs included):
               the whole stack after the stem (every transposed convolution, LayerNorm and ReLU) one sample at a time
               in cache, float32 on a CPU with AVX-512 or AVX2 + FMA, where one sample's scratch fits in
               :data:`~ssm_ms.nets.native.NATIVE_SCRATCH` floats (:attr:`native_fits`: the pendulum and
@@ -65,8 +71,7 @@ class ConvDecoder(nn.Module):
               built or the stack does not fit. They run as the custom operator ``torch.ops.ssm_ms.conv_stack``, which
               ``torch.compile``, ``torch.export`` and ``torch.jit.trace`` record as one operator. Inputs they cannot
               take (float64, autocast, ``torch.func`` transforms and forward-mode AD, other devices) run the
-              ``"torch"`` path. (``"auto"`` under ``torch.compile`` and ``torch.export`` traces the ``"torch"`` path,
-              without timing anything.)
+              ``"torch"`` path. (``"auto"`` under ``torch.compile`` and ``torch.export`` traces the ``"torch"`` path.)
             * ``"torch"``: torch operations on channels-last feature maps (:mod:`ssm_ms.nets.channels_last`), the
               layout oneDNN's CPU convolutions are fastest in.
             * ``"plain"``: torch's own ``nn`` layers on NCHW maps, as built: the reference the tests compare with,
@@ -136,7 +141,7 @@ class ConvDecoder(nn.Module):
                 f"{kernels.NATIVE_SCRATCH} (NATIVE_SCRATCH)"))
             if reason is not None:
                 raise ValueError(f"ConvDecoder backend 'native' cannot run here: {reason}; use backend 'auto' (the "
-                                 "default: the kernels where they run and are faster) or 'torch'")
+                                 "default: the kernels where they run on a CPU with AVX-512) or 'torch'")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         lead = x.shape[:-1]
@@ -149,9 +154,13 @@ class ConvDecoder(nn.Module):
         """Whether this forward takes the native kernels (``h``: the stem's output); see ``backend``."""
         if self.backend == "native":  # built and fitting: checked at construction
             return kernels.applies(h)
-        if self.backend != "auto" or torch.compiler.is_compiling():  # compile / export: the torch path, no timing
+        if self.backend != "auto" or torch.compiler.is_compiling():  # compile / export: the torch path
             return False
-        return kernels.applies(h) and self.native_fits and _auto_prefers_native(self)
+        device = h.device.type
+        simd = kernels.build.cpu_simd() if device == "cpu" else None  # no CPU probe for another device's tensors
+        if device == "cpu":
+            _say_choice(simd)
+        return auto_path(device, simd) == "native" and kernels.applies(h) and self.native_fits
 
     def _torch_stack(self, h: torch.Tensor) -> torch.Tensor:
         """The layers after the stem in torch: the ``"plain"`` backend's ``nn`` layers, or the channels-last path."""
@@ -231,11 +240,26 @@ class ConvDecoder(nn.Module):
 
 
 BACKENDS = ("auto", "native", "torch", "plain")
-AUTO_PIXELS = 1 << 18  # image pixels per timed forward + backward when backend "auto" chooses (455 pendulum samples)
-AUTO_ROUNDS = 3  # alternated rounds per path; the fastest of each counts
-CHOICES_FILE = "backend-choices.json"
 _log = logging.getLogger("ssm_ms")
-_choices: dict[str, dict] = {}  # this process's choices, by key (see _choice_key)
+
+
+def auto_path(device_type: str, simd: str | None) -> str:
+    """The path backend ``"auto"`` takes, ``"native"`` or ``"torch"``, for a tensor on a ``device_type`` device
+    (``"cpu"``, ``"cuda"``, ...) on a CPU with the instruction set ``simd`` (what
+    :func:`ssm_ms.nets.native.build.cpu_simd` says: ``"avx512"``, ``"avx2"`` or ``None``): the native kernels on a
+    CPU with AVX-512, the torch path otherwise. Why, with the measurements: :class:`ConvDecoder`'s ``backend``.
+    (``"native"`` here is a preference: the decoder still takes the torch path where the kernels cannot run.)"""
+    return "native" if device_type == "cpu" and simd == "avx512" else "torch"
+
+
+@functools.cache
+def _say_choice(simd: str | None) -> None:
+    """Log once per process what backend ``"auto"`` runs on this CPU (logger ``ssm_ms``, shown by ``cli.py``)."""
+    if auto_path("cpu", simd) == "native":
+        _log.info("ConvDecoder backend 'auto': the native kernels on this CPU (AVX-512), where they can run")
+    else:
+        _log.info("ConvDecoder backend 'auto': the torch path on this CPU (%s)",
+                  "AVX2, no AVX-512" if simd == "avx2" else "neither AVX-512 nor AVX2 with FMA")
 
 
 def _backend(backend: str, native_flag: bool | None, channels_last: bool | None) -> str:
@@ -249,81 +273,6 @@ def _backend(backend: str, native_flag: bool | None, channels_last: bool | None)
         raise ValueError(f"ConvDecoder got backend {backend!r} and native={native_flag}, channels_last={channels_last} "
                          f"(an earlier version's switches, meaning {legacy!r}): give backend alone")
     return legacy
-
-
-def _choice_key(decoder: ConvDecoder) -> str:
-    """What a timed choice holds for: the kernels' build (source, compiler, flags, CPU), the layers, the threads."""
-    return f"{kernels.build.library_key()}|{decoder.geometry}|threads={torch.get_num_threads()}"
-
-
-def _auto_prefers_native(decoder: ConvDecoder) -> bool:
-    """Backend ``"auto"``: whether the native kernels beat the torch path for ``decoder``'s layers on this CPU,
-    timed once per key (:func:`_choice_key`) and kept in memory and in the cache folder's :data:`CHOICES_FILE`."""
-    key = _choice_key(decoder)
-    if key not in _choices:
-        path = kernels.cache_dir() / CHOICES_FILE
-        saved = _read_choices(path)
-        when = "measured earlier"
-        if isinstance(saved.get(key), dict) and isinstance(saved[key].get("native"), bool):
-            _choices[key] = saved[key]
-        else:
-            native_s, torch_s = _time_paths(decoder)
-            _choices[key] = {"native": native_s < torch_s, "native_ms": round(1000 * native_s, 2),
-                             "torch_ms": round(1000 * torch_s, 2), "samples": _auto_samples(decoder)}
-            _write_choice(path, key, _choices[key])
-            when = "measured now"
-        choice = _choices[key]
-        _log.info("ConvDecoder backend 'auto' runs the %s path on this CPU: native kernels %s ms, torch %s ms per "
-                  "forward + backward of %s samples (%s, kept in %s)", "native" if choice.get("native") else "torch",
-                  choice.get("native_ms"), choice.get("torch_ms"), choice.get("samples"), when, path)
-    return bool(_choices[key]["native"])
-
-
-def _auto_samples(decoder: ConvDecoder) -> int:
-    """How many samples make :data:`AUTO_PIXELS` drawn pixels (at least 32)."""
-    return max(32, AUTO_PIXELS // decoder.drawn_size**2)
-
-
-def _time_paths(decoder: ConvDecoder) -> tuple[float, float]:
-    """Seconds of the native and the torch path's forward + backward (input and parameter gradients, none of them
-    accumulated) on :func:`_auto_samples` random stem outputs, the fastest of :data:`AUTO_ROUNDS` alternated
-    rounds."""
-    params = [p for p in decoder.deconv.parameters()]
-    with torch.inference_mode(False), torch.enable_grad():
-        gen = torch.Generator().manual_seed(0)
-        h = torch.rand(_auto_samples(decoder), decoder.stem[0].out_features, generator=gen).requires_grad_()
-        paths = {"native": decoder._native_stack, "torch": decoder._torch_stack}
-        best = {name: float("inf") for name in paths}
-        for round_ in range(AUTO_ROUNDS + 1):  # the first round warms up (allocations, oneDNN's primitives)
-            for name, path in paths.items():
-                start = time.perf_counter()
-                out = path(h)
-                torch.autograd.grad(out.square().sum(), [h, *params])
-                if round_:
-                    best[name] = min(best[name], time.perf_counter() - start)
-    return best["native"], best["torch"]
-
-
-def _read_choices(path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    return data if isinstance(data, dict) else {}
-
-
-def _write_choice(path, key: str, choice: dict) -> None:
-    """Add one choice to the file (atomic replace; a cache folder that cannot be written only costs a re-timing)."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        data = _read_choices(path)
-        data[key] = choice
-        fd, tmp = tempfile.mkstemp(suffix=".json", dir=path.parent)
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-    except OSError:
-        pass
 
 
 def drawn_size(stem_size: int, layers: Sequence[Sequence[int]]) -> int:

@@ -22,6 +22,7 @@ decoder's ``backend`` (:class:`ssm_ms.nets.ConvDecoder`): this module only build
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import os
 import platform
@@ -59,18 +60,25 @@ def _compiler() -> str | None:
     return None
 
 
-def _has_simd() -> bool:
-    """Whether /proc/cpuinfo lists ``avx512f``, or ``avx2`` and ``fma`` (False where there is no /proc/cpuinfo:
-    macOS, Windows)."""
+@functools.cache
+def cpu_simd() -> str | None:
+    """The widest vector instruction set of this CPU that the kernels are written for: ``"avx512"`` where
+    /proc/cpuinfo lists ``avx512f``, ``"avx2"`` where it lists ``avx2`` and ``fma`` (and no ``avx512f``), else
+    ``None`` (also where there is no /proc/cpuinfo: macOS, Windows). Read once per process."""
     try:
         with open("/proc/cpuinfo") as fh:
             for line in fh:
                 if line.startswith("flags"):
                     flags = set(line.split())
-                    return "avx512f" in flags or {"avx2", "fma"} <= flags
+                    return "avx512" if "avx512f" in flags else "avx2" if {"avx2", "fma"} <= flags else None
     except OSError:
         pass
-    return False
+    return None
+
+
+def _has_simd() -> bool:
+    """Whether the kernels can be built for this CPU (:func:`cpu_simd` names an instruction set)."""
+    return cpu_simd() is not None
 
 
 def _cpu_signature() -> str:
