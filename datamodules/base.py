@@ -10,10 +10,17 @@ trajectory's shooting nodes in the model's ``nn.Embedding``. ``y`` is the noisy 
 Images are channel-first, ``obs_shape = (C, H, W)``; vectors have ``obs_shape = (D,)``.
 
 Subclasses that generate arrays implement :meth:`generator_params` (everything the data depend
-on: the cache key), :meth:`generate` (one split as numpy arrays) and
-:attr:`num_train_trajectories` (known before any data exist, so that the model can size its
-node table at construction). Data sets that are not arrays (Moving MNIST is generated on the fly)
-override :meth:`prepare_data` and :meth:`load_split` instead.
+on: the cache key), :attr:`split_params` (which of those parameters only one split depends on, e.g.
+its size), :meth:`generate` (one split as numpy arrays) and :attr:`num_train_trajectories` (known
+before any data exist, so that the model can size its node table at construction). Data sets that
+are not arrays (Moving MNIST is generated on the fly) override :meth:`prepare_data` and
+:meth:`load_split` instead.
+
+A stage reads, and generates, only its own splits: ``fit`` and ``validate`` the training split
+(validation runs on training trajectories), ``test`` the test split, ``predict`` only its files.
+Whatever a test needs from the training data (the normalisation, the mean training measurement) is
+saved in every checkpoint with the DataModule's state; the training split is read, and generated if
+missing, only when that state lacks it (:meth:`TrajectoryDataModule.train_split`).
 """
 
 from __future__ import annotations
@@ -186,6 +193,10 @@ class TrajectoryDataModule(pl.LightningDataModule):
 
     name = "trajectories"
     splits: tuple[str, ...] = ("train", "test")
+    # generator parameters that one split alone depends on (its size, its length): testing on fewer test
+    # sequences neither regenerates nor changes the training split, nor counts as other training data
+    split_params: Mapping[str, tuple[str, ...]] = {}
+    MEAN_TRAJECTORIES = 1000  # training trajectories (the first ones) averaged for the mean measurement
 
     def __init__(
         self,
@@ -219,8 +230,10 @@ class TrajectoryDataModule(pl.LightningDataModule):
         self.shuffle = shuffle
         self.seed = seed
         self.datasets: dict[str, Dataset] = {}
-        self.normalizer: Normalizer | None = None
+        self._normalizer: Normalizer | None = None
         self._loaded_normalizer: Normalizer | None = None
+        self._mean: torch.Tensor | None = None  # mean training measurement [*obs_shape], original units
+        self._saved_obs_shape: tuple[int, ...] | None = None  # a checkpoint's, for predict before any data
 
     # ------------------------------------------------------------------ to implement
     @property
@@ -237,36 +250,69 @@ class TrajectoryDataModule(pl.LightningDataModule):
         raise NotImplementedError
 
     # ------------------------------------------------------------------ cache
+    def params_of(self, split: str | None, params: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """The generator parameters ``split`` depends on: all but the other splits' own (``None``: none of the
+        splits' own, what every split shares). ``params``: another set, e.g. a checkpoint's."""
+        params = self.generator_params() if params is None else params
+        others = {k for s, keys in self.split_params.items() if s != split for k in keys}
+        return {k: v for k, v in params.items() if k not in others}
+
     @property
     def cache_dir(self) -> Path:
-        return self.data_dir / f"{self.name}-{params_digest(self.generator_params())}"
+        """The folder of this data set's cached splits, keyed by the parameters every split shares."""
+        return self.data_dir / f"{self.name}-{params_digest(self.params_of(None))}"
+
+    def _split_prefix(self, split: str) -> str:
+        """The name of a split's files in :attr:`cache_dir`, keyed by the parameters of that split alone."""
+        own = {k: v for k, v in self.generator_params().items() if k in self.split_params.get(split, ())}
+        return f"{split}-{params_digest(own)}" if own else split
+
+    def split_file(self, split: str, key: str) -> Path:
+        """The cached ``.npy`` file of array ``key`` (``"y"``, ``"state"``, ...) of ``split``."""
+        return self.cache_dir / f"{self._split_prefix(split)}_{key}.npy"
 
     def _split_files(self, split: str) -> list[Path]:
-        return sorted(self.cache_dir.glob(f"{split}_*.npy"))
+        return sorted(self.cache_dir.glob(f"{self._split_prefix(split)}_*.npy"))
 
     def is_cached(self, split: str) -> bool:
-        return (self.cache_dir / f"{split}.done").exists()
+        return (self.cache_dir / f"{self._split_prefix(split)}.done").exists()
+
+    def stage_splits(self, stage: str | None) -> tuple[str, ...]:
+        """The splits a stage reads: ``fit`` / ``validate`` the training split, ``test`` the test split,
+        ``predict`` none (its files), no stage every split."""
+        if stage is None:
+            return tuple(self.splits)
+        wanted = {"fit": ("train",), "validate": ("train",), "test": ("test",)}.get(stage, ())  # TrainerFn is a str
+        return tuple(s for s in self.splits if s in wanted)
+
+    def _trainer_stage(self) -> str | None:
+        trainer = getattr(self, "trainer", None)
+        return getattr(getattr(trainer, "state", None), "fn", None)
 
     def prepare_data(self) -> None:
-        """Generate every split that is not cached yet (a second run reuses the cache)."""
-        for split in self.splits:
-            if self.is_cached(split):
-                continue
-            arrays = self.generate(split)
-            self.save_split(split, arrays)
+        """Generate the splits the trainer's stage reads (every split outside a trainer) that are not cached yet
+        (a second run reuses the cache)."""
+        for split in self.stage_splits(self._trainer_stage()):
+            self.prepare_split(split)
+
+    def prepare_split(self, split: str) -> None:
+        """Generate one split unless it is cached."""
+        if not self.is_cached(split):
+            self.save_split(split, self.generate(split))
 
     def save_split(self, split: str, arrays: Mapping[str, np.ndarray]) -> None:
         """Write a split atomically: a crash mid-write never leaves a half cache behind."""
         self.cache_dir.mkdir(parents=True, exist_ok=True)
+        prefix = self._split_prefix(split)
         tmp = Path(tempfile.mkdtemp(prefix=f".{split}-", dir=self.cache_dir))
         try:
             for key, a in arrays.items():
-                np.save(tmp / f"{split}_{key}.npy", a)
+                np.save(tmp / f"{prefix}_{key}.npy", a)
             for f in tmp.iterdir():
                 os.replace(f, self.cache_dir / f.name)
-            with open(self.cache_dir / "params.json", "w") as fh:
-                json.dump(self.generator_params(), fh, indent=2, sort_keys=True, default=str)
-            (self.cache_dir / f"{split}.done").touch()
+            with open(self.cache_dir / f"{prefix}.json", "w") as fh:
+                json.dump(self.params_of(split), fh, indent=2, sort_keys=True, default=str)
+            (self.cache_dir / f"{prefix}.done").touch()
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
 
@@ -276,10 +322,8 @@ class TrajectoryDataModule(pl.LightningDataModule):
                 f"the {split} split of {self.name} is not in {self.cache_dir}: call prepare_data() first "
                 "(the Trainer does) or check data_dir"
             )
-        return {
-            f.stem[len(split) + 1 :]: np.load(f, mmap_mode="r")
-            for f in self._split_files(split)
-        }
+        prefix = self._split_prefix(split)
+        return {f.stem[len(prefix) + 1 :]: np.load(f, mmap_mode="r") for f in self._split_files(split)}
 
     def load_split(self, split: str) -> Dataset:
         """Build the data set of a split (arrays from the cache, checked for NaN / inf)."""
@@ -291,23 +335,32 @@ class TrajectoryDataModule(pl.LightningDataModule):
 
     # ------------------------------------------------------------------ setup
     def setup(self, stage: str | None = None) -> None:
-        if "train" not in self.datasets:
-            self.datasets["train"] = self.load_split("train")
-            self.normalizer = self._make_normalizer(self.datasets["train"])
-            self._set_normalizer(self.datasets["train"])
-            n = len(self.datasets["train"])
-            if n != self.num_train_trajectories:
+        """Load the splits ``stage`` reads (:meth:`stage_splits`; ``predict`` reads its files when its loader is
+        asked for, once the checkpoint has given the measurement shape)."""
+        for split in self.stage_splits(stage):
+            self.load(split)
+
+    def load(self, split: str) -> Dataset:
+        """The data set of ``split``, loaded once (generated first if it is not cached)."""
+        if split not in self.datasets:
+            self.prepare_split(split)
+            ds = self.load_split(split)
+            if split == "train" and len(ds) != self.num_train_trajectories:
                 raise RuntimeError(
-                    f"{self.name}: the training split holds {n} trajectories but num_train_trajectories "
+                    f"{self.name}: the training split holds {len(ds)} trajectories but num_train_trajectories "
                     f"says {self.num_train_trajectories}"
                 )
-        for split in self.splits:
-            if split != "train" and split not in self.datasets and stage in (None, "test", split):
-                self.datasets[split] = self.load_split(split)
-                self._set_normalizer(self.datasets[split])
-        if stage == "predict" and "predict" not in self.datasets:
-            self.datasets["predict"] = self.load_predict()
-            self._set_normalizer(self.datasets["predict"])
+            self.datasets[split] = ds
+            if split == "train" and self._mean is None:
+                self._mean = self.compute_mean(ds)
+            if self._normalizer is not None or split == "train" or not self.normalize:
+                self._set_normalizer(ds)
+        return self.datasets[split]
+
+    def train_split(self) -> Dataset:
+        """The training split, loaded (and generated) on first use: a test reads it only for what its checkpoint
+        does not hold (:meth:`state_dict`)."""
+        return self.load("train")
 
     def load_predict(self) -> TrajectoryDataset:
         """The sequences of ``predict_path`` (checked like a user's training files), whole: the forecaster
@@ -335,21 +388,51 @@ class TrajectoryDataModule(pl.LightningDataModule):
 
     def predict_dataloader(self) -> DataLoader:
         if "predict" not in self.datasets:
-            self.setup("predict")
+            self.datasets["predict"] = self.load_predict()
         return self._loader(self.datasets["predict"], self.eval_batch_size)
 
     def _set_normalizer(self, ds: Dataset) -> None:
         if isinstance(ds, TrajectoryDataset):
-            ds.normalizer = None if self.normalizer is None or self.normalizer.is_identity else self.normalizer
+            norm = self.normalizer
+            ds.normalizer = None if norm is None or norm.is_identity else norm
 
-    def _make_normalizer(self, train: Dataset) -> Normalizer:
-        obs_shape = self.obs_shape
-        if self._loaded_normalizer is not None:  # from a checkpoint: the statistics the model was trained with
-            return self._loaded_normalizer
-        if not self.normalize:
-            return Normalizer.identity(obs_shape[0], len(obs_shape))
-        mean, std = self.compute_statistics(train)
-        return Normalizer(mean, std, len(obs_shape))
+    @property
+    def normalizer(self) -> Normalizer | None:
+        """The measurements' normalisation: a checkpoint's (the statistics the model was trained with), the
+        identity (``normalize: false``), else the training split's statistics. ``None`` before any data."""
+        if self._normalizer is None:
+            if self._loaded_normalizer is not None:
+                self._normalizer = self._loaded_normalizer
+            elif not self.datasets and self._saved_obs_shape is None:
+                return None
+            elif not self.normalize:
+                obs_shape = self.obs_shape
+                self._normalizer = Normalizer.identity(obs_shape[0], len(obs_shape))
+            else:
+                self._normalizer = Normalizer(*self.compute_statistics(self.train_split()), len(self.obs_shape))
+        return self._normalizer
+
+    def compute_mean(self, train: Dataset) -> torch.Tensor:
+        """Mean measurement ``[*obs_shape]`` (original units) over the first :attr:`MEAN_TRAJECTORIES` training
+        trajectories: the test protocol's ``mean`` reference, saved with the DataModule's state."""
+        n = min(len(train), self.MEAN_TRAJECTORIES)
+        total, count = None, 0
+        for start in range(0, n, 64):
+            items = list(range(start, min(start + 64, n)))
+            batch = train.__getitems__(items) if hasattr(train, "__getitems__") else default_collate([train[i] for i in items])
+            y = batch["y"].double()
+            if isinstance(train, TrajectoryDataset) and train.normalizer is not None:
+                y = train.normalizer.denormalize(y)
+            s = y.sum(dim=(0, 1))
+            total = s if total is None else total + s
+            count += y.shape[0] * y.shape[1]
+        return (total / count).float()
+
+    def mean_measurement(self) -> torch.Tensor:
+        """The mean training measurement ``[*obs_shape]`` in original units (a checkpoint's, else computed)."""
+        if self._mean is None:
+            self._mean = self.compute_mean(self.train_split())
+        return self._mean
 
     def compute_statistics(self, train: Dataset) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-channel mean and std of the training measurements (float64 accumulation)."""
@@ -376,13 +459,25 @@ class TrajectoryDataModule(pl.LightningDataModule):
             raise RuntimeError(f"{type(self).__name__}.setup() has not run yet")
         return self.datasets["train"]
 
+    def _loaded(self) -> Dataset:
+        """A loaded split (the training one first) for what every split shares."""
+        for split in ("train", *self.splits):
+            if split in self.datasets:
+                return self.datasets[split]
+        raise RuntimeError(f"{type(self).__name__}.setup() has not run yet")
+
     @property
     def seq_len(self) -> int:
-        return self._train().seq_len
+        """Length of the training sequences (of the loaded split's where the training split is not loaded)."""
+        return self._loaded().seq_len
 
     @property
     def obs_shape(self) -> tuple[int, ...]:
-        return self._train().obs_shape
+        if self.datasets:
+            return self._loaded().obs_shape
+        if self._saved_obs_shape is not None:  # predict: from the checkpoint, before any data are read
+            return self._saved_obs_shape
+        return self.train_split().obs_shape
 
     def val_indices(self) -> np.ndarray:
         n = len(self._train())
@@ -431,6 +526,7 @@ class TrajectoryDataModule(pl.LightningDataModule):
 
     # ------------------------------------------------------------------ loaders
     def _loader(self, ds: Dataset, batch_size: int, sampler: Sampler | None = None) -> DataLoader:
+        self._set_normalizer(ds)  # resolved now: a checkpoint's statistics have been restored by then
         return DataLoader(
             ds,
             batch_size=batch_size,
@@ -461,16 +557,19 @@ class TrajectoryDataModule(pl.LightningDataModule):
         return TrajectoryDataset(ds.arrays, ds.normalizer, ds.indices[indices])
 
     def test_dataloader(self) -> DataLoader:
-        if "test" not in self.datasets:
-            self.setup("test")
-        return self._loader(self.datasets["test"], self.eval_batch_size)
+        return self._loader(self.load("test"), self.eval_batch_size)
 
     # ------------------------------------------------------------------ checkpoint
     def state_dict(self) -> dict[str, Any]:
-        """Saved in every checkpoint: normalisation statistics and what the data were."""
+        """Saved in every checkpoint: what the data were, and what a test needs from the training data (the
+        normalisation statistics, the mean measurement, the measurements' shape)."""
         state: dict[str, Any] = {"name": self.name, "generator_params": self._safe_generator_params()}
         if self.normalizer is not None:
             state["normalizer"] = self.normalizer.state_dict()
+        if self._mean is not None:
+            state["mean_measurement"] = self._mean.clone()
+        if self.datasets or self._saved_obs_shape is not None:
+            state["obs_shape"] = list(self.obs_shape)
         return state
 
     def _safe_generator_params(self) -> dict[str, Any] | None:
@@ -481,8 +580,10 @@ class TrajectoryDataModule(pl.LightningDataModule):
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         if "normalizer" in state_dict:
-            self._loaded_normalizer = Normalizer.from_state_dict(state_dict["normalizer"])
-            if self.normalizer is not None:
-                self.normalizer = self._loaded_normalizer
-                for ds in self.datasets.values():
-                    self._set_normalizer(ds)
+            self._loaded_normalizer = self._normalizer = Normalizer.from_state_dict(state_dict["normalizer"])
+            for ds in self.datasets.values():
+                self._set_normalizer(ds)
+        if state_dict.get("mean_measurement") is not None:
+            self._mean = torch.as_tensor(state_dict["mean_measurement"], dtype=torch.float32)
+        if state_dict.get("obs_shape") is not None:
+            self._saved_obs_shape = tuple(int(d) for d in state_dict["obs_shape"])

@@ -173,7 +173,7 @@ class FileDataModule(TrajectoryDataModule):
         }
 
     # ------------------------------------------------------------------ loading
-    def prepare_data(self) -> None:
+    def prepare_split(self, split: str) -> None:
         """Nothing to generate or cache: the files are read in :meth:`setup`."""
 
     def _split_arrays(self, split: str) -> dict[str, np.ndarray]:
@@ -198,30 +198,24 @@ class FileDataModule(TrajectoryDataModule):
             raise ValueError(f"no {split} split: this FileDataModule has {list(self.splits)} (pass {split}_path)")
         return TrajectoryDataset(self._split_arrays(split))
 
-    def setup(self, stage: str | None = None) -> None:
-        super().setup(stage)
-        if "val" in self.splits and "val" not in self.datasets and stage in ("fit", "validate"):
-            self.datasets["val"] = self.load_split("val")
-            self._set_normalizer(self.datasets["val"])
+    def stage_splits(self, stage: str | None) -> tuple[str, ...]:
+        """The base's, and the val files for ``fit`` and ``validate``."""
+        extra = ("val",) if stage in ("fit", "validate") and "val" in self.splits else ()
+        return super().stage_splits(stage) + extra
 
     # ------------------------------------------------------------------ loaders
     def split_dataloader(self, split: str) -> DataLoader:
         """A non-shuffled loader over any split (e.g. the val files), with the evaluation batch size."""
         if split not in self.splits:
             raise ValueError(f"no {split} split: this FileDataModule has {list(self.splits)} (pass {split}_path)")
-        if split not in self.datasets:
-            self.setup(None)
-        ds: Dataset = self.datasets[split]
-        return self._loader(ds, self.eval_batch_size)
+        return self._loader(self.load(split), self.eval_batch_size)
 
     def val_dataloader(self) -> DataLoader | list:
         """The val files, unless the model validates on training trajectories (see ``val_path``)."""
         model = self.trainer.lightning_module if self.trainer is not None else None
         if "val" not in self.splits or getattr(model, "validates_on_training_trajectories", False):
             return super().val_dataloader()
-        if "val" not in self.datasets:
-            self.setup("validate")
-        return self._loader(self.datasets["val"], self.eval_batch_size)
+        return self._loader(self.load("val"), self.eval_batch_size)
 
     def test_dataloader(self) -> DataLoader:
         if "test" not in self.splits:

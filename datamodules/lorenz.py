@@ -147,6 +147,7 @@ class LorenzDataModule(TrajectoryDataModule):
 
     name = "lorenz"
     splits = ("train", "test")
+    split_params = {"train": ("n_train", "train_steps"), "test": ("n_test", "test_steps")}
 
     def __init__(
         self,

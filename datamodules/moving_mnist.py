@@ -263,6 +263,7 @@ class MovingMNISTDataModule(TrajectoryDataModule):
     """
 
     name = "moving_mnist"
+    split_params = {"train": ("n_train",), "test": ("n_test",)}
 
     def __init__(
         self,
@@ -319,7 +320,7 @@ class MovingMNISTDataModule(TrajectoryDataModule):
     def generate(self, split: str) -> dict[str, np.ndarray]:
         raise NotImplementedError("moving_mnist renders trajectories on access; there are no arrays to generate")
 
-    def prepare_data(self) -> None:
+    def prepare_split(self, split: str) -> None:
         """Check that the four MNIST files exist under ``mnist_root`` (download them if ``download``)."""
         if self.download and missing_mnist_files(self.mnist_root):
             download_mnist(self.mnist_root)

@@ -482,6 +482,7 @@ class PendulumDataModule(TrajectoryDataModule):
     """
 
     name = "pendulum"
+    split_params = {"train": ("n_train",), "test": ("n_test",)}
 
     def __init__(
         self,

@@ -33,6 +33,7 @@ class RotationDataModule(TrajectoryDataModule):
     """A 2-D rotation ``x[t+1] = R(omega) x[t]`` measured through its first component plus noise."""
 
     name = "rotation"
+    split_params = {"train": ("n_train",), "test": ("n_test",)}
 
     def __init__(self, n_train: int = 8, n_test: int = 4, seq_len: int = 12, omega: float = 0.3,
                  noise_std: float = 0.05, nan_at: tuple[int, int] | None = None, **kwargs):

@@ -4,6 +4,8 @@ the encoder stage on a tiny trained checkpoint, the UKF stage, results files and
 import json
 import math
 
+import lightning.pytorch as pl
+import numpy as np
 import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
@@ -371,6 +373,52 @@ def test_checkpoint_of_another_data_set_is_refused(exact_ssm):
     trainer = fast_trainer(tmp, max_epochs=1)
     with pytest.raises(ValueError, match=r"trained on other data: data parameters differ .*'omega': \(0.3, 0.5\)"):
         trainer.fit(StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8}), other)
+
+
+def test_fewer_test_sequences_are_tested_and_said(exact_ssm):
+    """The test split's size does not determine the training data: an encoder trains and tests with n_test 2 (the
+    SSM's data had 4), reads only the test split when it tests, and the results file says how many it scored and
+    that the test data differ from the SSM's."""
+    tmp, ckpt = exact_ssm
+    fit_dm = RotationDataModule(data_dir=str(tmp / "data"), seq_len=12, n_test=2, batch_size=4, val_trajectories=2)
+    enc = StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8}, metrics=["mse"],
+                             results_dir=str(tmp / "results"), experiment="rot_fewer")
+    fast_trainer(tmp, max_epochs=1).fit(enc, fit_dm)
+    test_dm = RotationDataModule(data_dir=str(tmp / "fresh"), seq_len=12, n_test=2, batch_size=4)
+    fast_trainer(tmp, max_epochs=1).test(enc, test_dm)
+    assert test_dm.is_cached("test") and not test_dm.is_cached("train")  # the test read its own split only
+    assert "train" not in test_dm.datasets
+    text = (tmp / "results" / "rot_fewer.md").read_text()
+    assert "test_sequences: 2" in text
+    assert "'n_test': (4, 2)" in text
+
+
+def test_a_test_stage_generates_only_the_test_split(tmp_path):
+    """Under a trainer testing, prepare_data generates the test split alone; what the test needs from the training
+    data (normalisation, mean measurement, shape) comes from a checkpoint's DataModule state."""
+    from lightning.pytorch.trainer.states import TrainerFn
+
+    trained = RotationDataModule(data_dir=str(tmp_path / "a"), normalize=True, seq_len=12)
+    trained.prepare_data()
+    trained.setup("fit")
+    state = trained.state_dict()
+    y = np.load(trained.split_file("train", "y")).astype(np.float64)
+    np.testing.assert_allclose(state["mean_measurement"].numpy(), y.mean(axis=(0, 1)), rtol=1e-5)  # all 8 < 1000
+
+    fresh = RotationDataModule(data_dir=str(tmp_path / "b"), normalize=True, seq_len=12)
+    trainer = pl.Trainer(logger=False, enable_progress_bar=False)
+    trainer.state.fn = TrainerFn.TESTING
+    fresh.trainer = trainer
+    fresh.prepare_data()
+    assert fresh.is_cached("test") and not fresh.is_cached("train")
+    fresh.setup("test")
+    fresh.load_state_dict(state)
+    batch = next(iter(fresh.test_dataloader()))
+    raw = np.load(fresh.split_file("test", "y"))[:4]
+    mean, std = state["normalizer"]["mean"].numpy(), state["normalizer"]["std"].numpy()
+    np.testing.assert_allclose(batch["y"].numpy(), (raw - mean) / std, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(fresh.mean_measurement(), state["mean_measurement"])
+    assert not fresh.is_cached("train") and "train" not in fresh.datasets
 
 
 def test_encoder_refuses_measurements_of_another_shape(exact_ssm):

@@ -119,7 +119,7 @@ def test_pieces_are_consecutive_segments(tmp_path):
     assert dm.num_train_trajectories == 60
     dm.prepare_data()
     dm.setup()
-    raw = {k: np.load(dm.cache_dir / f"train_{k}.npy") for k in ("y", "y_clean", "state")}
+    raw = {k: np.load(dm.split_file("train", k)) for k in ("y", "y_clean", "state")}
     ds = dm.datasets["train"]
     assert len(ds) == 60 and ds.seq_len == 100 and dm.obs_shape == (1,)
     assert ds.arrays["y"].size == raw["y"].size  # same number of samples
@@ -167,8 +167,8 @@ def test_normalisation_statistics_and_round_trip(tmp_path):
     dm = small(tmp_path, piece_length=250)
     dm.prepare_data()
     dm.setup()
-    raw_y = np.load(dm.cache_dir / "train_y.npy").astype(np.float64)
-    raw_clean = np.load(dm.cache_dir / "train_y_clean.npy").astype(np.float64)
+    raw_y = np.load(dm.split_file("train", "y")).astype(np.float64)
+    raw_clean = np.load(dm.split_file("train", "y_clean")).astype(np.float64)
     mean, std = raw_y.mean(), raw_y.std()
     norm = dm.normalizer
     np.testing.assert_allclose(norm.mean.numpy(), [mean], rtol=1e-5, atol=1e-6)
@@ -181,11 +181,11 @@ def test_normalisation_statistics_and_round_trip(tmp_path):
     clean = torch.stack([ds[i]["y_clean"] for i in range(len(ds))]).double().numpy()
     np.testing.assert_allclose(clean.reshape(raw_clean.shape), (raw_clean - mean) / std, atol=1e-5)
     # The state stays in original units.
-    np.testing.assert_array_equal(ds[3]["state"].numpy(), np.load(dm.cache_dir / "train_state.npy")[0, 750:1000])
+    np.testing.assert_array_equal(ds[3]["state"].numpy(), np.load(dm.split_file("train", "state"))[0, 750:1000])
 
     # Test split: normalised with the training statistics; denormalize gives original units back.
     dm.setup("test")
-    raw_test = np.load(dm.cache_dir / "test_y.npy")
+    raw_test = np.load(dm.split_file("test", "y"))
     item = dm.datasets["test"][2]["y"]
     np.testing.assert_allclose(item.numpy(), (raw_test[2] - mean) / std, atol=1e-5)
     np.testing.assert_allclose(norm.denormalize(item).numpy(), raw_test[2], atol=1e-4)
@@ -209,9 +209,9 @@ def test_statistics_survive_state_dict(tmp_path):
     fresh.setup()
     torch.testing.assert_close(fresh.normalizer.mean, dm.normalizer.mean, rtol=0, atol=0)
     torch.testing.assert_close(fresh.normalizer.std, dm.normalizer.std, rtol=0, atol=0)
-    own_mean = np.load(fresh.cache_dir / "train_y.npy").astype(np.float64).mean()
+    own_mean = np.load(fresh.split_file("train", "y")).astype(np.float64).mean()
     assert abs(own_mean - dm.normalizer.mean.item()) > 1e-3  # the data really differ
-    raw = np.load(fresh.cache_dir / "train_y.npy")[1]
+    raw = np.load(fresh.split_file("train", "y"))[1]
     expected = (raw - dm.normalizer.mean.numpy()) / dm.normalizer.std.numpy()
     np.testing.assert_allclose(fresh.datasets["train"][1]["y"].numpy(), expected, atol=1e-5)
     assert state["generator_params"]["seed"] == 0 and "piece_length" not in state["generator_params"]

@@ -295,18 +295,12 @@ class ForecastModule(pl.LightningModule):
         dm = self.datamodule
         return getattr(dm, "normalizer", None)
 
-    def mean_frame(self, max_trajectories: int = 1000) -> torch.Tensor:
-        """Mean training frame ``[*obs_shape]`` (normalised units) over up to ``max_trajectories``."""
+    def mean_frame(self) -> torch.Tensor:
+        """Mean training measurement ``[*obs_shape]`` in normalised units (the data set's, saved in checkpoints)."""
         if self._mean_frame is None:
-            total, count = None, 0
-            for batch in self.datamodule.train_dataloader():
-                y = batch["y"].double()
-                s = y.sum(dim=(0, 1))
-                total = s if total is None else total + s
-                count += y.shape[0] * y.shape[1]
-                if count >= max_trajectories * y.shape[1]:
-                    break
-            self._mean_frame = (total / count).float()
+            dm, norm = self.datamodule, self.normalizer()
+            mean = dm.mean_measurement()
+            self._mean_frame = mean if norm is None else norm.normalize(mean)
         return self._mean_frame
 
     # ------------------------------------------------------------------ test
@@ -492,6 +486,8 @@ class ForecastModule(pl.LightningModule):
             "bce_reduction": self.bce_reduction,
             "bce_clamp": f"log(p + {BCE_EPS:g}), log(1 - p + {BCE_EPS:g})",
             "original_units": self.original_units,
+            "test_sequences": self._test_sequences(summary),
+            "data": getattr(self, "data_note", None),
             "inference_settings": self.inference_settings(),
             "command": " ".join(sys.argv),
             "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -499,6 +495,12 @@ class ForecastModule(pl.LightningModule):
             "test_seconds": round(time.time() - getattr(self, "_start_time", time.time()), 1),
         }
         write_results(Path(self.results_dir), info, summary, analysis or None)
+
+    @staticmethod
+    def _test_sequences(summary: dict[str, dict[str, float]]) -> int | None:
+        """How many test sequences were scored (the metrics' count)."""
+        counts = [entry["n"] for entry in summary.values() if isinstance(entry, dict) and "n" in entry]
+        return int(max(counts)) if counts else None
 
     def log_figures(self) -> None:
         from ssm_ms.forecasting.figures import (

@@ -185,8 +185,8 @@ def render_markdown(
     for method, run in ordered:
         info = run["info"]
         lines.append(f"- **{info.get('label', method)}** (`{method}`): `{info.get('command', '')}`")
-        for field in ("date", "machine", "ssm_checkpoint", "checkpoint", "n_filter", "n_predict", "bce_reduction",
-                      "bce_clamp", "original_units", "inference_settings", "test_seconds"):
+        for field in ("date", "machine", "ssm_checkpoint", "checkpoint", "test_sequences", "data", "n_filter", "n_predict",
+                      "bce_reduction", "bce_clamp", "original_units", "inference_settings", "test_seconds"):
             if info.get(field) is not None:
                 lines.append(f"  - {field}: {info[field]}")
     lines.append("")

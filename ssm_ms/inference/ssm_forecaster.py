@@ -11,6 +11,7 @@ SSM's normalisation statistics.
 from __future__ import annotations
 
 import contextvars
+import logging
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -23,6 +24,8 @@ from ssm_ms.checkpointing import SSM_DIGEST_KEY, read_checkpoint, state_digest
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.shooting import decode, rollout
+
+_log = logging.getLogger("ssm_ms")
 
 # Paper names of the transition models.
 MODEL_NAMES = {"LocallyLinearTransition": "SSM-LL", "FullyConnectedTransition": "SSM-FC"}
@@ -65,23 +68,30 @@ def datamodule_state(checkpoint: Mapping[str, Any]) -> tuple[str, dict] | None:
     return None
 
 
-def check_same_data(checkpoint: Mapping[str, Any], dm: Any, ssm: MultipleShootingModule) -> None:
-    """Refuse to evaluate or train an encoder on another data set than the one the SSM learned."""
+def data_differences(checkpoint: Mapping[str, Any], dm: Any, split: str = "train") -> list[str]:
+    """How the ``split`` of ``dm`` differs from the one of the data the SSM of ``checkpoint`` learned (empty: the
+    same). Only what determines that split is compared (:meth:`~datamodules.base.TrajectoryDataModule.params_of`):
+    a test split of another size is the same training data."""
     saved = datamodule_state(checkpoint)
     if saved is None or dm is None:
-        return
+        return []
     _, state = saved
     current = dm.state_dict() if hasattr(dm, "state_dict") else {}
-    problems = []
     if current.get("name") is not None and state["name"] != current.get("name"):
-        problems.append(f"data set {state['name']!r} in the checkpoint, {current.get('name')!r} here")
-    elif state.get("generator_params") and current.get("generator_params") and state["generator_params"] != current["generator_params"]:
-        diff = {
-            k: (state["generator_params"].get(k), current["generator_params"].get(k))
-            for k in set(state["generator_params"]) | set(current["generator_params"])
-            if state["generator_params"].get(k) != current["generator_params"].get(k)
-        }
-        problems.append(f"data parameters differ (checkpoint, here): {diff}")
+        return [f"data set {state['name']!r} in the checkpoint, {current.get('name')!r} here"]
+    theirs, ours = state.get("generator_params"), current.get("generator_params")
+    if not theirs or not ours:
+        return []
+    if hasattr(dm, "params_of"):
+        theirs, ours = dm.params_of(split, theirs), dm.params_of(split, ours)
+    diff = {k: (theirs.get(k), ours.get(k)) for k in sorted(set(theirs) | set(ours)) if theirs.get(k) != ours.get(k)}
+    return [f"data parameters differ (checkpoint, here): {diff}"] if diff else []
+
+
+def check_same_data(checkpoint: Mapping[str, Any], dm: Any, ssm: MultipleShootingModule) -> None:
+    """Refuse to train an encoder on other training data than the SSM learned: its targets are the SSM's
+    shooting nodes, one per training trajectory."""
+    problems = data_differences(checkpoint, dm)
     n = getattr(dm, "num_train_trajectories", None)
     if n is not None and n != ssm.nodes.num_embeddings:
         problems.append(f"the SSM has nodes for {ssm.nodes.num_embeddings} training trajectories, the data have {n}")
@@ -98,7 +108,7 @@ def check_same_data(checkpoint: Mapping[str, Any], dm: Any, ssm: MultipleShootin
 def training_measurements(dm: Any, max_values: int = 2_000_000) -> torch.Tensor | None:
     """Noiseless training measurements ``[M, D]`` in original units (the cache's arrays; noisy ones if the data
     set has no noiseless copy), evenly subsampled to at most ``max_values`` numbers."""
-    train = getattr(dm, "datasets", {}).get("train")
+    train = dm.train_split() if hasattr(dm, "train_split") else None
     arrays = getattr(train, "arrays", None)
     if arrays is None:
         return None
@@ -195,7 +205,12 @@ class SSMForecaster(ForecastModule):
     def setup(self, stage: str) -> None:
         super().setup(stage)
         dm = self.datamodule
-        check_same_data(self._ssm_checkpoint, dm, self.ssm)
+        if stage == "fit":
+            check_same_data(self._ssm_checkpoint, dm, self.ssm)
+        else:  # a test on other data (another noise level, rendering, ...) is an experiment: said, not refused
+            self.data_note = "; ".join(data_differences(self._ssm_checkpoint, dm, "test")) or None
+            if self.data_note:
+                _log.warning("the test data differ from the SSM's data set: %s", self.data_note)
         saved = datamodule_state(self._ssm_checkpoint)
         if dm is not None and saved is not None and hasattr(dm, "load_state_dict"):
             dm.load_state_dict(saved[1])  # the SSM's normalisation statistics, not recomputed ones
