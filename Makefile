@@ -56,9 +56,10 @@ bench: $(STAMP)
 		--out benchmarks/results/constraints_lorenz_T1000.md
 
 ## One experiment end to end: SSM fit -> encoder fit -> test (-> UKF), results in results/$(EXP).md.
-## make reproduce EXP=pendulum [SIZE=cpu] [SEED=N] [RESUME=reproduce-...]; EXP among pendulum pendulum_fc quad quad_fc mnist lorenz_T10 ... oscillator
+## make reproduce EXP=pendulum [SIZE=cpu] [SEED=N] [RESUME=reproduce-...] [ARGS="options for every stage"];
+## EXP among pendulum pendulum_fc quad quad_fc mnist lorenz_T10 ... oscillator
 reproduce: $(STAMP) $(if $(filter oscillator,$(EXP)),data/oscillator.npz)
-	$(PY) -m ssm_ms.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(RESUME),--resume $(RESUME))
+	$(PY) -m ssm_ms.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(RESUME),--resume $(RESUME)) $(if $(ARGS),-- $(ARGS))
 
 data/oscillator.npz: examples/make_oscillator_data.py
 	$(PY) examples/make_oscillator_data.py --out $@

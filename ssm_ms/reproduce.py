@@ -8,8 +8,12 @@ every baseline of the experiment (fit -> test); or one baseline alone.
     python -m ssm_ms.reproduce pendulum --encoder-epochs 120   # the encoder stage on a stated epoch budget
     python -m ssm_ms.reproduce pendulum_lstm --baseline-epochs 120   # a baseline on a stated epoch budget
     python -m ssm_ms.reproduce lorenz_T1000 --size cpu --seed 1  # another seed: results/lorenz_T1000_cpu_seed1.md
+    python -m ssm_ms.reproduce pendulum -- --trainer.max_epochs 1   # options after -- go to every stage's cli.py
 
-(``make reproduce EXP=pendulum [SIZE=cpu] [SEED=1]``.) ``--seed N`` runs every stage with ``--seed_everything N``:
+(``make reproduce EXP=pendulum [SIZE=cpu] [SEED=1] [ARGS="..."]``.) Options after ``--`` (make's ``ARGS``) are
+appended to every stage's ``python cli.py`` command, after the stage's own: a smoke test of the whole pipeline
+(``-- --trainer.max_epochs 1 --trainer.limit_train_batches 2``), or another data directory; they are part of the
+recorded commands, and a resumed run must be given the same. ``--seed N`` runs every stage with ``--seed_everything N``:
 the networks' and shooting nodes' initial values change; the data and their order do not (they follow the data
 section's own ``seed``). Its results go to ``results/<experiment>_seed<N>.md``; ``python -m ssm_ms.forecasting.seeds
 <experiment>`` gathers the seeds' scores as mean and std.
@@ -288,7 +292,11 @@ def main(argv: list[str] | None = None) -> None:
                         help="finish the run of this version (reproduce-<date>-<time>, printed when it stopped; the "
                              "same experiment and options; the epoch budgets may be raised): its finished stages are not run "
                              "again, its interrupted fit, or a fit whose budget was raised, continues from its last.ckpt")
-    opts = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    stage_args = argv[argv.index("--") + 1:] if "--" in argv else []
+    own = argv[: argv.index("--")] if "--" in argv else argv
+    opts = parser.parse_args(own)
+    opts.stage_args = stage_args
     for name in ("encoder_epochs", "baseline_epochs"):
         if getattr(opts, name) is not None and getattr(opts, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(opts, name)}")
@@ -312,14 +320,15 @@ def main(argv: list[str] | None = None) -> None:
     version = opts.resume or "reproduce-" + (seeded + "-" if seeded else "") + datetime.now().strftime("%Y%m%d-%H%M%S")
     if "/" in version or not version.startswith("reproduce-"):
         parser.error(f"--resume takes the version folder's name (reproduce-<date>-<time>), got {version!r}")
-    options = _without_option(list(sys.argv[1:] if argv is None else argv), "--resume")
+    options = _without_option(argv, "--resume")
     first = ssm_cfg if ssm_stages else baselines[0]
     # options make does not pass: the module's command
     if opts.no_baselines or opts.encoder_epochs is not None or opts.baseline_epochs is not None:
         command = shlex.join(["python", "-m", "ssm_ms.reproduce", *options])
     else:
         command = (f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
-                   + (f" SEED={opts.seed}" if seeded else ""))
+                   + (f" SEED={opts.seed}" if seeded else "")
+                   + (f" ARGS={shlex.quote(shlex.join(stage_args))}" if stage_args else ""))
     pipeline = Pipeline(_absolute(logger_dir(first)) / version / "reproduce.json",
                         {k: v for k, v in vars(opts).items() if k != "resume"},
                         shlex.join(["python", "-m", "ssm_ms.reproduce", *options, "--resume", version]),
@@ -328,6 +337,7 @@ def main(argv: list[str] | None = None) -> None:
     v = ["--trainer.logger.init_args.version", version]
     if seeded:
         v += ["--seed_everything", str(opts.seed)]
+    v += stage_args  # after the stage's own options: they win
 
     def named(cfg: Path) -> list[str]:
         """A forecaster stage's results under the seed's own experiment name."""

@@ -82,6 +82,25 @@ def test_epoch_budgets_go_to_their_own_stages_only(recorded, capsys):
     assert "--baseline-epochs must be >= 1, got 0" in capsys.readouterr().err
 
 
+def test_options_after_a_double_dash_go_to_every_stage_last(recorded, tmp_path):
+    """``-- ARGS`` (make's ARGS) is appended to every stage's command after its own options (the last value wins in
+    LightningCLI), the results file names it, and a resume given other ARGS is refused."""
+    calls, written = recorded
+    reproduce.main(["pendulum", "--encoder-epochs", "7", "--", "--trainer.max_epochs", "1", "--data.init_args.n_test", "9"])
+    assert len(calls) == 7
+    assert all(a[-4:] == ["--trainer.max_epochs", "1", "--data.init_args.n_test", "9"] for a in calls)
+    encoder_fit = calls[1]
+    assert encoder_fit.index("7") < len(encoder_fit) - 3  # the budget first, the appended value last
+    assert written["command"] == ("python -m ssm_ms.reproduce pendulum --encoder-epochs 7 -- --trainer.max_epochs 1 "
+                                  "--data.init_args.n_test 9")
+    calls.clear()
+    reproduce.main(["pendulum", "--", "--trainer.max_epochs", "1"])
+    assert written["command"] == "make reproduce EXP=pendulum ARGS='--trainer.max_epochs 1'"
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    with pytest.raises(SystemExit, match="started with other options"):
+        reproduce.main(["pendulum", "--resume", version, "--", "--trainer.max_epochs", "2"])
+
+
 def test_unknown_experiment_lists_the_known_ones(recorded):
     with pytest.raises(SystemExit, match=r"no configs for experiment 'pendulm'.*'pendulum'.*'pendulum_lstm'"):
         reproduce.main(["pendulm"])
