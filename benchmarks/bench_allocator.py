@@ -8,7 +8,7 @@ Runs ``python cli.py fit --config CONFIG --model.init_args.ssm_checkpoint SSM`` 
 steps (one epoch, no validation, no logger, no checkpoint) once per setting per round, the settings' order
 alternating from round to round, each in its own process (the setting is process-wide):
 
-* ``trim off``: ``ssm_ms.perf.configure_allocator()`` as ``cli.py`` calls it (heap trimming switched off);
+* ``trim off``: ``ssm_ms.runtime.perf.configure_allocator()`` as ``cli.py`` calls it (heap trimming switched off);
 * ``trim 2 GiB``: ``configure_allocator(trim_threshold=2**31 - 1)``, the largest threshold ``mallopt`` takes (what
   ssm-ms set before);
 * ``glibc defaults``: ``SSM_MS_MALLOC_TUNING=0``.
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error("--warm, --steps and --rounds must be at least 1")
     if BASE not in args.settings:
         args.settings = [BASE] + args.settings
-    from ssm_ms.machine import CpuWatch, describe, quiet_note
+    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
 
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "step_usage.py").write_text(CALLBACK)

@@ -65,7 +65,7 @@ def _scale_schedule(schedule, factor: float, alpha_x: float) -> None:
 @torch.no_grad()
 def scores(model, dm, horizon: int) -> dict[str, float]:
     """Fit, gap and first-node rollout error over the whole training set (batch-size weighted means)."""
-    from ssm_ms.shooting import multiple_shooting_loss
+    from ssm_ms.training.shooting import multiple_shooting_loss
 
     model.eval()
     totals = {"fit": 0.0, "gap": 0.0, "rollout_mse": 0.0}
@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         args.epochs = 2
     if args.threads:
         torch.set_num_threads(args.threads)
-    from ssm_ms.machine import describe
+    from ssm_ms.runtime.machine import describe
 
     rows = []
     for experiment in args.experiments:

@@ -2,7 +2,7 @@
 
 dense  (node_optimizer: dense): the table's gradient [N, m*d] goes through DDP's all-reduce every step.
 sparse (node_optimizer: sparse): the ranks all-gather only the batch's (index, row gradient)
-        (ssm_ms.distributed.all_gather_rows), B_global x m*d numbers.
+        (ssm_ms.training.distributed.all_gather_rows), B_global x m*d numbers.
 
     python benchmarks/bench_ddp_nodes.py [--reps 10]   -> benchmarks/results/ddp_nodes.md
 """
@@ -23,7 +23,7 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from ssm_ms.distributed import all_gather_rows  # noqa: E402
+from ssm_ms.training.distributed import all_gather_rows  # noqa: E402
 
 # (name, trajectories N, m * d, global batch B): the paper-size tables
 CASES = [
@@ -100,7 +100,7 @@ def main() -> None:
     for p in procs:
         p.start()
     results = gather_results(procs, queue)
-    from ssm_ms.machine import describe
+    from ssm_ms.runtime.machine import describe
 
     lines = [
         "# Node-table communication per step under DDP (2 CPU processes, gloo)",

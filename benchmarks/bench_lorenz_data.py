@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from ssm_ms.machine import cpu_model  # noqa: E402
+from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 from datamodules.lorenz import LorenzDataModule  # noqa: E402
 
 

@@ -32,7 +32,7 @@ from tqdm import tqdm
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from ssm_ms.machine import cpu_model  # noqa: E402
+from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 from datamodules.moving_mnist import MovingMNISTDataModule, render, trajectory  # noqa: E402
 
 DEFAULT_ROOT = REPO.parent / "shared" / "data"

@@ -29,7 +29,7 @@ import pinocchio as pin
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ssm_ms.machine import cpu_model  # noqa: E402
+from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 from datamodules import pendulum as P  # noqa: E402
 from datamodules.pendulum import PendulumDataModule  # noqa: E402
 

@@ -7,7 +7,7 @@
 The paper's simple-pendulum step: batch 40, m = 4 shooting nodes, n = 25 steps per sub-trajectory,
 state 10, 24x24 images, SSM-LL with K = 32 and 1024 hidden (or SSM-FC, 3 x 512), Adam, alpha 1000.
 Each implementation runs in its own worker process (the allocator setting is process-wide: the
-reference's process uses glibc's defaults, ours calls ``ssm_ms.perf.configure_allocator`` as
+reference's process uses glibc's defaults, ours calls ``ssm_ms.runtime.perf.configure_allocator`` as
 ``cli.py`` does). The workers wait on a pipe; the parent asks each in turn for ``--steps`` timed steps,
 ``--rounds`` times (after ``--discard`` untimed rounds), so that a shared machine's load falls on all of them
 alike. Reported: median seconds per step of each, and the median over rounds of the same-round ratio
@@ -112,7 +112,7 @@ WARMUP = 3
 def worker(impl: str, model: str, tiny: bool, threads: int, device: str = "cpu") -> None:
     """Build, warm up, then answer ``run K`` lines with the seconds of K steps (JSON), until EOF."""
     if impl != "reference":
-        from ssm_ms.perf import configure_allocator
+        from ssm_ms.runtime.perf import configure_allocator
 
         configure_allocator()
     import torch
@@ -170,7 +170,7 @@ class Worker:
 
 
 def bf16_native(device: str = "cpu") -> bool:
-    from ssm_ms.perf import bf16_support
+    from ssm_ms.runtime.perf import bf16_support
 
     return bf16_support(device)[0]
 
@@ -216,8 +216,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     import torch
 
-    from ssm_ms.machine import CpuWatch, describe, quiet_note
-    from ssm_ms.shooting import compile_unavailable_reason
+    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
+    from ssm_ms.training.shooting import compile_unavailable_reason
 
     if args.device == "cuda" and not torch.cuda.is_available():  # before any worker starts (and dies)
         parser.error("--device cuda: torch sees no CUDA device here; run on a machine with a GPU or leave --device out")

@@ -85,7 +85,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"{', '.join(small) or f'--discard {args.discard}'}: give at least 1 round and 1 step "
                      "(and 0 or more untimed rounds)")
 
-    from ssm_ms.machine import CpuWatch, describe, quiet_note
+    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
 
     start = datetime.now(timezone.utc)
     watch = CpuWatch()

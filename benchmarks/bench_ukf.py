@@ -38,12 +38,12 @@ sys.path.insert(0, str(ROOT))
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-from ssm_ms.machine import CpuWatch, describe, quiet_note  # noqa: E402
+from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
 from ssm_ms.inference.shared import call_model  # noqa: E402
 from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402
 from ssm_ms.nets.readout import Projection  # noqa: E402
 from ssm_ms.nets.transition import LocallyLinearTransition  # noqa: E402
-from ssm_ms.perf import configure_allocator  # noqa: E402
+from ssm_ms.runtime.perf import configure_allocator  # noqa: E402
 
 TINY = {"trajectories": 4, "steps": 20, "ref_steps": 5, "repeats": 1, "k": 4, "hidden": 16}
 

@@ -51,15 +51,15 @@ def main(argv: list[str] | None = None) -> None:
                              '"-O3 -mavx2 -mfma" for the AVX2 build on an AVX-512 CPU (-fopenmp is added)')
     args = parser.parse_args(argv)
 
-    from ssm_ms.perf import configure_allocator
+    from ssm_ms.runtime.perf import configure_allocator
 
     configure_allocator()
     import torch
     import torch.nn.functional as F
 
-    from ssm_ms.machine import CpuWatch, describe, quiet_note
+    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
     from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, native
-    from ssm_ms.shooting import rollout
+    from ssm_ms.training.shooting import rollout
 
     if args.cflags:
         native.build.FLAG_SETS = (args.cflags.split() + ["-fopenmp"],)

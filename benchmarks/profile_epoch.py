@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--epochs", type=int, default=20)
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "epoch_profile_pendulum.md"))
     args = parser.parse_args(argv)
-    from ssm_ms.machine import CpuWatch, describe, quiet_note
+    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
 
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "cli.py", "fit", "--config", args.config, "--trainer.max_epochs", str(args.epochs),

@@ -16,7 +16,7 @@ run it in the same process family and on the same data as ours:
 * UKF: per trajectory ``scipy.linalg.sqrtm(d P)``, ``2d`` sigma points ``x +- columns``, ``f`` and ``g``
   called once per sigma point (each on the batch), dense ``inverse`` of the innovation covariance.
 
-The process that runs these must not call ``ssm_ms.perf.configure_allocator`` (the reference runs with
+The process that runs these must not call ``ssm_ms.runtime.perf.configure_allocator`` (the reference runs with
 glibc's default allocator): import nothing from ``ssm_ms`` here.
 """
 

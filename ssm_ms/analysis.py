@@ -49,7 +49,7 @@ import torch
 from torch.func import jacrev, jvp, vmap
 
 from datamodules.lorenz import lorenz_wing_level  # where the Lorenz system lives; kept importable here
-from ssm_ms.shooting import rollout
+from ssm_ms.training.shooting import rollout
 
 Fn = Callable[[torch.Tensor], torch.Tensor]
 

@@ -53,7 +53,7 @@ from lightning.pytorch.trainer.states import TrainerStatus
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
 from ssm_ms.checkpointing import EpochCheckpoint, read_checkpoint
-from ssm_ms.perf import configure_allocator
+from ssm_ms.runtime.perf import configure_allocator
 
 TRACEBACK_ENV = "SSM_MS_TRACEBACK"
 ROOT = Path(__file__).resolve().parents[1]

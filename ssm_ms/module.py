@@ -19,18 +19,18 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ssm_ms import distributed
+from ssm_ms.training import distributed
 from ssm_ms.checkpointing import read_checkpoint, restore_float_weights
-from ssm_ms.constraints import (
+from ssm_ms.training.constraints import (
     AugmentedLagrangianOptions,
     augmented_lagrangian,
     check_constraint,
     raised_factor,
     update_multipliers,
 )
-from ssm_ms.nodes import node_group, row_adam_
-from ssm_ms.perf import check_precision
-from ssm_ms.shooting import CompiledRollout, decode, loss_function, multiple_shooting_loss, rollout, shooting_residuals
+from ssm_ms.training.nodes import node_group, row_adam_
+from ssm_ms.runtime.perf import check_precision
+from ssm_ms.training.shooting import CompiledRollout, decode, loss_function, multiple_shooting_loss, rollout, shooting_residuals
 
 # Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
 STRUCTURAL_HPARAMS = ("state_dim", "num_trajectories", "n_nodes", "f", "g", "node_optimizer", "constraint")
@@ -60,7 +60,7 @@ def _given_by_cli() -> bool:
 class MultipleShootingModule(pl.LightningModule):
     """A discrete SSM ``x[t+1] = f(x[t])``, ``y[t] = g(x[t])`` learned by multiple shooting.
 
-    The loss of a batch is ``fit + alpha * gap`` (see :func:`ssm_ms.shooting.multiple_shooting_loss`).
+    The loss of a batch is ``fit + alpha * gap`` (see :func:`ssm_ms.training.shooting.multiple_shooting_loss`).
     The shooting nodes of training trajectory ``j`` are row ``j`` of ``self.nodes``, an
     ``nn.Embedding(num_trajectories, n_nodes * state_dim)`` indexed by the batch's ``"index"``.
     ``alpha`` is a buffer, stepped by :class:`ssm_ms.schedule.ShootingSchedule`.
@@ -81,16 +81,16 @@ class MultipleShootingModule(pl.LightningModule):
         decode_chunk: decode at most this many states per call of ``g`` (``None``: all at once).
         node_optimizer: ``"dense"`` (the paper: one Adam over all parameters, so momentum moves every
             node at every step) or ``"sparse"`` (only the batch's nodes change: a row-wise Adam, see
-            :mod:`ssm_ms.nodes`; also what keeps the node table out of DDP's all-reduce).
+            :mod:`ssm_ms.training.nodes`; also what keeps the node table out of DDP's all-reduce).
         node_lr: learning rate of the nodes (``None``: ``lr``); the schedule scales it like ``lr``.
         constraint: ``"penalty"`` (the paper's ``fit + alpha * gap``) or ``"augmented_lagrangian"``
-            (multipliers per gap, in the buffer ``multipliers``; see :mod:`ssm_ms.constraints`).
+            (multipliers per gap, in the buffer ``multipliers``; see :mod:`ssm_ms.training.constraints`).
         constraint_options: settings of the augmented Lagrangian
-            (:class:`ssm_ms.constraints.AugmentedLagrangianOptions`: ``every_n_epochs``, ``growth``,
+            (:class:`ssm_ms.training.constraints.AugmentedLagrangianOptions`: ``every_n_epochs``, ``growth``,
             ``shrink``, ``max_factor``).
         compile_rollout: ``None`` (eager) or a ``torch.compile`` mode (``"default"``, ``"reduce-overhead"``
             = CUDA graphs on a GPU, ...): the rollout of ``f`` over a sub-trajectory runs as one compiled
-            graph (:class:`ssm_ms.shooting.CompiledRollout`).
+            graph (:class:`ssm_ms.training.shooting.CompiledRollout`).
         val_horizon: steps of the validation rollout (``val/rollout_mse``) from each validation trajectory's
             first node (``None``: its whole length). On chaotic data set it to a few Lyapunov times: a rollout
             far beyond them compares unrelated signals and the score saturates whatever the model learns.

@@ -53,7 +53,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from ssm_ms.forecasting.results import write_pipeline
-from ssm_ms.machine import describe
+from ssm_ms.runtime.machine import describe
 
 ROOT = Path(__file__).resolve().parents[1]
 

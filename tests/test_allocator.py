@@ -1,4 +1,4 @@
-"""``ssm_ms.perf.configure_allocator``: freed heap memory stays with the process, even above 2 GiB.
+"""``ssm_ms.runtime.perf.configure_allocator``: freed heap memory stays with the process, even above 2 GiB.
 
 Each case runs in its own interpreter (the allocator's settings are process-wide). It frees three heap blocks
 of 900 MB (each below the 1 GiB mmap threshold, so they come from the heap's top; their pages are never touched,
@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = r"""
 import ctypes, ctypes.util, json, sys
 mode = sys.argv[1]
-from ssm_ms.perf import configure_allocator
+from ssm_ms.runtime.perf import configure_allocator
 if mode == "ours":
     applied = configure_allocator()
 else:  # "trim 2 GiB"

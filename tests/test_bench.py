@@ -11,7 +11,7 @@ from ssm_ms.nets import native
 from benchmarks.reference_structure import RefDecoder, RefLocallyLinear, RefTrainer, ref_ukf
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.nets import ConvDecoder, LocallyLinearTransition
-from ssm_ms.shooting import compile_unavailable_reason, multiple_shooting_loss
+from ssm_ms.training.shooting import compile_unavailable_reason, multiple_shooting_loss
 
 
 def reference_copy_of(f: LocallyLinearTransition, g: ConvDecoder) -> tuple[RefLocallyLinear, RefDecoder]:
@@ -128,7 +128,7 @@ def test_results_say_shared_when_other_processes_ran_not_after_a_busy_minute():
     import sys
     import time
 
-    from ssm_ms.machine import SHARED_CORES, CpuWatch, quiet_note
+    from ssm_ms.runtime.machine import SHARED_CORES, CpuWatch, quiet_note
 
     assert "otherwise quiet" in quiet_note(0.05) and "shared with other jobs" in quiet_note(SHARED_CORES + 0.5)
     assert "not measured" in quiet_note(None)

@@ -5,14 +5,14 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
-from ssm_ms.constraints import (
+from ssm_ms.training.constraints import (
     AugmentedLagrangianOptions,
     augmented_lagrangian,
     raised_factor,
     update_multipliers,
 )
 from ssm_ms.nets import LocallyLinearTransition, Projection
-from ssm_ms.shooting import multiple_shooting_loss, shooting_residuals
+from ssm_ms.training.shooting import multiple_shooting_loss, shooting_residuals
 from tests.conftest import RotationDataModule, fast_trainer, rotation_model
 
 

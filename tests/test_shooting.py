@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 
 from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, Projection
-from ssm_ms.shooting import multiple_shooting_loss, rollout
+from ssm_ms.training.shooting import multiple_shooting_loss, rollout
 
 
 def naive_loss(f, g, nodes, y, loss):

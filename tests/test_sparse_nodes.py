@@ -4,7 +4,7 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from ssm_ms.nodes import row_adam_
+from ssm_ms.training.nodes import row_adam_
 from tests.conftest import fast_trainer, rotation_model
 
 

@@ -5,10 +5,10 @@ import shutil
 import pytest
 import torch
 
-from ssm_ms import perf
+from ssm_ms.runtime import perf
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, Projection
-from ssm_ms.shooting import CompiledRollout, compile_unavailable_reason, multiple_shooting_loss, shooting_residuals
+from ssm_ms.training.shooting import CompiledRollout, compile_unavailable_reason, multiple_shooting_loss, shooting_residuals
 from tests.conftest import fast_trainer, rotation_model
 
 NATIVE_BF16 = perf.bf16_support("cpu")[0]

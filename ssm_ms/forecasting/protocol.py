@@ -54,7 +54,7 @@ import torch
 from torchmetrics import CatMetric
 
 from ssm_ms.checkpointing import restore_float_weights
-from ssm_ms.machine import describe
+from ssm_ms.runtime.machine import describe
 
 BCE_EPS = 1e-12
 METRICS = ("mse", "bce", "mse_sum", "ssim")

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.nets.encoder import StateEncoder
-from ssm_ms.shooting import rollout
+from ssm_ms.training.shooting import rollout
 
 
 class StateEncoderModule(SSMForecaster):

@@ -23,7 +23,7 @@ import torch
 from ssm_ms.checkpointing import SSM_DIGEST_KEY, read_checkpoint, state_digest
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
 from ssm_ms.module import MultipleShootingModule
-from ssm_ms.shooting import decode, rollout
+from ssm_ms.training.shooting import decode, rollout
 
 _log = logging.getLogger("ssm_ms")
 
