@@ -3,7 +3,7 @@ rollout, every few epochs) and :class:`ShootingPictureLogger` (the multiple-shoo
 training), and :func:`tensorboard_writer`, which finds the trainer's TensorBoard writer.
 
 What they draw, and every other picture (mosaics, GIFs, Lorenz and training-curve figures), is in
-:mod:`ssm_ms.drawing`; its public names are re-exported here, where earlier versions defined them.
+:mod:`ssm_ms.drawing`.
 """
 
 from __future__ import annotations
@@ -12,23 +12,7 @@ import lightning.pytorch as pl
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from ssm_ms.drawing import (  # noqa: F401  (re-exported: earlier versions defined them here)
-    attractor_figure,
-    figure_to_image,
-    frame_indices,
-    image_grid,
-    lorenz_prediction_figure,
-    loss_curves_figure,
-    prediction_columns,
-    prediction_mosaic,
-    read_scalars,
-    reconstruction_grid,
-    save_figure,
-    save_gif,
-    save_png,
-    series_figure,
-    shooting_figure,
-)
+from ssm_ms.drawing import figure_to_image, reconstruction_grid, series_figure, shooting_figure
 
 
 def tensorboard_writer(trainer: pl.Trainer):

@@ -1,17 +1,14 @@
-"""The ConvDecoder's one switch, ``backend``: names checked, the earlier versions' switches read into it, ``"auto"``
-deciding its path from the device and the CPU's instruction set alone (no timing, nothing written: a frozen decoder
-on a fresh home directory runs), the same values from every path, and a checkpoint of an earlier version
-(``native`` / ``channels_last`` in its hyperparameters) still loading."""
+"""The ConvDecoder's one switch, ``backend``: names checked, ``"auto"`` deciding its path from the device and the
+CPU's instruction set alone (no timing, nothing written: a frozen decoder on a fresh home directory runs), and the
+same values from every path."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import ConvDecoder, decoder, native
 from ssm_ms.nets.native import build
-from tests.test_cli import CPU, fit_tiny, outputs, run
 from tests.test_native import NATIVE_NODE, _graph_names
 
 SPEC = dict(preset=None, stem_channels=8, stem_size=3, layers=[[6, 5, 3], [5, 3, 2], [1, 2, 1]])
@@ -24,16 +21,6 @@ def ran_native(g: ConvDecoder, x: torch.Tensor) -> bool:
 def test_backend_names_are_checked():
     with pytest.raises(ValueError, match=r"backend must be one of \['auto', 'native', 'torch', 'plain'\], got 'fast'"):
         ConvDecoder(4, "pendulum", backend="fast")
-
-
-def test_the_earlier_switches_are_read_into_backend():
-    assert ConvDecoder(4, "pendulum", native=True, channels_last=True).backend == "auto"  # their old defaults
-    assert ConvDecoder(4, "pendulum", native=False).backend == "torch"
-    assert ConvDecoder(4, "pendulum", channels_last=False).backend == "plain"
-    assert ConvDecoder(4, "pendulum", native=False, channels_last=False).backend == "plain"
-    assert ConvDecoder(4, "pendulum", backend="torch", native=False).backend == "torch"
-    with pytest.raises(ValueError, match="give backend alone"):
-        ConvDecoder(4, "pendulum", backend="native", native=False)
 
 
 def test_every_backend_draws_the_same_images(decoder_path):
@@ -131,30 +118,6 @@ def test_auto_without_the_kernels_runs_torch(monkeypatch):
     monkeypatch.setattr(build, "cpu_simd", lambda: "avx512")  # the rule says native, but nothing is built
     monkeypatch.setattr(build, "_state", {"lib": None, "reason": "no C compiler", "key": None})
     assert not ran_native(ConvDecoder(5, **SPEC), torch.randn(3, 5))
-
-
-def test_a_checkpoint_of_an_earlier_version_loads(tmp_path):
-    """Checkpoints written before ``backend`` record ``native`` and ``channels_last`` among g's arguments: they load
-    from Python and resume from the command line."""
-    config = CPU / "pendulum.yaml"
-    fit_tiny(tmp_path, config)
-    ckpt = outputs(tmp_path, config) / "checkpoints" / "last.ckpt"
-    saved = torch.load(ckpt, weights_only=False)
-    g_args = saved["hyper_parameters"]["g"]["init_args"]
-    assert g_args["backend"] == "auto"
-    del g_args["backend"]
-    g_args.update(native=False, channels_last=True)  # what an earlier version recorded for its torch-only path
-    old = tmp_path / "old.ckpt"
-    torch.save(saved, old)
-    model = MultipleShootingModule.load_from_checkpoint(old)
-    assert model.g.backend == "torch"
-    for key, value in saved["state_dict"].items():
-        torch.testing.assert_close(model.state_dict()[key], value)
-    cli = run(tmp_path, "fit", config, "--ckpt_path", str(old), "--trainer.max_epochs", "2",
-              "--trainer.limit_train_batches", "2", "--trainer.limit_val_batches", "1",
-              "--trainer.check_val_every_n_epoch", "1",
-              "--data.init_args.n_train", "8", "--data.init_args.n_test", "4", "--data.init_args.workers", "1")
-    assert cli.trainer.current_epoch == 2 and cli.model.g.backend == "torch"
 
 
 def test_native_tests_fail_instead_of_skipping_where_the_kernels_are_required(monkeypatch):

@@ -84,62 +84,10 @@ def test_the_method_imports_without_a_circle():
     assert_no_circle(graph)
 
 
-def test_moved_modules_keep_their_old_names():
-    """Configs and checkpoints of earlier versions name ``ssm_ms.nets.observation.*``: those names still load, as
-    the same classes."""
-    import importlib
-
-    from ssm_ms import nets
-
-    old = importlib.import_module("ssm_ms.nets.observation")
-    for name in ("ConvDecoder", "LinearReadout", "Projection"):
-        assert getattr(old, name) is getattr(nets, name)
-    from ssm_ms import export
-
-    control = importlib.import_module("ssm_ms.control")  # the export module's earlier name
-    for name in ("export", "export_checkpoint", "linearize", "main"):
-        assert getattr(control, name) is getattr(export, name)
-
-
-def test_the_old_export_command_still_runs():
-    import subprocess
-    import sys
-
-    out = subprocess.run([sys.executable, "-m", "ssm_ms.control", "export", "--help"], cwd=ROOT, capture_output=True,
-                         text=True)
-    assert out.returncode == 0 and "--out" in out.stdout, out.stderr
-
-
-def test_the_forecasting_modules_keep_their_old_names():
-    """``ssm_ms.evaluation``, ``ssm_ms.predict`` and ``ssm_ms.results`` moved into ``ssm_ms.forecasting``; a command
-    line naming ``ssm_ms.predict.ForecastWriter`` and code importing the old modules still work."""
-    import importlib
-
-    from ssm_ms import forecasting
-    from ssm_ms.forecasting import protocol, results
-
-    assert importlib.import_module("ssm_ms.predict").ForecastWriter is forecasting.ForecastWriter
-    old = importlib.import_module("ssm_ms.evaluation")
-    for name in ("ForecastModule", "Forecast", "ValidTimeAccumulator", "split_sequence", "mse_per_sequence"):
-        assert getattr(old, name) is getattr(protocol, name)
-    old = importlib.import_module("ssm_ms.results")
-    for name in ("PAPER", "write_results", "write_pipeline", "render_markdown"):
-        assert getattr(old, name) is getattr(results, name)
-
-
 def test_drawing_is_apart_from_the_callbacks():
-    """``ssm_ms.drawing`` draws without Lightning; ``ssm_ms.viz`` keeps the callbacks the configs name and, for code
-    of earlier versions, the drawing functions under their old names (the same functions)."""
+    """``ssm_ms.drawing`` draws without Lightning; ``ssm_ms.viz`` holds the callbacks the configs name."""
     import importlib
-
-    from ssm_ms import drawing
 
     lightning = sorted(m for m in imported_modules(ROOT / "ssm_ms" / "drawing.py") if m.split(".")[0] == "lightning")
     assert not lightning, f"ssm_ms/drawing.py imports {lightning}"
-    viz = importlib.import_module("ssm_ms.viz")
-    public = [n for n, v in vars(drawing).items() if callable(v) and not n.startswith("_")
-              and getattr(v, "__module__", None) == "ssm_ms.drawing"]
-    assert "prediction_mosaic" in public and "shooting_figure" in public
-    for name in public:
-        assert getattr(viz, name) is getattr(drawing, name), name
-    assert {"ReconstructionLogger", "ShootingPictureLogger"} <= set(vars(viz))
+    assert {"ReconstructionLogger", "ShootingPictureLogger"} <= set(vars(importlib.import_module("ssm_ms.viz")))

@@ -76,9 +76,6 @@ class ConvDecoder(nn.Module):
               layout oneDNN's CPU convolutions are fastest in.
             * ``"plain"``: torch's own ``nn`` layers on NCHW maps, as built: the reference the tests compare with,
               and what :mod:`ssm_ms.export` exports.
-        native, channels_last: what checkpoints and configs of earlier versions recorded instead of ``backend``;
-            read so that they keep loading (``native=False`` means ``"torch"``, ``channels_last=False`` ``"plain"``;
-            ``True``, their old defaults, changes nothing). Give ``backend``.
     """
 
     def __init__(
@@ -91,11 +88,10 @@ class ConvDecoder(nn.Module):
         output: str = "sigmoid",
         image_size: int | None = None,
         backend: str = "auto",
-        native: bool | None = None,
-        channels_last: bool | None = None,
     ):
         super().__init__()
-        backend = _backend(backend, native, channels_last)
+        if backend not in BACKENDS:
+            raise ValueError(f"ConvDecoder backend must be one of {list(BACKENDS)}, got {backend!r}")
         if image_size is not None and stem_size is not None:
             raise ValueError(
                 f"ConvDecoder got stem_size={stem_size} and image_size={image_size}: give one (image_size chooses "
@@ -260,19 +256,6 @@ def _say_choice(simd: str | None) -> None:
     else:
         _log.info("ConvDecoder backend 'auto': the torch path on this CPU (%s)",
                   "AVX2, no AVX-512" if simd == "avx2" else "neither AVX-512 nor AVX2 with FMA")
-
-
-def _backend(backend: str, native_flag: bool | None, channels_last: bool | None) -> str:
-    """``backend``, with the switches that earlier versions recorded (``native``, ``channels_last``) read into it."""
-    if backend not in BACKENDS:
-        raise ValueError(f"ConvDecoder backend must be one of {list(BACKENDS)}, got {backend!r}")
-    legacy = "plain" if channels_last is False else "torch" if native_flag is False else None
-    if legacy is None:
-        return backend
-    if backend not in ("auto", legacy):
-        raise ValueError(f"ConvDecoder got backend {backend!r} and native={native_flag}, channels_last={channels_last} "
-                         f"(an earlier version's switches, meaning {legacy!r}): give backend alone")
-    return legacy
 
 
 def drawn_size(stem_size: int, layers: Sequence[Sequence[int]]) -> int:
