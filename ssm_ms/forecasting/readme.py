@@ -1,0 +1,337 @@
+"""The README's results tables, generated from the results files (``results/*.json``): one source for every score.
+
+    python -m ssm_ms.forecasting.readme            # rewrite the tables between the README's markers
+    python -m ssm_ms.forecasting.readme --check    # exit status 1 (naming the tables) where the README is stale
+
+Each table sits in README.md between ``<!-- results:begin NAME -->`` and ``<!-- results:end -->`` (NAME one of
+:data:`TABLES`); everything outside the markers is prose a person writes. A table is built from the runs of the
+results files (``runs``: each method's scores and analysis) and the pipelines that produced them (``pipelines``:
+the ``make reproduce`` command, each stage's command and seconds): ours ``mean ± std`` over the test sequences, the
+paper's cell beside it (:data:`~ssm_ms.forecasting.results.PAPER`), the mean valid prediction time, and the command
+that produced the row with each training stage's epoch budget (its ``--trainer.max_epochs``, where the pipeline set
+one) and duration. ``tests/test_readme_tables.py`` regenerates the tables in memory and fails where the README
+differs: after a new result, run this command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import shlex
+import sys
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Callable
+
+from ssm_ms.forecasting.results import PAPER, _format, paper_key, paper_row
+
+ROOT = Path(__file__).resolve().parents[2]
+BEGIN = "<!-- results:begin {name} -->"
+END = "<!-- results:end -->"
+MARKER = re.compile(r"^<!-- results:begin (?P<name>[\w-]+) -->\n(?P<body>.*?)^<!-- results:end -->$", re.M | re.S)
+
+
+# ------------------------------------------------------------------------------------------------- reading
+class Results:
+    """The results files of one directory, read once each."""
+
+    def __init__(self, results_dir: Path):
+        self.dir = Path(results_dir)
+        self._files: dict[str, dict[str, Any]] = {}
+
+    def file(self, experiment: str) -> dict[str, Any]:
+        if experiment not in self._files:
+            path = self.dir / f"{experiment}.json"
+            if not path.is_file():
+                raise FileNotFoundError(f"{path}: a README table reads it, and it is missing")
+            self._files[experiment] = json.loads(path.read_text())
+        return self._files[experiment]
+
+    def run(self, experiment: str, method: str) -> dict[str, Any]:
+        runs = self.file(experiment).get("runs", {})
+        if method not in runs:
+            raise KeyError(f"{self.dir / experiment}.json has no run {method!r} (it has {sorted(runs)})")
+        return runs[method]
+
+    def pipeline(self, experiment: str, method: str) -> dict[str, Any] | None:
+        """The pipeline record that produced a run: the one with a test stage whose command is the run's (or a
+        prefix of it: options a later re-test appended); of several, the one recorded closest to the run."""
+        run = self.run(experiment, method)
+        command = "python " + run["info"].get("command", "")
+        found = [p for p in (self.file(experiment).get("pipelines") or {}).values()
+                 if any(command.startswith(s["command"]) for s in p.get("stages", []) if " test " in s["command"])]
+        if not found:
+            return None
+        when = _date(run["info"].get("date"))
+        return min(found, key=lambda p: abs((_date(p.get("date")) - when).total_seconds()))
+
+
+def _date(text: str | None) -> datetime:
+    return datetime.fromisoformat(text) if text else datetime.fromisoformat("1970-01-01T00:00:00+00:00")
+
+
+# ------------------------------------------------------------------------------------------------- formatting
+def _sig(value: float, digits: int) -> str:
+    """``digits`` significant figures; plain digits up to 10,000 (``190``, not ``1.9e+02``)."""
+    text = f"{value:.{digits}g}"
+    if "e+" in text and abs(value) < 1e4:
+        text = f"{float(text):.0f}"
+    return text
+
+
+def score(entry: dict[str, Any] | None) -> str:
+    """A score over the test sequences: ``mean ± std``, saying how many diverged (a NaN or inf score: left out)."""
+    if entry is None:
+        return "—"
+    bad, n = entry.get("non_finite", 0), entry.get("n")
+    if bad and bad == n:
+        return f"non-finite on all {n}"
+    cell = f"{_sig(entry['mean'], 4)} ± {_sig(entry['std'], 2)}"
+    return f"{cell}, {bad} of {n} non-finite" if bad else cell
+
+
+def reference(entry: dict[str, Any] | None) -> str:
+    """A reference's score (the mean training frame, the last estimate repeated): its mean."""
+    return "—" if entry is None else _sig(entry["mean"], 4)
+
+
+def minutes(seconds: float) -> str:
+    if seconds >= 120 * 60:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 60:.1f} min" if seconds < 10 * 60 else f"{seconds / 60:.0f} min"
+
+
+def _option(command: str, name: str) -> str | None:
+    words = shlex.split(command)
+    return words[words.index(name) + 1] if name in words[:-1] else None
+
+
+def stage_label(command: str) -> str:
+    """What a fit stage trains, from its config's name: the SSM, its encoder, or a baseline."""
+    stem = Path(_option(command, "--config") or "").stem
+    if stem.endswith("_lstm"):
+        return "LSTM"
+    if stem.endswith("_rkn"):
+        return "RKN"
+    return "encoder" if stem.endswith("_encoder") else "SSM"
+
+
+def training(pipeline: dict[str, Any]) -> str:
+    """Its fit stages: what each trained, its epoch budget where the command set one, how long it took."""
+    parts = []
+    for stage in pipeline.get("stages", []):
+        command = stage["command"]
+        if not command.startswith("python cli.py fit "):
+            continue
+        epochs = _option(command, "--trainer.max_epochs")
+        runs = stage.get("runs", 1)
+        resumed = " resumed" if "--ckpt_path" in command.split() else ""
+        parts.append(f"{stage_label(command)}{resumed}" + (f" {epochs} epochs" if epochs else "")
+                     + f" {minutes(stage['seconds'])}" + (f" in {runs} runs" if runs > 1 else ""))
+    return ", ".join(parts)
+
+
+def produced(pipeline: dict[str, Any] | None, run: dict[str, Any]) -> str:
+    """The command that produced a row and its training; a run no pipeline recorded: its test command."""
+    if pipeline is None:
+        return f"`python {run['info'].get('command', '')}`"
+    fits = training(pipeline)
+    many = sum(s["command"].startswith("python cli.py fit ") for s in pipeline.get("stages", [])) > 1
+    total = f" ({minutes(pipeline['total_seconds'])} in all)" if many and pipeline.get("total_seconds") else ""
+    return f"`{pipeline['command']}`{total}" + (f": {fits}" if fits else "")
+
+
+def valid(run: dict[str, Any]) -> str:
+    vt = (run.get("analysis") or {}).get("valid_time")
+    return _sig(vt["mean_steps"], 3) if vt else "—"
+
+
+def paper_cells(experiment: str, run: dict[str, Any], metrics: tuple[str, ...]) -> str:
+    key = paper_key(experiment)
+    name = paper_row(key, run["info"]) if key else None
+    if name is None:
+        return "not in the paper"
+    return " / ".join(_format(PAPER[key]["rows"][name].get(m)) for m in metrics)
+
+
+# ------------------------------------------------------------------------------------------------- the tables
+@dataclass(frozen=True)
+class Group:
+    """Rows of one experiment: ``(results file, method)`` per row, then its reference row."""
+
+    title: str
+    metrics: tuple[str, ...]  # "<target>/<metric>" as the protocol writes them
+    rows: tuple[tuple[str, str], ...]
+    reference: tuple[str, str, str, str]  # (label, results file, method, reference row: mean or last)
+
+
+def method_table(results: Results, groups: list[Group], with_valid: bool) -> list[str]:
+    """``experiment | method | ours | paper [| valid] | produced by``, one group after the other; a command that
+    produced the row above is not repeated."""
+    head = ["experiment", "method", "ours", "paper", *(["valid (frames)"] if with_valid else []), "produced by"]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for group in groups:
+        previous = None
+        for i, (experiment, method) in enumerate(group.rows):
+            run = results.run(experiment, method)
+            summary = run["summary"]
+            pipeline = results.pipeline(experiment, method)
+            same = pipeline is not None and pipeline is previous
+            cells = [group.title if i == 0 else "", run["info"].get("label", method),
+                     " / ".join(score(summary.get(f"{method}/{m}")) for m in group.metrics),
+                     paper_cells(experiment, run, group.metrics), *([valid(run)] if with_valid else []),
+                     "the same command" if same else produced(pipeline, run)]
+            lines.append("| " + " | ".join(cells) + " |")
+            previous = pipeline
+        label, experiment, method, row = group.reference
+        summary = results.run(experiment, method)["summary"]
+        cells = ["", f"*{label}*", " / ".join(reference(summary.get(f"{row}/{m}")) for m in group.metrics), "",
+                 *([""] if with_valid else []), ""]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+IMAGES = ("noisy/mse", "noisy/bce")
+
+
+def full_size(results: Results) -> list[str]:
+    """Tables 1 and 2 at the paper's size."""
+    return method_table(results, [
+        Group("simple pendulum (Table 1), noisy per-pixel MSE / BCE", IMAGES,
+              (("pendulum", "encoder"), ("pendulum_fc", "encoder"), ("pendulum", "lstm"), ("pendulum", "rkn")),
+              ("mean training frame", "pendulum", "encoder", "mean")),
+        Group("quadruple pendulum (Table 2), noisy per-pixel MSE / BCE", IMAGES,
+              (("quad", "encoder"), ("quad_fc", "encoder"), ("quad", "lstm"), ("quad", "rkn")),
+              ("mean training frame", "quad", "encoder", "mean")),
+    ], with_valid=True)
+
+
+def cpu_twins(results: Results) -> list[str]:
+    """The image experiments' CPU-sized twins (Lorenz's: :func:`lorenz_sweep`)."""
+    return method_table(results, [
+        Group("simple pendulum, noisy MSE per pixel", ("noisy/mse",),
+              (("pendulum_cpu", "encoder"), ("pendulum_cpu", "lstm"), ("pendulum_cpu", "rkn")),
+              ("mean training frame", "pendulum_cpu", "encoder", "mean")),
+        Group("Moving MNIST (Table 3), BCE summed over a frame's 64x64 pixels", ("noisy/bce",),
+              (("mnist_cpu", "encoder"), ("mnist_cpu", "lstm")),
+              ("mean training frame", "mnist_cpu", "encoder", "mean")),
+    ], with_valid=False)
+
+
+LORENZ_T = (10, 100, 1000, 10000)
+LORENZ = "clean/mse"  # the 10-step MSE of x against the noiseless x, in original units
+NOISE_FREE = ("lorenz_T1000_noiseless_cpu", "the paper's appendix: accurate for 1000 steps")
+
+
+def _f_alone(run: dict[str, Any]) -> str:
+    """What the SSM's f does alone: its largest Lyapunov exponent, how many free runs visit both wings."""
+    dyn = (run.get("analysis") or {}).get("dynamics") or {}
+    largest = (dyn.get("lyapunov") or {}).get("largest")
+    free = dyn.get("free_run") or {}
+    exponent = "diverges" if largest is None or not math.isfinite(largest) else _sig(largest, 2)
+    wings = free.get("both_wings_share")
+    return exponent + (f"; {round(wings * free['runs'])} of {free['runs']}" if wings is not None else "")
+
+
+def lorenz_sweep(results: Results) -> list[str]:
+    """Table 4's sweep over the training piece length T at CPU size: ours / the paper's, then how each T ran."""
+    files = {t: f"lorenz_T{t}_cpu" for t in LORENZ_T}
+    true = results.run(files[1000], "ukf").get("analysis", {}).get("true_system", {}).get("largest")
+    head = ["method", *(f"T = {t:,}" for t in LORENZ_T)]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+
+    def row(label: str, cell: Callable[[int], str]) -> None:
+        lines.append("| " + " | ".join([label, *(cell(t) for t in LORENZ_T)]) + " |")
+
+    def versus(method: str) -> Callable[[int], str]:
+        def cell(t: int) -> str:
+            run = results.run(files[t], method)
+            return f"{score(run['summary'].get(f'{method}/{LORENZ}'))} / {paper_cells(files[t], run, (LORENZ,))}"
+        return cell
+
+    for method in ("ukf", "encoder"):
+        row(results.run(files[1000], method)["info"]["label"], versus(method))
+    row(f"*the learned f alone: largest Lyapunov exponent (true {_sig(true, 2)}); free runs on both wings*",
+        lambda t: _f_alone(results.run(files[t], "ukf")))
+    for method in ("lstm", "rkn"):
+        row(results.run(files[1000], method)["info"]["label"], versus(method))
+    row("*repeat the last estimate (reference, with the UKF)*",
+        lambda t: reference(results.run(files[t], "ukf")["summary"].get(f"last/{LORENZ}")))
+    row("*valid prediction time (steps): UKF / encoder / LSTM / RKN*",
+        lambda t: " / ".join(valid(results.run(files[t], m)) for m in ("ukf", "encoder", "lstm", "rkn")))
+    noise_free, words = NOISE_FREE
+    ukf = results.run(noise_free, "ukf")
+    row("SSM-LL + UKF, noise-free measurements",
+        lambda t: f"{score(ukf['summary'].get(f'ukf/{LORENZ}'))}, valid {valid(ukf)} steps / {words} "
+        f"({produced(results.pipeline(noise_free, 'ukf'), ukf)})" if t == 1000 else "—")
+
+    def commands(t: int) -> str:
+        pipelines: list[dict[str, Any]] = []
+        for method in ("ukf", "encoder", "lstm", "rkn"):
+            found = results.pipeline(files[t], method)
+            if found is not None and all(found is not p for p in pipelines):
+                pipelines.append(found)
+        return "; ".join(produced(p, {}) for p in pipelines)
+
+    row("*produced by*", commands)
+    return lines
+
+
+TABLES: dict[str, Callable[[Results], list[str]]] = {
+    "full-size": full_size,
+    "cpu-twins": cpu_twins,
+    "lorenz-sweep": lorenz_sweep,
+}
+
+
+# ------------------------------------------------------------------------------------------------- the README
+def render(text: str, results_dir: Path = ROOT / "results") -> str:
+    """``text`` (a README) with every marked table generated anew from the results files."""
+    results = Results(results_dir)
+    seen = []
+
+    def fill(match: re.Match) -> str:
+        name = match.group("name")
+        if name not in TABLES:
+            raise KeyError(f"README marker {BEGIN.format(name=name)}: no such table (known: {sorted(TABLES)})")
+        seen.append(name)
+        return "\n".join([BEGIN.format(name=name), *TABLES[name](results), END])
+
+    out = MARKER.sub(fill, text)
+    if text.count("<!-- results:begin") != len(seen):
+        raise ValueError("a README marker <!-- results:begin NAME --> without its <!-- results:end -->")
+    return out
+
+
+def stale(text: str, results_dir: Path = ROOT / "results") -> list[str]:
+    """The names of the tables of ``text`` that differ from what the results files give."""
+    new = {m.group("name"): m.group("body") for m in MARKER.finditer(render(text, results_dir))}
+    return [m.group("name") for m in MARKER.finditer(text) if m.group("body") != new[m.group("name")]]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--readme", type=Path, default=ROOT / "README.md")
+    parser.add_argument("--results-dir", type=Path, default=ROOT / "results")
+    parser.add_argument("--check", action="store_true", help="change nothing; exit status 1 where a table is stale")
+    opts = parser.parse_args(argv)
+    text = opts.readme.read_text(encoding="utf-8")
+    if opts.check:
+        names = stale(text, opts.results_dir)
+        if names:
+            print(f"{opts.readme}: tables differ from {opts.results_dir}/*.json: {', '.join(names)} "
+                  "(python -m ssm_ms.forecasting.readme rewrites them)", file=sys.stderr)
+        return 1 if names else 0
+    new = render(text, opts.results_dir)
+    if new != text:
+        opts.readme.write_text(new, encoding="utf-8")
+    print(f"{opts.readme}: {len(MARKER.findall(new))} tables from {opts.results_dir}/*.json"
+          + ("" if new != text else " (unchanged)"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,91 @@
+"""The README's results tables are generated from ``results/*.json`` (``python -m ssm_ms.forecasting.readme``): they
+fail here when the README and the results files disagree, regenerated in memory and compared."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from ssm_ms.forecasting import readme
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+RESULTS = ROOT / "results"
+
+
+def test_the_readme_tables_are_those_the_results_files_give():
+    stale = readme.stale(README.read_text(encoding="utf-8"), RESULTS)
+    assert stale == [], (f"README.md's tables {stale} differ from results/*.json: run "
+                         "`python -m ssm_ms.forecasting.readme` and commit README.md")
+
+
+def test_every_table_has_its_markers_in_the_readme():
+    text = README.read_text(encoding="utf-8")
+    assert [m.group("name") for m in readme.MARKER.finditer(text)] == list(readme.TABLES)
+
+
+@pytest.fixture
+def results_copy(tmp_path: Path) -> Path:
+    for path in RESULTS.glob("*.json"):
+        shutil.copy2(path, tmp_path / path.name)
+    return tmp_path
+
+
+def _edit(path: Path, change) -> None:
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))
+
+
+def test_a_changed_score_makes_its_table_stale(results_copy):
+    text = README.read_text(encoding="utf-8")
+    assert readme.stale(text, results_copy) == []
+
+    def change(data):
+        data["runs"]["encoder"]["summary"]["encoder/noisy/mse"]["mean"] = 0.0123456
+
+    _edit(results_copy / "pendulum.json", change)
+    assert readme.stale(text, results_copy) == ["full-size"]
+    rewritten = readme.render(text, results_copy)
+    assert "0.01235 ± 0.0027" in rewritten and readme.stale(rewritten, results_copy) == []
+    assert rewritten.replace("0.01235 ± 0.0027", "0.01521 ± 0.0027") == text  # nothing outside the markers moves
+
+
+def test_a_row_names_the_pipeline_that_produced_it_and_its_budget(results_copy):
+    """quad_fc.json keeps two records of one run (encoder budget 25, then resumed to 100): the row's command is the one
+    recorded with its test; the encoder's epochs and runs come from its stage command."""
+    table = "\n".join(readme.full_size(readme.Results(results_copy)))
+    quad_fc = next(line for line in table.splitlines() if "reproduce quad_fc" in line)
+    assert "--encoder-epochs 100" in quad_fc and "encoder 100 epochs" in quad_fc and "in 5 runs" in quad_fc
+    assert "--encoder-epochs 25" not in table
+    lstm = next(line for line in table.splitlines() if "pendulum_lstm" in line)
+    assert "LSTM 120 epochs" in lstm
+
+
+def test_the_check_command_exits_1_on_a_stale_readme(tmp_path, results_copy, capsys):
+    page = tmp_path / "README.md"
+    page.write_text(README.read_text(encoding="utf-8"))
+    assert readme.main(["--readme", str(page), "--results-dir", str(results_copy), "--check"]) == 0
+    page.write_text(page.read_text().replace("| SSM-LL + UKF | ", "| SSM-LL + UKF | 1 ", 1))
+    assert readme.main(["--readme", str(page), "--results-dir", str(results_copy), "--check"]) == 1
+    assert "lorenz-sweep" in capsys.readouterr().err
+    assert readme.main(["--readme", str(page), "--results-dir", str(results_copy)]) == 0
+    assert page.read_text() == README.read_text(encoding="utf-8")
+
+
+def test_markers_that_name_no_table_or_are_not_closed_are_refused(results_copy):
+    with pytest.raises(KeyError, match="no such table"):
+        readme.render("<!-- results:begin nothing -->\n<!-- results:end -->\n", results_copy)
+    with pytest.raises(ValueError, match="without its"):
+        readme.render("<!-- results:begin full-size -->\n| a |\n", results_copy)
+
+
+def test_cells_read_as_the_results_files_count_them():
+    assert readme.score({"mean": 663.3, "std": 190.2, "n": 64}) == "663.3 ± 190"
+    diverged = {"mean": 3.29e5, "std": 2.7e5, "n": 64, "non_finite": 1}
+    assert readme.score(diverged) == "3.29e+05 ± 2.7e+05, 1 of 64 non-finite"
+    assert readme.score({**diverged, "non_finite": 64}) == "non-finite on all 64"
+    assert readme.minutes(2290) == "38 min" and readme.minutes(9573.6) == "2.7 h" and readme.minutes(235) == "3.9 min"
