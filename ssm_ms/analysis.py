@@ -19,10 +19,10 @@ whether ``f`` (``[N, d] -> [N, d]``) and ``g`` (``[N, d] -> [N, *obs_shape]``) r
   visit the same values as the data (per measured component: 1-Wasserstein distance between the
   two empirical distributions, means and standard deviations).
 - :func:`both_wings_share`: the share of free runs that visit both wings of the Lorenz butterfly,
-  i.e. go above ``+level`` and below ``-level`` in ``x``; default level
-  :func:`lorenz_wing_level` ``= 0.5 * sqrt(beta (rho - 1))``, half the distance of the fixed points
+  i.e. go above ``+level`` and below ``-level`` in ``x``; the data set gives the level (Lorenz:
+  :func:`datamodules.lorenz.lorenz_wing_level` ``= 0.5 * sqrt(beta (rho - 1))``, half the distance of the fixed points
   ``x = +-sqrt(beta (rho - 1))`` (about 8.49, so 4.24) from 0. A run caught on a limit cycle around
-  one fixed point stays on one side.
+  one fixed point stays on one side).
 - :func:`valid_prediction_time`, :func:`summarize_valid_time`: how many steps a forecast stays valid,
   the reservoir-computing convention (Vlachas et al., 2020): valid while the normalised RMS error
   ``sqrt(mean_D((pred - truth)^2 / scale^2))`` stays ``<= 0.5``; summarised in steps, seconds
@@ -48,14 +48,13 @@ from typing import NamedTuple
 import torch
 from torch.func import jacrev, jvp, vmap
 
-from datamodules.lorenz import lorenz_wing_level  # where the Lorenz system lives; kept importable here
 from ssm_ms.training.shooting import rollout
 
 Fn = Callable[[torch.Tensor], torch.Tensor]
 
 __all__ = [
     "LyapunovResult", "amplitude_ratio", "attractor_statistics", "both_wings_share", "dominant_period", "free_run",
-    "dynamics_report", "jacobian", "linearize", "lorenz_wing_level", "lyapunov_spectrum", "lyapunov_time", "summarize_valid_time",
+    "dynamics_report", "jacobian", "linearize", "lyapunov_spectrum", "lyapunov_time", "summarize_valid_time",
     "valid_prediction_time", "valid_steps", "wasserstein_1d",
 ]
 
@@ -312,7 +311,7 @@ def both_wings_share(x: torch.Tensor, level: float) -> float:
 
     Args:
         x: one measured component per run, ``[R, T]`` (Lorenz: ``x`` in original units).
-        level: > 0; for Lorenz :func:`lorenz_wing_level` (``x`` in normalised units: divide it by the
+        level: > 0; for Lorenz :func:`datamodules.lorenz.lorenz_wing_level` (``x`` in normalised units: divide it by the
             data's std, after removing the mean).
     """
     if x.dim() != 2 or x.shape[0] < 1 or x.shape[1] < 1:

@@ -148,7 +148,7 @@ def export_checkpoint(checkpoint: str | Path, out_dir: str | Path, formats: Sequ
     """:func:`export` the ``f`` and ``g`` of a trained ``MultipleShootingModule`` checkpoint, with the
     measurement normalisation it was trained with in ``model.json`` (``normalization``: ``mean``, ``std``;
     ``null`` when the data were not normalised)."""
-    from ssm_ms.inference.ssm_forecaster import datamodule_state, load_ssm
+    from ssm_ms.module import datamodule_state, load_ssm
 
     model, saved = load_ssm(checkpoint)  # a missing, truncated or foreign file: ValueError / OSError naming it
     data = datamodule_state(saved)

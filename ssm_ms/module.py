@@ -10,8 +10,11 @@ like an uninterrupted one (tests/test_module.py).
 
 from __future__ import annotations
 
+import contextvars
 import io
+import os
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import lightning.pytorch as pl
@@ -519,3 +522,38 @@ class MultipleShootingModule(pl.LightningModule):
                 + "\nResume with the config saved beside the checkpoint (config.yaml in its run folder), "
                 "or start a fresh run without --ckpt_path."
             )
+
+
+# ---------------------------------------------------------------------------- a trained model from its file
+def load_ssm(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[MultipleShootingModule, dict]:
+    """Load a trained ``MultipleShootingModule`` (and the raw checkpoint, for its data statistics)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"the SSM checkpoint {path} does not exist: train the model first (python cli.py fit --config "
+            "configs/<experiment>.yaml) and set model.init_args.ssm_checkpoint to its checkpoints/last.ckpt"
+        )
+    checkpoint = read_checkpoint(path, "the SSM checkpoint")  # weights_only: a foreign file runs no code
+    if "state_dict" not in checkpoint or "nodes.weight" not in checkpoint["state_dict"]:
+        kind = checkpoint.get("forecaster") if isinstance(checkpoint, dict) else None
+        what = f"a checkpoint of the {kind} baseline" if kind else \
+            "not a checkpoint of a MultipleShootingModule (no shooting nodes in it)"
+        raise ValueError(
+            f"{path} is {what}: ssm_checkpoint takes the last.ckpt of an SSM run "
+            "(python cli.py fit --config configs/<experiment>.yaml)"
+        )
+    # LightningCLI hands a module it builds its hyperparameters through a context variable; the SSM loaded
+    # here, during that construction, must not pick them up: load it in an empty context.
+    model = contextvars.Context().run(
+        MultipleShootingModule.load_from_checkpoint, path, map_location=map_location, weights_only=False
+    )
+    model.freeze()
+    return model, checkpoint
+
+
+def datamodule_state(checkpoint: Mapping[str, Any]) -> tuple[str, dict] | None:
+    """``(key, state)`` of the DataModule saved in a checkpoint (normalisation and data identity)."""
+    for key, value in checkpoint.items():
+        if isinstance(value, dict) and "generator_params" in value and "name" in value:
+            return key, value
+    return None

@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy import stats
 
-from datamodules.lorenz import LorenzDataModule, lorenz_rk4, lorenz_rk4_step
+from datamodules.lorenz import LorenzDataModule, lorenz_rk4, lorenz_rk4_step, lorenz_wing_level
 from ssm_ms.analysis import (
     amplitude_ratio,
     attractor_statistics,
@@ -19,7 +19,6 @@ from ssm_ms.analysis import (
     free_run,
     jacobian,
     linearize,
-    lorenz_wing_level,
     lyapunov_spectrum,
     lyapunov_time,
     summarize_valid_time,

@@ -91,3 +91,46 @@ def test_drawing_is_apart_from_the_callbacks():
     lightning = sorted(m for m in imported_modules(ROOT / "ssm_ms" / "drawing.py") if m.split(".")[0] == "lightning")
     assert not lightning, f"ssm_ms/drawing.py imports {lightning}"
     assert {"ReconstructionLogger", "ShootingPictureLogger"} <= set(vars(importlib.import_module("ssm_ms.viz")))
+
+
+# The layers of ssm_ms, lowest first: a module imports only modules of its own layer or lower ones (and never the
+# data sets: the CLI builds data and model from the config's class paths).
+LAYERS = {
+    0: ("ssm_ms.runtime", "ssm_ms.training", "ssm_ms.nets", "ssm_ms.checkpointing", "ssm_ms.drawing"),
+    1: ("ssm_ms.module", "ssm_ms.schedule", "ssm_ms.viz", "ssm_ms.analysis", "ssm_ms.export"),
+    2: ("ssm_ms.inference", "ssm_ms.forecasting", "ssm_ms.baselines"),
+    3: ("ssm_ms.cli", "ssm_ms.reproduce", "ssm_ms.pretrained"),
+}
+
+
+def layer(module: str) -> int | None:
+    for rank, prefixes in LAYERS.items():
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return rank
+    return 0 if module == "ssm_ms" else None
+
+
+def test_every_module_has_a_layer():
+    unplaced = sorted(m for m in method_graph() if layer(m) is None)
+    assert unplaced == [], f"modules in no layer of LAYERS (place them; docs/layout.md names the layers): {unplaced}"
+
+
+def test_no_module_imports_a_higher_layer():
+    graph = method_graph()
+    upward = sorted(f"{m} -> {d}" for m, deps in graph.items() for d in deps if layer(d) > layer(m))
+    assert upward == [], f"imports against the layers (lower layers must not know higher ones): {upward}"
+
+
+def test_the_method_never_imports_the_data_sets():
+    for path in sorted((ROOT / "ssm_ms").rglob("*.py")):
+        data = sorted(m for m in imported_modules(path) if m == "datamodules" or m.startswith("datamodules."))
+        assert not data, f"{path.relative_to(ROOT)} imports {data}: the data set passes what it knows in (e.g. dm.wing_level())"
+
+
+def test_the_layer_check_sees_an_upward_import(monkeypatch):
+    fake = {"ssm_ms.training.shooting": {"ssm_ms.module"}, "ssm_ms.module": set()}
+    monkeypatch.setitem(globals(), "method_graph", lambda: fake)
+    import pytest
+
+    with pytest.raises(AssertionError, match="ssm_ms.training.shooting -> ssm_ms.module"):
+        test_no_module_imports_a_higher_layer()

@@ -10,9 +10,7 @@ SSM's normalisation statistics.
 
 from __future__ import annotations
 
-import contextvars
 import logging
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -22,7 +20,7 @@ import torch
 
 from ssm_ms.checkpointing import SSM_DIGEST_KEY, read_checkpoint, state_digest
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
-from ssm_ms.module import MultipleShootingModule
+from ssm_ms.module import MultipleShootingModule, datamodule_state, load_ssm
 from ssm_ms.training.shooting import decode, rollout
 
 _log = logging.getLogger("ssm_ms")
@@ -34,40 +32,6 @@ INFERENCE_LABELS = {"encoder": "CNN-LSTM encoder", "ukf": "UKF", "pf": "particle
 
 
 # ---------------------------------------------------------------------------- checkpoints
-def load_ssm(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[MultipleShootingModule, dict]:
-    """Load a trained ``MultipleShootingModule`` (and the raw checkpoint, for its data statistics)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"the SSM checkpoint {path} does not exist: train the model first (python cli.py fit --config "
-            "configs/<experiment>.yaml) and set model.init_args.ssm_checkpoint to its checkpoints/last.ckpt"
-        )
-    checkpoint = read_checkpoint(path, "the SSM checkpoint")  # weights_only: a foreign file runs no code
-    if "state_dict" not in checkpoint or "nodes.weight" not in checkpoint["state_dict"]:
-        kind = checkpoint.get("forecaster") if isinstance(checkpoint, dict) else None
-        what = f"a checkpoint of the {kind} baseline" if kind else \
-            "not a checkpoint of a MultipleShootingModule (no shooting nodes in it)"
-        raise ValueError(
-            f"{path} is {what}: ssm_checkpoint takes the last.ckpt of an SSM run "
-            "(python cli.py fit --config configs/<experiment>.yaml)"
-        )
-    # LightningCLI hands a module it builds its hyperparameters through a context variable; the SSM loaded
-    # here, during that construction, must not pick them up: load it in an empty context.
-    model = contextvars.Context().run(
-        MultipleShootingModule.load_from_checkpoint, path, map_location=map_location, weights_only=False
-    )
-    model.freeze()
-    return model, checkpoint
-
-
-def datamodule_state(checkpoint: Mapping[str, Any]) -> tuple[str, dict] | None:
-    """``(key, state)`` of the DataModule saved in a checkpoint (normalisation and data identity)."""
-    for key, value in checkpoint.items():
-        if isinstance(value, dict) and "generator_params" in value and "name" in value:
-            return key, value
-    return None
-
-
 def data_differences(checkpoint: Mapping[str, Any], dm: Any, split: str = "train") -> list[str]:
     """How the ``split`` of ``dm`` differs from the one of the data the SSM of ``checkpoint`` learned (empty: the
     same). Only what determines that split is compared (:meth:`~datamodules.base.TrajectoryDataModule.params_of`):
