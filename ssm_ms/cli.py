@@ -86,12 +86,15 @@ class SSMCLI(LightningCLI):
     def __init__(self, *args: Any, argv: list[str] | None = None, **kwargs: Any):
         self._argv = list(sys.argv[1:] if argv is None else argv)
         self._checkpoint_source: str | None = None  # "<--ckpt_path> (trained on ...)", for the model's messages
+        self._model_as_given: dict[str, Any] = {}  # the model section as given, before --ckpt_path replaces it
         super().__init__(*args, args=argv, **kwargs)
 
     def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
         super().parse_arguments(parser, args)
         subcommand = self.config.get("subcommand")
         config = self.config[subcommand] if subcommand else self.config
+        given = config.get("model")
+        self._model_as_given = given.clone().as_dict() if given is not None else {}  # before --ckpt_path's
         ckpt = config.get("ckpt_path")
         expected = config.get("model", {}).get("class_path") if config.get("model") else None
         if ckpt and str(ckpt) not in LIGHTNING_CKPT_ALIASES:
@@ -115,16 +118,13 @@ class SSMCLI(LightningCLI):
                     "last.ckpt of an SSM run (python cli.py fit --config configs/<experiment>.yaml)"
                 )
 
-    def _parse_ckpt_path(self) -> None:
-        """Lightning's: the checkpoint's model hyperparameters replace the config's; then one line naming each
-        value given that the checkpoint's replaced (silently replaced before)."""
+    def before_instantiate_classes(self) -> None:
+        """With ``--ckpt_path`` Lightning has replaced the model's settings by the checkpoint's (between
+        :meth:`parse_arguments` and this hook): one line naming each value given that the checkpoint's replaced."""
         subcommand = self.config.get("subcommand")
-        before = self.config[subcommand].get("model") if subcommand else None
-        before = before.clone().as_dict() if before is not None else {}
-        super()._parse_ckpt_path()
         after = self.config[subcommand].get("model") if subcommand else None
         after = after.as_dict() if after is not None else {}
-        old, new = _flatten(before, "model"), _flatten(after, "model")
+        old, new = _flatten(self._model_as_given, "model"), _flatten(after, "model")
         replaced, other_class = [], []
         for key, value in old.items():
             if value is None or key not in new or new[key] == value:
@@ -145,9 +145,9 @@ class SSMCLI(LightningCLI):
         if self._checkpoint_source is not None and hasattr(self.model, "checkpoint_source"):
             self.model.checkpoint_source = self._checkpoint_source  # its data checks then name the checkpoint first
 
-    def _instantiate_trainer(self, config: dict[str, Any], callbacks: list) -> pl.Trainer:
+    def instantiate_trainer(self, **kwargs: Any) -> pl.Trainer:
         try:
-            return super()._instantiate_trainer(config, callbacks)
+            return super().instantiate_trainer(**kwargs)
         except (MisconfigurationException, ValueError) as err:  # Lightning refusing a trainer setting
             raise ValueError(f"trainer: {err}") from err
 

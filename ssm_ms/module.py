@@ -33,6 +33,7 @@ from ssm_ms.training.constraints import (
 )
 from ssm_ms.training.nodes import node_group, row_adam_
 from ssm_ms.runtime.perf import check_precision
+from ssm_ms.runtime.private import built_by_lightning_cli
 from ssm_ms.training.shooting import CompiledRollout, decode, loss_function, multiple_shooting_loss, rollout, shooting_residuals
 
 # Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
@@ -49,15 +50,6 @@ def _structure(value: Any) -> Any:
     if isinstance(value, Mapping):
         return value.get("class_path", value.get("_class_path", dict(value)))
     return value
-
-
-def _given_by_cli() -> bool:
-    """Whether this module is being built by LightningCLI (which records f and g as their config)."""
-    try:
-        from lightning.pytorch.core.mixins.hparams_mixin import _given_hyperparameters
-    except ImportError:  # pragma: no cover - private API moved
-        return False
-    return _given_hyperparameters.get() is not None
 
 
 class MultipleShootingModule(pl.LightningModule):
@@ -125,7 +117,7 @@ class MultipleShootingModule(pl.LightningModule):
         # Built by LightningCLI, f and g are recorded as their config (class_path + init_args), so
         # `load_from_checkpoint` rebuilds them; built in Python, checkpoints carry the networks
         # themselves (see on_save_checkpoint).
-        self.save_hyperparameters(ignore=[] if _given_by_cli() else ["f", "g"])
+        self.save_hyperparameters(ignore=[] if built_by_lightning_cli() else ["f", "g"])
         loss_function(loss)  # unknown loss name: fail now, not at the first step
         if state_dim < 1 or n_nodes < 1:
             raise ValueError(

@@ -60,14 +60,15 @@ def bf16_support(device: "str | object" = "cpu") -> tuple[bool, str]:
     """
     import torch
 
+    from ssm_ms.runtime.private import cpu_bf16_native
+
     device = torch.device(device)
     if device.type == "cuda":
         if torch.cuda.is_available() and torch.cuda.is_bf16_supported(including_emulation=False):
             return True, ""
         return False, "this GPU has no native bfloat16 support (it needs compute capability 8.0 or newer)"
     if device.type == "cpu":
-        native = torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported()
-        if native:
+        if cpu_bf16_native():
             return True, ""
         return False, (
             "this CPU has no native bfloat16 instructions (AVX512-BF16 or AMX): PyTorch would emulate "

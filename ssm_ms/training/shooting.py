@@ -15,6 +15,8 @@ from collections.abc import Callable
 import torch
 import torch.nn.functional as F
 
+from ssm_ms.runtime.private import dynamo_supported
+
 LOSSES: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {
     "mse": F.mse_loss,
     "bce": F.binary_cross_entropy,
@@ -45,11 +47,7 @@ def compile_unavailable_reason(mode: str) -> str | None:
     """Why ``torch.compile`` cannot build a rollout here (``None``: it can)."""
     if mode not in COMPILE_MODES:
         return f"unknown torch.compile mode {mode!r}: choose one of {list(COMPILE_MODES)}"
-    try:
-        import torch._dynamo
-    except ImportError as err:  # pragma: no cover - depends on the installation
-        return f"torch.compile is not part of this PyTorch build ({err})"
-    if not torch._dynamo.is_dynamo_supported():
+    if not dynamo_supported():
         return f"torch.compile does not support this Python ({sys.version.split()[0]}) or platform"
     if not torch.cuda.is_available() and not any(shutil.which(c) for c in ("g++", "c++", "clang++")):
         return "torch.compile on CPU needs a C++ compiler (g++ or clang++) on PATH, and none was found"

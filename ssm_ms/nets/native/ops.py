@@ -10,6 +10,7 @@ from collections.abc import Sequence
 import torch
 
 from ssm_ms.nets.native.build import ConvStackArgs, check, library, threads
+from ssm_ms.runtime.private import has_forward_tangent, in_functorch_transform
 
 NATIVE_SCRATCH = 1 << 18  # floats (1 MiB): what one sample of the native kernels may use, about a core's L2 cache
 
@@ -200,9 +201,7 @@ def applies(h: torch.Tensor) -> bool:
         return False
     if torch.compiler.is_compiling():  # torch.compile's tracing (fake tensors): it records the operator
         return True
-    if torch._C._functorch.is_functorch_wrapped_tensor(h):
-        return False
-    if torch.autograd.forward_ad._current_level >= 0 and torch.autograd.forward_ad.unpack_dual(h).tangent is not None:
+    if in_functorch_transform(h) or has_forward_tangent(h):
         return False
     return library() is not None
 
