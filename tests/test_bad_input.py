@@ -347,7 +347,7 @@ def test_the_real_command_prints_no_traceback(setup):
     assert "Traceback" not in done.stderr and "error: state_dim and n_nodes must be >= 1" in done.stderr
 
 
-# ---------------------------------------------------------------------------- resuming (issue 23)
+# ---------------------------------------------------------------------------- resuming
 def test_invalid_trainer_value_is_one_error_line(setup, capsys):
     root, _ = setup
     fails(capsys, fit(root, "--trainer.max_epochs", "-5"), 1, "trainer:", "max_epochs", "-5")

@@ -48,6 +48,15 @@ def test_relative_links_resolve(path: Path):
     assert broken_links(path) == [], f"{path.relative_to(ROOT)}: links to missing files"
 
 
+def test_no_work_item_numbers_in_code_or_tests():
+    """Tests and code say what they check, not which ticket asked for it."""
+    files = sorted((ROOT / "tests").glob("*.py")) + sorted((ROOT / "ssm_ms").rglob("*.py"))
+    files += sorted((ROOT / "datamodules").glob("*.py")) + sorted((ROOT / "benchmarks").glob("*.py"))
+    hits = {str(p.relative_to(ROOT)): WORK_ITEM.findall(p.read_text(encoding="utf-8"))
+            for p in files if p.name != "test_docs.py"}
+    assert {k: v for k, v in hits.items() if v} == {}
+
+
 @pytest.mark.parametrize("path", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
 def test_no_internal_work_item_numbers(path: Path):
     hits = [m.group(0) for m in WORK_ITEM.finditer(path.read_text(encoding="utf-8"))]

@@ -13,7 +13,7 @@ from ssm_ms.module import MultipleShootingModule
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
 
-# What the CPU-sized Lorenz twin must reach: issue 12's targets, as stated. (With 16 free runs W1 moved between
+# What the CPU-sized Lorenz twin must reach (docs/results.md states the targets). (With 16 free runs W1 moved between
 # 0.70 and 1.14 from one snapshot to the next, benchmarks/results/lorenz_cpu_study.md; the stage configs now
 # draw 64 free runs, analysis.dynamics.free_runs, and results/lorenz_T1000_cpu.md has 0.68.)
 WINGS_SHARE = 1.0          # share of the 64 free runs that visit both wings: every one
@@ -52,7 +52,7 @@ def test_quadruple_pendulum_paper_config_starts_and_trains(tmp_path):
 
 def test_lorenz_cpu_twin_recovers_the_attractor(tmp_path):
     """`make reproduce EXP=lorenz_T1000 SIZE=cpu`'s SSM stage, as shipped, then its UKF test with the analysis:
-    the learned f, iterated alone, has the Lorenz attractor's statistics (the targets of issue 12; figures
+    the learned f, iterated alone, has the Lorenz attractor's statistics (the targets below; figures
     from the shipped run: results/lorenz_T1000_cpu.md). 30 to 55 minutes on 2 cores, depending on the CPU."""
     import json
 
