@@ -61,18 +61,72 @@ ROOT = Path(__file__).resolve().parents[1]
 BUDGETS = ("encoder_epochs", "baseline_epochs")  # options a resumed run may raise: its fits continue to the new count
 
 
+SECTION_FILES = ("data", "model")  # sections a config may give as the path of a file holding them
+
+
+def load_config(config: Path | str, _including: tuple[Path, ...] = ()) -> dict:
+    """The config file ``config`` composed as ``cli.py`` (jsonargparse) composes it, as a dict: the values it and the
+    configs it includes state (not the defaults they leave out), interpolations (``${...}``) as written.
+
+    - ``config: <path>`` (relative to the file; its first key) loads that config first, itself composed;
+    - then the file's other keys in order: a dotted key (``trainer.max_epochs: 5``) sets that one value (a dict or
+      list given there replaces the value whole), a plain key (``trainer:``) replaces the whole section;
+    - ``data`` or ``model`` given as a path (``data: data/pendulum.yaml``, relative to the file) is that file's
+      content (``class_path`` and ``init_args``).
+
+    tests/test_configs.py checks it against ``cli.py --print_config`` on every shipped config."""
+    path = Path(config)
+    if path.resolve() in _including:
+        raise ValueError(f"{path} includes itself: {' -> '.join(str(p) for p in (*_including, path.resolve()))}")
+    raw = OmegaConf.to_container(OmegaConf.load(path), resolve=False) or {}
+    if not isinstance(raw, dict):
+        raise ValueError(f"{path} is not a config (a YAML mapping of options)")
+    out: dict = {}
+    for key, value in raw.items():
+        key = str(key)
+        if key == "config":  # an include after other keys (jsonargparse): they stay where it does not set them
+            out = _merged(out, load_config(path.parent / str(value), (*_including, path.resolve())))
+            continue
+        if key in SECTION_FILES and isinstance(value, str):
+            value = OmegaConf.to_container(OmegaConf.load(path.parent / value), resolve=False)
+        *parents, leaf = key.split(".")
+        node = out
+        for part in parents:
+            if not isinstance(node.get(part), dict):
+                node[part] = {}
+            node = node[part]
+        node[leaf] = value
+    return out
+
+
+def _merged(under: dict, over: dict) -> dict:
+    """``under`` with ``over``'s values, dicts merged key by key."""
+    out = dict(under)
+    for key, value in over.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def config_value(config: Path | str, key: str, default=None):
+    """The dotted ``key`` (``trainer.logger.init_args.name``) of the composed ``config``, else ``default``."""
+    value = load_config(config)
+    for part in key.split("."):
+        if not isinstance(value, dict) or part not in value:
+            return default
+        value = value[part]
+    return value
+
+
 def logger_dir(config: Path) -> Path:
     """``save_dir/name`` of the TensorBoard logger a config declares."""
-    cfg = OmegaConf.load(config)
-    args = OmegaConf.select(cfg, "trainer.logger.init_args", default=None)
-    if args is None or "save_dir" not in args or "name" not in args:
+    args = config_value(config, "trainer.logger.init_args")
+    if not isinstance(args, dict) or "save_dir" not in args or "name" not in args:
         raise ValueError(f"{config} declares no TensorBoardLogger with save_dir and name: reproduce needs them")
-    return Path(args.save_dir) / args.name
+    return Path(str(args["save_dir"])) / str(args["name"])
 
 
 def experiment_name(config: Path) -> str:
-    cfg = OmegaConf.load(config)
-    return str(OmegaConf.select(cfg, "model.init_args.experiment", default=config.stem))
+    return str(config_value(config, "model.init_args.experiment", default=config.stem))
 
 
 def _stage_checkpoint(args: list[str]) -> Path | None:
@@ -365,7 +419,7 @@ def main(argv: list[str] | None = None) -> None:
                        again=fit_ran)
         configs.append(cfg)
     experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
-    results_dir = ROOT / str(OmegaConf.select(OmegaConf.load(configs[0]), "model.init_args.results_dir", default="results"))
+    results_dir = ROOT / str(config_value(configs[0], "model.init_args.results_dir", default="results"))
     md = pipeline.finished(results_dir, experiment)
     print(f"\nresults: {md.relative_to(ROOT)}\n")
     print(md.read_text())

@@ -20,10 +20,12 @@ from omegaconf import OmegaConf
 from ssm_ms.baselines import BaselineForecaster
 from ssm_ms.cli import main
 from ssm_ms.module import MultipleShootingModule
+from ssm_ms.reproduce import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CPU = ROOT / "configs" / "cpu"
 MNIST_ROOT = ROOT.parent / "shared" / "data"
+FILES = "datamodules.files.FileDataModule"  # a user's files: no data_dir to redirect
 SSM_CONFIGS = sorted(p for p in CPU.glob("*.yaml") if not p.stem.endswith(("_encoder", "_ukf")))
 
 TINY = {  # data overrides that make each data set a handful of short trajectories
@@ -55,7 +57,7 @@ def run(tmp: Path, subcommand: str, config: Path, *extra: str):
             "--trainer.logger.init_args.version", "t",
             "--trainer.enable_progress_bar", "false",
             "--trainer.enable_model_summary", "false"]
-    if "--data.init_args.data_dir" not in extra and "files" not in config.read_text():
+    if "--data.init_args.data_dir" not in extra and load_config(config)["data"]["class_path"] != FILES:
         args += ["--data.init_args.data_dir", str(tmp / "data")]
     return main(args + list(extra))
 
@@ -67,7 +69,7 @@ def fit_tiny(tmp: Path, config: Path, *extra: str):
 
 
 def outputs(tmp: Path, config: Path) -> Path:
-    name = OmegaConf.load(config).trainer.logger.init_args.name
+    name = load_config(config)["trainer"]["logger"]["init_args"]["name"]
     return tmp / "runs" / name / "t"
 
 
@@ -172,7 +174,7 @@ def test_cpu_baseline_config_fits_and_tests(tmp_path, config, baseline_lorenz_da
     ckpt = outputs(tmp_path, config) / "checkpoints" / "last.ckpt"
     run(tmp_path, "test", config, "--ckpt_path", str(ckpt), "--trainer.limit_test_batches", "1", *extra)
     model = "LSTM" if config.stem.endswith("lstm") else "RKN"
-    experiment = OmegaConf.load(config).model.init_args.experiment
+    experiment = load_config(config)["model"]["init_args"]["experiment"]
     report = (tmp_path / "results" / f"{experiment}.md").read_text()
     assert f"| {model} |" in report and f"| {model} | " in report.split("## The paper")[1]
     assert "Valid prediction time" in report
@@ -187,7 +189,7 @@ def test_lorenz_sweep_baselines_split_their_pieces(config, tmp_path):
     trained whole, 90 given and 10 predicted; pieces of 10,000 whole at the paper's size, in 200-step windows (190
     given) on CPU, as lorenz_T1000's CPU twin (the test protocol is the same for every T)."""
     cli = main(["--config", str(config), "--trainer.logger.init_args.save_dir", str(tmp_path)], run=False)
-    piece = OmegaConf.load(config).data.init_args.piece_length
+    piece = load_config(config)["data"]["init_args"]["piece_length"]
     cpu = config.parent.parent == CPU
     window, given = {10: (None, 5), 100: (None, 90), 10000: (200, 190) if cpu else (None, 9990)}[piece]
     assert cli.model.train_window == window
@@ -199,7 +201,7 @@ def test_cpu_lorenz_baselines_see_as_many_measurements_for_every_t():
     """The CPU twins' baselines for T = 1000 and 10,000 train on 200-step windows; the T = 10,000 data hold 4 pieces a
     step (the SSM's batch) where T = 1000's hold 40, so its epochs are 10x: the same steps x windowed measurements."""
     def seen(stem: str) -> int:
-        cfg = OmegaConf.load(CPU / "baselines" / f"{stem}.yaml")
+        cfg = OmegaConf.create(load_config(CPU / "baselines" / f"{stem}.yaml"))
         data = cfg.data.init_args
         steps_per_epoch = math.ceil(data.n_train * data.train_steps / data.piece_length / data.batch_size)
         return cfg.trainer.max_epochs * steps_per_epoch * data.batch_size * cfg.model.init_args.train_window
@@ -240,7 +242,8 @@ def test_paper_configs_parse_and_instantiate(tmp_path, config):
 
 
 def data_section(config: Path) -> dict:
-    return OmegaConf.to_container(OmegaConf.load(config).data)
+    """The data section a config composes to (a stage's and its SSM's are the same file, or the same values)."""
+    return load_config(config)["data"]
 
 
 @pytest.mark.parametrize("folder", ["configs", "configs/cpu"])
@@ -339,10 +342,10 @@ def test_checkpoint_every_epoch_with_rare_validation(rotation):
 
 def test_every_shipped_training_config_checkpoints_every_epoch():
     configs = sorted((ROOT / "configs").rglob("*.yaml"))
-    trained = [c for c in configs if "max_epochs" in OmegaConf.load(c).get("trainer", {})]
+    trained = [c for c in configs if "max_epochs" in load_config(c).get("trainer", {})]
     assert len(trained) > 40
     for config in trained:
-        callbacks = [c["class_path"] for c in OmegaConf.load(config).trainer.get("callbacks", [])]
+        callbacks = [c["class_path"] for c in load_config(config)["trainer"].get("callbacks", [])]
         assert "ssm_ms.checkpointing.EpochCheckpoint" in callbacks, config
         assert "lightning.pytorch.callbacks.ModelCheckpoint" not in callbacks, config
 
@@ -392,14 +395,15 @@ def test_state_dim_override_reaches_f_and_print_config(rotation, capsys):
     cli = main([*fit, "--model.init_args.state_dim", "5", "--trainer.max_epochs", "1",
                 "--trainer.logger.init_args.version", "d5"])
     assert cli.model.f.matrices.shape[-1] == 5 and cli.model.nodes.weight.shape[1] == 3 * 5
-    # the shipped configs interpolate every f/g state size from model.init_args.state_dim
+    # the shipped configs interpolate every f/g state size from model.init_args.state_dim (as composed: includes,
+    # overlays; configs/data/ hold data sections)
     for config in sorted((ROOT / "configs").rglob("*.yaml")):
-        text = config.read_text()
+        model = load_config(config).get("model") or {}
         for network in ("f", "g"):
-            args = OmegaConf.load(config).model.init_args.get(network, {}).get("init_args", {}) or {}
+            args = ((model.get("init_args") or {}).get(network) or {}).get("init_args") or {}
             for key in ("state_dim", "in_features"):
                 if key in args:
-                    assert OmegaConf.to_container(args, resolve=False)[key] == "${model.init_args.state_dim}", (config, text)
+                    assert args[key] == "${model.init_args.state_dim}", (config, network, args)
 
 
 def test_cli_model_reloads_in_python_with_its_config(rotation):

@@ -1,0 +1,124 @@
+"""The shipped configs compose as ``make reproduce`` reads them: for every config, what
+:func:`ssm_ms.reproduce.load_config` composes (includes, shared data files, dotted overrides) is what ``cli.py``'s own
+parser resolves (``--print_config``), so the helper cannot drift from jsonargparse."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+from omegaconf import OmegaConf
+
+from ssm_ms.cli import SSMCLI, main
+from ssm_ms.reproduce import config_value, experiment_name, load_config, logger_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+# every runnable config: not the shared sections (configs/data/, configs/cpu/data/), not the examples added after one
+CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.yaml") if p.parent.name not in ("data", "examples"))
+
+
+def is_stage(config: Path) -> bool:
+    return config.stem.endswith(("_encoder", "_ukf"))
+
+
+@pytest.fixture(scope="module")
+def resolve():
+    """``config -> dict``: the config as ``python cli.py fit --config <config> --print_config`` prints it, by cli.py's
+    parser built once (a stage config gets the SSM checkpoint it needs, not read)."""
+
+    class Built(Exception):
+        pass
+
+    def stop(self, parser, args):
+        raise Built(parser)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(SSMCLI, "parse_arguments", stop)
+        with pytest.raises(Built) as built:
+            main(["--config", str(CONFIGS[0])], run=False)
+    parser = built.value.args[0]
+
+    def parse(config: Path) -> dict:
+        extra = ["--model.init_args.ssm_checkpoint", "x.ckpt"] if is_stage(config) else []
+        namespace = parser.parse_args(["--config", str(config), *extra])
+        return yaml.safe_load(parser.dump(namespace, skip_unset=False))  # as --print_config dumps it
+
+    return parse
+
+
+def assert_states(composed, resolved, where: str = "") -> None:
+    """Every value ``composed`` states is ``resolved``'s at the same place (``resolved`` also holds the defaults)."""
+    if isinstance(composed, dict):
+        assert isinstance(resolved, dict), f"{where}: {resolved!r} where the config states {composed!r}"
+        keys = {str(k): k for k in resolved}  # jsonargparse gives {0: 0} string keys
+        for key, value in composed.items():
+            assert str(key) in keys, f"{where}.{key}: stated, not in the resolved config"
+            assert_states(value, resolved[keys[str(key)]], f"{where}.{key}")
+    elif isinstance(composed, list):
+        assert isinstance(resolved, list) and len(resolved) == len(composed), f"{where}: {resolved!r}, not {composed!r}"
+        for i, (value, other) in enumerate(zip(composed, resolved)):
+            assert_states(value, other, f"{where}[{i}]")
+    else:
+        assert composed == resolved, f"{where}: resolved to {resolved!r}, composed {composed!r}"
+
+
+@pytest.mark.parametrize("config", CONFIGS, ids=lambda p: str(p.relative_to(ROOT / "configs")))
+def test_load_config_composes_as_the_cli(config, resolve):
+    resolved = resolve(config)
+    composed = load_config(config)
+    assert {"trainer", "model", "data"} <= set(composed) and "config" not in composed
+    assert_states(OmegaConf.to_container(OmegaConf.create(composed), resolve=True), resolved)
+    # what make reproduce reads: where the stage logs, and the experiment and folder its results go to
+    logger = resolved["trainer"]["logger"]["init_args"]
+    assert logger_dir(config) == Path(logger["save_dir"]) / logger["name"]
+    model = resolved["model"]["init_args"]
+    assert experiment_name(config) == model.get("experiment", config.stem)
+    assert config_value(config, "model.init_args.results_dir", default="results") == model.get("results_dir", "results")
+
+
+def test_overlay_semantics(tmp_path, resolve):
+    """What docs/cli.md says of overlays, and load_config does: ``config:`` includes a file (relative to the overlay), a
+    dotted key changes one value, a nested section replaces the base's whole section, lists are replaced whole, and a
+    section may be the path of a file; a path is relative to the file that states it."""
+    (tmp_path / "data").mkdir()
+    (tmp_path / "cpu").mkdir()
+    (tmp_path / "data" / "lorenz.yaml").write_text(
+        "class_path: datamodules.lorenz.LorenzDataModule\ninit_args: {piece_length: 100, n_train: 20, batch_size: 8}\n")
+    base = (ROOT / "configs" / "lorenz_T1000.yaml").read_text().split("\ndata:")[0] + "\ndata: data/lorenz.yaml\n"
+    (tmp_path / "base.yaml").write_text(base)
+    (tmp_path / "cpu" / "overlay.yaml").write_text(
+        "config: ../base.yaml\n"
+        "trainer.max_epochs: 7\n"
+        "trainer.callbacks:\n  - class_path: ssm_ms.checkpointing.EpochCheckpoint\n"
+        "model.init_args.f.init_args.hidden: 64\n"
+        "data.init_args.n_train: 10\n"
+        "seed_everything: 3\n")
+    (tmp_path / "cpu" / "replace.yaml").write_text(
+        "config: overlay.yaml\n"
+        "trainer:\n  logger:\n    class_path: lightning.pytorch.loggers.TensorBoardLogger\n"
+        "    init_args: {save_dir: elsewhere, name: replaced}\n")
+    for config in (tmp_path / "cpu" / "overlay.yaml", tmp_path / "cpu" / "replace.yaml"):
+        composed, resolved = load_config(config), resolve(config)
+        assert_states(OmegaConf.to_container(OmegaConf.create(composed), resolve=True), resolved)
+    overlay = resolve(tmp_path / "cpu" / "overlay.yaml")
+    assert overlay["seed_everything"] == 3 and overlay["trainer"]["max_epochs"] == 7
+    assert overlay["trainer"]["log_every_n_steps"] == 1  # the base's, kept
+    assert [c["class_path"] for c in overlay["trainer"]["callbacks"]] == ["ssm_ms.checkpointing.EpochCheckpoint"]
+    f = overlay["model"]["init_args"]["f"]["init_args"]
+    assert (f["hidden"], f["n_matrices"], f["state_dim"]) == (64, 32, 3)  # one value changed, the interpolation kept
+    data = overlay["data"]["init_args"]  # the base's file (data/, relative to the base), one value changed
+    assert (data["piece_length"], data["n_train"], data["batch_size"]) == (100, 10, 8)
+    replaced = resolve(tmp_path / "cpu" / "replace.yaml")
+    assert replaced["trainer"]["logger"]["init_args"]["name"] == "replaced"
+    assert replaced["trainer"]["max_epochs"] is None and replaced["trainer"]["callbacks"] is None  # section replaced
+    assert load_config(tmp_path / "cpu" / "replace.yaml")["trainer"] == {"logger": {
+        "class_path": "lightning.pytorch.loggers.TensorBoardLogger",
+        "init_args": {"save_dir": "elsewhere", "name": "replaced"}}}
+
+
+def test_an_include_loop_is_named(tmp_path):
+    (tmp_path / "a.yaml").write_text("config: b.yaml\n")
+    (tmp_path / "b.yaml").write_text("config: a.yaml\n")
+    with pytest.raises(ValueError, match="includes itself"):
+        load_config(tmp_path / "a.yaml")
