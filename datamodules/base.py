@@ -108,6 +108,7 @@ class TrajectoryDataset(Dataset):
         arrays: Mapping[str, np.ndarray],
         normalizer: Normalizer | None = None,
         indices: Sequence[int] | None = None,
+        input_normalizer: Normalizer | None = None,
     ):
         if "y" not in arrays:
             raise ValueError(f"a trajectory data set needs a 'y' array, got keys {sorted(arrays)}")
@@ -117,6 +118,7 @@ class TrajectoryDataset(Dataset):
                 raise ValueError(f"array '{key}' holds {len(a)} trajectories but 'y' holds {n}")
         self.arrays = dict(arrays)
         self.normalizer = normalizer
+        self.input_normalizer = input_normalizer  # of the inputs "u" [N, T, m], where the data have them
         self.indices = np.arange(n) if indices is None else np.asarray(indices, dtype=np.int64)
 
     def __len__(self) -> int:
@@ -136,6 +138,8 @@ class TrajectoryDataset(Dataset):
             t = to_float(a[j])
             if key in ("y", "y_clean") and self.normalizer is not None:
                 t = self.normalizer.normalize(t)
+            elif key == "u" and self.input_normalizer is not None:
+                t = self.input_normalizer.normalize(t)
             item[key] = t
         return item
 
@@ -232,6 +236,9 @@ class TrajectoryDataModule(pl.LightningDataModule):
         self.datasets: dict[str, Dataset] = {}
         self._normalizer: Normalizer | None = None
         self._loaded_normalizer: Normalizer | None = None
+        self._input_normalizer: Normalizer | None = None  # of the inputs "u", where the data have them
+        self._loaded_input_normalizer: Normalizer | None = None
+        self._saved_input_dim: int | None = None
         self._mean: torch.Tensor | None = None  # mean training measurement [*obs_shape], original units
         self._saved_obs_shape: tuple[int, ...] | None = None  # a checkpoint's, for predict before any data
 
@@ -395,6 +402,32 @@ class TrajectoryDataModule(pl.LightningDataModule):
         if isinstance(ds, TrajectoryDataset):
             norm = self.normalizer
             ds.normalizer = None if norm is None or norm.is_identity else norm
+            if "u" in ds.arrays:
+                norm = self.input_normalizer
+                ds.input_normalizer = None if norm is None or norm.is_identity else norm
+
+    @property
+    def input_dim(self) -> int:
+        """Inputs per step ``m`` of the data's ``"u" [N, T, m]`` (0: no inputs, an autonomous system)."""
+        for ds in self.datasets.values():
+            if isinstance(ds, TrajectoryDataset):
+                return int(ds.arrays["u"].shape[-1]) if "u" in ds.arrays else 0
+        return self._saved_input_dim or 0
+
+    @property
+    def input_normalizer(self) -> Normalizer | None:
+        """The inputs' normalisation, as the measurements': a checkpoint's, the identity (``normalize: false``),
+        else the training split's per-component statistics. ``None`` without inputs."""
+        if self._input_normalizer is None:
+            if self._loaded_input_normalizer is not None:
+                self._input_normalizer = self._loaded_input_normalizer
+            elif self.input_dim == 0:
+                return None
+            elif not self.normalize:
+                self._input_normalizer = Normalizer.identity(self.input_dim, 1)
+            else:
+                self._input_normalizer = Normalizer(*self.compute_statistics(self.train_split(), "u"), 1)
+        return self._input_normalizer
 
     @property
     def normalizer(self) -> Normalizer | None:
@@ -434,9 +467,10 @@ class TrajectoryDataModule(pl.LightningDataModule):
             self._mean = self.compute_mean(self.train_split())
         return self._mean
 
-    def compute_statistics(self, train: Dataset) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-channel mean and std of the training measurements (float64 accumulation)."""
-        y = train.arrays["y"] if isinstance(train, TrajectoryDataset) else None
+    def compute_statistics(self, train: Dataset, key: str = "y") -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-channel mean and std of the training measurements (or of another array ``[N, T, C, ...]``: the
+        inputs ``"u"``), float64 accumulation."""
+        y = train.arrays[key] if isinstance(train, TrajectoryDataset) else None
         if y is None:
             raise NotImplementedError(f"{type(self).__name__} must implement compute_statistics")
         c = y.shape[2]
@@ -554,7 +588,7 @@ class TrajectoryDataModule(pl.LightningDataModule):
     def subset(self, ds: Dataset, indices: np.ndarray) -> Dataset:
         """The trajectories ``indices`` of ``ds``, keeping their index (override for non-array data)."""
         assert isinstance(ds, TrajectoryDataset)
-        return TrajectoryDataset(ds.arrays, ds.normalizer, ds.indices[indices])
+        return TrajectoryDataset(ds.arrays, ds.normalizer, ds.indices[indices], ds.input_normalizer)
 
     def test_dataloader(self) -> DataLoader:
         return self._loader(self.load("test"), self.eval_batch_size)
@@ -566,6 +600,9 @@ class TrajectoryDataModule(pl.LightningDataModule):
         state: dict[str, Any] = {"name": self.name, "generator_params": self._safe_generator_params()}
         if self.normalizer is not None:
             state["normalizer"] = self.normalizer.state_dict()
+        if self.input_normalizer is not None:
+            state["input_normalizer"] = self.input_normalizer.state_dict()
+            state["input_dim"] = self.input_dim
         if self._mean is not None:
             state["mean_measurement"] = self._mean.clone()
         if self.datasets or self._saved_obs_shape is not None:
@@ -579,6 +616,9 @@ class TrajectoryDataModule(pl.LightningDataModule):
             return None
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        if "input_normalizer" in state_dict:
+            self._loaded_input_normalizer = self._input_normalizer = Normalizer.from_state_dict(state_dict["input_normalizer"])
+            self._saved_input_dim = int(state_dict.get("input_dim", self._loaded_input_normalizer.mean.numel()))
         if "normalizer" in state_dict:
             self._loaded_normalizer = self._normalizer = Normalizer.from_state_dict(state_dict["normalizer"])
             for ds in self.datasets.values():

@@ -49,6 +49,11 @@ class FileDataModule(TrajectoryDataModule):
         test_path: optional test files (trajectories may have another length T than training).
         key: array name inside ``.npz`` files.
         clean_key: optional name of the noiseless targets (``y_clean``) inside the same ``.npz`` files.
+        input_key: optional name of the inputs ``u [N, T, m]`` inside the same ``.npz`` files, for a system driven
+            by them (torques, voltages): ``u[:, t]`` acts between samples ``t`` and ``t + 1``, the model learns
+            ``x[t+1] = f(x[t], u[t])`` (give ``f`` ``input_dim: m``). Every file of every split must hold it, with
+            the measurements' N and T, finite, in a float or signed integer dtype; normalised like the measurements
+            (per component, training statistics, kept in checkpoints) when ``normalize`` is on.
         train_clean_path, val_clean_path, test_clean_path: noiseless targets in separate files (same
             shape as the measurements once concatenated; ``.npz`` read at ``clean_key`` or else ``key``).
         test_fraction: hold out the last ``round(test_fraction * N)`` training trajectories as the test
@@ -68,6 +73,7 @@ class FileDataModule(TrajectoryDataModule):
         test_path: str | list[str] | None = None,
         key: str = "y",
         clean_key: str | None = None,
+        input_key: str | None = None,
         train_clean_path: str | list[str] | None = None,
         val_clean_path: str | list[str] | None = None,
         test_clean_path: str | list[str] | None = None,
@@ -80,7 +86,7 @@ class FileDataModule(TrajectoryDataModule):
         self.clean_paths = {
             "train": _as_list(train_clean_path), "val": _as_list(val_clean_path), "test": _as_list(test_clean_path)
         }
-        self.key, self.clean_key = key, clean_key
+        self.key, self.clean_key, self.input_key = key, clean_key, input_key
         if not self.paths["train"]:
             raise ValueError("train_path is required: a .npy / .npz file or a list of them")
         if not 0.0 <= test_fraction < 1.0:
@@ -95,6 +101,7 @@ class FileDataModule(TrajectoryDataModule):
         # Headers only: shapes, dtypes, clean targets; every check that needs no data happens here.
         self.headers: dict[str, list[ArrayHeader]] = {}
         self.clean_headers: dict[str, list[ArrayHeader]] = {}
+        self.input_headers: dict[str, list[ArrayHeader]] = {}
         self.shapes: dict[str, tuple[int, ...]] = {}  # served shape of each split, [N, T, *obs_shape]
         for split, files in self.paths.items():
             if files:
@@ -147,7 +154,30 @@ class FileDataModule(TrajectoryDataModule):
                     f"{what_clean}: the clean targets have shape {clean_shape} but the measurements have shape "
                     f"{shape}: clean targets must have exactly the measurements' shape"
                 )
+        self.input_headers[split] = self._input_headers(split, heads, shape) if self.input_key else []
         self.headers[split], self.clean_headers[split], self.shapes[split] = heads, clean, shape
+
+    def _input_headers(self, split: str, heads: list[ArrayHeader], shape: tuple[int, ...]) -> list[ArrayHeader]:
+        """The inputs' headers of a split's files, checked: one ``[N, T, m]`` array per file beside ``y``."""
+        what = f"input_key '{self.input_key}' of {split}_path"
+        inputs = []
+        for h in heads:
+            if h.key is None:
+                raise ValueError(f"{what}: inputs are read from .npz files (y and u side by side), but {h.path} is a "
+                                 ".npy file: save both with numpy.savez(path, y=..., u=...)")
+            u = read_header(h.path, self.input_key, what)
+            check_header(u, what)
+            if len(u.shape) != 3 or u.dtype == np.uint8 or u.dtype.kind not in "fi":
+                raise ValueError(f"{what}: {u.label} must be a float (or signed integer) array [N, T, m], got "
+                                 f"shape {u.shape} and dtype {u.dtype}")
+            if tuple(u.shape[:2]) != tuple(h.shape[:2]):
+                raise ValueError(f"{what}: {u.label} holds {u.shape[0]} trajectories of {u.shape[1]} inputs but its "
+                                 f"measurements hold {h.shape[0]} of {h.shape[1]} samples: one input per sample")
+            inputs.append(u)
+        widths = {u.shape[2] for u in inputs}
+        if len(widths) > 1 or (self.input_headers.get("train") and self.input_headers["train"][0].shape[2] not in widths):
+            raise ValueError(f"{what}: every file must have the same number of inputs m, got {sorted(widths)}")
+        return inputs
 
     # ------------------------------------------------------------------ sizes known before loading
     @property
@@ -162,6 +192,11 @@ class FileDataModule(TrajectoryDataModule):
     def seq_len(self) -> int:
         return int(self.shapes["train"][1])
 
+    @property
+    def input_dim(self) -> int:
+        """Inputs per step (0 without ``input_key``), known from the headers before any data are read."""
+        return int(self.input_headers["train"][0].shape[2]) if self.input_headers.get("train") else 0
+
     def generator_params(self) -> dict[str, Any]:
         """Where the data came from (stored in checkpoints with the DataModule's state)."""
         return {
@@ -169,6 +204,7 @@ class FileDataModule(TrajectoryDataModule):
             "clean_paths": self.clean_paths,
             "key": self.key,
             "clean_key": self.clean_key,
+            "input_key": self.input_key,
             "test_fraction": self.test_fraction,
         }
 
@@ -183,6 +219,8 @@ class FileDataModule(TrajectoryDataModule):
             full = {"y": load_files(self.headers["train"])}
             if self.clean_headers["train"]:
                 full["y_clean"] = load_files(self.clean_headers["train"])
+            if self.input_headers["train"]:
+                full["u"] = load_files(self.input_headers["train"])
             cut = len(full["y"]) - self.n_holdout
             self._arrays["train"] = {k: a[:cut] for k, a in full.items()}
             self._arrays["test"] = {k: a[cut:] for k, a in full.items()}
@@ -190,6 +228,8 @@ class FileDataModule(TrajectoryDataModule):
             arrays = {"y": load_files(self.headers[split])}
             if self.clean_headers[split]:
                 arrays["y_clean"] = load_files(self.clean_headers[split])
+            if self.input_headers[split]:
+                arrays["u"] = load_files(self.input_headers[split])
             self._arrays[split] = arrays
         return self._arrays[split]
 

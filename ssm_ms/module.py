@@ -165,15 +165,21 @@ class MultipleShootingModule(pl.LightningModule):
             self._make_nodes(num_trajectories)
 
     # ------------------------------------------------------------------ construction
+    @property
+    def input_dim(self) -> int:
+        """Inputs per step of ``f`` (``f.input_dim``; 0: an autonomous system, ``f(x)``)."""
+        return int(getattr(self.f, "input_dim", 0))
+
     def _check_transition(self) -> None:
         with torch.no_grad():
             x = torch.zeros(2, self.state_dim)
             try:
-                out = self.f(x)
+                out = self.f(x) if self.input_dim == 0 else self.f(x, torch.zeros(2, self.input_dim))
             except Exception as e:
                 raise ValueError(
-                    f"f fails on a state batch of shape [2, {self.state_dim}] ({e}); check that f's state_dim "
-                    f"equals model.state_dim={self.state_dim}"
+                    f"f fails on a state batch of shape [2, {self.state_dim}]"
+                    + (f" and inputs [2, {self.input_dim}]" if self.input_dim else "")
+                    + f" ({e}); check that f's state_dim equals model.state_dim={self.state_dim}"
                 ) from e
         if tuple(out.shape) != (2, self.state_dim):
             raise ValueError(
@@ -225,6 +231,7 @@ class MultipleShootingModule(pl.LightningModule):
                 )
             self._make_nodes(int(n))
         if dm is not None and hasattr(dm, "seq_len"):
+            self.check_inputs(int(getattr(dm, "input_dim", 0)))
             self.adopt_measurement_shape(tuple(dm.obs_shape))
             self.check_data(dm.seq_len, dm.obs_shape, getattr(dm, "num_train_trajectories", None))
             if stage == "fit" and self.hparams.loss == "bce" and hasattr(dm, "check_range"):
@@ -233,6 +240,19 @@ class MultipleShootingModule(pl.LightningModule):
                 self.init_nodes_from_measurements(dm.node_measurements(self.n_nodes))
         if stage == "fit" and distributed.world_size() > 1:  # before DDP compares the ranks' models
             self._check_replicated_tables()
+
+    def check_inputs(self, data_inputs: int) -> None:
+        """Fail before training when ``f`` and the data disagree on the inputs per step."""
+        if data_inputs == self.input_dim:
+            return
+        if self.input_dim == 0:
+            fix = f"give f input_dim: {data_inputs} (model.init_args.f.init_args.input_dim) to learn f(x, u)"
+        elif data_inputs == 0:
+            fix = ("give the data its inputs (FileDataModule: the array 'u' [N, T, input_dim] beside 'y'), or set "
+                   "f's input_dim to 0 for an autonomous system")
+        else:
+            fix = f"set f's input_dim to {data_inputs}"
+        raise ValueError(f"f takes {self.input_dim} inputs per step but the data have {data_inputs}: {fix}")
 
     def adopt_measurement_shape(self, obs_shape: tuple[int, ...]) -> None:
         """Hand the data's measurement shape to a g that takes its size from the data (e.g.
@@ -287,10 +307,22 @@ class MultipleShootingModule(pl.LightningModule):
         self.nodes.weight.copy_(nodes.view(flat.shape[0], -1).to(self.nodes.weight))
 
     # ------------------------------------------------------------------ model
-    def forward(self, x0: torch.Tensor, steps: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Roll ``f`` out ``steps`` states from ``x0 [B, d]`` and decode: ``(states [B, steps, d], y [B, steps, ...])``."""
-        states = rollout(self.f, x0, steps) if self._rollout_fn is None else self._rollout_fn(x0, steps)
+    def forward(self, x0: torch.Tensor, steps: int, u: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Roll ``f`` out ``steps`` states from ``x0 [B, d]`` (under inputs ``u [B, >= steps - 1, input_dim]`` where
+        ``f`` takes them) and decode: ``(states [B, steps, d], y [B, steps, ...])``."""
+        self._need_inputs(u, steps - 1)
+        states = rollout(self.f, x0, steps, u) if self._rollout_fn is None else self._rollout_fn(x0, steps, u)
         return states, decode(self.g, states, self.hparams.decode_chunk)
+
+    def _need_inputs(self, u: torch.Tensor | None, steps: int) -> None:
+        """One message for a rollout of ``steps`` transitions without the inputs ``f`` needs (or with some it
+        does not take)."""
+        if self.input_dim and (u is None or u.shape[-2] < steps):
+            have = "none" if u is None else f"{u.shape[-2]}"
+            raise ValueError(f"f takes inputs: a rollout of {steps} steps needs u [B, >= {steps}, {self.input_dim}], "
+                             f"got {have}")
+        if not self.input_dim and u is not None:
+            raise ValueError("f takes no inputs (input_dim 0): give no u")
 
     def node_states(self, index: torch.Tensor) -> torch.Tensor:
         """Shooting nodes ``[B, m, d]`` of the training trajectories ``index``."""
@@ -300,12 +332,13 @@ class MultipleShootingModule(pl.LightningModule):
 
     @torch.no_grad()
     def shooting_predictions(self, index: torch.Tensor, y: torch.Tensor | None = None,
-                             seq_len: int | None = None) -> torch.Tensor:
+                             seq_len: int | None = None, u: torch.Tensor | None = None) -> torch.Tensor:
         """``g(f^k(s_i))`` for every shooting node ``s_i`` of the training trajectories ``index``, ``k = 0..n``.
 
         Args:
             index: ``LongTensor[B]`` training-trajectory indices.
             y: measurements ``[B, T, ...]`` (only their length is used), or give ``seq_len`` instead.
+            u: the trajectories' inputs ``[B, T, input_dim]`` where ``f`` takes them.
 
         Returns:
             ``[B, m, n + 1, *obs_shape]`` with ``n = T / m`` (entry ``k = n`` is where sub-trajectory ``i``
@@ -324,7 +357,9 @@ class MultipleShootingModule(pl.LightningModule):
         try:
             nodes = self.node_states(index.to(self.nodes.weight.device))  # [B, m, d]
             b, _, d = nodes.shape
-            states = rollout(self.f, nodes.reshape(b * m, d), n + 1)  # [B*m, n+1, d]
+            self._need_inputs(None if u is None else u[:, :n], n)
+            pieces = None if u is None else u.to(nodes).reshape(b * m, n, -1)
+            states = rollout(self.f, nodes.reshape(b * m, d), n + 1, pieces)  # [B*m, n+1, d]
             out = decode(self.g, states, self.hparams.decode_chunk)
         finally:
             self.train(was_training)
@@ -333,7 +368,7 @@ class MultipleShootingModule(pl.LightningModule):
     def shooting_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         return multiple_shooting_loss(
             self.f, self.g, self.node_states(batch["index"]), batch["y"], self.hparams.loss, self.hparams.decode_chunk,
-            self._rollout_fn,
+            self._rollout_fn, batch.get("u"),
         )
 
     # ------------------------------------------------------------------ training
@@ -343,14 +378,16 @@ class MultipleShootingModule(pl.LightningModule):
         if self.hparams.node_optimizer == "sparse":  # the batch's rows as a leaf: their gradient alone
             rows = self.nodes.weight.detach()[index].requires_grad_()
         nodes = self.node_states(index) if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
+        u = batch.get("u")
+        self._need_inputs(u, 1)
         if self.al_options is None:
             fit, gap = multiple_shooting_loss(self.f, self.g, nodes, batch["y"], self.hparams.loss,
-                                              self.hparams.decode_chunk, self._rollout_fn)
+                                              self.hparams.decode_chunk, self._rollout_fn, u)
             loss = fit + self.alpha * gap
             residual = None
         else:
             fit, residual = shooting_residuals(self.f, self.g, nodes, batch["y"], self.hparams.loss,
-                                               self.hparams.decode_chunk, self._rollout_fn)
+                                               self.hparams.decode_chunk, self._rollout_fn, u)
             gap = residual.pow(2).mean()
             lam = self.multipliers[index].view_as(residual)
             loss = augmented_lagrangian(fit, residual, lam, self.alpha * self.alpha_factor)
@@ -383,7 +420,7 @@ class MultipleShootingModule(pl.LightningModule):
         horizon = self.hparams.get("val_horizon") or batch["y"].shape[1]
         y = batch["y"][:, :horizon]
         x0 = self.node_states(batch["index"])[:, 0]
-        _, y_hat = self(x0, y.shape[1])
+        _, y_hat = self(x0, y.shape[1], batch["u"][:, :horizon] if "u" in batch else None)
         bs = len(y)
         self.log("val/rollout_mse", F.mse_loss(y_hat, y), batch_size=bs, prog_bar=True)
         out = {"index": batch["index"], "y": y, "y_hat": y_hat}

@@ -117,7 +117,7 @@ class ShootingPictureLogger(Callback):
             return
         k = self.n_trajectories
         index, y = batch["index"][:k], batch["y"][:k]
-        preds = pl_module.shooting_predictions(index, y=y)
+        preds = pl_module.shooting_predictions(index, y=y, u=batch["u"][:k] if "u" in batch else None)
         n = y.shape[1] // pl_module.n_nodes
         images = []
         for b in range(len(index)):

@@ -4,6 +4,11 @@ A batch of ``B`` trajectories ``y`` of length ``T`` is cut into ``m`` sub-trajec
 ``n = T / m``. Sub-trajectory ``i`` of trajectory ``b`` starts at the shooting node ``s[b, i]``;
 the model predicts its measurements ``g(f^k(s[b, i]))``, ``k = 0..n-1``, and the continuity gap
 ``s[b, i+1] - f^n(s[b, i])`` measures how far the sub-trajectories are from forming one.
+
+With inputs ``u [B, T, m_u]`` (a system driven by torques, voltages, ...) the transition is
+``x[t+1] = f(x[t], u[t])``: the input at time ``t`` acts between ``t`` and ``t + 1``. Sub-trajectory
+``i`` then rolls out with its own slice ``u[b, i n : (i + 1) n]``, ``f^k`` meaning ``k`` steps under
+those inputs; ``u[b, T - 1]`` only closes the last piece (whose end has no node to meet).
 """
 
 from __future__ import annotations
@@ -30,16 +35,21 @@ def loss_function(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Ten
     return LOSSES[name]
 
 
-Rollout = Callable[[torch.Tensor, int], torch.Tensor]
+Rollout = Callable[..., torch.Tensor]  # (x0 [N, d], steps, u [N, steps - 1, m] or None) -> [N, steps, d]
 
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 
 
-def rollout(f: Callable[[torch.Tensor], torch.Tensor], x0: torch.Tensor, steps: int) -> torch.Tensor:
-    """States ``x0, f(x0), ..., f^{steps-1}(x0)``: ``[N, d] -> [N, steps, d]``."""
+def rollout(f: Callable[..., torch.Tensor], x0: torch.Tensor, steps: int, u: torch.Tensor | None = None) -> torch.Tensor:
+    """States ``x0, f(x0), ..., f^{steps-1}(x0)``: ``[N, d] -> [N, steps, d]``.
+
+    With inputs ``u [N, >= steps - 1, m]``, ``x[k + 1] = f(x[k], u[:, k])`` (inputs past ``steps - 1`` are not
+    used); without, ``f`` takes the state alone."""
+    if u is not None and u.shape[1] < steps - 1:
+        raise ValueError(f"a rollout of {steps} states needs {steps - 1} inputs, got u of shape {tuple(u.shape)}")
     xs = [x0]
-    for _ in range(steps - 1):
-        xs.append(f(xs[-1]))
+    for k in range(steps - 1):
+        xs.append(f(xs[-1]) if u is None else f(xs[-1], u[:, k]))
     return torch.stack(xs, dim=1)
 
 
@@ -65,17 +75,17 @@ class CompiledRollout:
     Unavailable (no ``torch.compile``, or on CPU no C++ compiler): :class:`RuntimeError` naming why.
     """
 
-    def __init__(self, f: Callable[[torch.Tensor], torch.Tensor], mode: str = "default"):
+    def __init__(self, f: Callable[..., torch.Tensor], mode: str = "default"):
         reason = compile_unavailable_reason(mode)
         if reason is not None:
             raise RuntimeError(f"compiled rollout unavailable: {reason}; use the eager rollout (compile_rollout: null)")
         self.f, self.mode = f, mode
         self._compiled = torch.compile(rollout, mode=mode, dynamic=False)
 
-    def __call__(self, x0: torch.Tensor, steps: int) -> torch.Tensor:
+    def __call__(self, x0: torch.Tensor, steps: int, u: torch.Tensor | None = None) -> torch.Tensor:
         if self.mode == "reduce-overhead" and x0.is_cuda:
             torch.compiler.cudagraph_mark_step_begin()  # each call is a new step: earlier outputs may be reused
-        return self._compiled(self.f, x0, steps)
+        return self._compiled(self.f, x0, steps, u)
 
 
 def decode(g: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, chunk: int | None = None) -> torch.Tensor:
@@ -89,8 +99,8 @@ def decode(g: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, chunk: in
     return out.view(*lead, *out.shape[1:])
 
 
-def check_shapes(nodes: torch.Tensor, y: torch.Tensor) -> int:
-    """Validate ``nodes [B, m, d]`` against ``y [B, T, ...]`` and return ``n = T / m``."""
+def check_shapes(nodes: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None = None) -> int:
+    """Validate ``nodes [B, m, d]`` against ``y [B, T, ...]`` (and inputs ``u [B, T, m_u]``) and return ``n = T / m``."""
     if nodes.dim() != 3:
         raise ValueError(f"nodes must be [batch, n_nodes, state_dim], got shape {tuple(nodes.shape)}")
     if y.dim() < 3:
@@ -105,6 +115,8 @@ def check_shapes(nodes: torch.Tensor, y: torch.Tensor) -> int:
             f"trajectory length T={t} is not divisible by the number of shooting nodes m={m}: "
             f"choose n_nodes among {divisors}, or cut the trajectories to a multiple of {m}"
         )
+    if u is not None and (u.dim() != 3 or tuple(u.shape[:2]) != (b, t)):
+        raise ValueError(f"inputs u must be [batch, T, input_dim] = [{b}, {t}, m] beside y, got {tuple(u.shape)}")
     return t // m
 
 
@@ -116,16 +128,18 @@ def shooting_residuals(
     loss: str = "mse",
     decode_chunk: int | None = None,
     rollout_fn: Rollout | None = None,
+    u: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(fit, c)``: the fit term of :func:`multiple_shooting_loss` and the continuity gaps themselves,
     ``c[b, i] = s[b, i+1] - f^n(s[b, i])``, shape ``[B, m-1, d]`` (empty when ``m = 1``). Arguments as
     :func:`multiple_shooting_loss`."""
-    n = check_shapes(nodes, y)
+    n = check_shapes(nodes, y, u)
     loss_fn = loss_function(loss)
     b, m, d = nodes.shape
-    # n + 1 states: f^0 .. f^{n-1} are decoded, f^n closes the gap
+    # n + 1 states: f^0 .. f^{n-1} are decoded, f^n closes the gap; piece i under its own inputs u[i n : (i+1) n]
     x0 = nodes.reshape(b * m, d)
-    states = rollout(f, x0, n + 1) if rollout_fn is None else rollout_fn(x0, n + 1)
+    pieces = None if u is None else u.reshape(b * m, n, u.shape[-1])
+    states = rollout(f, x0, n + 1, pieces) if rollout_fn is None else rollout_fn(x0, n + 1, pieces)
     traj = states[:, :n]  # [B*m, n, d]
     y_hat = decode(g, traj, decode_chunk)  # [B*m, n, *obs]
     if y_hat.shape[2:] != y.shape[2:]:
@@ -146,6 +160,7 @@ def multiple_shooting_loss(
     loss: str = "mse",
     decode_chunk: int | None = None,
     rollout_fn: Rollout | None = None,
+    u: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The two terms of the multiple-shooting objective.
 
@@ -156,14 +171,16 @@ def multiple_shooting_loss(
         y: measurements ``[B, T, *obs_shape]`` with ``T = m * n``.
         loss: ``"mse"`` or ``"bce"`` (then ``g`` must output values in [0, 1]).
         decode_chunk: decode at most this many states per call of ``g`` (``None``: all at once).
-        rollout_fn: ``(x0 [N, d], steps) -> [N, steps, d]`` states of ``f`` (``None``: :func:`rollout`
+        rollout_fn: ``(x0 [N, d], steps, u) -> [N, steps, d]`` states of ``f`` (``None``: :func:`rollout`
             with ``f``; a :class:`CompiledRollout` of ``f`` gives the same values).
+        u: inputs ``[B, T, m_u]`` for a transition ``f(x, u)`` (``None``: ``f(x)``, an autonomous system); piece
+            ``i`` rolls out under ``u[:, i n : (i + 1) n]``.
 
     Returns:
         ``(fit, gap)``: ``fit`` is the mean over all elements of ``loss(g(f^k(s_i)), y[(i-1)n + k])``;
         ``gap`` is the mean over all elements of ``(s_{i+1} - f^n(s_i))^2``, ``i = 1..m-1``, and exactly
         zero when ``m = 1`` (the initial value problem).
     """
-    fit, residual = shooting_residuals(f, g, nodes, y, loss, decode_chunk, rollout_fn)
+    fit, residual = shooting_residuals(f, g, nodes, y, loss, decode_chunk, rollout_fn, u)
     gap = fit.new_zeros(()) if residual.numel() == 0 else residual.pow(2).mean()
     return fit, gap
