@@ -54,7 +54,7 @@ Fn = Callable[[torch.Tensor], torch.Tensor]
 
 __all__ = [
     "LyapunovResult", "amplitude_ratio", "attractor_statistics", "both_wings_share", "dominant_period", "free_run",
-    "dynamics_report", "jacobian", "linearize", "lyapunov_spectrum", "lyapunov_time", "summarize_valid_time",
+    "dynamics_report", "jacobian", "Linearization", "linearize", "lyapunov_spectrum", "lyapunov_time", "summarize_valid_time",
     "valid_prediction_time", "valid_steps", "wasserstein_1d",
 ]
 
@@ -130,24 +130,43 @@ def jacobian(fn: Fn, x: torch.Tensor) -> torch.Tensor:
     return _jacobian_and_value(fn, x)[0]
 
 
-def linearize(f: Fn, g: Fn, x: torch.Tensor, flatten: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
-    """Local linear model ``x[t+1] ~ A x[t]``, ``y ~ C x`` around the states ``x [N, d]`` (for LQR, an EKF;
-    :mod:`ssm_ms.export` exports it with ``f`` and ``g``).
+class Linearization(NamedTuple):
+    """A local linear model ``x[t+1] ~ A x[t] + B u[t]``, ``y ~ C x`` (deviations from the point of linearisation).
+
+    Attributes:
+        A: ``df/dx [N, d, d]``.
+        B: ``df/du [N, d, m]``, or ``None`` for an autonomous ``f(x)``.
+        C: ``dg/dx [N, p, d]`` (``g``'s output flattened), or ``[N, *obs_shape, d]``.
+    """
+
+    A: torch.Tensor
+    B: torch.Tensor | None
+    C: torch.Tensor
+
+
+def linearize(f: Fn, g: Fn, x: torch.Tensor, u: torch.Tensor | None = None, flatten: bool = True) -> Linearization:
+    """Local linear model around the states ``x [N, d]`` (and inputs ``u [N, m]`` for a driven ``f(x, u)``): for LQR,
+    MPC on Jacobians, an EKF (:mod:`ssm_ms.export` exports it with ``f`` and ``g``).
 
     Returns:
-        ``(A, C)``: ``A = df/dx [N, d, d]`` and ``C = dg/dx [N, p, d]`` with ``g``'s output
-        flattened to ``p`` values (an image ``[1, 24, 24]`` gives ``p = 576``), or, with
-        ``flatten=False``, ``[N, *obs_shape, d]``. In ``x``'s dtype; ``f`` and ``g`` must be of the
-        same dtype (``f.double()`` for float64).
+        :class:`Linearization` ``(A, B, C)``: ``A = df/dx [N, d, d]``, ``B = df/du [N, d, m]`` (``None`` without
+        ``u``), ``C = dg/dx [N, p, d]`` with ``g``'s output flattened to ``p`` values (an image ``[1, 24, 24]``
+        gives ``p = 576``), or, with ``flatten=False``, ``[N, *obs_shape, d]``. In ``x``'s dtype; ``f`` and ``g``
+        must be of the same dtype (``f.double()`` for float64).
     """
     _check_states(x, "x")
-    a = jacobian(f, x)
-    if a.shape != (x.shape[0], x.shape[1], x.shape[1]):
-        raise ValueError(
-            f"f must map states [N, {x.shape[1]}] to [N, {x.shape[1]}]; its Jacobian has shape {tuple(a.shape)}"
-        )
+    n, d = x.shape
+    if u is None:
+        a, b = jacobian(f, x), None
+    else:
+        if u.dim() != 2 or u.shape[0] != n:
+            raise ValueError(f"u must be inputs [N, m] beside x [{n}, {d}], got shape {tuple(u.shape)}")
+        joint = jacobian(lambda z: f(z[:, :d], z[:, d:]), torch.cat([x, u.to(x)], dim=1))  # [N, d, d + m]
+        a, b = joint[..., :d], joint[..., d:]
+    if a.shape != (n, d, d):
+        raise ValueError(f"f must map states [N, {d}] to [N, {d}]; its Jacobian has shape {tuple(a.shape)}")
     c = jacobian(g, x)
-    return a, (c.reshape(x.shape[0], -1, x.shape[1]) if flatten else c)
+    return Linearization(a, b, c.reshape(n, -1, d) if flatten else c)
 
 
 # ---------------------------------------------------------------------------- Lyapunov exponents

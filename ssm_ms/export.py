@@ -1,13 +1,14 @@
 """The learned ``f`` and ``g`` for control: local linear models, and files that run without ssm-ms.
 
-- :func:`linearize` (from :mod:`ssm_ms.analysis`, the one implementation): ``A = df/dx [N, d, d]`` and
-  ``C = dg/dx`` (``[N, p, d]`` flattened, or ``[N, *obs_shape, d]``) at a batch of states, e.g. for LQR
-  around an operating point or the prediction and update of an extended Kalman filter;
-  :func:`jacobian` for one function.
+- :func:`linearize` (from :mod:`ssm_ms.analysis`, the one implementation): ``A = df/dx [N, d, d]``,
+  ``B = df/du [N, d, m]`` for a system driven by inputs, and ``C = dg/dx`` (``[N, p, d]`` flattened, or
+  ``[N, *obs_shape, d]``) at a batch of states (and inputs), e.g. for LQR or MPC around an operating point or the
+  prediction and update of an extended Kalman filter; :func:`jacobian` for one function.
 - :func:`export` writes ``f`` and ``g`` to self-contained files that need only ``torch``:
 
-  * ``f.pt2``, ``g.pt2``: ``torch.export`` programs, batch size free. Load with
-    ``torch.export.load("f.pt2").module()``; compile for C++ with AOTInductor if needed.
+  * ``f.pt2``, ``g.pt2``: ``torch.export`` programs, batch size free; ``f`` takes ``(x, u)`` where it is driven by
+    inputs (``model.json``'s ``input_dim`` > 0). Load with ``torch.export.load("f.pt2").module()``; compile for C++
+    with AOTInductor if needed.
   * ``f.torchscript.pt``, ``g.torchscript.pt``: TorchScript (traced), loadable from Python with
     ``torch.jit.load`` and from C++ with libtorch's ``torch::jit::load``. TorchScript is deprecated in
     torch 2.13 but still loads; prefer ``.pt2``.
@@ -39,10 +40,10 @@ from typing import Any
 import torch
 from torch import nn
 
-from ssm_ms.analysis import jacobian, linearize
+from ssm_ms.analysis import Linearization, jacobian, linearize
 from ssm_ms.nets import ConvDecoder
 
-__all__ = ["FORMATS", "export", "export_checkpoint", "jacobian", "linearize", "main"]
+__all__ = ["FORMATS", "Linearization", "export", "export_checkpoint", "jacobian", "linearize", "main"]
 
 FORMATS = ("pt2", "torchscript")
 SUFFIX = {"pt2": ".pt2", "torchscript": ".torchscript.pt"}
@@ -65,11 +66,12 @@ def _standalone_copy(module: nn.Module) -> nn.Module:
     return copy_
 
 
-def _export_one(module: nn.Module, example: torch.Tensor, fmt: str, path: Path) -> Callable[[torch.Tensor], torch.Tensor]:
-    """Write ``module`` in format ``fmt`` to ``path``; return the reloaded callable (for the check)."""
+def _export_one(module: nn.Module, example: tuple[torch.Tensor, ...], fmt: str, path: Path) -> Callable[..., torch.Tensor]:
+    """Write ``module`` (called on the tensors ``example``, batch first) in format ``fmt`` to ``path``; return the
+    reloaded callable (for the check)."""
     if fmt == "pt2":
         batch = torch.export.Dim("batch", min=1)
-        program = torch.export.export(module, (example,), dynamic_shapes=({0: batch},))
+        program = torch.export.export(module, example, dynamic_shapes=tuple({0: batch} for _ in example))
         torch.export.save(program, path)
         return torch.export.load(path).module()
     with warnings.catch_warnings():  # deprecation of TorchScript; shape checks traced as constants (shapes are fixed)
@@ -89,7 +91,8 @@ def export(
     rtol: float = 1e-5,
     atol: float = 1e-6,
 ) -> dict[str, Path]:
-    """Write ``f`` (``[N, d] -> [N, d]``) and ``g`` (``[N, d] -> [N, *obs_shape]``) to ``out_dir``.
+    """Write ``f`` (``[N, d] -> [N, d]``, or ``([N, d], [N, m]) -> [N, d]`` where ``f.input_dim = m > 0``) and ``g``
+    (``[N, d] -> [N, *obs_shape]``) to ``out_dir``.
 
     Args:
         f, g: the SSM's networks (any ``nn.Module`` with those shapes; ``model.f``, ``model.g``).
@@ -112,26 +115,32 @@ def export(
     out.mkdir(parents=True, exist_ok=True)
     dtype = next(iter(f.parameters()), torch.zeros(())).dtype
     generator = torch.Generator().manual_seed(0)
+    m = int(getattr(f, "input_dim", 0))
     example = torch.randn(2, state_dim, generator=generator, dtype=dtype)
     check = torch.randn(5, state_dim, generator=generator, dtype=dtype)  # another batch size than the example
+    inputs = {"f": ((example, torch.randn(2, m, generator=generator, dtype=dtype)),
+                    (check, torch.randn(5, m, generator=generator, dtype=dtype))) if m else ((example,), (check,)),
+              "g": ((example,), (check,))}
     written: dict[str, Path] = {}
     obs_shape = None
     for name, module in (("f", f), ("g", g)):
         module = _standalone_copy(module)
+        examples, checks = inputs[name]
         with torch.no_grad():
-            expected = module(check)
+            expected = module(*checks)
         if name == "g":
             obs_shape = list(expected.shape[1:])
         for fmt in formats:
             path = out / f"{name}{SUFFIX[fmt]}"
-            loaded = _export_one(module, example, fmt, path)
+            loaded = _export_one(module, examples, fmt, path)
             with torch.no_grad():
-                got = loaded(check)
+                got = loaded(*checks)
             if got.shape != expected.shape or not torch.allclose(got, expected, rtol=rtol, atol=atol):
                 raise RuntimeError(f"the {fmt} export of {name} ({type(module).__name__}) does not reproduce the module")
             written[path.name] = path
     info = {
         "state_dim": int(state_dim),
+        "input_dim": m,
         "obs_shape": obs_shape,
         "dtype": str(dtype).removeprefix("torch."),
         "files": sorted(written),
@@ -147,21 +156,23 @@ def export(
 def export_checkpoint(checkpoint: str | Path, out_dir: str | Path, formats: Sequence[str] = FORMATS) -> dict[str, Path]:
     """:func:`export` the ``f`` and ``g`` of a trained ``MultipleShootingModule`` checkpoint, with the
     measurement normalisation it was trained with in ``model.json`` (``normalization``: ``mean``, ``std``;
-    ``null`` when the data were not normalised)."""
+    ``null`` when the data were not normalised; ``input_normalization`` the same for the inputs)."""
     from ssm_ms.module import datamodule_state, load_ssm
 
     model, saved = load_ssm(checkpoint)  # a missing, truncated or foreign file: ValueError / OSError naming it
     data = datamodule_state(saved)
-    norm = data[1].get("normalizer") if data is not None else None
-    normalization = None
-    if norm is not None and not (bool((norm["mean"] == 0).all()) and bool((norm["std"] == 1).all())):
-        normalization = {"mean": norm["mean"].tolist(), "std": norm["std"].tolist(),
-                         "applies_to": "g's output: y = g(x) * std + mean along the first observation axis"}
+    def statistics(key: str, applies_to: str) -> dict[str, Any] | None:
+        norm = data[1].get(key) if data is not None else None
+        if norm is None or (bool((norm["mean"] == 0).all()) and bool((norm["std"] == 1).all())):
+            return None
+        return {"mean": norm["mean"].tolist(), "std": norm["std"].tolist(), "applies_to": applies_to}
+
     metadata = {
         "checkpoint": str(checkpoint),
         "f_class": type(model.f).__name__,
         "g_class": type(model.g).__name__,
-        "normalization": normalization,
+        "normalization": statistics("normalizer", "g's output: y = g(x) * std + mean along the first observation axis"),
+        "input_normalization": statistics("input_normalizer", "f's input: u_f = (u - mean) / std per component"),
     }
     return export(model.f, model.g, model.state_dim, out_dir, formats, metadata)
 

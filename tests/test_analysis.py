@@ -114,11 +114,11 @@ def test_linearize_shapes_and_values():
     torch.manual_seed(0)
     f, g = LocallyLinearTransition(3, n_matrices=4, hidden=16).double(), small_decoder()
     x = torch.randn(5, 3, dtype=F64)
-    a, c = linearize(f, g, x)
+    a, _, c = linearize(f, g, x)
     assert a.shape == (5, 3, 3) and c.shape == (5, 36, 3)  # 1 x 6 x 6 frames
     torch.testing.assert_close(a, finite_difference_jacobian(f, x), rtol=1e-6, atol=1e-8)
     torch.testing.assert_close(c, finite_difference_jacobian(g, x).reshape(5, 36, 3), rtol=1e-6, atol=1e-8)
-    _, c_proj = linearize(f, Projection([0, 2]), x)
+    _, _, c_proj = linearize(f, Projection([0, 2]), x)
     torch.testing.assert_close(c_proj, Projection([0, 2]).observation_matrix(3).to(F64).expand(5, 2, 3))
 
 
@@ -373,7 +373,7 @@ def test_the_true_systems_exponents_are_computed_again_over_a_cache_cut_short(tm
     import json
     from types import SimpleNamespace
 
-    from ssm_ms.forecasting.protocol import reference_exponents
+    from ssm_ms.forecasting.valid_time import reference_exponents
 
     scale, dt = torch.tensor([1.5, 0.5], dtype=torch.float64), 0.1
     test = SimpleNamespace(arrays={"state": np.ones((4, 3, 2))})

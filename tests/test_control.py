@@ -44,20 +44,49 @@ def test_jacobians_of_the_project_networks_match_finite_differences():
     observations = [small_decoder(d), Projection([0, 2])]
     for f in transitions:
         for g in observations:
-            a, c = ssm_export.linearize(f, g, x, flatten=False)
+            a, _, c = ssm_export.linearize(f, g, x, flatten=False)
             obs = tuple(g(x).shape[1:])
             assert a.shape == (4, d, d) and c.shape == (4, *obs, d)
             torch.testing.assert_close(a, central_differences(f, x), rtol=1e-6, atol=1e-8)
             torch.testing.assert_close(c, central_differences(g, x), rtol=1e-6, atol=1e-8)
-            _, flat = ssm_export.linearize(f, g, x)
+            flat = ssm_export.linearize(f, g, x).C
             torch.testing.assert_close(flat, c.reshape(4, -1, d))
     # SSM-LL's A at x is its local matrix plus the derivative of the mixing weights: not I + sum beta A_k alone
     f = transitions[0]
     a = ssm_export.linearize(f, observations[1], x)[0]
     assert not torch.allclose(a, f.matrix(x), atol=1e-6)
     # Projection: C is the selection matrix, exactly
-    c = ssm_export.linearize(f, Projection([0, 2]), x)[1]
+    c = ssm_export.linearize(f, Projection([0, 2]), x).C
     assert torch.equal(c, torch.eye(d, dtype=F64)[[0, 2]].expand(4, 2, d))
+
+
+@pytest.mark.parametrize("make", [lambda d, m: LocallyLinearTransition(d, n_matrices=4, hidden=16, input_dim=m),
+                                  lambda d, m: FullyConnectedTransition(d, (16, 16), input_dim=m)])
+def test_linearize_with_inputs_gives_b_by_central_differences(make):
+    """A driven f(x, u): A = df/dx at fixed u and B = df/du at fixed x, against central differences."""
+    torch.manual_seed(0)
+    d, m = 3, 2
+    f = make(d, m).double()
+    x, u = torch.randn(4, d, dtype=F64), torch.randn(4, m, dtype=F64)
+    a, b, c = ssm_export.linearize(f, Projection([0]), x, u)
+    assert a.shape == (4, d, d) and b.shape == (4, d, m) and c.shape == (4, 1, d)
+    torch.testing.assert_close(a, central_differences(lambda v: f(v, u), x), rtol=1e-6, atol=1e-8)
+    torch.testing.assert_close(b, central_differences(lambda v: f(x, v), u), rtol=1e-6, atol=1e-8)
+    assert ssm_export.linearize(f.float(), Projection([0]), x.float(), u.float()).B.dtype == torch.float32
+
+
+def test_exported_driven_f_takes_states_and_inputs(tmp_path):
+    torch.manual_seed(0)
+    d, m = 4, 2
+    f, g = LocallyLinearTransition(d, n_matrices=3, hidden=16, input_dim=m), Projection([0])
+    written = ssm_export.export(f, g, d, tmp_path / "driven")
+    assert json.loads(written["model.json"].read_text())["input_dim"] == m
+    x, u = torch.randn(7, d), torch.randn(7, m)
+    got = run_fresh(tmp_path / "driven", {"pt2": ("f.pt2", (x, u)), "ts": ("f.torchscript.pt", (x, u))}, tmp_path)
+    with torch.no_grad():
+        expected = f(x, u)
+    torch.testing.assert_close(got["pt2"], expected, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(got["ts"], expected, rtol=1e-5, atol=1e-6)
 
 
 FRESH = textwrap.dedent("""
@@ -76,7 +105,7 @@ FRESH = textwrap.dedent("""
             out[case] = torch.func.vmap(torch.func.jacrev(lambda v: fn(v[None])[0]))(x).detach()
         else:
             with torch.no_grad():
-                out[case] = fn(x)
+                out[case] = fn(*x) if isinstance(x, (tuple, list)) else fn(x)
     torch.save(out, sys.argv[3])
 """)
 
