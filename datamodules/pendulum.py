@@ -114,6 +114,7 @@ def simulate(
     steps_per_frame: int,
     dt: float,
     damping: float = 0.0,
+    torques: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """RK4-integrate a batch of trajectories; returns angles and velocities at every frame.
 
@@ -124,6 +125,8 @@ def simulate(
         steps_per_frame: RK4 steps between frames (frame period ``steps_per_frame * dt``).
         dt: RK4 step.
         damping: viscous joint damping, ``tau = -damping * v``.
+        torques: applied joint torques ``[B, >= n_frames - 1, n]`` (N m), held from frame ``t`` to frame ``t + 1``
+            (a zero-order hold: what a controller acting once per frame applies); added to the damping torque.
 
     Returns:
         ``q, v`` of shape ``[B, n_frames, n]`` (float64; angles are not wrapped).
@@ -147,10 +150,21 @@ def simulate(
     rows = list(zip(qs, vs, tau))
     neg_damping, damped = -float(damping), damping != 0.0
     h2, h6 = 0.5 * dt, dt / 6.0
+    if torques is not None:
+        torques = np.asarray(torques, dtype=np.float64)
+        if torques.ndim != 3 or torques.shape[0] != batch or torques.shape[2] != n or torques.shape[1] < n_frames - 1:
+            raise ValueError(f"torques must be [{batch}, >= {n_frames - 1}, {n}], got {torques.shape}")
+    applied = np.zeros((batch, n))
+
+    driven = torques is not None
 
     def accel() -> np.ndarray:
         if damped:
             np.multiply(vs, neg_damping, out=tau)
+            if driven:
+                np.add(tau, applied, out=tau)
+        elif driven:
+            np.copyto(tau, applied)
         return np.array([aba(model, data, qr, vr, tr) for qr, vr, tr in rows])
 
     for frame in range(n_frames):
@@ -158,6 +172,8 @@ def simulate(
         out_v[:, frame] = v
         if frame == n_frames - 1:
             break
+        if torques is not None:
+            applied[:] = torques[:, frame]
         for _ in range(steps_per_frame):
             qs[:] = q
             vs[:] = v
@@ -350,6 +366,29 @@ def initial_states(params: dict[str, Any], split_id: int, indices) -> tuple[list
     return rngs, q0, v0
 
 
+def excitation(rngs: list, n_frames: int, n: int, limit: float, correlation: float, frame_dt: float) -> np.ndarray:
+    """Random joint torques ``[len(rngs), n_frames, n]`` (N m), one value per frame held until the next: smoothed
+    Gaussian noise, an AR(1) process ``w[t] = a w[t-1] + sqrt(1 - a^2) e[t]`` with ``a = exp(-frame_dt /
+    correlation)`` (stationary, unit variance, correlation time ``correlation`` seconds), scaled to a standard
+    deviation of ``limit / 2`` and clipped to ``[-limit, limit]``. Drawn from each trajectory's stream after its
+    initial state, ``n_frames x n`` normals in row order, so a longer horizon extends the same torques."""
+    a = math.exp(-frame_dt / correlation)
+    e = np.stack([r.standard_normal((n_frames, n)) for r in rngs])
+    w = np.empty_like(e)
+    w[:, 0] = e[:, 0]
+    for t in range(1, n_frames):
+        w[:, t] = a * w[:, t - 1] + math.sqrt(1.0 - a * a) * e[:, t]
+    return np.clip(0.5 * limit * w, -limit, limit)
+
+
+def torques_of(params: dict[str, Any], rngs: list, n_frames: int) -> np.ndarray | None:
+    """The torques of trajectories whose streams are ``rngs`` (``None`` for a free chain: ``torque_limit`` 0)."""
+    if not params.get("torque_limit"):
+        return None
+    return excitation(rngs, n_frames, params["n_links"], params["torque_limit"], params["torque_correlation"],
+                      params["frame_dt"])
+
+
 def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int) -> dict[str, np.ndarray]:
     """Trajectories ``start..stop-1`` of a split: ``{"y", "y_clean", "state"}`` (see the module doc).
 
@@ -362,7 +401,8 @@ def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int)
     n_frames = int(round(params["duration"] / params["frame_dt"]))
     steps = int(round(params["frame_dt"] / params["dt"]))
     rngs, q0, v0 = initial_states(params, split_id, range(start, stop))
-    q, v = simulate(_WORKER["model"], _WORKER["data"], q0, v0, n_frames, steps, params["dt"], params["damping"])
+    u = torques_of(params, rngs, n_frames)
+    q, v = simulate(_WORKER["model"], _WORKER["data"], q0, v0, n_frames, steps, params["dt"], params["damping"], u)
     count = stop - start
     y = np.empty((count, n_frames, 1, size, size), np.uint8)
     y_clean = np.empty_like(y)
@@ -375,7 +415,10 @@ def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int)
         y[j] = quantize(noise)
         y_clean[j] = quantize(clean)
     state = np.concatenate([q, v], axis=-1).astype(np.float32)
-    return {"y": y, "y_clean": y_clean, "state": state}
+    out = {"y": y, "y_clean": y_clean, "state": state}
+    if u is not None:
+        out["u"] = u.astype(np.float32)
+    return out
 
 
 def _run_chunk(task: tuple[dict[str, Any], int, int, int]) -> tuple[int, dict[str, np.ndarray]]:
@@ -457,7 +500,9 @@ class PendulumDataModule(TrajectoryDataModule):
     Batches: ``"y"`` and ``"y_clean"`` float ``[B, 100, 1, H, W]`` in [0, 1] (stored as uint8),
     ``"state"`` float32 ``[B, 100, 2 * n_links]``: joint angles (relative, not wrapped) then joint
     velocities at every frame. The quadruple pendulum of the paper is ``n_links=4, image_size=48,
-    n_train=2000, n_test=2000, damping=0.1, max_velocity=0.0``.
+    n_train=2000, n_test=2000, damping=0.1, max_velocity=0.0``. With ``torque_limit > 0`` the chain is driven:
+    batches also hold ``"u"`` float32 ``[B, 100, n_links]``, the joint torques (N m) applied from each frame to
+    the next (:func:`excitation`), cached beside the images; a model learns ``x[t+1] = f(x[t], u[t])``.
 
     Args:
         n_links: number of links (>= 1).
@@ -476,6 +521,10 @@ class PendulumDataModule(TrajectoryDataModule):
             ``"paper"``, 2 for ``"analytic"``).
         seed: seed of the generator (and of the training-set shuffling).
         workers: processes generating trajectories in parallel (default: the available cores).
+        torque_limit: the largest joint torque of the excitation, in N m (0, the default: a free chain, the
+            paper's). One unit mass on a unit link weighs 9.81 N m against gravity at the horizontal: a limit of
+            3 lifts it to about 18 degrees, and anything higher takes pumping energy.
+        torque_correlation: correlation time of the excitation, in seconds (default 0.5 s: five frames).
         **kwargs: the :class:`~datamodules.base.TrajectoryDataModule` arguments (``data_dir``,
             ``batch_size``, ``eval_batch_size``, ``num_workers``, ``val_trajectories``, ``normalize``,
             ``shuffle``).
@@ -501,9 +550,12 @@ class PendulumDataModule(TrajectoryDataModule):
         line_width: float | None = None,
         seed: int = 0,
         workers: int | None = None,
+        torque_limit: float = 0.0,
+        torque_correlation: float = 0.5,
         **kwargs: Any,
     ):
         super().__init__(seed=seed, **kwargs)
+        self.torque_limit, self.torque_correlation = float(torque_limit), float(torque_correlation)
         self.n_links = int(n_links)
         self.image_size = int(image_size)
         self.n_train, self.n_test = int(n_train), int(n_test)
@@ -540,6 +592,9 @@ class PendulumDataModule(TrajectoryDataModule):
             f"image_size >= {smallest}" + (" or a thinner line_width" if self.rendering == "analytic" else ""),
         )
         need(self.damping >= 0, f"damping must be >= 0 (tau = -damping * velocity), got {self.damping}")
+        need(self.torque_limit >= 0 and self.torque_correlation > 0,
+             f"torque_limit must be >= 0 (N m; 0: a free chain) and torque_correlation > 0 (s), got "
+             f"{self.torque_limit}, {self.torque_correlation}")
         need(self.max_angle >= 0 and self.max_velocity >= 0,
              f"max_angle and max_velocity are half-widths of uniform ranges and must be >= 0, got "
              f"{self.max_angle}, {self.max_velocity}")
@@ -588,6 +643,9 @@ class PendulumDataModule(TrajectoryDataModule):
             "line_width": self.line_width,
             "gravity": GRAVITY,
             "seed": self.seed,
+            # a driven chain only: a free chain's parameters (and cache, and checkpoints' records) stay as they were
+            **({"torque_limit": self.torque_limit, "torque_correlation": self.torque_correlation}
+               if self.torque_limit else {}),
         }
 
     @property
@@ -608,10 +666,11 @@ class PendulumDataModule(TrajectoryDataModule):
         if split not in SPLIT_IDS:
             raise ValueError(f"unknown split {split!r}: the pendulum data set has splits {sorted(SPLIT_IDS)}")
         params = self.generator_params()
-        _, q0, v0 = initial_states(params, SPLIT_IDS[split], index)
+        rngs, q0, v0 = initial_states(params, SPLIT_IDS[split], index)
+        u = torques_of(params, rngs, int(n_frames))  # the same torques as the data's, continued
         model = pendulum_model(self.n_links)
         steps = int(round(self.frame_dt / self.dt))
-        q, _ = simulate(model, model.createData(), q0, v0, int(n_frames), steps, self.dt, self.damping)
+        q, _ = simulate(model, model.createData(), q0, v0, int(n_frames), steps, self.dt, self.damping, u)
         frames = np.stack([quantize(render(q[j], self.image_size, self.line_width, self.rendering)) for j in range(len(q))])
         return torch.from_numpy(frames).float().div_(255.0)
 
@@ -626,6 +685,8 @@ class PendulumDataModule(TrajectoryDataModule):
             "y_clean": np.empty((count, frames, 1, size, size), np.uint8),
             "state": np.empty((count, frames, 2 * n), np.float32),
         }
+        if self.torque_limit:
+            out["u"] = np.empty((count, frames, n), np.float32)
         tasks = [(params, SPLIT_IDS[split], s, min(s + CHUNK_SIZE, count)) for s in range(0, count, CHUNK_SIZE)]
         workers = min(self.workers, len(tasks))
         bar = tqdm(total=count, desc=f"pendulum {split} ({n} link{'s' * (n > 1)}, {workers} workers)", unit="traj")

@@ -454,3 +454,54 @@ def test_true_measurements_continue_the_stored_trajectories(simple_data):
     assert np.abs(frames[1].numpy() - expected).max() <= 1.5 / 255
     assert dm.known_largest_exponent == 0.0 and dm.sample_period == 0.1
     assert small_module(dm.data_dir, damping=0.1).known_largest_exponent is None
+
+
+# ------------------------------------------------------------------ torque-driven chains
+def test_driven_pendulum_energy_changes_by_the_work_of_its_torques(tmp_path):
+    """Undamped simple pendulum under a torque held over each frame: the energy gained over a frame is the work
+    ``u[t] (theta[t+1] - theta[t])``, to RK4's accuracy; a free chain's data parameters name no torque."""
+    dm = PendulumDataModule(n_train=6, n_test=2, torque_limit=3.0, data_dir=str(tmp_path), workers=1)
+    arrays = dm.generate("train")
+    assert arrays["u"].shape == (6, 100, 1) and arrays["u"].dtype == np.float32
+    assert np.abs(arrays["u"]).max() <= 3.0 and np.abs(arrays["u"]).max() > 2.0
+    q, v = arrays["state"][..., :1].astype(np.float64), arrays["state"][..., 1:].astype(np.float64)
+    energy = chain_energy(q, v)
+    work = arrays["u"][:, :-1, 0].astype(np.float64) * (q[:, 1:, 0] - q[:, :-1, 0])
+    # float32 states: ~1e-6 relative on velocities up to ~10 rad/s, so ~1e-4 on the energy
+    np.testing.assert_allclose(np.diff(energy, axis=1), work, atol=1e-4)
+    assert np.abs(work).max() > 0.5  # the torques did work
+    free = PendulumDataModule(n_train=6, n_test=2, data_dir=str(tmp_path), workers=1)
+    assert not any(k.startswith("torque") for k in free.generator_params())
+    assert "u" not in free.generate("train")
+
+
+def test_excitation_is_a_smoothed_process_within_its_limit():
+    """Stationary AR(1) of standard deviation ``limit / 2``, clipped at the limit (two standard deviations): the
+    clipped normal's standard deviation in closed form, lag-one correlation near ``exp(-dt/tau)``; a longer
+    horizon extends the same torques."""
+    rngs = [np.random.default_rng([0, i]) for i in range(400)]
+    u = P.excitation(rngs, 200, 2, limit=100.0, correlation=0.5, frame_dt=0.1)
+    assert u.shape == (400, 200, 2)
+    c = 2.0  # E[min(X^2, c^2)] for X ~ N(0, 1)
+    clipped_var = (2 * norm.cdf(c) - 1) - 2 * c * norm.pdf(c) + 2 * c * c * norm.sf(c)
+    assert u.std() == pytest.approx(50.0 * math.sqrt(clipped_var), rel=0.01)
+    lag1 = (u[:, 1:] * u[:, :-1]).mean() / u.var()
+    assert lag1 == pytest.approx(math.exp(-0.2), abs=0.03)
+    clipped = P.excitation([np.random.default_rng([0, i]) for i in range(50)], 100, 1, 3.0, 0.5, 0.1)
+    assert np.abs(clipped).max() == 3.0
+    longer = P.excitation([np.random.default_rng([0, i]) for i in range(400)], 300, 2, 100.0, 0.5, 0.1)
+    np.testing.assert_array_equal(longer[:, :200], u)
+
+
+def test_driven_datamodule_serves_torques_and_continues_them(tmp_path):
+    dm = PendulumDataModule(n_train=4, n_test=2, torque_limit=2.0, data_dir=str(tmp_path), workers=1, batch_size=2)
+    dm.prepare_data()
+    dm.setup("fit")
+    assert dm.input_dim == 1
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["u"].shape == (2, 100, 1)
+    raw = np.load(dm.split_file("train", "u"))
+    np.testing.assert_array_equal(batch["u"].numpy(), raw[batch["index"].numpy()])
+    stored = np.load(dm.split_file("train", "y_clean"))[[1]]
+    frames = dm.true_measurements("train", [1], 100)
+    np.testing.assert_array_equal((frames.numpy() * 255).round().astype(np.uint8), stored)
