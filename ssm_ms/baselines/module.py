@@ -48,7 +48,8 @@ class BaselineForecaster(ForecastModule):
             (validation: its last window) instead of the whole sequence: cheaper steps for long sequences
             (a CPU-sized Lorenz twin: 200 of 1000); ``None`` (default, the paper's setting): whole sequences.
         obs_shape: shape of one measurement; ``None``: taken from the DataModule (recorded in the checkpoint).
-        metrics, n_predict, **kwargs: the protocol's arguments, see :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
+        metrics, n_predict, **kwargs: the protocol's arguments (``analysis``: ``valid_time``, not ``dynamics``), see
+            :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
     """
 
     model_name = "baseline"
@@ -78,7 +79,7 @@ class BaselineForecaster(ForecastModule):
         self.train_window = train_window
         if "obs_shape" in (network or {}):
             raise ValueError("network.obs_shape comes from the data: remove it from the config")
-        if "dynamics" in self.analysis_settings:
+        if self.analysis_section("dynamics") is not None:
             raise ValueError("analysis.dynamics studies an SSM's f; a baseline has none: keep valid_time, drop dynamics")
         self.network_kwargs = dict(network or {})
         self.loss_name, self.lr, self.train_n_filter = loss, float(lr), train_n_filter

@@ -19,7 +19,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from ssm_ms.forecasting.protocol import flat_scalars
+from ssm_ms.forecasting.metrics import flat_scalars
 
 # (row label, key in the flattened analysis): once per method / once per seed (the SSM's f is one per seed)
 PER_METHOD = [("valid time (steps)", "valid_time/mean_steps")]

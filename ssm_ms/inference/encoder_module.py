@@ -31,7 +31,7 @@ class StateEncoderModule(SSMForecaster):
         lr: Adam learning rate.
         metrics: scores of the test protocol.
         **kwargs: the protocol's other arguments (``n_predict``, ``bce_reduction``, ``original_units``,
-            ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``), see
+            ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``, ``analysis``), see
             :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
     """
 

@@ -42,7 +42,8 @@ class FilterForecaster(SSMForecaster):
         metrics: scores of the test protocol.
         method_name: label of the results (default: ``method``).
         **kwargs: the protocol's other arguments (``n_predict``, ``bce_reduction``, ``original_units``,
-            ``experiment``, ``results_dir``, ``figures_dir``), see :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
+            ``experiment``, ``results_dir``, ``figures_dir``, ``analysis``), see
+            :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
     """
 
     def __init__(

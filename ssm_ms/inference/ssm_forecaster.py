@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from ssm_ms.checkpointing import SSM_DIGEST_KEY, read_checkpoint, state_digest
+from ssm_ms.forecasting.analysis_settings import DynamicsSettings, ValidTimeSettings
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
 from ssm_ms.module import MultipleShootingModule, datamodule_state, load_ssm
 from ssm_ms.training.shooting import decode, rollout
@@ -98,8 +99,8 @@ class SSMForecaster(ForecastModule):
             ``--ckpt_path``: that checkpoint's recorded one is used (and wins over a given one, as every setting).
         n_filter: measurements given to the inference method.
         **kwargs: the protocol's other arguments (``n_predict``, ``metrics``, ``bce_reduction``,
-            ``original_units``, ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``), see
-            :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
+            ``original_units``, ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``, ``analysis``),
+            see :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
     """
 
     # figures of the SSM alone: written once per experiment, whatever the inference method
@@ -193,25 +194,25 @@ class SSMForecaster(ForecastModule):
         from ssm_ms.analysis import dynamics_report
 
         out = super().analyze()
-        settings = self.analysis_settings.get("dynamics")
+        settings = self.analysis_section("dynamics")
         if settings is None:
             return out
         dm, norm = self.datamodule, self.normalizer()
         to_units = norm.denormalize if norm is not None else None
         nodes = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim)
-        generator = torch.Generator().manual_seed(settings["seed"])
-        free_runs = settings["free_runs"] or settings["runs"]
-        if max(settings["runs"], free_runs) > len(nodes):
-            raise ValueError(f"analysis.dynamics asks for {max(settings['runs'], free_runs)} runs from shooting nodes but "
+        generator = torch.Generator().manual_seed(settings.seed)
+        free_runs = settings.free_runs or settings.runs
+        if max(settings.runs, free_runs) > len(nodes):
+            raise ValueError(f"analysis.dynamics asks for {max(settings.runs, free_runs)} runs from shooting nodes but "
                              f"the model has {len(nodes)}: lower analysis.dynamics.runs / free_runs")
-        drawn = nodes[torch.randperm(len(nodes), generator=generator)[: max(settings["runs"], free_runs)]]
+        drawn = nodes[torch.randperm(len(nodes), generator=generator)[: max(settings.runs, free_runs)]]
         vector = len(self.ssm.obs_shape()) == 1
         report = dynamics_report(
-            self.ssm.f, self.ssm.g, drawn[: settings["runs"]], self.sample_period() or 1.0, to_units=to_units,
+            self.ssm.f, self.ssm.g, drawn[: settings.runs], self.sample_period() or 1.0, to_units=to_units,
             free_starts=drawn[:free_runs],
             reference=training_measurements(dm) if vector else None,
-            lyapunov_steps=settings["lyapunov_steps"], transient=settings["transient"], align=settings["align"],
-            free_steps=settings["free_steps"], wing_level=dm.wing_level() if hasattr(dm, "wing_level") else None,
+            lyapunov_steps=settings.lyapunov_steps, transient=settings.transient, align=settings.align,
+            free_steps=settings.free_steps, wing_level=dm.wing_level() if hasattr(dm, "wing_level") else None,
         )
         if callable(getattr(dm, "true_measurements", None)):
             report["oscillation"] = self.oscillation(settings, generator)
@@ -219,15 +220,15 @@ class SSMForecaster(ForecastModule):
         return out
 
     @torch.no_grad()
-    def oscillation(self, settings: dict[str, Any], generator: torch.Generator) -> dict[str, Any]:
+    def oscillation(self, settings: DynamicsSettings, generator: torch.Generator) -> dict[str, Any]:
         """Free runs of ``f`` from the first node of training trajectories against the data generator's own
         continuation from their initial states, over ``free_steps`` steps: period, amplitude, valid time."""
         from ssm_ms.analysis import amplitude_ratio, dominant_period, valid_steps
 
         dm = self.datamodule
         n_traj = self.ssm.nodes.num_embeddings
-        index = torch.randperm(n_traj, generator=generator)[: settings["runs"]].sort().values
-        horizon = settings["free_steps"]
+        index = torch.randperm(n_traj, generator=generator)[: settings.runs].sort().values
+        horizon = settings.free_steps
         states = rollout(self.ssm.f, self.ssm.node_states(index.to(self.device))[:, 0], horizon)
         model = decode(self.ssm.g, states).cpu().double()
         truth = dm.true_measurements("train", index.tolist(), horizon).double()
@@ -239,7 +240,7 @@ class SSMForecaster(ForecastModule):
         amp_m, amp_t = amplitude_ratio(flat_m, window), amplitude_ratio(flat_t, window)
         pixel_var = flat_t.flatten(0, 1).var(0, unbiased=False).mean()  # as the protocol's valid time: 1 = the mean frame
         nrmse = ((flat_m - flat_t).pow(2).mean(-1) / pixel_var).sqrt()
-        valid = valid_steps(nrmse, self.analysis_settings.get("valid_time", {}).get("threshold", 0.5))
+        valid = valid_steps(nrmse, (self.analysis_section("valid_time") or ValidTimeSettings()).threshold)
         valid = torch.where(torch.isinf(valid), torch.full_like(valid, float(horizon)), valid)
         finite = torch.isfinite(error)
         return {

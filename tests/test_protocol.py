@@ -1,5 +1,7 @@
-"""The forecasting protocol: metrics against hand computations, frame bookkeeping with an exact model,
-the encoder stage on a tiny trained checkpoint, the UKF stage, results files and bad input."""
+"""The forecasting protocol (``ssm_ms.forecasting.protocol``): frame bookkeeping and references with an exact model,
+a forecast that diverges, the analysis of the exact model, the encoder stage on a tiny trained checkpoint, the UKF
+and particle filter stages, and bad input. The metrics: tests/test_metrics.py; the valid time:
+tests/test_valid_time.py; the analysis options: tests/test_analysis_settings.py."""
 
 import json
 import math
@@ -10,153 +12,12 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from ssm_ms.forecasting.protocol import (
-    ValidTimeAccumulator,
-    bce_per_sequence,
-    mse_per_sequence,
-    mse_sum_per_sequence,
-    sequence_metrics,
-    sequence_summary,
-    split_sequence,
-    ssim_per_sequence,
-)
 from ssm_ms.inference.encoder_module import StateEncoderModule
 from ssm_ms.inference.filter_module import FilterForecaster
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import Projection
 from tests.conftest import ExactRotation, RotationDataModule, fast_trainer
-
-
-# ---------------------------------------------------------------------------- metrics
-def test_mse_and_bce_against_hand_computation():
-    torch.manual_seed(0)
-    pred = torch.rand(3, 4, 1, 2, 2, dtype=torch.float64) * 0.98 + 0.01
-    target = torch.rand(3, 4, 1, 2, 2, dtype=torch.float64)
-    for b in range(3):
-        se, bce_mean, bce_sum = 0.0, 0.0, 0.0
-        for t in range(4):
-            frame_bce = 0.0
-            for i in range(2):
-                for j in range(2):
-                    p, q = pred[b, t, 0, i, j].item(), target[b, t, 0, i, j].item()
-                    se += (p - q) ** 2
-                    frame_bce += -(q * math.log(p + 1e-12) + (1 - q) * math.log(1 - p + 1e-12))
-            bce_mean += frame_bce / 4
-            bce_sum += frame_bce
-        assert mse_per_sequence(pred, target)[b].item() == pytest.approx(se / 16)
-        assert bce_per_sequence(pred, target, "mean")[b].item() == pytest.approx(bce_mean / 4)
-        assert bce_per_sequence(pred, target, "sum")[b].item() == pytest.approx(bce_sum / 4)
-
-
-def test_mse_summed_over_a_frame_against_hand_computation():
-    torch.manual_seed(1)
-    pred, target = torch.rand(2, 3, 1, 2, 3, dtype=torch.float64), torch.rand(2, 3, 1, 2, 3, dtype=torch.float64)
-    for b in range(2):
-        frames = [sum((pred[b, t, 0, i, j].item() - target[b, t, 0, i, j].item()) ** 2 for i in range(2) for j in range(3))
-                  for t in range(3)]
-        assert mse_sum_per_sequence(pred, target)[b].item() == pytest.approx(sum(frames) / 3)
-
-
-def naive_ssim(a: list, b: list, k: int = 11, sigma: float = 1.5) -> float:
-    """Wang et al.'s SSIM of two grey frames by loops: Gaussian-weighted means, variances and covariance over every
-    window position that lies inside the frame, ``C1 = 0.01^2``, ``C2 = 0.03^2`` (data range 1), averaged."""
-    r = k // 2
-    g = [math.exp(-((i - r) ** 2) / (2 * sigma**2)) for i in range(k)]
-    g = [v / sum(g) for v in g]
-    h, w = len(a), len(a[0])
-    values = []
-    for i in range(r, h - r):
-        for j in range(r, w - r):
-            m = {"a": 0.0, "b": 0.0, "aa": 0.0, "bb": 0.0, "ab": 0.0}
-            for u in range(k):
-                for v in range(k):
-                    wt, pa, pb = g[u] * g[v], a[i - r + u][j - r + v], b[i - r + u][j - r + v]
-                    m["a"] += wt * pa
-                    m["b"] += wt * pb
-                    m["aa"] += wt * pa * pa
-                    m["bb"] += wt * pb * pb
-                    m["ab"] += wt * pa * pb
-            va, vb, cab = m["aa"] - m["a"] ** 2, m["bb"] - m["b"] ** 2, m["ab"] - m["a"] * m["b"]
-            values.append((2 * m["a"] * m["b"] + 1e-4) * (2 * cab + 9e-4)
-                          / ((m["a"] ** 2 + m["b"] ** 2 + 1e-4) * (va + vb + 9e-4)))
-    return sum(values) / len(values)
-
-
-def test_ssim_against_a_loop_over_windows():
-    torch.manual_seed(2)
-    target = torch.rand(2, 2, 1, 13, 14, dtype=torch.float64)
-    pred = (target + 0.3 * torch.randn_like(target)).clamp(0, 1)
-    got = ssim_per_sequence(pred, target)
-    for b in range(2):
-        frames = [naive_ssim(pred[b, t, 0].tolist(), target[b, t, 0].tolist()) for t in range(2)]
-        assert got[b].item() == pytest.approx(sum(frames) / 2, rel=1e-9)
-    assert 0.2 < got.min() < got.max() < 0.95  # a noisy copy: neither identical nor unrelated
-    assert ssim_per_sequence(target, target).tolist() == pytest.approx([1.0, 1.0])
-    assert sequence_metrics(pred, target, ["ssim", "mse_sum"], "mean")["ssim"].tolist() == got.tolist()
-
-
-def test_ssim_refuses_frames_it_cannot_score():
-    with pytest.raises(ValueError, match="metric 'ssim' needs image frames .* at least 11 x 11 pixels, got \\[2, 5, 3\\]"):
-        ssim_per_sequence(torch.zeros(2, 5, 3), torch.zeros(2, 5, 3))
-
-
-def test_bce_of_saturated_predictions_is_finite():
-    pred = torch.tensor([[[0.0, 1.0]]])
-    target = torch.tensor([[[1.0, 0.0]]])
-    assert bce_per_sequence(pred, target).item() == pytest.approx(-math.log(1e-12))
-
-
-def test_valid_time_of_images_scales_by_the_mean_per_pixel_variance():
-    """Images pool their pixels: mean squared error over the mean per-pixel variance of the truth, so a
-    forecast as bad as the mean frame has normalised error 1; constant background pixels divide nothing."""
-    torch.manual_seed(0)
-    truth = torch.rand(2, 3, 6, 1, 2, 2, dtype=torch.float64)  # two batches of 3 sequences, 6 steps
-    truth[..., 0, 0] = 0.0  # a background pixel
-    growth = torch.linspace(0.0, 1.0, 6, dtype=torch.float64).view(1, 1, 6, 1, 1, 1)  # errors grow over time,
-    size = torch.tensor([0.02, 0.1, 0.2, 0.3, 0.4, 0.6], dtype=torch.float64).view(2, 3, 1, 1, 1, 1)  # more or less
-    pred = truth + torch.randn_like(truth) * growth * size
-    acc = ValidTimeAccumulator()
-    for b in range(2):
-        acc.update(pred[b], truth[b])
-    steps, horizon = acc.steps(0.5)
-    all_truth = truth.reshape(6, 6, 4)  # [sequence, step, pixel]
-    pixel_var = all_truth.reshape(-1, 4).var(0, unbiased=False).mean()
-    expected = []
-    for seq_pred, seq_truth in zip(pred.reshape(6, 6, 4), all_truth):
-        err = ((seq_pred - seq_truth) ** 2).mean(1) / pixel_var
-        expected.append(next((t for t in range(6) if err[t].sqrt() > 0.5), math.inf))
-    assert horizon == 6 and steps.tolist() == expected
-    curve = torch.stack([(((sp - st) ** 2).mean(1) / pixel_var).sqrt() for sp, st in zip(pred.reshape(6, 6, 4), all_truth)])
-    assert acc.growth() == pytest.approx({"1": 0.0, "3": curve[:, 2].mean().item(), "6": curve[:, 5].mean().item()})
-    assert 0 < sum(e != math.inf for e in expected) < 6  # the case is not trivial
-
-
-def test_error_growth_leaves_out_a_diverged_forecast():
-    """A forecast that turned NaN (a filter that diverged) is left out of the mean error curve, as out of the
-    scores; the others' curve is their plain mean of |error| / std (vectors: per component, then averaged)."""
-    torch.manual_seed(1)
-    truth = torch.randn(4, 8, 2, dtype=torch.float64)
-    pred = truth + 0.1 * torch.randn_like(truth) * torch.arange(1, 9, dtype=torch.float64).view(1, 8, 1)
-    pred[2, 5:] = math.nan
-    acc = ValidTimeAccumulator()
-    acc.update(pred[:2], truth[:2])
-    acc.update(pred[2:], truth[2:])
-    std = truth.reshape(-1, 2).std(0, unbiased=False)
-    kept = [0, 1, 3]
-    curve = [sum(((pred[i, t] - truth[i, t]) ** 2 / std**2).mean().sqrt().item() for i in kept) / 3 for t in range(8)]
-    assert acc.growth() == pytest.approx({"1": curve[0], "2": curve[1], "4": curve[3], "8": curve[7]})
-    assert acc.steps(10.0)[0].tolist() == [math.inf, math.inf, 5, math.inf]  # still counted, invalid from its NaN
-
-
-def test_filter_lengths_longer_than_the_sequences_are_refused():
-    y = torch.zeros(2, 20, 1)
-    assert [t.shape[1] for t in split_sequence(y, 15)] == [15, 5]
-    assert [t.shape[1] for t in split_sequence(y, 10, 4)] == [10, 4]
-    with pytest.raises(ValueError, match="cannot filter 20 and predict 0 frames of sequences of length 20"):
-        split_sequence(y, 20)
-    with pytest.raises(ValueError, match="cannot filter 15 and predict 10 frames of sequences of length 20"):
-        split_sequence(y, 15, 10)
 
 
 # ---------------------------------------------------------------------------- fixtures
@@ -213,18 +74,6 @@ def test_protocol_bookkeeping_with_the_exact_model(exact_ssm):
     assert saved["oracle/noisy/mse"]["mean"] == pytest.approx(expected_noisy.mean().item(), rel=1e-4)
     report = (tmp / "results" / "rot.md").read_text()
     assert "| SSM (ExactRotation) + oracle |" in report and "| last (reference, with SSM (ExactRotation) + oracle) |" in report
-
-
-def test_sequence_summary_leaves_diverged_sequences_out_and_counts_them():
-    scores = [0.5, float("nan"), 1.5, float("inf"), 4.0]
-    finite = [0.5, 1.5, 4.0]
-    mean = sum(finite) / 3
-    got = sequence_summary(torch.tensor(scores))
-    assert (got["n"], got["non_finite"]) == (5, 2)
-    assert got["mean"] == pytest.approx(mean)
-    assert got["std"] == pytest.approx(math.sqrt(sum((v - mean) ** 2 for v in finite) / 3))
-    none = sequence_summary(torch.full((3,), float("nan")))
-    assert (none["n"], none["non_finite"]) == (3, 3) and math.isnan(none["mean"])
 
 
 class DivergingOracle(Oracle):
@@ -287,10 +136,6 @@ def test_analysis_of_the_exact_model(exact_ssm):
     assert free["model_std"][0] == pytest.approx(math.sqrt(0.5), rel=0.05)  # nodes trained briefly: radius ~1
     assert free["reference_std"][0] == pytest.approx(math.sqrt(0.5), rel=0.1)
     assert "## Analysis" in (tmp / "results" / "rot_an.md").read_text()
-    with pytest.raises(ValueError, match=r"analysis.valid_time takes \['horizon', 'n_filter', 'threshold'\], got \['steps'\]"):
-        Oracle(str(ckpt), n_filter=8, analysis={"valid_time": {"steps": 3}})
-    with pytest.raises(ValueError, match="unknown analysis section 'chaos'"):
-        Oracle(str(ckpt), n_filter=8, analysis={"chaos": {}})
 
 
 def test_encoder_stage_on_a_tiny_trained_checkpoint(exact_ssm):
@@ -438,33 +283,3 @@ def test_particle_filter_stage_tracks_the_exact_model(exact_ssm):
     assert saved["pf/clean/mse"]["mean"] < 0.1 * saved["mean/clean/mse"]["mean"]
 
 
-def test_valid_time_of_images_counts_the_error_above_the_reconstruction_floor():
-    """A forecaster whose decoder blurs every frame by the same amount (its reconstruction of the given frames
-    included) and loses the object after s steps: valid for exactly s steps, counted by hand above its floor;
-    without the given frames the blur alone reads as invalid from the first step."""
-    torch.manual_seed(1)
-    n, h, m = 5, 12, 4
-    truth = (torch.rand(n, m + h, 1, 6, 6, dtype=torch.float64) > 0.7).double()  # sparse "lit" pixels
-    blur = 0.4 * torch.randn(n, 1, 1, 6, 6, dtype=torch.float64)  # the decoder's error, the same on every frame
-    lost = torch.tensor([0, 3, 7, 11, 12])  # step at which each sequence's forecast loses the object
-    est = truth + blur
-    for i, s in enumerate(lost.tolist()):
-        est[i, m + s :] = truth[i, m + s :].roll(3, dims=-1) + blur[i]  # drawn elsewhere, same blur
-    acc = ValidTimeAccumulator()
-    acc.update(est[:, m:], truth[:, m:], given=(est[:, :m], truth[:, :m]))
-    steps, horizon = acc.steps(0.5)
-    # by hand: pooled variance, per-sequence floor from the given frames, error above it, first step over 0.5
-    values = truth[:, m:].reshape(-1, 36)
-    var = values.var(0, unbiased=False).mean()
-    expected = []
-    for i in range(n):
-        floor = ((est[i, :m] - truth[i, :m]) ** 2).mean()
-        err = [(((est[i, m + t] - truth[i, m + t]) ** 2).mean() - floor).clamp_min(0).div(var).sqrt() for t in range(h)]
-        expected.append(next((t for t in range(h) if err[t] > 0.5), math.inf))
-    assert horizon == h and steps.tolist() == expected
-    assert expected[1:] == [3.0, 7.0, 11.0, math.inf] and expected[0] == 0.0  # as constructed
-    assert acc.floor() == pytest.approx(float(((est[:, :m] - truth[:, :m]) ** 2).flatten(1).mean(1).div(var).sqrt().mean()))
-    assert acc.floor() > 0.5  # the blur alone is over the threshold:
-    plain = ValidTimeAccumulator()
-    plain.update(est[:, m:], truth[:, m:])
-    assert plain.steps(0.5)[0].tolist() == [0.0] * n and plain.floor() == 0.0
