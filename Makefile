@@ -11,7 +11,7 @@ SIZE   ?= paper
 CONSTRAINTS_PENDULUM ?= 0.3
 CONSTRAINTS_LORENZ   ?= 0.2
 
-.PHONY: install demo test test-slow tensorboard bench reproduce
+.PHONY: install demo test format test-slow tensorboard bench reproduce
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -25,9 +25,17 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(PY) cli.py fit --config configs/cpu/pendulum.yaml
 
-## Unit and integration tests (< 10 minutes on 2 CPU cores).
+## Lint and format checks (ruff, configured in pyproject.toml), then the unit and integration tests (< 10 minutes on
+## 2 CPU cores).
 test: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(PY) -m pytest -q
+
+## Format the code and fix what ruff can (make test checks both).
+format: $(STAMP)
+	$(VENV)/bin/ruff format .
+	$(VENV)/bin/ruff check --fix .
 
 ## Long tests excluded from `make test`.
 test-slow: $(STAMP)

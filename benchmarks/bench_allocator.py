@@ -46,7 +46,7 @@ BASE = "trim off"
 DRIVER = r"""
 import json, runpy, sys
 trim = json.loads(sys.argv.pop(1))
-from ssm_ms import perf
+from ssm_ms.runtime import perf
 if trim is not None:
     perf.configure_allocator(trim_threshold=trim)
 sys.argv = ["cli.py"] + sys.argv[1:]
@@ -70,12 +70,34 @@ def run_once(label: str, args: argparse.Namespace, overrides: list[str], callbac
     env = {**os.environ, **extra_env, "PYTHONPATH": os.pathsep.join([str(ROOT), str(callback_dir)])}
     if "SSM_MS_MALLOC_TUNING" not in extra_env:
         env.pop("SSM_MS_MALLOC_TUNING", None)
-    cmd = [sys.executable, "-c", DRIVER, json.dumps(trim), "fit", "--config", args.config,
-           "--model.init_args.ssm_checkpoint", args.ssm, "--trainer.max_epochs", "1",
-           "--trainer.limit_train_batches", str(args.warm + args.steps), "--trainer.limit_val_batches", "0",
-           "--trainer.logger", "false", "--trainer.enable_checkpointing", "false",
-           "--trainer.enable_progress_bar", "false", "--trainer.callbacks", "[{class_path: step_usage.StepUsage}]",
-           "--trainer.default_root_dir", str(callback_dir), *overrides]  # its config.yaml: not in the repository
+    cmd = [
+        sys.executable,
+        "-c",
+        DRIVER,
+        json.dumps(trim),
+        "fit",
+        "--config",
+        args.config,
+        "--model.init_args.ssm_checkpoint",
+        args.ssm,
+        "--trainer.max_epochs",
+        "1",
+        "--trainer.limit_train_batches",
+        str(args.warm + args.steps),
+        "--trainer.limit_val_batches",
+        "0",
+        "--trainer.logger",
+        "false",
+        "--trainer.enable_checkpointing",
+        "false",
+        "--trainer.enable_progress_bar",
+        "false",
+        "--trainer.callbacks",
+        "[{class_path: step_usage.StepUsage}]",
+        "--trainer.default_root_dir",
+        str(callback_dir),
+        *overrides,
+    ]  # its config.yaml: not in the repository
     out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
     rows = [json.loads(line[5:]) for line in out.stdout.splitlines() if line.startswith("STEP ")]
     if out.returncode != 0 or len(rows) < args.warm + args.steps:
@@ -112,7 +134,8 @@ def main(argv: list[str] | None = None) -> None:
         others = watch.others()
 
     command = "python benchmarks/bench_allocator.py " + " ".join(
-        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
+    )
     lines = [
         f"# Allocator settings on the quadruple pendulum encoder's training step (`{args.config}`)",
         "",
@@ -132,8 +155,10 @@ def main(argv: list[str] | None = None) -> None:
         runs = results[label]
         ratios = [x["wall"] / base["wall"] for x, base in zip(runs, results[BASE])]
         med = {key: statistics.median(x[key] for x in runs) for key in ("wall", "user", "sys", "faults")}
-        lines.append(f"| {label} | {med['wall']:.2f} | {med['user']:.2f} | {med['sys']:.2f} | {med['faults']:,.0f} | "
-                     f"{statistics.median(ratios):.2f} | {', '.join(f'{q:.2f}' for q in ratios)} |")
+        lines.append(
+            f"| {label} | {med['wall']:.2f} | {med['user']:.2f} | {med['sys']:.2f} | {med['faults']:,.0f} | "
+            f"{statistics.median(ratios):.2f} | {', '.join(f'{q:.2f}' for q in ratios)} |"
+        )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -31,12 +31,34 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 EXPERIMENTS = {
-    "pendulum": {"config": "configs/cpu/pendulum.yaml", "horizon": 100,
-                 "tiny": ["--data.init_args.n_train", "8", "--data.init_args.n_test", "4", "--data.init_args.workers",
-                          "1", "--data.init_args.batch_size", "4"]},
-    "lorenz_T1000": {"config": "configs/cpu/lorenz_T1000.yaml", "horizon": 200,
-                     "tiny": ["--data.init_args.n_train", "2", "--data.init_args.n_test", "2",
-                              "--data.init_args.train_steps", "4000", "--data.init_args.batch_size", "4"]},
+    "pendulum": {
+        "config": "configs/cpu/pendulum.yaml",
+        "horizon": 100,
+        "tiny": [
+            "--data.init_args.n_train",
+            "8",
+            "--data.init_args.n_test",
+            "4",
+            "--data.init_args.workers",
+            "1",
+            "--data.init_args.batch_size",
+            "4",
+        ],
+    },
+    "lorenz_T1000": {
+        "config": "configs/cpu/lorenz_T1000.yaml",
+        "horizon": 200,
+        "tiny": [
+            "--data.init_args.n_train",
+            "2",
+            "--data.init_args.n_test",
+            "2",
+            "--data.init_args.train_steps",
+            "4000",
+            "--data.init_args.batch_size",
+            "4",
+        ],
+    },
 }
 # name: (constraint, node_optimizer, alpha multiplier, constraint_options)
 VARIANTS = {
@@ -51,7 +73,11 @@ VARIANTS = {
 for _every in (10, 50):  # multipliers updated less often: the nodes' Adam steps have time to follow them
     for _x, _tag in ((1.0, ""), (10.0, ", alpha x10"), (0.1, ", alpha x0.1")):
         VARIANTS[f"augmented Lagrangian every {_every} epochs{_tag}"] = (
-            "augmented_lagrangian", "dense", _x, {"every_n_epochs": _every})
+            "augmented_lagrangian",
+            "dense",
+            _x,
+            {"every_n_epochs": _every},
+        )
 
 
 def _scale_schedule(schedule, factor: float, alpha_x: float) -> None:
@@ -91,13 +117,27 @@ def run_variant(experiment: str, name: str, args: argparse.Namespace, workdir: P
 
     spec = EXPERIMENTS[experiment]
     constraint, node_optimizer, alpha_x, options = VARIANTS[name]
-    cli_args = ["--config", str(ROOT / spec["config"]),
-                "--trainer.logger", "false", "--trainer.enable_progress_bar", "false",
-                "--trainer.enable_model_summary", "false", "--trainer.check_val_every_n_epoch", "100000",
-                "--trainer.default_root_dir", str(workdir),
-                "--model.init_args.constraint", constraint, "--model.init_args.node_optimizer", node_optimizer,
-                *(["--model.init_args.constraint_options", json.dumps(options)] if options else []),
-                "--data.init_args.data_dir", args.data_dir]
+    cli_args = [
+        "--config",
+        str(ROOT / spec["config"]),
+        "--trainer.logger",
+        "false",
+        "--trainer.enable_progress_bar",
+        "false",
+        "--trainer.enable_model_summary",
+        "false",
+        "--trainer.check_val_every_n_epoch",
+        "100000",
+        "--trainer.default_root_dir",
+        str(workdir),
+        "--model.init_args.constraint",
+        constraint,
+        "--model.init_args.node_optimizer",
+        node_optimizer,
+        *(["--model.init_args.constraint_options", json.dumps(options)] if options else []),
+        "--data.init_args.data_dir",
+        args.data_dir,
+    ]
     if args.tiny:
         cli_args += spec["tiny"]
     cli = cli_main(cli_args, run=False)
@@ -114,9 +154,14 @@ def run_variant(experiment: str, name: str, args: argparse.Namespace, workdir: P
     cli.trainer.fit(cli.model, cli.datamodule)
     seconds = time.perf_counter() - start
     out = scores(cli.model, cli.datamodule, spec["horizon"])
-    out.update(experiment=experiment, variant=name, epochs=epochs, seconds_per_epoch=seconds / epochs,
-               initial_alpha=initial_alpha,
-               final_alpha=float(cli.model.alpha * getattr(cli.model, "alpha_factor", 1.0)))
+    out.update(
+        experiment=experiment,
+        variant=name,
+        epochs=epochs,
+        seconds_per_epoch=seconds / epochs,
+        initial_alpha=initial_alpha,
+        final_alpha=float(cli.model.alpha * getattr(cli.model, "alpha_factor", 1.0)),
+    )
     return out
 
 
@@ -143,21 +188,36 @@ def main(argv: list[str] | None = None) -> list[dict]:
         for name in args.variants:
             rows.append(run_variant(experiment, name, args, Path(args.workdir) / experiment / name.replace(" ", "_")))
             print(json.dumps(rows[-1]), flush=True)  # progress, and what a cut-off run leaves
-    command = "python benchmarks/bench_constraints.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
-    lines = ["# Penalty against augmented Lagrangian, dense against sparse nodes (CPU-sized configs)", "",
-             f"Machine: {describe()}. Date: {datetime.date.today()}. Command: `{command}`."]
+    command = "python benchmarks/bench_constraints.py " + " ".join(
+        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
+    )
+    lines = [
+        "# Penalty against augmented Lagrangian, dense against sparse nodes (CPU-sized configs)",
+        "",
+        f"Machine: {describe()}. Date: {datetime.date.today()}. Command: `{command}`.",
+    ]
     if args.tiny:
         lines += ["", "**TINY sizes** (a smoke test of the script: the figures say nothing about the methods)."]
-    lines += ["", "fit, gap: over the whole training set after training (gap: the paper's mean squared continuity gap); "
-              "rollout MSE: from each training trajectory's first node over the horizon, against the noiseless data; "
-              "alpha: the model's initial alpha and the schedule's final one (times the augmented Lagrangian's growth factor).", ""]
+    lines += [
+        "",
+        "fit, gap: over the whole training set after training (gap: the paper's mean squared continuity gap); "
+        "rollout MSE: from each training trajectory's first node over the horizon, against the noiseless data; "
+        "alpha: the model's initial alpha and the schedule's final one (times the augmented Lagrangian's growth factor).",
+        "",
+    ]
     for experiment in args.experiments:
-        lines += [f"## {experiment} ({EXPERIMENTS[experiment]['config']}, horizon {EXPERIMENTS[experiment]['horizon']})", "",
-                  "| variant | epochs | alpha: initial, final | fit | gap | rollout MSE | s / epoch |", "|---|---|---|---|---|---|---|"]
+        lines += [
+            f"## {experiment} ({EXPERIMENTS[experiment]['config']}, horizon {EXPERIMENTS[experiment]['horizon']})",
+            "",
+            "| variant | epochs | alpha: initial, final | fit | gap | rollout MSE | s / epoch |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for r in rows:
             if r["experiment"] == experiment:
-                lines.append(f"| {r['variant']} | {r['epochs']} | {r['initial_alpha']:.3g}, {r['final_alpha']:.3g} | {r['fit']:.4g} | {r['gap']:.3g} | "
-                             f"{r['rollout_mse']:.4g} | {r['seconds_per_epoch']:.3g} |")
+                lines.append(
+                    f"| {r['variant']} | {r['epochs']} | {r['initial_alpha']:.3g}, {r['final_alpha']:.3g} | {r['fit']:.4g} | {r['gap']:.3g} | "
+                    f"{r['rollout_mse']:.4g} | {r['seconds_per_epoch']:.3g} |"
+                )
         lines.append("")
     lines += ["```json", json.dumps(rows, indent=1), "```", ""]
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -24,10 +24,8 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 from datamodules.lorenz import LorenzDataModule  # noqa: E402
-
-
+from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 
 
 def timed(fn) -> tuple[float, object]:
@@ -47,7 +45,7 @@ def main() -> None:
     for split, n, steps in (("train", dm.n_train, dm.train_steps), ("test", dm.n_test, dm.test_steps)):
         times = []
         for _ in range(args.repeats):
-            seconds, arrays = timed(lambda: dm.generate(split))
+            seconds, arrays = timed(lambda split=split: dm.generate(split))
             times.append(seconds)
             nbytes = sum(a.nbytes for a in arrays.values())
             del arrays

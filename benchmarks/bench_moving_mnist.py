@@ -32,8 +32,8 @@ from tqdm import tqdm
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 from datamodules.moving_mnist import MovingMNISTDataModule, render, trajectory  # noqa: E402
+from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 
 DEFAULT_ROOT = REPO.parent / "shared" / "data"
 
@@ -54,8 +54,6 @@ def proc_status(pid: int | str = "self") -> dict[str, float]:
     except OSError:
         pass
     return out
-
-
 
 
 def time_us(fn, n: int, repeats: int = 5) -> float:
@@ -101,16 +99,38 @@ def probe_memory(args: argparse.Namespace) -> None:
     rss2, current = maxrss_mb(), proc_status().get("VmRSS", float("nan"))
     workers = [proc_status(w.pid) for w in getattr(it, "_workers", [])]
     digits_mb = sum(ds.digits.numel() for ds in dm.datasets.values()) / 2**20
-    print(json.dumps({"imports": rss0, "setup": rss1 - rss0, "batches": rss2 - rss0, "current": current - rss0,
-                      "setup_s": setup_s, "digits": digits_mb, "workers": workers}))
+    print(
+        json.dumps(
+            {
+                "imports": rss0,
+                "setup": rss1 - rss0,
+                "batches": rss2 - rss0,
+                "current": current - rss0,
+                "setup_s": setup_s,
+                "digits": digits_mb,
+                "workers": workers,
+            }
+        )
+    )
 
 
 def run_probes(args: argparse.Namespace, workers: int) -> list[dict]:
     out = []
     for _ in tqdm(range(args.mem_runs), desc=f"memory probes, workers={workers}", leave=False):
-        cmd = [sys.executable, str(Path(__file__).resolve()), "--probe-memory", str(workers),
-               "--mnist-root", args.mnist_root, "--n-train", str(args.n_train), "--batch-size", str(args.batch_size),
-               "--mem-batches", str(args.mem_batches)]
+        cmd = [
+            sys.executable,
+            str(Path(__file__).resolve()),
+            "--probe-memory",
+            str(workers),
+            "--mnist-root",
+            args.mnist_root,
+            "--n-train",
+            str(args.n_train),
+            "--batch-size",
+            str(args.batch_size),
+            "--mem-batches",
+            str(args.mem_batches),
+        ]
         res = subprocess.run(cmd, capture_output=True, text=True, check=True)
         out.append(json.loads(res.stdout.strip().splitlines()[-1]))
     return out
@@ -172,30 +192,43 @@ def main() -> None:
         ("peak RSS after imports (torch, lightning, datamodules)", mem(probes[0], "imports")),
         ("added to peak RSS by setup() of train + test", mem(probes[0], "setup")),
         ("digits held (train + test, uint8)", f"{probes[0][0]['digits']:.1f} MiB"),
-        (f"**added to peak RSS by setup() + {args.mem_batches} batches, workers=0** (target <= 200 MiB)",
-         f"**{mem(probes[0], 'batches')}**"),
+        (
+            f"**added to peak RSS by setup() + {args.mem_batches} batches, workers=0** (target <= 200 MiB)",
+            f"**{mem(probes[0], 'batches')}**",
+        ),
     ]
     if args.workers:
         pw = probes[args.workers]
         rows += [
-            (f"added to the main process's peak RSS by setup() + {args.mem_batches} batches, "
-             f"workers={args.workers}", mem(pw, "batches")),
-            (f"worker RSS after {args.mem_batches} batches, last probe (VmRSS / RssAnon / RssShmem; "
-             "fork-shared pages count in each)",
-             "; ".join(f"{s.get('VmRSS', 0):.0f} / {s.get('RssAnon', 0):.0f} / {s.get('RssShmem', 0):.0f} MiB"
-                       for s in pw[-1]["workers"]) or "n/a"),
+            (
+                f"added to the main process's peak RSS by setup() + {args.mem_batches} batches, workers={args.workers}",
+                mem(pw, "batches"),
+            ),
+            (
+                f"worker RSS after {args.mem_batches} batches, last probe (VmRSS / RssAnon / RssShmem; "
+                "fork-shared pages count in each)",
+                "; ".join(
+                    f"{s.get('VmRSS', 0):.0f} / {s.get('RssAnon', 0):.0f} / {s.get('RssShmem', 0):.0f} MiB"
+                    for s in pw[-1]["workers"]
+                )
+                or "n/a",
+            ),
         ]
     rows += [
-        ("setup() time (read + check both MNIST splits)",
-         f"{statistics.median(p['setup_s'] for p in probes[0]):.2f} s"),
+        (
+            "setup() time (read + check both MNIST splits)",
+            f"{statistics.median(p['setup_s'] for p in probes[0]):.2f} s",
+        ),
         ("trajectory(): seeded RNG + motion, per item", f"{t_traj:.0f} us"),
         ("render(): 2 digits x 20 frames, per item", f"{t_render:.0f} us"),
         ("dataset[i] (motion + render + float32), per item", f"{t_item:.0f} us"),
         (f"dataset.__getitems__ of {args.batch_size} (what the loader calls), per trajectory", f"{t_batch:.0f} us"),
         ("loader throughput, workers=0 (1 run)", f"{rate0:.0f} trajectories/s"),
-        (f"**loader throughput, workers={args.workers}, batch {args.batch_size}** (median of {args.runs}; "
-         "target >= 1000)", f"**{statistics.median(rates):.0f} trajectories/s** "
-         f"({', '.join(f'{r:.0f}' for r in rates)})"),
+        (
+            f"**loader throughput, workers={args.workers}, batch {args.batch_size}** (median of {args.runs}; "
+            "target >= 1000)",
+            f"**{statistics.median(rates):.0f} trajectories/s** ({', '.join(f'{r:.0f}' for r in rates)})",
+        ),
     ]
     n_cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     lines = [

@@ -29,9 +29,9 @@ import pinocchio as pin
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 from datamodules import pendulum as P  # noqa: E402
 from datamodules.pendulum import PendulumDataModule  # noqa: E402
+from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 
 CONFIGS = {
     "simple (1 link, 24x24)": dict(n_links=1, image_size=24, n_train=1000, n_test=1000),
@@ -39,8 +39,6 @@ CONFIGS = {
         n_links=4, image_size=48, n_train=2000, n_test=2000, damping=0.1, max_velocity=0.0
     ),
 }
-
-
 
 
 def chain_energy(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -147,8 +145,7 @@ def main() -> None:
 
     lines += [
         "",
-        "## Cost per trajectory in one process (ms, median of 3 batches of "
-        f"{P.CHUNK_SIZE} trajectories)",
+        f"## Cost per trajectory in one process (ms, median of 3 batches of {P.CHUNK_SIZE} trajectories)",
         "",
         "| data set | dynamics | rendering | noise + quantisation |",
         "|---|---|---|---|",
@@ -172,8 +169,11 @@ def main() -> None:
             lines.append(f"| {label} | {h:g}{' (default)' if h == step else ''} | {med:.1e} | {mx:.1e} |")
 
     load = [" / ".join(f"{x:.1f}" for x in la) for la in (load_before, os.getloadavg())]
-    lines.insert(6, f"- load average (1 / 5 / 15 min) at start: {load[0]}, at end: {load[1]} "
-                    "(other processes on the machine slow the figures down)")
+    lines.insert(
+        6,
+        f"- load average (1 / 5 / 15 min) at start: {load[0]}, at end: {load[1]} "
+        "(other processes on the machine slow the figures down)",
+    )
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")

@@ -78,13 +78,17 @@ def build(impl: str, model: str, size: dict, device: str = "cpu"):
     from ssm_ms.module import MultipleShootingModule
     from ssm_ms.nets import ConvDecoder, FullyConnectedTransition, LocallyLinearTransition, native
 
-    f = LocallyLinearTransition(d, size["k"], size["hidden"]) if model == "SSM-LL" else \
-        FullyConnectedTransition(d, (size["fc"],) * 3)
+    f = (
+        LocallyLinearTransition(d, size["k"], size["hidden"])
+        if model == "SSM-LL"
+        else FullyConnectedTransition(d, (size["fc"],) * 3)
+    )
     compiled = ("reduce-overhead" if device == "cuda" else "default") if impl == "ours-compiled" else None
     kernels = "native" if device == "cpu" and native.library() is not None else "torch"
     g = ConvDecoder(d, "pendulum", backend="torch" if impl == "ours-torch" else kernels)
-    module = MultipleShootingModule(f, g, d, num_trajectories=size["n_train"], n_nodes=m,
-                                    compile_rollout=compiled).to(device)
+    module = MultipleShootingModule(f, g, d, num_trajectories=size["n_train"], n_nodes=m, compile_rollout=compiled).to(
+        device
+    )
     with torch.no_grad():
         module.nodes.weight.normal_(0.0, 0.1)
     opt = module.configure_optimizers()
@@ -135,13 +139,27 @@ def worker(impl: str, model: str, tiny: bool, threads: int, device: str = "cpu")
 class Worker:
     """One implementation's worker process (``env``: variables added to its environment)."""
 
-    def __init__(self, impl: str, model: str, tiny: bool, threads: int, device: str = "cpu",
-                 env: dict[str, str] | None = None):
+    def __init__(
+        self, impl: str, model: str, tiny: bool, threads: int, device: str = "cpu", env: dict[str, str] | None = None
+    ):
         self.impl = impl
-        cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", impl, model, "--threads", str(threads),
-               "--device", device]
+        cmd = [
+            sys.executable,
+            str(Path(__file__).resolve()),
+            "--worker",
+            impl,
+            model,
+            "--threads",
+            str(threads),
+            "--device",
+            device,
+        ]
         self.proc = subprocess.Popen(
-            cmd + (["--tiny"] if tiny else []), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT,
+            cmd + (["--tiny"] if tiny else []),
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
             env={**os.environ, **(env or {})},
         )
         self._read()
@@ -175,8 +193,16 @@ def bf16_native(device: str = "cpu") -> bool:
     return bf16_support(device)[0]
 
 
-def measure(model: str, impls: list[str], rounds: int, steps: int, threads: int, tiny: bool, device: str = "cpu",
-            discard: int = 2) -> dict:
+def measure(
+    model: str,
+    impls: list[str],
+    rounds: int,
+    steps: int,
+    threads: int,
+    tiny: bool,
+    device: str = "cpu",
+    discard: int = 2,
+) -> dict:
     workers = [Worker(impl, model, tiny, threads, device) for impl in impls]
     times: dict[str, list[float]] = {impl: [] for impl in impls}
     per_round: dict[str, list[float]] = {impl: [] for impl in impls}
@@ -189,8 +215,9 @@ def measure(model: str, impls: list[str], rounds: int, steps: int, threads: int,
                     times[w.impl] += ts
                     per_round[w.impl].append(statistics.median(ts))
             if r >= 0:
-                print(f"{model} round {r + 1}: " + "  ".join(f"{k} {v[-1]:.3f}" for k, v in per_round.items()),
-                      flush=True)
+                print(
+                    f"{model} round {r + 1}: " + "  ".join(f"{k} {v[-1]:.3f}" for k, v in per_round.items()), flush=True
+                )
     finally:
         for w in workers:
             w.close()
@@ -238,8 +265,10 @@ def main(argv: list[str] | None = None) -> None:
     start = datetime.now(timezone.utc)
     watch = CpuWatch()
     discard = 0 if args.tiny else args.discard
-    results = {model: measure(model, impls, args.rounds, args.steps, args.threads, args.tiny, args.device, discard)
-               for model in args.models}
+    results = {
+        model: measure(model, impls, args.rounds, args.steps, args.threads, args.tiny, args.device, discard)
+        for model in args.models
+    }
     others = watch.others()  # the workers have exited
     size = TINY if args.tiny else FULL
     cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *(argv or sys.argv[1:])])
@@ -261,8 +290,12 @@ def main(argv: list[str] | None = None) -> None:
     ]
     if bf16_note:
         lines.append(f"- {bf16_note}")
-    lines += ["", "| model | implementation | median s / step | min s | ratio reference / this (per-round median) | "
-              "per-round ratios |", "|---|---|---:|---:|---:|---|"]
+    lines += [
+        "",
+        "| model | implementation | median s / step | min s | ratio reference / this (per-round median) | "
+        "per-round ratios |",
+        "|---|---|---:|---:|---:|---|",
+    ]
     for model, res in results.items():
         ref = res["per_round"]["reference"]
         for impl in impls:

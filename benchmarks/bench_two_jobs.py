@@ -47,8 +47,10 @@ VARIANTS = [
 
 def measure(rounds: int, steps: int, discard: int, tiny: bool) -> dict[str, dict[str, list[float]]]:
     """Per variant: ``times`` (every timed step of every job) and ``throughput`` (steps per second, per round)."""
-    workers = {label: [Worker("ours", "SSM-LL", tiny, threads, env=env) for _ in range(jobs)]
-               for label, threads, jobs, env in VARIANTS}
+    workers = {
+        label: [Worker("ours", "SSM-LL", tiny, threads, env=env) for _ in range(jobs)]
+        for label, threads, jobs, env in VARIANTS
+    }
     out = {label: {"times": [], "throughput": []} for label in workers}
     try:
         for r in range(-discard, rounds):
@@ -63,8 +65,10 @@ def measure(rounds: int, steps: int, discard: int, tiny: bool) -> dict[str, dict
                     out[label]["times"] += [t for ts in times for t in ts]
                     out[label]["throughput"].append(steps * len(times) / wall)
             if r >= 0:
-                print(f"round {r + 1}: " + "  ".join(f"{k}: {v['throughput'][-1]:.2f}/s" for k, v in out.items()),
-                      flush=True)
+                print(
+                    f"round {r + 1}: " + "  ".join(f"{k}: {v['throughput'][-1]:.2f}/s" for k, v in out.items()),
+                    flush=True,
+                )
     finally:
         for ws in workers.values():
             for w in ws:
@@ -82,8 +86,10 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     small = [f"--{k} {getattr(args, k)}" for k in ("rounds", "steps") if getattr(args, k) < 1]
     if small or args.discard < 0:
-        parser.error(f"{', '.join(small) or f'--discard {args.discard}'}: give at least 1 round and 1 step "
-                     "(and 0 or more untimed rounds)")
+        parser.error(
+            f"{', '.join(small) or f'--discard {args.discard}'}: give at least 1 round and 1 step "
+            "(and 0 or more untimed rounds)"
+        )
 
     from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
 
@@ -114,8 +120,10 @@ def main(argv: list[str] | None = None) -> None:
     ]
     for label, *_ in VARIANTS:
         ratios = [a / b for a, b in zip(res[label]["throughput"], alone)]
-        lines.append(f"| {label} | {statistics.median(res[label]['times']):.3f} | "
-                     f"{statistics.median(res[label]['throughput']):.2f} | {statistics.median(ratios):.2f} |")
+        lines.append(
+            f"| {label} | {statistics.median(res[label]['times']):.3f} | "
+            f"{statistics.median(res[label]['throughput']):.2f} | {statistics.median(ratios):.2f} |"
+        )
     text = "\n".join(lines) + "\n"
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(text)

@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import platform
-import json
 import shlex
 import statistics
 import subprocess
@@ -38,11 +38,11 @@ sys.path.insert(0, str(ROOT))
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
 from ssm_ms.inference.shared import call_model  # noqa: E402
 from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402
 from ssm_ms.nets.readout import Projection  # noqa: E402
 from ssm_ms.nets.transition import LocallyLinearTransition  # noqa: E402
+from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
 from ssm_ms.runtime.perf import configure_allocator  # noqa: E402
 
 TINY = {"trajectories": 4, "steps": 20, "ref_steps": 5, "repeats": 1, "k": 4, "hidden": 16}
@@ -113,8 +113,17 @@ def reference_worker(trajectories: int, steps: int, threads: int, k: int, hidden
 
 class ReferenceUKF:
     def __init__(self, trajectories: int, steps: int, threads: int, k: int, hidden: int):
-        cmd = [sys.executable, str(Path(__file__).resolve()), "--reference-worker", str(trajectories), str(steps),
-               str(k), str(hidden), "--threads", str(threads)]
+        cmd = [
+            sys.executable,
+            str(Path(__file__).resolve()),
+            "--reference-worker",
+            str(trajectories),
+            str(steps),
+            str(k),
+            str(hidden),
+            "--threads",
+            str(threads),
+        ]
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT)
         self._read()
 
@@ -137,7 +146,9 @@ class ReferenceUKF:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trajectories", type=int, default=200)
-    parser.add_argument("--steps", type=int, default=500, help="filter steps per run (the cost per step does not depend on it)")
+    parser.add_argument(
+        "--steps", type=int, default=500, help="filter steps per run (the cost per step does not depend on it)"
+    )
     parser.add_argument("--ref-steps", type=int, default=200, help="steps of the reference UKF per round")
     parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds (median reported)")
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
@@ -151,8 +162,9 @@ def main(argv: list[str] | None = None) -> None:
         return
     k, hidden = 32, 1024
     if args.tiny:
-        args.trajectories, args.steps, args.ref_steps, args.repeats = (TINY[key] for key in
-                                                                        ("trajectories", "steps", "ref_steps", "repeats"))
+        args.trajectories, args.steps, args.ref_steps, args.repeats = (
+            TINY[key] for key in ("trajectories", "steps", "ref_steps", "repeats")
+        )
         k, hidden = TINY["k"], TINY["hidden"]
 
     torch.set_num_threads(args.threads)
@@ -171,16 +183,19 @@ def main(argv: list[str] | None = None) -> None:
         def run(y):  # as many calls as a filter over y makes
             for _ in range(y.shape[1] - 1):
                 call_model(f, x_sigma, autocast)
+
         return run
 
     # paper's noise defaults: P0 = 0.1 I, R = 0.5, Q = 1e-6
     variants = {
         "**UKF, float32 (default)**": UnscentedKalmanFilter(f, g).filter,
-        "UKF, float32, `g` through sigma points (a function, not known to be linear)":
-            UnscentedKalmanFilter(f, g.forward, state_dim=3).filter,
+        "UKF, float32, `g` through sigma points (a function, not known to be linear)": UnscentedKalmanFilter(
+            f, g.forward, state_dim=3
+        ).filter,
         "UKF, `f` and `g` under autocast(bfloat16)": UnscentedKalmanFilter(f, g, **bf16).filter,
-        "UKF, autocast(bfloat16) and beta=0 (cubature rule: 6 points, `f` on [%d, 3])" % (b * 6):
-            UnscentedKalmanFilter(f, g, beta=0.0, **bf16).filter,
+        f"UKF, autocast(bfloat16) and beta=0 (cubature rule: 6 points, `f` on [{b * 6}, 3])": UnscentedKalmanFilter(
+            f, g, beta=0.0, **bf16
+        ).filter,
         "filter algebra alone (identity `f`), float32": UnscentedKalmanFilter(nn.Identity(), g, state_dim=3).filter,
         f"`f` alone on [{b * 7}, 3], float32": f_alone(None),
         f"`f` alone on [{b * 7}, 3], autocast(bfloat16)": f_alone(torch.bfloat16),

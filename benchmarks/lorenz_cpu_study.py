@@ -53,15 +53,24 @@ def study_row(checkpoint: dict, runs: dict, ukf: str, encoder: str = "") -> dict
     if "dynamics" not in analysis:
         raise SystemExit(f"run {ukf!r} has no dynamics analysis: test it with a config that has analysis.dynamics")
     free, ly = analysis["dynamics"]["free_run"], analysis["dynamics"]["lyapunov"]
-    data = next((v["generator_params"] for v in checkpoint.values() if isinstance(v, dict) and "generator_params" in v), {})
+    data = next(
+        (v["generator_params"] for v in checkpoint.values() if isinstance(v, dict) and "generator_params" in v), {}
+    )
     hp = checkpoint["hyper_parameters"]
     row = {
-        "epochs": checkpoint["epoch"] + 1, "steps": checkpoint["global_step"],
+        "epochs": checkpoint["epoch"] + 1,
+        "steps": checkpoint["global_step"],
         "data": {k: data.get(k) for k in ("n_train", "train_steps", "noise_std")},
-        "f": {k: v for k, v in hp["f"]["init_args"].items() if k != "state_dim"}, "n_nodes": hp["n_nodes"],
-        "w1": free["wasserstein"][0], "both_wings": free.get("both_wings_share"), "finite_share": free["finite_share"],
-        "model_std": free["model_std"][0], "reference_std": free["reference_std"][0],
-        "largest": ly["largest"], "largest_std": ly["std_over_runs"][0], "exponents": ly["exponents"],
+        "f": {k: v for k, v in hp["f"]["init_args"].items() if k != "state_dim"},
+        "n_nodes": hp["n_nodes"],
+        "w1": free["wasserstein"][0],
+        "both_wings": free.get("both_wings_share"),
+        "finite_share": free["finite_share"],
+        "model_std": free["model_std"][0],
+        "reference_std": free["reference_std"][0],
+        "largest": ly["largest"],
+        "largest_std": ly["std_over_runs"][0],
+        "exponents": ly["exponents"],
         "largest_true": (analysis.get("true_system") or {}).get("largest"),
         "valid_time": analysis.get("valid_time"),
     }
@@ -83,8 +92,12 @@ def main(argv: list[str] | None = None) -> dict:
     opts = parser.parse_args(argv)
 
     checkpoint = torch.load(opts.ckpt, map_location="cpu", weights_only=False)
-    row = {"label": opts.label, "ckpt": str(opts.ckpt), "threads": opts.threads,
-           **study_row(checkpoint, json.loads(opts.results.read_text())["runs"], opts.ukf, opts.encoder)}
+    row = {
+        "label": opts.label,
+        "ckpt": str(opts.ckpt),
+        "threads": opts.threads,
+        **study_row(checkpoint, json.loads(opts.results.read_text())["runs"], opts.ukf, opts.encoder),
+    }
     row["train_seconds"] = training_time(opts.ckpt, row["steps"])
     print(json.dumps(row, indent=1))
 
@@ -92,10 +105,12 @@ def main(argv: list[str] | None = None) -> dict:
         return "" if v is None else format(v, spec)
 
     minutes = None if row["train_seconds"] is None else row["train_seconds"] / 60
-    print(f"| {row['label']} | {row['epochs']} | {row['steps']} | {fmt(minutes, '.0f')} min, {row['threads']} thr "
-          f"| {fmt(row['w1'])} | {fmt(row['both_wings'])} | {fmt(row['model_std'])} / {fmt(row['reference_std'])} "
-          f"| {fmt(row['largest'])} +- {fmt(row['largest_std'])} | {fmt(row.get('ukf_mse'), '.3f')} "
-          f"| {fmt(row.get('encoder_mse'), '.3f')} |")
+    print(
+        f"| {row['label']} | {row['epochs']} | {row['steps']} | {fmt(minutes, '.0f')} min, {row['threads']} thr "
+        f"| {fmt(row['w1'])} | {fmt(row['both_wings'])} | {fmt(row['model_std'])} / {fmt(row['reference_std'])} "
+        f"| {fmt(row['largest'])} +- {fmt(row['largest_std'])} | {fmt(row.get('ukf_mse'), '.3f')} "
+        f"| {fmt(row.get('encoder_mse'), '.3f')} |"
+    )
     if opts.out:
         with opts.out.open("a") as fh:
             fh.write(json.dumps(row) + "\n")

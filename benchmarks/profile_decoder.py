@@ -46,9 +46,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--tiny", action="store_true", help="tiny sizes, to check that the script runs")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "decoder_profile.md"))
-    parser.add_argument("--cflags", default=None,
-                        help='compiler flags for the native kernels instead of ssm_ms.nets.native.build.FLAG_SETS, e.g. '
-                             '"-O3 -mavx2 -mfma" for the AVX2 build on an AVX-512 CPU (-fopenmp is added)')
+    parser.add_argument(
+        "--cflags",
+        default=None,
+        help="compiler flags for the native kernels instead of ssm_ms.nets.native.build.FLAG_SETS, e.g. "
+        '"-O3 -mavx2 -mfma" for the AVX2 build on an AVX-512 CPU (-fopenmp is added)',
+    )
     args = parser.parse_args(argv)
 
     from ssm_ms.runtime.perf import configure_allocator
@@ -57,8 +60,8 @@ def main(argv: list[str] | None = None) -> None:
     import torch
     import torch.nn.functional as F
 
-    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
     from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, native
+    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
     from ssm_ms.training.shooting import rollout
 
     if args.cflags:
@@ -97,12 +100,15 @@ def main(argv: list[str] | None = None) -> None:
         states = rollout(f, nodes, size["steps"])
         states.square().mean().backward()
 
-    runs = {"decoder, native kernels": lambda: decoder(fused), "decoder, torch-only": lambda: decoder(plain),
-            "f rollout (SSM-LL)": f_rollout}
+    runs = {
+        "decoder, native kernels": lambda: decoder(fused),
+        "decoder, torch-only": lambda: decoder(plain),
+        "f rollout (SSM-LL)": f_rollout,
+    }
     times: dict[str, list[float]] = {name: [] for name in runs}
     per_call: list[list[float]] = []
     try:
-        for name, run in runs.items():  # warm-up
+        for run in runs.values():  # warm-up
             run()
         for _ in range(args.repeats):
             for name, run in runs.items():
@@ -142,10 +148,15 @@ def main(argv: list[str] | None = None) -> None:
             lines.append(f"| native kernel: {label} | {1000 * statistics.median(c[i] for c in per_call):.1f} |")
         total = 1000 * statistics.median(sum(c) for c in per_call)
         lines.append(f"| native kernels, all calls | {total:.1f} |")
-        lines.append(f"| decoder with native kernels, the rest (stem, layout of its output, sigmoid, loss) | "
-                     f"{ms['decoder, native kernels'] - total:.1f} |")
-    lines += ["", "| decoder, forward + backward | frames | native kernels, ms | torch-only, ms |",
-              "|---|---:|---:|---:|"]
+        lines.append(
+            f"| decoder with native kernels, the rest (stem, layout of its output, sigmoid, loss) | "
+            f"{ms['decoder, native kernels'] - total:.1f} |"
+        )
+    lines += [
+        "",
+        "| decoder, forward + backward | frames | native kernels, ms | torch-only, ms |",
+        "|---|---:|---:|---:|",
+    ]
     for preset, res in others.items():
         lines.append(f"| {preset} | {size[preset]} | {res['native']:.1f} | {res['torch']:.1f} |")
     measured = {"pendulum": {"native": ms["decoder, native kernels"], "torch": ms["decoder, torch-only"]}, **others}
@@ -157,8 +168,11 @@ def main(argv: list[str] | None = None) -> None:
     print(f"wrote {args.out}")
 
 
-SIMD_NAMES = {"avx512": "AVX-512 (avx512f)", "avx2": "AVX2 with FMA, no AVX-512",
-              None: "neither AVX-512 nor AVX2 with FMA"}
+SIMD_NAMES = {
+    "avx512": "AVX-512 (avx512f)",
+    "avx2": "AVX2 with FMA, no AVX-512",
+    None: "neither AVX-512 nor AVX2 with FMA",
+}
 
 
 def auto_check(size: dict, measured: dict[str, dict[str, float]], built: bool, cflags: str | None) -> list[str]:
@@ -178,10 +192,16 @@ def auto_check(size: dict, measured: dict[str, dict[str, float]], built: bool, c
         "AVX-512, the torch path on AVX2 only or neither, and on any other device)",
     ]
     if cflags:
-        lines.append(f"- the kernels timed here (and run by `auto` below) were built with `{cflags}`, not "
-                     "`-march=native` as elsewhere: the rule reads the CPU's instruction set, not the build's")
-    lines += ["", "| decoder | frames | native kernels, ms | torch-only, ms | native / torch | faster here | "
-              "`auto` ran | `auto` took the faster |", "|---|---:|---:|---:|---:|---|---|---|"]
+        lines.append(
+            f"- the kernels timed here (and run by `auto` below) were built with `{cflags}`, not "
+            "`-march=native` as elsewhere: the rule reads the CPU's instruction set, not the build's"
+        )
+    lines += [
+        "",
+        "| decoder | frames | native kernels, ms | torch-only, ms | native / torch | faster here | "
+        "`auto` ran | `auto` took the faster |",
+        "|---|---:|---:|---:|---:|---|---|---|",
+    ]
     for preset, res in measured.items():
         ran = auto_ran(size["d"], preset)
         frames = size["frames"] if preset == "pendulum" else size[preset]
@@ -190,8 +210,10 @@ def auto_check(size: dict, measured: dict[str, dict[str, float]], built: bool, c
             lines.append(f"| {preset} | {frames} | ({reason}) | {res['torch']:.1f} | - | - | {ran} | - |")
             continue
         faster = "native" if res["native"] < res["torch"] else "torch"
-        lines.append(f"| {preset} | {frames} | {res['native']:.1f} | {res['torch']:.1f} | "
-                     f"{res['native'] / res['torch']:.2f} | {faster} | {ran} | {'yes' if ran == faster else '**no**'} |")
+        lines.append(
+            f"| {preset} | {frames} | {res['native']:.1f} | {res['torch']:.1f} | "
+            f"{res['native'] / res['torch']:.2f} | {faster} | {ran} | {'yes' if ran == faster else '**no**'} |"
+        )
     return lines
 
 

@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+
 def parse_profile(text: str) -> dict[str, tuple[int, float]]:
     """``{action: (calls, total seconds)}`` from SimpleProfiler's table."""
     rows = {}
@@ -47,8 +48,11 @@ def shares(rows: dict[str, tuple[int, float]]) -> tuple[float, list[tuple[str, f
     total = rows.get("Total", (1, 0.0))[1]
     steps = rows.get("run_training_batch", (0, 0.0))[1]
     data = rows.get("[_TrainingEpochLoop].train_dataloader_next", (0, 0.0))[1]
-    val = sum(t for a, (_, t) in rows.items() if a.startswith("[_EvaluationLoop].val_next")
-              or ".validation_step" in a or "on_validation" in a)
+    val = sum(
+        t
+        for a, (_, t) in rows.items()
+        if a.startswith("[_EvaluationLoop].val_next") or ".validation_step" in a or "on_validation" in a
+    )
     epoch_end = sum(t for a, (_, t) in rows.items() if a.startswith("[Callback]") and "on_train_epoch_end" in a)
     prepare = sum(t for a, (_, t) in rows.items() if a.endswith(".prepare_data") or a.endswith("Module.setup"))
     out = [
@@ -71,11 +75,27 @@ def main(argv: list[str] | None = None) -> None:
     from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
 
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "cli.py", "fit", "--config", args.config, "--trainer.max_epochs", str(args.epochs),
-               "--trainer.logger.init_args.save_dir", tmp, "--trainer.logger.init_args.version", "profile",
-               "--trainer.enable_progress_bar", "false",
-               "--trainer.profiler.class_path", "lightning.pytorch.profilers.SimpleProfiler",
-               "--trainer.profiler.init_args.dirpath", tmp, "--trainer.profiler.init_args.filename", "profile"]
+        cmd = [
+            sys.executable,
+            "cli.py",
+            "fit",
+            "--config",
+            args.config,
+            "--trainer.max_epochs",
+            str(args.epochs),
+            "--trainer.logger.init_args.save_dir",
+            tmp,
+            "--trainer.logger.init_args.version",
+            "profile",
+            "--trainer.enable_progress_bar",
+            "false",
+            "--trainer.profiler.class_path",
+            "lightning.pytorch.profilers.SimpleProfiler",
+            "--trainer.profiler.init_args.dirpath",
+            tmp,
+            "--trainer.profiler.init_args.filename",
+            "profile",
+        ]
         watch = CpuWatch()
         start = time.time()
         subprocess.run(cmd, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
@@ -85,7 +105,8 @@ def main(argv: list[str] | None = None) -> None:
     rows = parse_profile(text)
     total, groups = shares(rows)
     command = "python benchmarks/profile_epoch.py " + " ".join(
-        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
+    )
     lines = [
         f"# Where a training epoch goes: `{args.config}`, {args.epochs} epochs",
         "",
@@ -104,8 +125,13 @@ def main(argv: list[str] | None = None) -> None:
     if steps:
         lines += ["", f"Training steps: {steps[0]} calls, {1000 * steps[1] / max(steps[0], 1):.1f} ms each."]
     top = sorted(((a, c, t) for a, (c, t) in rows.items() if a != "Total"), key=lambda r: -r[2])[:15]
-    lines += ["", "The profiler's 15 largest actions (nested: a step's parts are inside `run_training_batch`):", "",
-              "| action | calls | seconds |", "|---|---|---|"]
+    lines += [
+        "",
+        "The profiler's 15 largest actions (nested: a step's parts are inside `run_training_batch`):",
+        "",
+        "| action | calls | seconds |",
+        "|---|---|---|",
+    ]
     lines += [f"| `{a.split('{')[0]}` | {c} | {t:.2f} |" for a, c, t in top]
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text("\n".join(lines) + "\n")

@@ -66,8 +66,12 @@ class RefDecoder(nn.Module):
         self.stem = stem
         self.fc_obs = nn.Linear(d, stem * 9)
         self.conv_layers = nn.Sequential(
-            nn.ConvTranspose2d(stem, 16, 5, stride=3), nn.LayerNorm((16, 11, 11)), nn.ReLU(),
-            nn.ConvTranspose2d(16, 12, 3, stride=2), nn.LayerNorm((12, 23, 23)), nn.ReLU(),
+            nn.ConvTranspose2d(stem, 16, 5, stride=3),
+            nn.LayerNorm((16, 11, 11)),
+            nn.ReLU(),
+            nn.ConvTranspose2d(16, 12, 3, stride=2),
+            nn.LayerNorm((12, 23, 23)),
+            nn.ReLU(),
             nn.ConvTranspose2d(12, 1, 2, stride=1),
         )
 
@@ -87,7 +91,7 @@ class RefTrainer:
     def loss_function(self, index: np.ndarray, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``y [B, T, p]`` flat measurements of the trajectories ``index``."""
         n = y.shape[1] // self.m
-        flat_y = torch.cat([y[:, i * n:(i + 1) * n] for i in range(self.m)])  # [m B, n, p], node-major
+        flat_y = torch.cat([y[:, i * n : (i + 1) * n] for i in range(self.m)])  # [m B, n, p], node-major
         node_of = np.repeat(np.arange(self.m), len(index))
         traj_of = np.tile(index, self.m)
         x = self.nodes[traj_of, node_of]

@@ -37,7 +37,9 @@ def _read_npy_header(fp, where: str) -> tuple[tuple[int, ...], bool, np.dtype]:
     try:
         version = np.lib.format.read_magic(fp)
     except ValueError as err:
-        raise ValueError(f"{where} is not a NumPy .npy array ({err}); write arrays with numpy.save / numpy.savez") from err
+        raise ValueError(
+            f"{where} is not a NumPy .npy array ({err}); write arrays with numpy.save / numpy.savez"
+        ) from err
     if version == (1, 0):
         return np.lib.format.read_array_header_1_0(fp)
     return np.lib.format.read_array_header_2_0(fp)
@@ -60,14 +62,18 @@ def read_header(path: str | Path, key: str, what: str) -> ArrayHeader:
             shape, fortran, dtype = _read_npy_header(fp, str(path))
         return ArrayHeader(path, None, tuple(shape), dtype, fortran)
     if suffix != ".npz":
-        raise ValueError(f"{what}: {path} is neither .npy nor .npz; save your trajectories with numpy.save or numpy.savez")
+        raise ValueError(
+            f"{what}: {path} is neither .npy nor .npz; save your trajectories with numpy.save or numpy.savez"
+        )
     if not zipfile.is_zipfile(path):
         raise ValueError(f"{what}: {path} is not a valid .npz (zip) archive; write it with numpy.savez")
     with zipfile.ZipFile(path) as zf:
         member = f"{key}.npy"
         names = [n[:-4] for n in zf.namelist() if n.endswith(".npy")]
         if member not in zf.namelist():
-            raise ValueError(f"{what}: {path} holds no array '{key}' (it holds {names}); set the key argument to one of them")
+            raise ValueError(
+                f"{what}: {path} holds no array '{key}' (it holds {names}); set the key argument to one of them"
+            )
         info = zf.getinfo(member)
         with zf.open(member) as fp:
             shape, fortran, dtype = _read_npy_header(fp, f"{path}['{key}']")
@@ -88,8 +94,9 @@ def open_array(h: ArrayHeader) -> np.ndarray:
     if h.key is None:
         return np.load(h.path, mmap_mode="r")
     if h.data_offset is not None and not h.dtype.hasobject:
-        return np.memmap(h.path, dtype=h.dtype, mode="r", offset=h.data_offset, shape=h.shape,
-                         order="F" if h.fortran_order else "C")
+        return np.memmap(
+            h.path, dtype=h.dtype, mode="r", offset=h.data_offset, shape=h.shape, order="F" if h.fortran_order else "C"
+        )
     with np.load(h.path) as npz:
         return npz[h.key]
 
@@ -106,7 +113,9 @@ def check_header(h: ArrayHeader, what: str) -> None:
         raise ValueError(f"{what}: {h.label} has dtype {h.dtype}; expected a real numeric (float, int or uint8) array")
     if len(h.shape) not in (3, 4, 5):
         hint = " (scalar measurements [N, T]: add a trailing axis, y[..., None])" if len(h.shape) == 2 else ""
-        raise ValueError(f"{what}: {h.label} has shape {h.shape} (rank {len(h.shape)}); accepted layouts: {LAYOUTS}{hint}")
+        raise ValueError(
+            f"{what}: {h.label} has shape {h.shape} (rank {len(h.shape)}); accepted layouts: {LAYOUTS}{hint}"
+        )
     if 0 in h.shape:
         raise ValueError(
             f"{what}: {h.label} is empty (shape {h.shape}, layout [N, T, ...]): it needs at least one trajectory "

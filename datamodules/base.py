@@ -452,7 +452,11 @@ class TrajectoryDataModule(pl.LightningDataModule):
         total, count = None, 0
         for start in range(0, n, 64):
             items = list(range(start, min(start + 64, n)))
-            batch = train.__getitems__(items) if hasattr(train, "__getitems__") else default_collate([train[i] for i in items])
+            batch = (
+                train.__getitems__(items)
+                if hasattr(train, "__getitems__")
+                else default_collate([train[i] for i in items])
+            )
             y = batch["y"].double()
             if isinstance(train, TrajectoryDataset) and train.normalizer is not None:
                 y = train.normalizer.denormalize(y)
@@ -575,7 +579,9 @@ class TrajectoryDataModule(pl.LightningDataModule):
         trainer = self.trainer
         world = trainer.world_size if trainer is not None else 1
         if world > 1:  # batch_size stays the global batch: the same training on any number of devices
-            sampler = GlobalBatchShardSampler(len(ds), self.batch_size, world, trainer.global_rank, self.seed, self.shuffle)
+            sampler = GlobalBatchShardSampler(
+                len(ds), self.batch_size, world, trainer.global_rank, self.seed, self.shuffle
+            )
             return self._loader(ds, self.batch_size // world, sampler)
         return self._loader(ds, self.batch_size, EpochSeededSampler(len(ds), self.seed, self.shuffle))
 
@@ -617,7 +623,9 @@ class TrajectoryDataModule(pl.LightningDataModule):
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         if "input_normalizer" in state_dict:
-            self._loaded_input_normalizer = self._input_normalizer = Normalizer.from_state_dict(state_dict["input_normalizer"])
+            self._loaded_input_normalizer = self._input_normalizer = Normalizer.from_state_dict(
+                state_dict["input_normalizer"]
+            )
             self._saved_input_dim = int(state_dict.get("input_dim", self._loaded_input_normalizer.mean.numel()))
         if "normalizer" in state_dict:
             self._loaded_normalizer = self._normalizer = Normalizer.from_state_dict(state_dict["normalizer"])

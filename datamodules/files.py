@@ -21,11 +21,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader
 
 from datamodules.arrays import ArrayHeader, check_header, concat_shape, load_files, read_header
 from datamodules.base import TrajectoryDataModule, TrajectoryDataset
-
 
 
 def _as_list(paths: str | list[str] | None) -> list[str]:
@@ -84,7 +83,9 @@ class FileDataModule(TrajectoryDataModule):
         super().__init__(seed=seed, **kwargs)
         self.paths = {"train": _as_list(train_path), "val": _as_list(val_path), "test": _as_list(test_path)}
         self.clean_paths = {
-            "train": _as_list(train_clean_path), "val": _as_list(val_clean_path), "test": _as_list(test_clean_path)
+            "train": _as_list(train_clean_path),
+            "val": _as_list(val_clean_path),
+            "test": _as_list(test_clean_path),
         }
         self.key, self.clean_key, self.input_key = key, clean_key, input_key
         if not self.paths["train"]:
@@ -106,7 +107,9 @@ class FileDataModule(TrajectoryDataModule):
         for split, files in self.paths.items():
             if files:
                 self._read_split_headers(split)
-        self.splits = tuple(s for s in ("train", "val", "test") if s in self.shapes or (s == "test" and test_fraction > 0))
+        self.splits = tuple(
+            s for s in ("train", "val", "test") if s in self.shapes or (s == "test" and test_fraction > 0)
+        )
         n = self.shapes["train"][0]
         self.n_holdout = max(1, int(round(n * test_fraction))) if test_fraction > 0 else 0
         if self.n_holdout >= n:
@@ -163,19 +166,27 @@ class FileDataModule(TrajectoryDataModule):
         inputs = []
         for h in heads:
             if h.key is None:
-                raise ValueError(f"{what}: inputs are read from .npz files (y and u side by side), but {h.path} is a "
-                                 ".npy file: save both with numpy.savez(path, y=..., u=...)")
+                raise ValueError(
+                    f"{what}: inputs are read from .npz files (y and u side by side), but {h.path} is a "
+                    ".npy file: save both with numpy.savez(path, y=..., u=...)"
+                )
             u = read_header(h.path, self.input_key, what)
             check_header(u, what)
             if len(u.shape) != 3 or u.dtype == np.uint8 or u.dtype.kind not in "fi":
-                raise ValueError(f"{what}: {u.label} must be a float (or signed integer) array [N, T, m], got "
-                                 f"shape {u.shape} and dtype {u.dtype}")
+                raise ValueError(
+                    f"{what}: {u.label} must be a float (or signed integer) array [N, T, m], got "
+                    f"shape {u.shape} and dtype {u.dtype}"
+                )
             if tuple(u.shape[:2]) != tuple(h.shape[:2]):
-                raise ValueError(f"{what}: {u.label} holds {u.shape[0]} trajectories of {u.shape[1]} inputs but its "
-                                 f"measurements hold {h.shape[0]} of {h.shape[1]} samples: one input per sample")
+                raise ValueError(
+                    f"{what}: {u.label} holds {u.shape[0]} trajectories of {u.shape[1]} inputs but its "
+                    f"measurements hold {h.shape[0]} of {h.shape[1]} samples: one input per sample"
+                )
             inputs.append(u)
         widths = {u.shape[2] for u in inputs}
-        if len(widths) > 1 or (self.input_headers.get("train") and self.input_headers["train"][0].shape[2] not in widths):
+        if len(widths) > 1 or (
+            self.input_headers.get("train") and self.input_headers["train"][0].shape[2] not in widths
+        ):
             raise ValueError(f"{what}: every file must have the same number of inputs m, got {sorted(widths)}")
         return inputs
 

@@ -169,8 +169,13 @@ class LorenzDataModule(TrajectoryDataModule):
         super().__init__(normalize=normalize, seed=seed, **kwargs)
         if piece_length is None:
             piece_length = train_steps
-        for arg, value in (("n_train", n_train), ("train_steps", train_steps), ("n_test", n_test),
-                           ("test_steps", test_steps), ("piece_length", piece_length)):
+        for arg, value in (
+            ("n_train", n_train),
+            ("train_steps", train_steps),
+            ("n_test", n_test),
+            ("test_steps", test_steps),
+            ("piece_length", piece_length),
+        ):
             if int(value) != value or value < 1:
                 raise ValueError(f"{arg} must be a positive integer, got {value!r}")
         for arg, value in (("dt", dt), ("init_range", init_range)):
@@ -220,7 +225,13 @@ class LorenzDataModule(TrajectoryDataModule):
         rng = np.random.default_rng(np.random.SeedSequence(self.seed, spawn_key=(SPLIT_STREAMS[split],)))
         x0 = rng.uniform(-self.init_range, self.init_range, size=(n, 3))
         state = lorenz_rk4(
-            x0, steps, self.dt, self.sigma, self.beta, self.rho, out_dtype=np.float32,
+            x0,
+            steps,
+            self.dt,
+            self.sigma,
+            self.beta,
+            self.rho,
+            out_dtype=np.float32,
             progress=f"lorenz {split} ({n} x {steps})",
         )
         y_clean = np.ascontiguousarray(state[..., :1])

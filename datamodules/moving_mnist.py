@@ -167,7 +167,12 @@ class MovingMNISTDataset(Dataset):
             raise ValueError(f"split must be one of {sorted(SPLIT_CODES)}, got {split!r}")
         self.digits = digits
         self.n, self.seed, self.split = int(n), int(seed), split
-        self.seq_len_, self.image_size, self.n_digits, self.step = int(seq_len), int(image_size), int(n_digits), float(step)
+        self.seq_len_, self.image_size, self.n_digits, self.step = (
+            int(seq_len),
+            int(image_size),
+            int(n_digits),
+            float(step),
+        )
         self.indices = None if indices is None else np.asarray(indices, dtype=np.int64)
         if self.indices is not None and len(self.indices) and (self.indices.min() < 0 or self.indices.max() >= n):
             raise ValueError(f"subset indices must lie in [0, {n}), got {self.indices.min()}..{self.indices.max()}")
@@ -192,8 +197,15 @@ class MovingMNISTDataset(Dataset):
         if not 0 <= index < self.n:
             raise IndexError(f"trajectory index {index} out of range [0, {self.n})")
         return trajectory(
-            self.seed, self.split, index, len(self.digits), self.seq_len_, self.image_size,
-            self.digit_size, self.n_digits, self.step,
+            self.seed,
+            self.split,
+            index,
+            len(self.digits),
+            self.seq_len_,
+            self.image_size,
+            self.digit_size,
+            self.n_digits,
+            self.step,
         )
 
     def frames(self, index: int) -> np.ndarray:
@@ -237,8 +249,15 @@ class MovingMNISTDataset(Dataset):
         pos = np.asarray(positions, dtype=np.int64)
         base = np.arange(self.n) if self.indices is None else self.indices
         return MovingMNISTDataset(
-            self.digits, self.n, self.seed, self.split, self.seq_len_, self.image_size, self.n_digits,
-            self.step, base[pos],
+            self.digits,
+            self.n,
+            self.seed,
+            self.split,
+            self.seq_len_,
+            self.image_size,
+            self.n_digits,
+            self.step,
+            base[pos],
         )
 
 
@@ -287,8 +306,13 @@ class MovingMNISTDataModule(TrajectoryDataModule):
                 "loss needs; remove `normalize: true` from the data config"
             )
         for arg, value, low in (
-            ("n_train", n_train, 1), ("n_test", n_test, 1), ("seq_len", seq_len, 1), ("image_size", image_size, 1),
-            ("digit_size", digit_size, 1), ("n_digits", n_digits, 1), ("seed", seed, 0),
+            ("n_train", n_train, 1),
+            ("n_test", n_test, 1),
+            ("seq_len", seq_len, 1),
+            ("image_size", image_size, 1),
+            ("digit_size", digit_size, 1),
+            ("n_digits", n_digits, 1),
+            ("seed", seed, 0),
         ):
             if not isinstance(value, int) or value < low:
                 raise ValueError(f"moving_mnist: {arg} must be an integer >= {low}, got {value!r}")
@@ -312,9 +336,15 @@ class MovingMNISTDataModule(TrajectoryDataModule):
 
     def generator_params(self) -> dict[str, Any]:
         return {
-            "digits": "MNIST", "n_train": self.n_train, "n_test": self.n_test, "seq_len": self.seq_len_,
-            "image_size": self.image_size, "digit_size": self.digit_size, "n_digits": self.n_digits,
-            "step": self.step, "seed": self.seed,
+            "digits": "MNIST",
+            "n_train": self.n_train,
+            "n_test": self.n_test,
+            "seq_len": self.seq_len_,
+            "image_size": self.image_size,
+            "digit_size": self.digit_size,
+            "n_digits": self.n_digits,
+            "step": self.step,
+            "seed": self.seed,
         }
 
     def generate(self, split: str) -> dict[str, np.ndarray]:
@@ -336,9 +366,7 @@ class MovingMNISTDataModule(TrajectoryDataModule):
                 + ("" if images.shape[1] == images.shape[2] else " (and use square images)")
             )
         n = self.n_train if split == "train" else self.n_test
-        return MovingMNISTDataset(
-            images, n, self.seed, split, self.seq_len_, self.image_size, self.n_digits, self.step
-        )
+        return MovingMNISTDataset(images, n, self.seed, split, self.seq_len_, self.image_size, self.n_digits, self.step)
 
     def subset(self, ds: Dataset, indices: np.ndarray) -> Dataset:
         """The items ``indices`` of ``ds``, keeping their trajectory index (the validation subset)."""

@@ -67,12 +67,15 @@ import signal
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from datamodules.base import TrajectoryDataModule
+
+if TYPE_CHECKING:
+    import torch
 
 GRAVITY = 9.81
 SPLIT_IDS = {"train": 0, "test": 1}
@@ -319,7 +322,9 @@ def render_analytic(angles: np.ndarray, image_size: int, line_width: float | Non
 RENDERERS = {"paper": render_paper, "analytic": render_analytic}
 
 
-def render(angles: np.ndarray, image_size: int, line_width: float | None = None, rendering: str = "paper") -> np.ndarray:
+def render(
+    angles: np.ndarray, image_size: int, line_width: float | None = None, rendering: str = "paper"
+) -> np.ndarray:
     """Clean frames ``[T, 1, H, W]`` (float32) of chains with joint angles ``[T, n]``, in either rendering."""
     if rendering not in RENDERERS:
         raise ValueError(f"unknown rendering {rendering!r}: choose among {list(RENDERERS)}")
@@ -385,8 +390,9 @@ def torques_of(params: dict[str, Any], rngs: list, n_frames: int) -> np.ndarray 
     """The torques of trajectories whose streams are ``rngs`` (``None`` for a free chain: ``torque_limit`` 0)."""
     if not params.get("torque_limit"):
         return None
-    return excitation(rngs, n_frames, params["n_links"], params["torque_limit"], params["torque_correlation"],
-                      params["frame_dt"])
+    return excitation(
+        rngs, n_frames, params["n_links"], params["torque_limit"], params["torque_correlation"], params["frame_dt"]
+    )
 
 
 def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int) -> dict[str, np.ndarray]:
@@ -397,7 +403,7 @@ def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int)
     """
     if _WORKER.get("n_links") != params["n_links"]:
         _init_worker(params["n_links"])
-    n, size = params["n_links"], params["image_size"]
+    size = params["image_size"]
     n_frames = int(round(params["duration"] / params["frame_dt"]))
     steps = int(round(params["frame_dt"] / params["dt"]))
     rngs, q0, v0 = initial_states(params, split_id, range(start, stop))
@@ -440,8 +446,7 @@ def _failure(exc: BaseException, processes: list = ()) -> DataGenerationError:
         # the pool ends the other workers with SIGTERM: the codes left are the dead worker's
         codes = sorted({p.exitcode for p in processes if p.exitcode not in (None, 0, -signal.SIGTERM)})
         how = f" (exit code {', '.join(map(str, codes))})" if codes else ""
-        cause = (f"a worker process died{how}: killed (e.g. by the out-of-memory killer: try fewer `workers`) "
-                 "or crashed")
+        cause = f"a worker process died{how}: killed (e.g. by the out-of-memory killer: try fewer `workers`) or crashed"
     else:
         cause = f"{type(exc).__name__}: {exc}"
         if isinstance(exc, ImportError) and "pinocchio" in f"{exc.name} {exc}":
@@ -566,7 +571,9 @@ class PendulumDataModule(TrajectoryDataModule):
         self.rendering = str(rendering)
         if self.rendering not in RENDERINGS:
             raise ValueError(f"rendering must be one of {list(RENDERINGS)}, got {rendering!r}")
-        self.line_width = default_line_width(self.rendering, self.image_size) if line_width is None else float(line_width)
+        self.line_width = (
+            default_line_width(self.rendering, self.image_size) if line_width is None else float(line_width)
+        )
         self.workers = available_cores() if workers is None else int(workers)
         self._validate()
 
@@ -576,8 +583,10 @@ class PendulumDataModule(TrajectoryDataModule):
                 raise ValueError(message)
 
         need(self.n_links >= 1, f"n_links must be >= 1, got {self.n_links}")
-        need(self.n_train >= 1 and self.n_test >= 1,
-             f"n_train and n_test must be >= 1, got {self.n_train}, {self.n_test}")
+        need(
+            self.n_train >= 1 and self.n_test >= 1,
+            f"n_train and n_test must be >= 1, got {self.n_train}, {self.n_test}",
+        )
         need(self.line_width > 0, f"line_width must be > 0 pixels, got {self.line_width}")
         need(self.image_size >= 1, f"image_size must be a positive number of pixels, got {self.image_size}")
         if self.rendering == "paper":
@@ -592,15 +601,21 @@ class PendulumDataModule(TrajectoryDataModule):
             f"image_size >= {smallest}" + (" or a thinner line_width" if self.rendering == "analytic" else ""),
         )
         need(self.damping >= 0, f"damping must be >= 0 (tau = -damping * velocity), got {self.damping}")
-        need(self.torque_limit >= 0 and self.torque_correlation > 0,
-             f"torque_limit must be >= 0 (N m; 0: a free chain) and torque_correlation > 0 (s), got "
-             f"{self.torque_limit}, {self.torque_correlation}")
-        need(self.max_angle >= 0 and self.max_velocity >= 0,
-             f"max_angle and max_velocity are half-widths of uniform ranges and must be >= 0, got "
-             f"{self.max_angle}, {self.max_velocity}")
+        need(
+            self.torque_limit >= 0 and self.torque_correlation > 0,
+            f"torque_limit must be >= 0 (N m; 0: a free chain) and torque_correlation > 0 (s), got "
+            f"{self.torque_limit}, {self.torque_correlation}",
+        )
+        need(
+            self.max_angle >= 0 and self.max_velocity >= 0,
+            f"max_angle and max_velocity are half-widths of uniform ranges and must be >= 0, got "
+            f"{self.max_angle}, {self.max_velocity}",
+        )
         need(self.noise_std >= 0, f"noise_std must be >= 0, got {self.noise_std}")
-        need(self.dt > 0 and self.frame_dt > 0 and self.duration > 0,
-             f"dt, frame_dt and duration must be > 0, got {self.dt}, {self.frame_dt}, {self.duration}")
+        need(
+            self.dt > 0 and self.frame_dt > 0 and self.duration > 0,
+            f"dt, frame_dt and duration must be > 0, got {self.dt}, {self.frame_dt}, {self.duration}",
+        )
         steps = self.frame_dt / self.dt
         need(
             abs(steps - round(steps)) < 1e-6 * max(1.0, steps),
@@ -644,8 +659,11 @@ class PendulumDataModule(TrajectoryDataModule):
             "gravity": GRAVITY,
             "seed": self.seed,
             # a driven chain only: a free chain's parameters (and cache, and checkpoints' records) stay as they were
-            **({"torque_limit": self.torque_limit, "torque_correlation": self.torque_correlation}
-               if self.torque_limit else {}),
+            **(
+                {"torque_limit": self.torque_limit, "torque_correlation": self.torque_correlation}
+                if self.torque_limit
+                else {}
+            ),
         }
 
     @property
@@ -671,7 +689,9 @@ class PendulumDataModule(TrajectoryDataModule):
         model = pendulum_model(self.n_links)
         steps = int(round(self.frame_dt / self.dt))
         q, _ = simulate(model, model.createData(), q0, v0, int(n_frames), steps, self.dt, self.damping, u)
-        frames = np.stack([quantize(render(q[j], self.image_size, self.line_width, self.rendering)) for j in range(len(q))])
+        frames = np.stack(
+            [quantize(render(q[j], self.image_size, self.line_width, self.rendering)) for j in range(len(q))]
+        )
         return torch.from_numpy(frames).float().div_(255.0)
 
     def generate(self, split: str) -> dict[str, np.ndarray]:

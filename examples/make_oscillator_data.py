@@ -37,8 +37,15 @@ def damped_oscillator(x0: np.ndarray, v0: np.ndarray, t: np.ndarray, omega: floa
     return np.stack([x, v], axis=-1)
 
 
-def make(n: int = 256, steps: int = 200, dt: float = 0.05, omega: float = np.pi, zeta: float = 0.05,
-         noise: float = 0.05, seed: int = 0) -> dict[str, np.ndarray]:
+def make(
+    n: int = 256,
+    steps: int = 200,
+    dt: float = 0.05,
+    omega: float = np.pi,
+    zeta: float = 0.05,
+    noise: float = 0.05,
+    seed: int = 0,
+) -> dict[str, np.ndarray]:
     """The arrays of the example data set (see the module docstring)."""
     rng = np.random.default_rng(seed)
     x0, v0 = rng.uniform(-1.0, 1.0, size=(2, n))

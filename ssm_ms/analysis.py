@@ -53,9 +53,22 @@ from ssm_ms.training.shooting import rollout
 Fn = Callable[[torch.Tensor], torch.Tensor]
 
 __all__ = [
-    "LyapunovResult", "amplitude_ratio", "attractor_statistics", "both_wings_share", "dominant_period", "free_run",
-    "dynamics_report", "jacobian", "Linearization", "linearize", "lyapunov_spectrum", "lyapunov_time", "summarize_valid_time",
-    "valid_prediction_time", "valid_steps", "wasserstein_1d",
+    "LyapunovResult",
+    "amplitude_ratio",
+    "attractor_statistics",
+    "both_wings_share",
+    "dominant_period",
+    "free_run",
+    "dynamics_report",
+    "jacobian",
+    "Linearization",
+    "linearize",
+    "lyapunov_spectrum",
+    "lyapunov_time",
+    "summarize_valid_time",
+    "valid_prediction_time",
+    "valid_steps",
+    "wasserstein_1d",
 ]
 
 
@@ -63,9 +76,7 @@ __all__ = [
 def _check_states(x: torch.Tensor, name: str) -> None:
     if not isinstance(x, torch.Tensor) or x.dim() != 2 or x.shape[0] < 1 or x.shape[1] < 1:
         shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-        raise ValueError(
-            f"{name} must be a batch of states [N, d] (N >= 1; one state: x.unsqueeze(0)), got {shape}"
-        )
+        raise ValueError(f"{name} must be a batch of states [N, d] (N >= 1; one state: x.unsqueeze(0)), got {shape}")
 
 
 def _check_positive(value: float, name: str) -> None:
@@ -491,7 +502,7 @@ def amplitude_ratio(x: torch.Tensor, window: int) -> torch.Tensor:
     def amplitude(part: torch.Tensor) -> torch.Tensor:
         return part.var(dim=1, correction=0).mean(dim=1).sqrt()
 
-    return amplitude(x[:, -int(window):]) / amplitude(x[:, : int(window)])
+    return amplitude(x[:, -int(window) :]) / amplitude(x[:, : int(window)])
 
 
 # ---------------------------------------------------------------------------- one report of a learned SSM
@@ -532,8 +543,15 @@ def dynamics_report(
     def spectrum(fn: Fn, x0: torch.Tensor) -> dict:
         res = lyapunov_spectrum(fn, x0.double(), lyapunov_steps, dt, transient, align=align)
         largest = float(res.exponents[0])
-        return {"exponents": res.exponents.tolist(), "std_over_runs": res.std.tolist(), "largest": largest,
-                "lyapunov_time": lyapunov_time(largest), "runs": len(x0), "steps": lyapunov_steps, "dt": dt}
+        return {
+            "exponents": res.exponents.tolist(),
+            "std_over_runs": res.std.tolist(),
+            "largest": largest,
+            "lyapunov_time": lyapunov_time(largest),
+            "runs": len(x0),
+            "steps": lyapunov_steps,
+            "dt": dt,
+        }
 
     f64 = _in_float64(f)
     report: dict = {"lyapunov": spectrum(f64, starts)}
@@ -549,8 +567,12 @@ def dynamics_report(
         if to_units is not None:
             y = to_units(y)
     y = y.reshape(run.shape[0], run.shape[1], -1).double()  # [R, S, D]
-    stats = {"runs": run.shape[0], "steps": free_steps, "transient": transient,
-             "finite_share": float(torch.isfinite(y).all(dim=(1, 2)).double().mean())}
+    stats = {
+        "runs": run.shape[0],
+        "steps": free_steps,
+        "transient": transient,
+        "finite_share": float(torch.isfinite(y).all(dim=(1, 2)).double().mean()),
+    }
     if reference is not None:
         reference = reference.reshape(len(reference), -1).double()
         if reference.shape[1] != y.shape[-1]:

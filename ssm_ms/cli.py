@@ -112,7 +112,9 @@ class SSMCLI(LightningCLI):
         if ssm:
             saved = read_checkpoint(ssm, "model.init_args.ssm_checkpoint")
             if "nodes.weight" not in saved.get("state_dict", {}):
-                kind = saved.get("hyper_parameters", {}).get("_class_path") or saved.get("forecaster") or "another model"
+                kind = (
+                    saved.get("hyper_parameters", {}).get("_class_path") or saved.get("forecaster") or "another model"
+                )
                 raise ValueError(
                     f"model.init_args.ssm_checkpoint {ssm} is the checkpoint of {kind}, not of an SSM: give the "
                     "last.ckpt of an SSM run (python cli.py fit --config configs/<experiment>.yaml)"
@@ -136,9 +138,12 @@ class SSMCLI(LightningCLI):
             replaced.append(f"{key} = {new[key]!r} from the checkpoint, not {value!r} as given")
         if replaced and rank_zero_only.rank == 0:
             shown = "; ".join(replaced[:6]) + (f"; and {len(replaced) - 6} more" if len(replaced) > 6 else "")
-            print(f"note: --ckpt_path resumes the model the checkpoint was trained with, so its settings win over "
-                  f"this command's: {shown} (to train with other model settings, start a fresh run without "
-                  "--ckpt_path)", file=sys.stderr)
+            print(
+                f"note: --ckpt_path resumes the model the checkpoint was trained with, so its settings win over "
+                f"this command's: {shown} (to train with other model settings, start a fresh run without "
+                "--ckpt_path)",
+                file=sys.stderr,
+            )
 
     def after_instantiate_classes(self) -> None:
         super().after_instantiate_classes()
@@ -176,7 +181,9 @@ class SSMCLI(LightningCLI):
             elif not arg.startswith("--ckpt_path="):
                 argv.append(arg)
         command = shlex.join(["python", "cli.py", *argv, "--ckpt_path", last])
-        return f"interrupted during epoch {epoch}; the last completed epoch is saved in {last}. Resume with:\n  {command}"
+        return (
+            f"interrupted during epoch {epoch}; the last completed epoch is saved in {last}. Resume with:\n  {command}"
+        )
 
 
 def _flatten(value: Any, prefix: str) -> dict[str, Any]:
@@ -319,7 +326,10 @@ def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
         if found is None:
             raise
         message, status = found
-        hint = {1: f"\n(set {TRACEBACK_ENV}=1 for the full traceback)", 2: f"\n({_help_command(args)} lists every option)"}
+        hint = {
+            1: f"\n(set {TRACEBACK_ENV}=1 for the full traceback)",
+            2: f"\n({_help_command(args)} lists every option)",
+        }
         hint = hint.get(status, "")
         prefix = "" if status == 130 else "error: "  # Ctrl-C is not an error
         print(f"{prefix}{message}{hint}", file=sys.stderr)

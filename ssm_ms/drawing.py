@@ -88,8 +88,9 @@ def series_figure(
             color = f"C{d}"
             ax.plot(t, y[b, :, d].detach().cpu().numpy(), ".", ms=2, color=color, alpha=0.4, label=f"y[{d}] measured")
             if y_clean is not None:
-                ax.plot(t, y_clean[b, :, d].detach().cpu().numpy(), "-", lw=0.8, color="k", alpha=0.6,
-                        label=f"y[{d}] clean")
+                ax.plot(
+                    t, y_clean[b, :, d].detach().cpu().numpy(), "-", lw=0.8, color="k", alpha=0.6, label=f"y[{d}] clean"
+                )
             ax.plot(t, y_hat[b, :, d].detach().cpu().numpy(), "-", lw=1.4, color=color, label=f"y[{d}] model")
         ax.set_ylabel(f"trajectory {b}")
     axes[0].legend(loc="upper right", fontsize=7, ncol=3)
@@ -291,8 +292,12 @@ def save_gif(
         draw.text((margin, 1), "ground truth", fill=black, font=font)
         draw.text((x_model, 1), "model", fill=black, font=font)
         draw.text((margin, label_height + h * scale + 1), f"t = {i}", fill=black, font=font)
-        draw.text((x_model, label_height + h * scale + 1), "filtering" if i < n_filter else "prediction",
-                  fill=black, font=font)
+        draw.text(
+            (x_model, label_height + h * scale + 1),
+            "filtering" if i < n_filter else "prediction",
+            fill=black,
+            font=font,
+        )
         frames.append(frame)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

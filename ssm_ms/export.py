@@ -66,7 +66,9 @@ def _standalone_copy(module: nn.Module) -> nn.Module:
     return copy_
 
 
-def _export_one(module: nn.Module, example: tuple[torch.Tensor, ...], fmt: str, path: Path) -> Callable[..., torch.Tensor]:
+def _export_one(
+    module: nn.Module, example: tuple[torch.Tensor, ...], fmt: str, path: Path
+) -> Callable[..., torch.Tensor]:
     """Write ``module`` (called on the tensors ``example``, batch first) in format ``fmt`` to ``path``; return the
     reloaded callable (for the check)."""
     if fmt == "pt2":
@@ -118,9 +120,15 @@ def export(
     m = int(getattr(f, "input_dim", 0))
     example = torch.randn(2, state_dim, generator=generator, dtype=dtype)
     check = torch.randn(5, state_dim, generator=generator, dtype=dtype)  # another batch size than the example
-    inputs = {"f": ((example, torch.randn(2, m, generator=generator, dtype=dtype)),
-                    (check, torch.randn(5, m, generator=generator, dtype=dtype))) if m else ((example,), (check,)),
-              "g": ((example,), (check,))}
+    inputs = {
+        "f": (
+            (example, torch.randn(2, m, generator=generator, dtype=dtype)),
+            (check, torch.randn(5, m, generator=generator, dtype=dtype)),
+        )
+        if m
+        else ((example,), (check,)),
+        "g": ((example,), (check,)),
+    }
     written: dict[str, Path] = {}
     obs_shape = None
     for name, module in (("f", f), ("g", g)):
@@ -136,7 +144,9 @@ def export(
             with torch.no_grad():
                 got = loaded(*checks)
             if got.shape != expected.shape or not torch.allclose(got, expected, rtol=rtol, atol=atol):
-                raise RuntimeError(f"the {fmt} export of {name} ({type(module).__name__}) does not reproduce the module")
+                raise RuntimeError(
+                    f"the {fmt} export of {name} ({type(module).__name__}) does not reproduce the module"
+                )
             written[path.name] = path
     info = {
         "state_dim": int(state_dim),
@@ -161,6 +171,7 @@ def export_checkpoint(checkpoint: str | Path, out_dir: str | Path, formats: Sequ
 
     model, saved = load_ssm(checkpoint)  # a missing, truncated or foreign file: ValueError / OSError naming it
     data = datamodule_state(saved)
+
     def statistics(key: str, applies_to: str) -> dict[str, Any] | None:
         norm = data[1].get(key) if data is not None else None
         if norm is None or (bool((norm["mean"] == 0).all()) and bool((norm["std"] == 1).all())):
@@ -187,8 +198,14 @@ def main(argv: list[str] | None = None) -> int:
     exp = sub.add_parser("export", help="write f and g as torch.export (.pt2) and TorchScript files, and model.json")
     exp.add_argument("checkpoint", help="the last.ckpt of an SSM run (python cli.py fit --config ...)")
     exp.add_argument("--out", required=True, help="output folder (created)")
-    exp.add_argument("--format", nargs="+", default=list(FORMATS), choices=FORMATS, dest="formats",
-                     help="formats to write (default: both)")
+    exp.add_argument(
+        "--format",
+        nargs="+",
+        default=list(FORMATS),
+        choices=FORMATS,
+        dest="formats",
+        help="formats to write (default: both)",
+    )
     args = parser.parse_args(argv)
     try:
         written = export_checkpoint(args.checkpoint, args.out, args.formats)

@@ -22,8 +22,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ssm_ms.training import distributed
 from ssm_ms.checkpointing import read_checkpoint, restore_float_weights
+from ssm_ms.runtime.perf import check_precision
+from ssm_ms.runtime.private import built_by_lightning_cli
+from ssm_ms.training import distributed
 from ssm_ms.training.constraints import (
     AugmentedLagrangianOptions,
     augmented_lagrangian,
@@ -32,9 +34,14 @@ from ssm_ms.training.constraints import (
     update_multipliers,
 )
 from ssm_ms.training.nodes import node_group, row_adam_
-from ssm_ms.runtime.perf import check_precision
-from ssm_ms.runtime.private import built_by_lightning_cli
-from ssm_ms.training.shooting import CompiledRollout, decode, loss_function, multiple_shooting_loss, rollout, shooting_residuals
+from ssm_ms.training.shooting import (
+    CompiledRollout,
+    decode,
+    loss_function,
+    multiple_shooting_loss,
+    rollout,
+    shooting_residuals,
+)
 
 # Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
 STRUCTURAL_HPARAMS = ("state_dim", "num_trajectories", "n_nodes", "f", "g", "node_optimizer", "constraint")
@@ -129,7 +136,9 @@ class MultipleShootingModule(pl.LightningModule):
         if num_trajectories is not None and num_trajectories < 1:
             raise ValueError(f"num_trajectories must be >= 1, got {num_trajectories}")
         if val_horizon is not None and (int(val_horizon) != val_horizon or val_horizon < 1):
-            raise ValueError(f"val_horizon must be a number of steps >= 1 (or unset: the whole trajectory), got {val_horizon!r}")
+            raise ValueError(
+                f"val_horizon must be a number of steps >= 1 (or unset: the whole trajectory), got {val_horizon!r}"
+            )
         if node_init_map is not None:
             bad = [k for k in node_init_map if not 0 <= int(k) < state_dim]
             if bad:
@@ -248,8 +257,10 @@ class MultipleShootingModule(pl.LightningModule):
         if self.input_dim == 0:
             fix = f"give f input_dim: {data_inputs} (model.init_args.f.init_args.input_dim) to learn f(x, u)"
         elif data_inputs == 0:
-            fix = ("give the data its inputs (FileDataModule: the array 'u' [N, T, input_dim] beside 'y'), or set "
-                   "f's input_dim to 0 for an autonomous system")
+            fix = (
+                "give the data its inputs (FileDataModule: the array 'u' [N, T, input_dim] beside 'y'), or set "
+                "f's input_dim to 0 for an autonomous system"
+            )
         else:
             fix = f"set f's input_dim to {data_inputs}"
         raise ValueError(f"f takes {self.input_dim} inputs per step but the data have {data_inputs}: {fix}")
@@ -272,17 +283,23 @@ class MultipleShootingModule(pl.LightningModule):
         problem = None
         if seq_len % self.n_nodes != 0:
             divisors = [k for k in range(1, seq_len + 1) if seq_len % k == 0]
-            problem = (f"trajectory length T={seq_len} is not divisible by model.n_nodes={self.n_nodes}",
-                       f"choose n_nodes among {divisors}")
+            problem = (
+                f"trajectory length T={seq_len} is not divisible by model.n_nodes={self.n_nodes}",
+                f"choose n_nodes among {divisors}",
+            )
         elif tuple(out := self.obs_shape()) != tuple(obs_shape):
-            problem = (f"the observation model g outputs measurements of shape {out} but the data have shape "
-                       f"{tuple(obs_shape)}",
-                       "adapt g (e.g. ConvDecoder's image_size to the data's, a linear g's out_features to the "
-                       "channel count, or the Projection indices to the measured components)")
+            problem = (
+                f"the observation model g outputs measurements of shape {out} but the data have shape "
+                f"{tuple(obs_shape)}",
+                "adapt g (e.g. ConvDecoder's image_size to the data's, a linear g's out_features to the "
+                "channel count, or the Projection indices to the measured components)",
+            )
         elif num_train is not None and self.nodes is not None and self.nodes.num_embeddings != num_train:
-            problem = (f"the model holds shooting nodes for {self.nodes.num_embeddings} trajectories but the "
-                       f"training set has {num_train}",
-                       f"set model.num_trajectories to {num_train} (or leave it unset)")
+            problem = (
+                f"the model holds shooting nodes for {self.nodes.num_embeddings} trajectories but the "
+                f"training set has {num_train}",
+                f"set model.num_trajectories to {num_train} (or leave it unset)",
+            )
         if problem is None:
             return
         if self.checkpoint_source:
@@ -319,8 +336,9 @@ class MultipleShootingModule(pl.LightningModule):
         does not take)."""
         if self.input_dim and (u is None or u.shape[-2] < steps):
             have = "none" if u is None else f"{u.shape[-2]}"
-            raise ValueError(f"f takes inputs: a rollout of {steps} steps needs u [B, >= {steps}, {self.input_dim}], "
-                             f"got {have}")
+            raise ValueError(
+                f"f takes inputs: a rollout of {steps} steps needs u [B, >= {steps}, {self.input_dim}], got {have}"
+            )
         if not self.input_dim and u is not None:
             raise ValueError("f takes no inputs (input_dim 0): give no u")
 
@@ -331,8 +349,13 @@ class MultipleShootingModule(pl.LightningModule):
         return self.nodes(index).view(len(index), self.n_nodes, self.state_dim)
 
     @torch.no_grad()
-    def shooting_predictions(self, index: torch.Tensor, y: torch.Tensor | None = None,
-                             seq_len: int | None = None, u: torch.Tensor | None = None) -> torch.Tensor:
+    def shooting_predictions(
+        self,
+        index: torch.Tensor,
+        y: torch.Tensor | None = None,
+        seq_len: int | None = None,
+        u: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """``g(f^k(s_i))`` for every shooting node ``s_i`` of the training trajectories ``index``, ``k = 0..n``.
 
         Args:
@@ -367,8 +390,14 @@ class MultipleShootingModule(pl.LightningModule):
 
     def shooting_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         return multiple_shooting_loss(
-            self.f, self.g, self.node_states(batch["index"]), batch["y"], self.hparams.loss, self.hparams.decode_chunk,
-            self._rollout_fn, batch.get("u"),
+            self.f,
+            self.g,
+            self.node_states(batch["index"]),
+            batch["y"],
+            self.hparams.loss,
+            self.hparams.decode_chunk,
+            self._rollout_fn,
+            batch.get("u"),
         )
 
     # ------------------------------------------------------------------ training
@@ -381,13 +410,15 @@ class MultipleShootingModule(pl.LightningModule):
         u = batch.get("u")
         self._need_inputs(u, 1)
         if self.al_options is None:
-            fit, gap = multiple_shooting_loss(self.f, self.g, nodes, batch["y"], self.hparams.loss,
-                                              self.hparams.decode_chunk, self._rollout_fn, u)
+            fit, gap = multiple_shooting_loss(
+                self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn, u
+            )
             loss = fit + self.alpha * gap
             residual = None
         else:
-            fit, residual = shooting_residuals(self.f, self.g, nodes, batch["y"], self.hparams.loss,
-                                               self.hparams.decode_chunk, self._rollout_fn, u)
+            fit, residual = shooting_residuals(
+                self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn, u
+            )
             gap = residual.pow(2).mean()
             lam = self.multipliers[index].view_as(residual)
             loss = augmented_lagrangian(fit, residual, lam, self.alpha * self.alpha_factor)
@@ -476,8 +507,15 @@ class MultipleShootingModule(pl.LightningModule):
         index, grads, residual = distributed.all_gather_rows(index, grads, residual)
         if sparse:
             group = node_group(optimizer, self.nodes.weight)
-            row_adam_(self.nodes.weight, optimizer.state[self.nodes.weight], index, grads / w if w > 1 else grads,
-                      group["lr"], group["betas"], group["eps"])
+            row_adam_(
+                self.nodes.weight,
+                optimizer.state[self.nodes.weight],
+                index,
+                grads / w if w > 1 else grads,
+                group["lr"],
+                group["betas"],
+                group["eps"],
+            )
         if self._multiplier_epoch():
             alpha = self.alpha * self.alpha_factor
             self.multipliers[index] = update_multipliers(self.multipliers[index], residual, alpha)
@@ -534,7 +572,9 @@ class MultipleShootingModule(pl.LightningModule):
         saved = checkpoint.get("hyper_parameters", {})
         for key in STRUCTURAL_HPARAMS:
             if key in saved and key in self.hparams and _structure(saved[key]) != _structure(self.hparams[key]):
-                problems.append(f"{key}: checkpoint {_structure(saved[key])!r}, this run {_structure(self.hparams[key])!r}")
+                problems.append(
+                    f"{key}: checkpoint {_structure(saved[key])!r}, this run {_structure(self.hparams[key])!r}"
+                )
         for key, value in state.items():
             if key in own and tuple(own[key].shape) != tuple(value.shape):
                 problems.append(f"{key}: checkpoint shape {tuple(value.shape)}, this model {tuple(own[key].shape)}")
@@ -565,8 +605,11 @@ def load_ssm(path: str | os.PathLike, map_location: str | torch.device = "cpu") 
     checkpoint = read_checkpoint(path, "the SSM checkpoint")  # weights_only: a foreign file runs no code
     if "state_dict" not in checkpoint or "nodes.weight" not in checkpoint["state_dict"]:
         kind = checkpoint.get("forecaster") if isinstance(checkpoint, dict) else None
-        what = f"a checkpoint of the {kind} baseline" if kind else \
-            "not a checkpoint of a MultipleShootingModule (no shooting nodes in it)"
+        what = (
+            f"a checkpoint of the {kind} baseline"
+            if kind
+            else "not a checkpoint of a MultipleShootingModule (no shooting nodes in it)"
+        )
         raise ValueError(
             f"{path} is {what}: ssm_checkpoint takes the last.ckpt of an SSM run "
             "(python cli.py fit --config configs/<experiment>.yaml)"

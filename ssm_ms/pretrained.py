@@ -77,8 +77,10 @@ def _without_ssm(state: dict[str, torch.Tensor], ssm_checkpoint: str) -> tuple[d
     """A forecaster's weights without its SSM's, and the digest of the SSM file ``ssm_checkpoint`` that supplies
     them on loading; refused unless that file holds this forecaster's SSM (up to its own storage's rounding)."""
     ssm_state = read_checkpoint(ssm_checkpoint, "--ssm-checkpoint")["state_dict"]
-    own = {key[len(SSM_PREFIX):]: value for key, value in state.items() if key.startswith(SSM_PREFIX)}
-    differs = sorted(set(own) ^ set(ssm_state)) or [key for key, value in own.items() if not _same(value, ssm_state[key])]
+    own = {key[len(SSM_PREFIX) :]: value for key, value in state.items() if key.startswith(SSM_PREFIX)}
+    differs = sorted(set(own) ^ set(ssm_state)) or [
+        key for key, value in own.items() if not _same(value, ssm_state[key])
+    ]
     if differs:
         raise ValueError(
             f"--ssm-checkpoint {ssm_checkpoint} does not hold the SSM this forecaster was trained with (it differs "
@@ -95,7 +97,9 @@ def stored_as(ckpt: dict[str, Any]) -> str:
 
 
 def strip(
-    ckpt: dict[str, Any], ssm_checkpoint: str | None = None, weights: str | None = None,
+    ckpt: dict[str, Any],
+    ssm_checkpoint: str | None = None,
+    weights: str | None = None,
     results_dir: str | None = None,
 ) -> dict[str, Any]:
     """A copy of a Lightning checkpoint dict without training state, its large tensors stored as ``weights``
@@ -104,8 +108,10 @@ def strip(
     if weights not in WEIGHTS:
         raise ValueError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
     out = restore_float_weights({key: value for key, value in ckpt.items() if key not in DROPPED | {HALF_KEY}})
-    state = {key: value.to(torch.float32) if key in ckpt.get(HALF_KEY, ()) else value
-             for key, value in out["state_dict"].items()}  # every weight in float32 before it is narrowed again
+    state = {
+        key: value.to(torch.float32) if key in ckpt.get(HALF_KEY, ()) else value
+        for key, value in out["state_dict"].items()
+    }  # every weight in float32 before it is narrowed again
     if ssm_checkpoint is not None and any(key.startswith(SSM_PREFIX) for key in state):
         state, out[SSM_DIGEST_KEY] = _without_ssm(state, ssm_checkpoint)
     narrowed = [k for k, v in state.items() if v.is_floating_point() and v.numel() >= NARROW_MIN_NUMEL]
@@ -125,7 +131,9 @@ def strip(
         hparams["ssm_checkpoint"] = str(ssm_checkpoint)
     if results_dir is not None:
         if "results_dir" not in hparams:
-            raise ValueError("--results-dir is for forecasters (encoder, filter, baseline); this checkpoint writes no results")
+            raise ValueError(
+                "--results-dir is for forecasters (encoder, filter, baseline); this checkpoint writes no results"
+            )
         hparams["results_dir"] = str(results_dir)
         if hparams.get("figures_dir"):
             hparams["figures_dir"] = str(Path(results_dir) / "figures")
@@ -139,9 +147,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("target", help="where the stripped checkpoint goes")
     parser.add_argument("--ssm-checkpoint", help="the path the stripped encoder / filter records for its SSM")
     parser.add_argument("--results-dir", help="where a test of the stripped forecaster writes results (and figures/)")
-    parser.add_argument("--weights", choices=WEIGHTS,
-                        help=f"how tensors of >= {NARROW_MIN_NUMEL} values are stored (default: as in the source; "
-                             "float32 for a training checkpoint)")
+    parser.add_argument(
+        "--weights",
+        choices=WEIGHTS,
+        help=f"how tensors of >= {NARROW_MIN_NUMEL} values are stored (default: as in the source; "
+        "float32 for a training checkpoint)",
+    )
     opts = parser.parse_args(argv)
     try:
         ckpt = read_checkpoint(opts.source, "source", restore=False)

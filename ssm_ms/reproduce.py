@@ -199,20 +199,28 @@ def run_stage(args: list[str], number: int, resume_pipeline: str | None = None) 
     finally:
         signal.signal(signal.SIGTERM, previous)
     stage = f"stage {number} (python cli.py {shlex.join(args)})"
-    later = (f"Resume the whole pipeline (this stage, then the stages after it and the results file) with:\n"
-             f"  {resume_pipeline}" if resume_pipeline else
-             "(the stages after it and the results file did not run: run them after it, or reproduce again)")
+    later = (
+        f"Resume the whole pipeline (this stage, then the stages after it and the results file) with:\n"
+        f"  {resume_pipeline}"
+        if resume_pipeline
+        else "(the stages after it and the results file did not run: run them after it, or reproduce again)"
+    )
     if interrupted or code in (130, -signal.SIGINT):
         ckpt = _stage_checkpoint(args)
         alone = _without_option(args, "--ckpt_path") if ckpt else args
         resume = shlex.join(["python", "cli.py", *alone, *(["--ckpt_path", str(ckpt)] if ckpt else [])])
         saved = f"; its last completed epoch is saved in {ckpt}" if ckpt else ""
-        print(f"\nreproduce was interrupted during {stage}{saved}. Resume that stage with:\n  {resume}\n{later}",
-              file=sys.stderr)
+        print(
+            f"\nreproduce was interrupted during {stage}{saved}. Resume that stage with:\n  {resume}\n{later}",
+            file=sys.stderr,
+        )
         raise SystemExit(130)
     if code != 0:
-        print(f"error: reproduce stopped: {stage} failed with status {code} (its message is above); the "
-              f"stages after it and the results file did not run. {later}", file=sys.stderr)
+        print(
+            f"error: reproduce stopped: {stage} failed with status {code} (its message is above); the "
+            f"stages after it and the results file did not run. {later}",
+            file=sys.stderr,
+        )
         raise SystemExit(code)
     return round(time.time() - start, 1)
 
@@ -236,26 +244,41 @@ class Pipeline:
         self.running: dict | None = None
         if resume:
             if not record.is_file():
-                raise SystemExit(f"error: --resume: {record.parent.name} has no record of a reproduce run "
-                                 f"({record} does not exist): give the version printed when it stopped "
-                                 "(reproduce-<date>-<time>), with the experiment and options it was started with")
+                raise SystemExit(
+                    f"error: --resume: {record.parent.name} has no record of a reproduce run "
+                    f"({record} does not exist): give the version printed when it stopped "
+                    "(reproduce-<date>-<time>), with the experiment and options it was started with"
+                )
             try:
                 saved = json.loads(record.read_text())
                 done, running, started_with = saved["stages"], saved.get("running"), saved["options"]
             except (ValueError, KeyError, TypeError):
-                raise SystemExit(f"error: --resume: {record} is not a reproduce record (unreadable): reproduce "
-                                 "again without --resume") from None
-            differ = [f"{k.replace('_', '-')}: {started_with.get(k)} then, {v} now" for k, v in options.items()
-                      if started_with.get(k) != v and k not in BUDGETS]
+                raise SystemExit(
+                    f"error: --resume: {record} is not a reproduce record (unreadable): reproduce "
+                    "again without --resume"
+                ) from None
+            differ = [
+                f"{k.replace('_', '-')}: {started_with.get(k)} then, {v} now"
+                for k, v in options.items()
+                if started_with.get(k) != v and k not in BUDGETS
+            ]
             if differ:
-                raise SystemExit(f"error: --resume: {record.parent.name} was started with other options ("
-                                 f"{'; '.join(differ)}): resume it with the experiment and options it was started with")
-            lowered = [f"--{k.replace('_', '-')} {options[k]} (it was run with {started_with[k]})" for k in BUDGETS
-                       if isinstance(options.get(k), int) and isinstance(started_with.get(k), int)
-                       and options[k] < started_with[k]]
+                raise SystemExit(
+                    f"error: --resume: {record.parent.name} was started with other options ("
+                    f"{'; '.join(differ)}): resume it with the experiment and options it was started with"
+                )
+            lowered = [
+                f"--{k.replace('_', '-')} {options[k]} (it was run with {started_with[k]})"
+                for k in BUDGETS
+                if isinstance(options.get(k), int)
+                and isinstance(started_with.get(k), int)
+                and options[k] < started_with[k]
+            ]
             if lowered:
-                raise SystemExit(f"error: --resume: {record.parent.name} cannot be cut back to {'; '.join(lowered)}: "
-                                 "its checkpoints are past that; give the same budget or a larger one")
+                raise SystemExit(
+                    f"error: --resume: {record.parent.name} cannot be cut back to {'; '.join(lowered)}: "
+                    "its checkpoints are past that; give the same budget or a larger one"
+                )
             self.done, self.running = done, running
             # (a record written before "recorded" was kept: the command it was last run with)
             self.recorded_command = saved.get("recorded", saved.get("command"))
@@ -264,22 +287,38 @@ class Pipeline:
     def _write(self) -> None:
         self.record.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.record.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"options": self.options, "command": self.command, "recorded": self.recorded_command,
-                                   "stages": self.stages + [s for s in self.done if s not in self.stages],
-                                   "running": self.running}, indent=2) + "\n")
+        tmp.write_text(
+            json.dumps(
+                {
+                    "options": self.options,
+                    "command": self.command,
+                    "recorded": self.recorded_command,
+                    "stages": self.stages + [s for s in self.done if s not in self.stages],
+                    "running": self.running,
+                },
+                indent=2,
+            )
+            + "\n"
+        )
         tmp.replace(self.record)
 
     def finished(self, results_dir: Path, experiment: str) -> Path:
         """Record the finished run in ``results_dir``'s results file, in place of the record of the command it was
         last finished with (a budget raised on resume), and note that command; return the results table's path."""
         replaces = self.recorded_command if self.recorded_command != self.command else None
-        md = write_pipeline(results_dir, experiment, self.command, replaces=replaces, pipeline={
-            "stages": self.stages,
-            "total_seconds": round(sum(s["seconds"] for s in self.stages), 1),
-            "machine": describe(),
-            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "command": self.command,
-        })
+        md = write_pipeline(
+            results_dir,
+            experiment,
+            self.command,
+            replaces=replaces,
+            pipeline={
+                "stages": self.stages,
+                "total_seconds": round(sum(s["seconds"] for s in self.stages), 1),
+                "machine": describe(),
+                "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                "command": self.command,
+            },
+        )
         self.recorded_command = self.command
         self._write()
         return md
@@ -303,19 +342,27 @@ class Pipeline:
         def same_fit(recorded: str) -> bool:  # this fit, whatever its epoch budget (commands are " "-joined)
             unbudgeted = _without_option(recorded.split(" ")[2:], "--trainer.max_epochs")
             return args[0] == "fit" and ckpt is not None and unbudgeted == _without_option(args, "--trainer.max_epochs")
-        earlier = self.running if self.running is not None and (
-            self.running["command"] == command or same_fit(self.running["command"])) else None
+
+        earlier = (
+            self.running
+            if self.running is not None and (self.running["command"] == command or same_fit(self.running["command"]))
+            else None
+        )
         extended = next((s for s in self.done if s["command"] != command and same_fit(s["command"])), None)
         if finished is not None:  # run again from scratch (a test after its checkpoint changed)
             self.done.remove(finished)
         elif extended is not None:
-            print(f"\n>>> stage {number} finished in the run resumed with another epoch budget; continued: {command}",
-                  flush=True)
+            print(
+                f"\n>>> stage {number} finished in the run resumed with another epoch budget; continued: {command}",
+                flush=True,
+            )
             self.done.remove(extended)
             runs, kept = extended.get("runs", 1) + 1, extended["seconds"]
         elif earlier is not None:
             runs = earlier["runs"] + 1
-            kept = earlier["seconds"] + (max(0.0, _absolute(ckpt).stat().st_mtime - earlier["started"]) if ckpt else 0.0)
+            kept = earlier["seconds"] + (
+                max(0.0, _absolute(ckpt).stat().st_mtime - earlier["started"]) if ckpt else 0.0
+            )
         self.running = {"command": command, "started": time.time(), "seconds": kept, "runs": runs}
         self._write()
         seconds = run_stage(args + (["--ckpt_path", str(ckpt)] if ckpt else []), number, self.resume_pipeline)
@@ -333,21 +380,40 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("experiment", help="e.g. pendulum, quad, lorenz_T1000, or a baseline: pendulum_lstm")
     parser.add_argument("--size", choices=["paper", "cpu"], default="paper")
     parser.add_argument("--no-baselines", action="store_true", help="only the SSM and its inference stages")
-    parser.add_argument("--encoder-epochs", type=int, default=None, metavar="N",
-                        help="train the encoder stage for N epochs instead of its config's max_epochs (a budget for "
-                             "machines where the paper's count does not fit; the results file lists the command)")
-    parser.add_argument("--baseline-epochs", type=int, default=None, metavar="N",
-                        help="train each baseline (LSTM, RKN) for N epochs instead of its config's max_epochs (the "
-                             "same kind of budget)")
-    parser.add_argument("--seed", type=int, default=None, metavar="N",
-                        help="every stage with --seed_everything N instead of the configs' seed; results go to "
-                             "results/<experiment>_seed<N>.md")
-    parser.add_argument("--resume", default=None, metavar="VERSION",
-                        help="finish the run of this version (reproduce-<date>-<time>, printed when it stopped; the "
-                             "same experiment and options; the epoch budgets may be raised): its finished stages are not run "
-                             "again, its interrupted fit, or a fit whose budget was raised, continues from its last.ckpt")
+    parser.add_argument(
+        "--encoder-epochs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="train the encoder stage for N epochs instead of its config's max_epochs (a budget for "
+        "machines where the paper's count does not fit; the results file lists the command)",
+    )
+    parser.add_argument(
+        "--baseline-epochs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="train each baseline (LSTM, RKN) for N epochs instead of its config's max_epochs (the "
+        "same kind of budget)",
+    )
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        metavar="N",
+        help="every stage with --seed_everything N instead of the configs' seed; results go to "
+        "results/<experiment>_seed<N>.md",
+    )
+    parser.add_argument(
+        "--resume",
+        default=None,
+        metavar="VERSION",
+        help="finish the run of this version (reproduce-<date>-<time>, printed when it stopped; the "
+        "same experiment and options; the epoch budgets may be raised): its finished stages are not run "
+        "again, its interrupted fit, or a fit whose budget was raised, continues from its last.ckpt",
+    )
     argv = list(sys.argv[1:] if argv is None else argv)
-    stage_args = argv[argv.index("--") + 1:] if "--" in argv else []
+    stage_args = argv[argv.index("--") + 1 :] if "--" in argv else []
     own = argv[: argv.index("--")] if "--" in argv else argv
     opts = parser.parse_args(own)
     opts.stage_args = stage_args
@@ -369,7 +435,9 @@ def main(argv: list[str] | None = None) -> None:
     else:
         known = sorted(p.stem[: -len("_encoder")] for p in folder.glob("*_encoder.yaml"))
         known += sorted(p.stem for p in (folder / "baselines").glob("*.yaml"))
-        raise SystemExit(f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {known}")
+        raise SystemExit(
+            f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {known}"
+        )
     seeded = "" if opts.seed is None else f"seed{opts.seed}"
     version = opts.resume or "reproduce-" + (seeded + "-" if seeded else "") + datetime.now().strftime("%Y%m%d-%H%M%S")
     if "/" in version or not version.startswith("reproduce-"):
@@ -380,13 +448,19 @@ def main(argv: list[str] | None = None) -> None:
     if opts.no_baselines or opts.encoder_epochs is not None or opts.baseline_epochs is not None:
         command = shlex.join(["python", "-m", "ssm_ms.reproduce", *options])
     else:
-        command = (f"make reproduce EXP={opts.experiment}" + (" SIZE=cpu" if opts.size == "cpu" else "")
-                   + (f" SEED={opts.seed}" if seeded else "")
-                   + (f" ARGS={shlex.quote(shlex.join(stage_args))}" if stage_args else ""))
-    pipeline = Pipeline(_absolute(logger_dir(first)) / version / "reproduce.json",
-                        {k: v for k, v in vars(opts).items() if k != "resume"},
-                        shlex.join(["python", "-m", "ssm_ms.reproduce", *options, "--resume", version]),
-                        resume=opts.resume is not None, command=command)
+        command = (
+            f"make reproduce EXP={opts.experiment}"
+            + (" SIZE=cpu" if opts.size == "cpu" else "")
+            + (f" SEED={opts.seed}" if seeded else "")
+            + (f" ARGS={shlex.quote(shlex.join(stage_args))}" if stage_args else "")
+        )
+    pipeline = Pipeline(
+        _absolute(logger_dir(first)) / version / "reproduce.json",
+        {k: v for k, v in vars(opts).items() if k != "resume"},
+        shlex.join(["python", "-m", "ssm_ms.reproduce", *options, "--resume", version]),
+        resume=opts.resume is not None,
+        command=command,
+    )
     print(f"reproduce run {version}; if it stops, finish it with:\n  {pipeline.resume_pipeline}", flush=True)
     v = ["--trainer.logger.init_args.version", version]
     if seeded:
@@ -396,6 +470,7 @@ def main(argv: list[str] | None = None) -> None:
     def named(cfg: Path) -> list[str]:
         """A forecaster stage's results under the seed's own experiment name."""
         return ["--model.init_args.experiment", f"{experiment_name(cfg)}_{seeded}"] if seeded else []
+
     configs = []
     if ssm_stages:
         ssm_ckpt = logger_dir(ssm_cfg) / version / "checkpoints" / "last.ckpt"
@@ -403,20 +478,34 @@ def main(argv: list[str] | None = None) -> None:
         ssm_ran = pipeline.stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v])
         with_ssm = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt)]
         budget = [] if opts.encoder_epochs is None else ["--trainer.max_epochs", str(opts.encoder_epochs)]
-        enc_ran = pipeline.stage(["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget,
-                                  *named(enc_cfg), *v], again=ssm_ran)
-        pipeline.stage(["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt),
-                        *named(enc_cfg), *v], again=ssm_ran or enc_ran)
+        enc_ran = pipeline.stage(
+            ["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget, *named(enc_cfg), *v], again=ssm_ran
+        )
+        pipeline.stage(
+            [
+                "test",
+                "--config",
+                str(enc_cfg.relative_to(ROOT)),
+                *with_ssm,
+                "--ckpt_path",
+                str(enc_ckpt),
+                *named(enc_cfg),
+                *v,
+            ],
+            again=ssm_ran or enc_ran,
+        )
         if ukf_cfg.exists():
-            pipeline.stage(["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *named(ukf_cfg), *v],
-                           again=ssm_ran)
+            pipeline.stage(
+                ["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *named(ukf_cfg), *v], again=ssm_ran
+            )
         configs.append(enc_cfg)
     baseline_budget = [] if opts.baseline_epochs is None else ["--trainer.max_epochs", str(opts.baseline_epochs)]
     for cfg in baselines:
         ckpt = logger_dir(cfg) / version / "checkpoints" / "last.ckpt"
         fit_ran = pipeline.stage(["fit", "--config", str(cfg.relative_to(ROOT)), *baseline_budget, *named(cfg), *v])
-        pipeline.stage(["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *named(cfg), *v],
-                       again=fit_ran)
+        pipeline.stage(
+            ["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *named(cfg), *v], again=fit_ran
+        )
         configs.append(cfg)
     experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
     results_dir = ROOT / str(config_value(configs[0], "model.init_args.results_dir", default="results"))

@@ -108,4 +108,3 @@ class ShootingSchedule(Callback):
         self.initial_alpha = state_dict["initial_alpha"]
         self.initial_lrs = state_dict["initial_lrs"]
         self.resets_done = list(state_dict["resets_done"])
-

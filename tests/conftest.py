@@ -35,8 +35,16 @@ class RotationDataModule(TrajectoryDataModule):
     name = "rotation"
     split_params = {"train": ("n_train",), "test": ("n_test",)}
 
-    def __init__(self, n_train: int = 8, n_test: int = 4, seq_len: int = 12, omega: float = 0.3,
-                 noise_std: float = 0.05, nan_at: tuple[int, int] | None = None, **kwargs):
+    def __init__(
+        self,
+        n_train: int = 8,
+        n_test: int = 4,
+        seq_len: int = 12,
+        omega: float = 0.3,
+        noise_std: float = 0.05,
+        nan_at: tuple[int, int] | None = None,
+        **kwargs,
+    ):
         super().__init__(**kwargs)
         self.n_train, self.n_test, self.length = n_train, n_test, seq_len
         self.omega, self.noise_std, self.nan_at = omega, noise_std, nan_at
@@ -46,8 +54,15 @@ class RotationDataModule(TrajectoryDataModule):
         return self.n_train
 
     def generator_params(self) -> dict:
-        return {"n_train": self.n_train, "n_test": self.n_test, "seq_len": self.length, "omega": self.omega,
-                "noise_std": self.noise_std, "nan_at": self.nan_at, "seed": self.seed}
+        return {
+            "n_train": self.n_train,
+            "n_test": self.n_test,
+            "seq_len": self.length,
+            "omega": self.omega,
+            "noise_std": self.noise_std,
+            "nan_at": self.nan_at,
+            "seed": self.seed,
+        }
 
     def generate(self, split: str) -> dict[str, np.ndarray]:
         rng = np.random.default_rng([self.seed, 0 if split == "train" else 1])
@@ -70,9 +85,17 @@ def rotation_model(**kwargs) -> MultipleShootingModule:
 
 
 def fast_trainer(tmp_path, max_epochs: int, callbacks=(), **kwargs) -> pl.Trainer:
-    args = dict(max_epochs=max_epochs, accelerator="cpu", logger=False, enable_progress_bar=False,
-                enable_model_summary=False, default_root_dir=str(tmp_path), callbacks=list(callbacks),
-                num_sanity_val_steps=0, deterministic=True)
+    args = dict(
+        max_epochs=max_epochs,
+        accelerator="cpu",
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=str(tmp_path),
+        callbacks=list(callbacks),
+        num_sanity_val_steps=0,
+        deterministic=True,
+    )
     args.update(kwargs)
     return pl.Trainer(**args)
 

@@ -52,8 +52,9 @@ pytestmark = pytest.mark.skipif(
 def run(mode: str) -> dict:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     env.pop("SSM_MS_MALLOC_TUNING", None)
-    out = subprocess.run([sys.executable, "-c", SCRIPT, mode], env=env, cwd=ROOT, capture_output=True, text=True,
-                         timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-c", SCRIPT, mode], env=env, cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout.strip().splitlines()[-1])
 

@@ -101,7 +101,7 @@ def test_jacobian_of_a_linear_map_is_its_matrix():
 @pytest.mark.parametrize("net", ["ll", "fc"])
 def test_jacobian_of_transitions_matches_finite_differences(net):
     torch.manual_seed(0)
-    f = (LocallyLinearTransition(3, n_matrices=4, hidden=16) if net == "ll" else FullyConnectedTransition(3, (16, 16)))
+    f = LocallyLinearTransition(3, n_matrices=4, hidden=16) if net == "ll" else FullyConnectedTransition(3, (16, 16))
     f = f.double()  # both use nn.ReLU(inplace=True)
     x = torch.randn(6, 3, dtype=F64)
     with torch.no_grad():
@@ -202,8 +202,12 @@ def test_attractor_statistics():
     model, ref = rng.normal(1.0, 2.0, size=(400, 2)), rng.normal(0.0, 1.0, size=(300, 2))
     out = attractor_statistics(torch.tensor(model), torch.tensor(ref))
     assert set(out) == {"wasserstein", "model_mean", "model_std", "reference_mean", "reference_std"}
-    for key, value in (("model_mean", model.mean(0)), ("model_std", model.std(0)),
-                       ("reference_mean", ref.mean(0)), ("reference_std", ref.std(0))):
+    for key, value in (
+        ("model_mean", model.mean(0)),
+        ("model_std", model.std(0)),
+        ("reference_mean", ref.mean(0)),
+        ("reference_std", ref.std(0)),
+    ):
         assert isinstance(out[key], list) and out[key] == pytest.approx(value.tolist())
     assert out["wasserstein"] == pytest.approx([stats.wasserstein_distance(model[:, i], ref[:, i]) for i in range(2)])
 
@@ -262,10 +266,12 @@ def test_summarize_valid_time_by_hand():
 def test_dominant_period_of_sines():
     dt, t = 0.05, torch.arange(200, dtype=F64) * 0.05  # 10 s
     periods = [0.37, 1.23, 2.9]  # 27, 8.1 and 3.4 periods in the window
-    x = torch.stack([
-        torch.stack([torch.sin(2 * math.pi * t / p + k), 0.3 * torch.cos(2 * math.pi * t / p + k) + 5.0], dim=-1)
-        for k, p in enumerate(periods)
-    ])  # [3, 200, 2], a constant offset on the second component
+    x = torch.stack(
+        [
+            torch.stack([torch.sin(2 * math.pi * t / p + k), 0.3 * torch.cos(2 * math.pi * t / p + k) + 5.0], dim=-1)
+            for k, p in enumerate(periods)
+        ]
+    )  # [3, 200, 2], a constant offset on the second component
     torch.testing.assert_close(dominant_period(x, dt), torch.tensor(periods, dtype=F64), rtol=0.01, atol=0)
     assert math.isnan(dominant_period(torch.ones(1, 50, 2), dt).item())
 
@@ -275,11 +281,13 @@ def test_amplitude_ratio_closed_form():
     j = torch.arange(200, dtype=F64)
     wave = torch.sin(2 * math.pi * j / 20 + 0.3)
     gamma = 0.01  # per step
-    x = torch.stack([
-        torch.stack([wave, 2 * wave + 7.0], dim=-1),  # constant amplitude, a static offset
-        torch.exp(-gamma * j)[:, None] * torch.stack([wave, wave], dim=-1),  # damped
-        torch.exp(gamma * j)[:, None] * torch.stack([wave, -wave], dim=-1),  # growing
-    ])
+    x = torch.stack(
+        [
+            torch.stack([wave, 2 * wave + 7.0], dim=-1),  # constant amplitude, a static offset
+            torch.exp(-gamma * j)[:, None] * torch.stack([wave, wave], dim=-1),  # damped
+            torch.exp(gamma * j)[:, None] * torch.stack([wave, -wave], dim=-1),  # growing
+        ]
+    )
     expected = torch.tensor([1.0, math.exp(-gamma * 160), math.exp(gamma * 160)], dtype=F64)
     torch.testing.assert_close(amplitude_ratio(x, window=40), expected, rtol=1e-10, atol=0)
 
@@ -331,25 +339,58 @@ def test_dynamics_report_of_the_true_lorenz_system_recovers_its_attractor(one_th
     (exponent near 0.9 like the true one, both wings on every run, x distribution close to the data's)."""
     f = LorenzDataModule(data_dir="unused").true_transition()
     starts = torch.from_numpy(lorenz_states(8, 1, seed=1)[:, 0]).double()
-    reference = torch.from_numpy(lorenz_states(32, 10_000, seed=2)[..., :1]).reshape(-1, 1)  # long runs: the invariant measure
-    report = dynamics_report(f, Projection([0]), starts, DT, reference=reference, lyapunov_steps=2000,
-                             transient=1000, align=600, free_steps=20_000, wing_level=lorenz_wing_level())
+    reference = torch.from_numpy(lorenz_states(32, 10_000, seed=2)[..., :1]).reshape(
+        -1, 1
+    )  # long runs: the invariant measure
+    report = dynamics_report(
+        f,
+        Projection([0]),
+        starts,
+        DT,
+        reference=reference,
+        lyapunov_steps=2000,
+        transient=1000,
+        align=600,
+        free_steps=20_000,
+        wing_level=lorenz_wing_level(),
+    )
     assert 0.7 < report["lyapunov"]["largest"] < 1.1  # 8 runs of 10 time units: a coarse estimate of 0.906
     free = report["free_run"]
     assert free["both_wings_share"] == 1.0 and free["finite_share"] == 1.0
     assert free["wasserstein"][0] < 1.0  # a point at the mean is ~6.8 away
     assert free["model_std"][0] == pytest.approx(free["reference_std"][0], rel=0.1)
     # a contracting map instead: no chaos, both runs collapse to the origin, far from the data
-    report = dynamics_report(lambda x: 0.9 * x, Projection([0]), starts, DT, reference=reference,
-                             lyapunov_steps=100, transient=10, align=0, free_steps=100, wing_level=lorenz_wing_level(),
-                             true_f=lambda x: 0.5 * x, true_starts=starts)
+    report = dynamics_report(
+        lambda x: 0.9 * x,
+        Projection([0]),
+        starts,
+        DT,
+        reference=reference,
+        lyapunov_steps=100,
+        transient=10,
+        align=0,
+        free_steps=100,
+        wing_level=lorenz_wing_level(),
+        true_f=lambda x: 0.5 * x,
+        true_starts=starts,
+    )
     assert report["lyapunov"]["largest"] == pytest.approx(math.log(0.9) / DT, rel=1e-6)
     assert report["lyapunov_true"]["exponents"] == pytest.approx([math.log(0.5) / DT] * 3, rel=1e-6)
     assert report["free_run"]["both_wings_share"] == 0.0 and report["free_run"]["wasserstein"][0] > 5
     # free runs from their own starts (more than the spectrum's): the identity map stays where it starts
     free_starts = torch.arange(30.0, dtype=torch.float64).view(10, 3)
-    report = dynamics_report(lambda x: x, Projection([0]), starts, DT, reference=reference, lyapunov_steps=10, transient=0,
-                             align=0, free_steps=5, free_starts=free_starts)
+    report = dynamics_report(
+        lambda x: x,
+        Projection([0]),
+        starts,
+        DT,
+        reference=reference,
+        lyapunov_steps=10,
+        transient=0,
+        align=0,
+        free_steps=5,
+        free_starts=free_starts,
+    )
     assert report["lyapunov"]["runs"] == 8 and report["free_run"]["runs"] == 10
     assert report["free_run"]["model_mean"][0] == pytest.approx(free_starts[:, 0].mean().item())
 
@@ -377,8 +418,9 @@ def test_the_true_systems_exponents_are_computed_again_over_a_cache_cut_short(tm
 
     scale, dt = torch.tensor([1.5, 0.5], dtype=torch.float64), 0.1
     test = SimpleNamespace(arrays={"state": np.ones((4, 3, 2))})
-    dm = SimpleNamespace(true_transition=lambda: (lambda x: x * scale), sample_period=dt, cache_dir=str(tmp_path),
-                         datasets={"test": test})
+    dm = SimpleNamespace(
+        true_transition=lambda: lambda x: x * scale, sample_period=dt, cache_dir=str(tmp_path), datasets={"test": test}
+    )
     settings = {"runs": 4, "lyapunov_steps": 20, "transient": 0, "align": 0}
     first = reference_exponents(dm, settings)
     (cache,) = tmp_path.glob("true_exponents_*.json")

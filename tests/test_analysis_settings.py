@@ -22,8 +22,15 @@ from ssm_ms.forecasting.analysis_settings import (
 
 # the defaults, as docs/analysis.md states them
 VALID_TIME = {"n_filter": None, "horizon": None, "threshold": 0.5}
-DYNAMICS = {"runs": 16, "free_runs": None, "lyapunov_steps": 4000, "transient": 2000, "align": 600,
-            "free_steps": 20_000, "seed": 0}
+DYNAMICS = {
+    "runs": 16,
+    "free_runs": None,
+    "lyapunov_steps": 4000,
+    "transient": 2000,
+    "align": 600,
+    "free_steps": 20_000,
+    "seed": 0,
+}
 TRUE_SYSTEM = {"runs": 16, "lyapunov_steps": 4000, "transient": 2000, "align": 600}
 
 
@@ -38,49 +45,82 @@ def test_a_config_mapping_means_what_it_meant_before_the_dataclasses():
     # a section named with {} is computed with its defaults; one left out is not; the true system's exponents
     # whenever the analysis runs
     assert plain(AnalysisSettings.of({"valid_time": {}})) == {
-        "valid_time": VALID_TIME, "dynamics": None, "true_system": TRUE_SYSTEM, "dt": None}
+        "valid_time": VALID_TIME,
+        "dynamics": None,
+        "true_system": TRUE_SYSTEM,
+        "dt": None,
+    }
     # YAML's `valid_time:` with nothing after it (null): computed with its defaults too
     assert plain(AnalysisSettings.of({"valid_time": None, "true_system": None})) == {
-        "valid_time": VALID_TIME, "dynamics": None, "true_system": TRUE_SYSTEM, "dt": None}
+        "valid_time": VALID_TIME,
+        "dynamics": None,
+        "true_system": TRUE_SYSTEM,
+        "dt": None,
+    }
     # what a section gives replaces the default, key by key
-    shipped = {"valid_time": {}, "dynamics": {"runs": 16, "lyapunov_steps": 1000, "transient": 200, "align": 100,
-                                              "free_steps": 200}}
+    shipped = {
+        "valid_time": {},
+        "dynamics": {"runs": 16, "lyapunov_steps": 1000, "transient": 200, "align": 100, "free_steps": 200},
+    }
     assert plain(AnalysisSettings.of(shipped))["dynamics"] == {
-        "runs": 16, "free_runs": None, "lyapunov_steps": 1000, "transient": 200, "align": 100, "free_steps": 200,
-        "seed": 0}
-    lorenz = AnalysisSettings.of({"valid_time": {"n_filter": 1000, "horizon": 1000}, "dt": 0.01,
-                                  "true_system": {"runs": 2}, "dynamics": {"runs": 16, "free_runs": 64}})
+        "runs": 16,
+        "free_runs": None,
+        "lyapunov_steps": 1000,
+        "transient": 200,
+        "align": 100,
+        "free_steps": 200,
+        "seed": 0,
+    }
+    lorenz = AnalysisSettings.of(
+        {
+            "valid_time": {"n_filter": 1000, "horizon": 1000},
+            "dt": 0.01,
+            "true_system": {"runs": 2},
+            "dynamics": {"runs": 16, "free_runs": 64},
+        }
+    )
     assert lorenz.valid_time == ValidTimeSettings(n_filter=1000, horizon=1000, threshold=0.5)
     assert lorenz.true_system == TrueSystemSettings(runs=2, lyapunov_steps=4000, transient=2000, align=600)
     assert lorenz.dynamics.free_runs == 64 and lorenz.dynamics.free_steps == 20_000 and lorenz.dt == 0.01
     # dt alone still runs the analysis (the true system's exponents), as before
     assert plain(AnalysisSettings.of({"dt": 0.05})) == {
-        "valid_time": None, "dynamics": None, "true_system": TRUE_SYSTEM, "dt": 0.05}
+        "valid_time": None,
+        "dynamics": None,
+        "true_system": TRUE_SYSTEM,
+        "dt": 0.05,
+    }
     # the mapping of a settings object reads back to it
     for settings in (lorenz, AnalysisSettings.of(shipped), AnalysisSettings(dynamics=DynamicsSettings(seed=3))):
         assert AnalysisSettings.of(settings.as_dict()) == settings
 
 
-@pytest.mark.parametrize("mapping, message", [
-    ({"chaos": {}}, r"analysis takes \['dt', 'dynamics', 'true_system', 'valid_time'\], got \['chaos'\]"),
-    ({"valid_time": {"steps": 3}}, r"analysis.valid_time takes \['horizon', 'n_filter', 'threshold'\], got \['steps'\]"),
-    ({"valid_time": 3}, r"analysis.valid_time must be a mapping of \['horizon', 'n_filter', 'threshold'\], got 3"),
-    ({"valid_time": {"horizon": 0}}, r"analysis.valid_time.horizon must be a whole number >= 1, got 0"),
-    ({"valid_time": {"threshold": 0}}, r"analysis.valid_time.threshold must be > 0, got 0"),
-    ({"dynamics": {"transient": -1}}, r"analysis.dynamics.transient must be a whole number >= 0, got -1"),
-    ({"dynamics": {"runs": True}}, r"analysis.dynamics.runs must be a whole number >= 1, got True"),
-    ({"dynamics": {"free_steps": 2.5}}, r"analysis.dynamics.free_steps must be a whole number >= 1, got 2.5"),
-    ({"true_system": {"runs": None}}, r"analysis.true_system.runs must be a whole number >= 1, got None"),
-    ({"dt": -0.1}, r"analysis.dt must be > 0, got -0.1"),
-])
+@pytest.mark.parametrize(
+    "mapping, message",
+    [
+        ({"chaos": {}}, r"analysis takes \['dt', 'dynamics', 'true_system', 'valid_time'\], got \['chaos'\]"),
+        (
+            {"valid_time": {"steps": 3}},
+            r"analysis.valid_time takes \['horizon', 'n_filter', 'threshold'\], got \['steps'\]",
+        ),
+        ({"valid_time": 3}, r"analysis.valid_time must be a mapping of \['horizon', 'n_filter', 'threshold'\], got 3"),
+        ({"valid_time": {"horizon": 0}}, r"analysis.valid_time.horizon must be a whole number >= 1, got 0"),
+        ({"valid_time": {"threshold": 0}}, r"analysis.valid_time.threshold must be > 0, got 0"),
+        ({"dynamics": {"transient": -1}}, r"analysis.dynamics.transient must be a whole number >= 0, got -1"),
+        ({"dynamics": {"runs": True}}, r"analysis.dynamics.runs must be a whole number >= 1, got True"),
+        ({"dynamics": {"free_steps": 2.5}}, r"analysis.dynamics.free_steps must be a whole number >= 1, got 2.5"),
+        ({"true_system": {"runs": None}}, r"analysis.true_system.runs must be a whole number >= 1, got None"),
+        ({"dt": -0.1}, r"analysis.dt must be > 0, got -0.1"),
+    ],
+)
 def test_a_mapping_out_of_the_schema_is_refused_naming_the_option(mapping, message):
     with pytest.raises(ValueError, match=message):
         AnalysisSettings.of(mapping)
 
 
 def test_zero_is_a_transient_and_ints_are_floats_where_floats_are_asked():
-    settings = AnalysisSettings.of({"dynamics": {"transient": 0, "align": 0, "seed": 0}, "dt": 1,
-                                    "valid_time": {"threshold": 2}})
+    settings = AnalysisSettings.of(
+        {"dynamics": {"transient": 0, "align": 0, "seed": 0}, "dt": 1, "valid_time": {"threshold": 2}}
+    )
     assert (settings.dynamics.transient, settings.dynamics.align) == (0, 0)
     assert settings.dt == 1.0 and isinstance(settings.dt, float) and settings.valid_time.threshold == 2.0
 
@@ -157,13 +197,21 @@ def test_an_unknown_analysis_key_is_one_error_line(config, capsys):
 
 
 def test_a_wrong_type_is_one_error_line(config, capsys):
-    fails(capsys, config, '{"valid_time": {"horizon": "long"}}', 2, "model.init_args.analysis", "Expected a <class 'int'>")
+    fails(
+        capsys, config, '{"valid_time": {"horizon": "long"}}', 2, "model.init_args.analysis", "Expected a <class 'int'>"
+    )
     fails(capsys, config, '{"dynamics": {"runs": 1.5}}', 2, "model.init_args.analysis", "Expected a <class 'int'>")
     fails(capsys, config, '{"dt": "fast"}', 2, "model.init_args.analysis", "float")
 
 
 def test_an_option_out_of_range_is_one_error_line(config, capsys):
-    fails(capsys, config, '{"valid_time": {"horizon": 0}}', 1, "analysis.valid_time.horizon must be a whole number >= 1, got 0")
+    fails(
+        capsys,
+        config,
+        '{"valid_time": {"horizon": 0}}',
+        1,
+        "analysis.valid_time.horizon must be a whole number >= 1, got 0",
+    )
     fails(capsys, config, '{"dynamics": {}}', 1, "analysis.dynamics studies an SSM's f; a baseline has none")
 
 
@@ -184,9 +232,15 @@ def test_the_config_mapping_is_read_as_written_and_reloads_from_the_checkpoint(c
 
 def test_an_older_checkpoint_with_an_unknown_analysis_key_is_refused_by_name(tmp_path):
     model = LSTMBaseline(n_filter=8, network={"hidden": 8}, obs_shape=[2], analysis={"valid_time": {}})
-    ckpt = {"state_dict": model.state_dict(), "hyper_parameters": {**model.hparams, "analysis": {"valid_tme": {}}},
-            "pytorch-lightning_version": "2.6.0"}
+    ckpt = {
+        "state_dict": model.state_dict(),
+        "hyper_parameters": {**model.hparams, "analysis": {"valid_tme": {}}},
+        "pytorch-lightning_version": "2.6.0",
+    }
     torch.save(ckpt, tmp_path / "old.ckpt")
-    with pytest.raises(ValueError, match=r"analysis takes \['dt', 'dynamics', 'true_system', 'valid_time'\], "
-                                         r"got \['valid_tme'\]"):
+    with pytest.raises(
+        ValueError,
+        match=r"analysis takes \['dt', 'dynamics', 'true_system', 'valid_time'\], "
+        r"got \['valid_tme'\]",
+    ):
         LSTMBaseline.load_from_checkpoint(tmp_path / "old.ckpt")

@@ -100,8 +100,13 @@ def save(root: Path, name: str, **arrays) -> str:
 # ---------------------------------------------------------------------------- data
 def test_missing_data_file(setup, capsys):
     root, _ = setup
-    fails(capsys, fit(root, "--data.init_args.train_path", str(root / "nope.npz")), 1, "nope.npz does not exist",
-          "expected a .npy or .npz file")
+    fails(
+        capsys,
+        fit(root, "--data.init_args.train_path", str(root / "nope.npz")),
+        1,
+        "nope.npz does not exist",
+        "expected a .npy or .npz file",
+    )
 
 
 def test_wrong_key(setup, capsys):
@@ -120,8 +125,14 @@ def test_nan_in_data(setup, capsys):
     y = trajectories()
     y[2, 5, 1] = np.nan
     path = save(root, "nan.npz", y=y)
-    fails(capsys, fit(root, "--data.init_args.train_path", path, "--data.init_args.key", "y"), 1,
-          "non-finite value", "(2, 5, 1)", "remove or interpolate")
+    fails(
+        capsys,
+        fit(root, "--data.init_args.train_path", path, "--data.init_args.key", "y"),
+        1,
+        "non-finite value",
+        "(2, 5, 1)",
+        "remove or interpolate",
+    )
 
 
 def test_wrong_rank(setup, capsys):
@@ -166,15 +177,25 @@ def test_constant_channel_with_normalisation(setup, capsys):
     y = trajectories()
     y[..., 1] = 0.5
     path = save(root, "const.npz", y=y)
-    fails(capsys, fit(root, "--data.init_args.train_path", path, "--data.init_args.normalize", "true"), 1,
-          "constant", "normalize: false")
+    fails(
+        capsys,
+        fit(root, "--data.init_args.train_path", path, "--data.init_args.normalize", "true"),
+        1,
+        "constant",
+        "normalize: false",
+    )
 
 
 # ---------------------------------------------------------------------------- model
 def test_length_not_divisible_by_nodes(setup, capsys):
     root, _ = setup
-    fails(capsys, fit(root, "--model.init_args.n_nodes", "5"), 1, "T=12 is not divisible by model.n_nodes=5",
-          "choose n_nodes among [1, 2, 3, 4, 6, 12]")
+    fails(
+        capsys,
+        fit(root, "--model.init_args.n_nodes", "5"),
+        1,
+        "T=12 is not divisible by model.n_nodes=5",
+        "choose n_nodes among [1, 2, 3, 4, 6, 12]",
+    )
 
 
 def test_zero_nodes(setup, capsys):
@@ -199,26 +220,47 @@ def test_zero_learning_rate(setup, capsys):
 
 def test_bce_with_data_outside_unit_interval(setup, capsys):
     root, _ = setup
-    fails(capsys, fit(root, "--model.init_args.loss", "bce"), 1, "loss: bce needs measurements in [0.0, 1.0]",
-          "range from -1.", "use loss: mse")
+    fails(
+        capsys,
+        fit(root, "--model.init_args.loss", "bce"),
+        1,
+        "loss: bce needs measurements in [0.0, 1.0]",
+        "range from -1.",
+        "use loss: mse",
+    )
 
 
 def test_bce_with_normalised_data(setup, capsys):
     root, _ = setup
-    fails(capsys, fit(root, "--model.init_args.loss", "bce", "--data.init_args.normalize", "true"), 1,
-          "data.normalize is on", "normalize to false")
+    fails(
+        capsys,
+        fit(root, "--model.init_args.loss", "bce", "--data.init_args.normalize", "true"),
+        1,
+        "data.normalize is on",
+        "normalize to false",
+    )
 
 
 def test_f_of_another_state_size(setup, capsys):
     root, _ = setup
-    fails(capsys, fit(root, "--model.init_args.f.init_args.state_dim", "4"), 1, "f fails on a state batch of shape [2, 3]",
-          "f's state_dim")
+    fails(
+        capsys,
+        fit(root, "--model.init_args.f.init_args.state_dim", "4"),
+        1,
+        "f fails on a state batch of shape [2, 3]",
+        "f's state_dim",
+    )
 
 
 def test_g_of_another_measurement_size(setup, capsys):
     root, _ = setup
-    fails(capsys, fit(root, "--model.init_args.g.init_args.out_features", "3"), 1, "outputs measurements of shape (3,)",
-          "data have shape (2,)")
+    fails(
+        capsys,
+        fit(root, "--model.init_args.g.init_args.out_features", "3"),
+        1,
+        "outputs measurements of shape (3,)",
+        "data have shape (2,)",
+    )
 
 
 def test_node_init_map_outside_the_state(setup, capsys):
@@ -273,7 +315,9 @@ def test_truncated_checkpoint(setup, capsys):
 def test_foreign_checkpoint(setup, capsys):
     root, _ = setup
     (root / "notes.ckpt").write_text("not a checkpoint\n")
-    err = fails(capsys, fit(root, "--ckpt_path", str(root / "notes.ckpt")), 1, "notes.ckpt is not a readable checkpoint")
+    err = fails(
+        capsys, fit(root, "--ckpt_path", str(root / "notes.ckpt")), 1, "notes.ckpt is not a readable checkpoint"
+    )
     assert "weights_only" not in err and "unpickl" not in err.lower()
 
 
@@ -285,33 +329,67 @@ def test_pickle_that_would_run_code_is_refused(setup, capsys):
 
 def test_checkpoint_of_another_model_class(setup, capsys):
     root, _ = setup
-    torch.save({"state_dict": {}, "hyper_parameters": {"_class_path": "ssm_ms.baselines.LSTMBaseline"}}, root / "lstm.ckpt")
-    fails(capsys, fit(root, "--ckpt_path", str(root / "lstm.ckpt")), 1, "checkpoint of a ssm_ms.baselines.LSTMBaseline",
-          "builds a ssm_ms.module.MultipleShootingModule")
+    torch.save(
+        {"state_dict": {}, "hyper_parameters": {"_class_path": "ssm_ms.baselines.LSTMBaseline"}}, root / "lstm.ckpt"
+    )
+    fails(
+        capsys,
+        fit(root, "--ckpt_path", str(root / "lstm.ckpt")),
+        1,
+        "checkpoint of a ssm_ms.baselines.LSTMBaseline",
+        "builds a ssm_ms.module.MultipleShootingModule",
+    )
 
 
 def test_checkpoint_of_other_data(setup, capsys):
     """The checkpoint's node table holds 8 trajectories, the data given now hold 6."""
     root, ckpt = setup
     path = save(root, "six.npz", y=trajectories(6))
-    fails(capsys, fit(root, "--ckpt_path", str(ckpt), "--data.init_args.train_path", path), 1,
-          "shooting nodes for 8 trajectories", "training set has 6")
+    fails(
+        capsys,
+        fit(root, "--ckpt_path", str(ckpt), "--data.init_args.train_path", path),
+        1,
+        "shooting nodes for 8 trajectories",
+        "training set has 6",
+    )
 
 
 def test_stage_given_a_checkpoint_that_is_not_an_ssm(setup, capsys):
     root, _ = setup
     torch.save({"state_dict": {"encoder.weight": torch.zeros(1)}, "forecaster": "LSTMBaseline"}, root / "base.ckpt")
-    fails(capsys, ["test", "--config", str(ROOT / "configs" / "oscillator_encoder.yaml"),
-                   "--model.init_args.ssm_checkpoint", str(root / "base.ckpt"),
-                   "--data.init_args.train_path", str(root / "good.npz")], 1, "not of an SSM", "last.ckpt of an SSM run")
+    fails(
+        capsys,
+        [
+            "test",
+            "--config",
+            str(ROOT / "configs" / "oscillator_encoder.yaml"),
+            "--model.init_args.ssm_checkpoint",
+            str(root / "base.ckpt"),
+            "--data.init_args.train_path",
+            str(root / "good.npz"),
+        ],
+        1,
+        "not of an SSM",
+        "last.ckpt of an SSM run",
+    )
 
 
 def test_stage_without_its_ssm(setup, capsys):
     """ssm_checkpoint may be left out only where a --ckpt_path supplies it: else one message naming both ways."""
     root, _ = setup
-    fails(capsys, ["test", "--config", str(ROOT / "configs" / "oscillator_encoder.yaml"),
-                   "--data.init_args.train_path", str(root / "good.npz")], 1,
-          "model.init_args.ssm_checkpoint is not set", "--ckpt_path")
+    fails(
+        capsys,
+        [
+            "test",
+            "--config",
+            str(ROOT / "configs" / "oscillator_encoder.yaml"),
+            "--data.init_args.train_path",
+            str(root / "good.npz"),
+        ],
+        1,
+        "model.init_args.ssm_checkpoint is not set",
+        "--ckpt_path",
+    )
 
 
 # ---------------------------------------------------------------------------- bugs keep their traceback
@@ -341,8 +419,13 @@ def test_traceback_switch_shows_user_errors_too(setup, monkeypatch):
 
 def test_the_real_command_prints_no_traceback(setup):
     root, _ = setup
-    done = subprocess.run([sys.executable, "cli.py", *fit(root, "--model.init_args.n_nodes", "0")], cwd=ROOT,
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "cli.py", *fit(root, "--model.init_args.n_nodes", "0")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 1
     assert "Traceback" not in done.stderr and "error: state_dim and n_nodes must be >= 1" in done.stderr
 
@@ -358,8 +441,17 @@ def test_checkpoint_of_another_model_names_the_checkpoint_first(setup, capsys):
     says the checkpoint belongs to another model or data before the shape detail, in one line."""
     root, _ = setup
     path = save(root, "three.npz", y=trajectories(d=2).repeat(2, axis=-1)[..., :3])
-    main(fit(root, "--data.init_args.train_path", path, "--model.init_args.g.init_args.out_features", "3",
-             "--trainer.default_root_dir", str(root / "three")))
+    main(
+        fit(
+            root,
+            "--data.init_args.train_path",
+            path,
+            "--model.init_args.g.init_args.out_features",
+            "3",
+            "--trainer.default_root_dir",
+            str(root / "three"),
+        )
+    )
     (other,) = (root / "three").glob("**/last.ckpt")
     capsys.readouterr()
     with pytest.raises(SystemExit) as stop:
@@ -371,7 +463,9 @@ def test_checkpoint_of_another_model_names_the_checkpoint_first(setup, capsys):
     assert lines[0].startswith("note: --ckpt_path") and "g.init_args.out_features = 3 from the checkpoint" in lines[0]
     error = lines[1]
     assert error.startswith(f"error: the checkpoint {other} (trained on the ")
-    assert error.index("was trained for another model or other data") < error.index("outputs measurements of shape (3,)")
+    assert error.index("was trained for another model or other data") < error.index(
+        "outputs measurements of shape (3,)"
+    )
     assert "data have shape (2,)" in error and "config.yaml" in error and len(lines) == 3, err
 
 
@@ -381,8 +475,21 @@ def test_ckpt_path_says_which_model_values_it_replaced(setup, capsys):
     root, ckpt = setup
     saved = torch.load(ckpt, weights_only=True)["hyper_parameters"]
     assert saved["lr"] == 0.01 and saved["f"]["init_args"]["hidden"] == 8
-    cli = main(fit(root, "--ckpt_path", str(ckpt), "--model.init_args.lr", "0.5", "--model.init_args.n_nodes", "3",
-                   "--model.init_args.f.init_args.hidden", "16", "--trainer.max_epochs", "2"))
+    cli = main(
+        fit(
+            root,
+            "--ckpt_path",
+            str(ckpt),
+            "--model.init_args.lr",
+            "0.5",
+            "--model.init_args.n_nodes",
+            "3",
+            "--model.init_args.f.init_args.hidden",
+            "16",
+            "--trainer.max_epochs",
+            "2",
+        )
+    )
     err = capsys.readouterr().err
     notes = [line for line in err.splitlines() if line.startswith("note:")]
     assert len(notes) == 1, err

@@ -68,14 +68,20 @@ def test_lstm_decoder_draws_the_data_image_size():
 def test_baseline_layers_given_as_mappings_instead_of_presets(cls):
     """A narrower CNN and decoder than the presets (a CPU-sized run): the layers are the ones asked for."""
     small = {"hidden": 8} if cls is Seq2SeqLSTM else {"latent_state_dim": 4, "n_basis": 2}
-    net = cls([1, 64, 64], **small,
-              encoder_preset={"conv_channels": [4, 8], "final_channels": 3, "final_relu": True},
-              decoder_preset={"stem_channels": 6, "layers": [[5, 3, 2], [1, 4, 2]]})
+    net = cls(
+        [1, 64, 64],
+        **small,
+        encoder_preset={"conv_channels": [4, 8], "final_channels": 3, "final_relu": True},
+        decoder_preset={"stem_channels": 6, "layers": [[5, 3, 2], [1, 4, 2]]},
+    )
     frames = net.frames if cls is Seq2SeqLSTM else net.encoder
     convs = [m for m in frames.modules() if isinstance(m, torch.nn.Conv2d)]
     assert [c.out_channels for c in convs] == [4, 8, 3]
     deconvs = [m for m in net.decoder.deconv if isinstance(m, torch.nn.ConvTranspose2d)]
-    assert [(d.in_channels, d.out_channels, d.kernel_size[0], d.stride[0]) for d in deconvs] == [(6, 5, 3, 2), (5, 1, 4, 2)]
+    assert [(d.in_channels, d.out_channels, d.kernel_size[0], d.stride[0]) for d in deconvs] == [
+        (6, 5, 3, 2),
+        (5, 1, 4, 2),
+    ]
     y = torch.rand(2, 3, 1, 64, 64)
     assert net(y, torch.ones(2, 3, dtype=torch.bool)).mean.shape == y.shape
     with pytest.raises(ValueError, match=r"encoder_preset as a mapping takes .* unknown: \['channels'\]"):
@@ -90,9 +96,19 @@ def trained(request, tmp_path_factory):
     """A baseline trained on the rotation data (12 steps; 8 filtered, 4 predicted), and its checkpoint."""
     tmp = tmp_path_factory.mktemp(request.param)
     torch.manual_seed(0)
-    cls, net, loss = (LSTMBaseline, LSTM_NET, "mse") if request.param == "lstm" else (RKNBaseline, RKN_NET, "gaussian_nll")
-    model = cls(n_filter=8, network=net, loss=loss, lr=1e-2, metrics=["mse"], results_dir=str(tmp / "results"),
-                experiment="rot", analysis={"valid_time": {"threshold": 0.3}, "dt": 0.1})
+    cls, net, loss = (
+        (LSTMBaseline, LSTM_NET, "mse") if request.param == "lstm" else (RKNBaseline, RKN_NET, "gaussian_nll")
+    )
+    model = cls(
+        n_filter=8,
+        network=net,
+        loss=loss,
+        lr=1e-2,
+        metrics=["mse"],
+        results_dir=str(tmp / "results"),
+        experiment="rot",
+        analysis={"valid_time": {"threshold": 0.3}, "dt": 0.1},
+    )
     dm = rotation(tmp)
     dm.prepare_data()
     dm.setup("fit")
@@ -153,8 +169,13 @@ def test_baseline_checkpoint_reloads_on_its_own(trained):
     with torch.no_grad():
         torch.testing.assert_close(loaded.net(y, observed).mean, model.net(y, observed).mean)
     # and the trainer restores it into a fresh module built from the config alone (network built in setup)
-    fresh = cls(n_filter=8, network=LSTM_NET if name == "lstm" else RKN_NET, metrics=["mse"],
-                results_dir=str(tmp / "results2"), experiment="rot")
+    fresh = cls(
+        n_filter=8,
+        network=LSTM_NET if name == "lstm" else RKN_NET,
+        metrics=["mse"],
+        results_dir=str(tmp / "results2"),
+        experiment="rot",
+    )
     fast_trainer(tmp, max_epochs=1).test(fresh, rotation(tmp), ckpt_path=str(tmp / "ckpt" / "last.ckpt"))
     fast_trainer(tmp, max_epochs=1).test(model, rotation(tmp))
     first = json.loads((tmp / "results" / "rot.json").read_text())["runs"][name]["summary"]
@@ -169,8 +190,13 @@ def test_an_int8_pretrained_baseline_tests_through_ckpt_path(trained, monkeypatc
     monkeypatch.setattr(pretrained, "NARROW_MIN_NUMEL", 64)
     saved = torch.load(tmp / "ckpt" / "last.ckpt", weights_only=True)
     torch.save(pretrained.strip(saved, weights="int8"), tmp / "int8.ckpt")
-    fresh = cls(n_filter=8, network=LSTM_NET if name == "lstm" else RKN_NET, metrics=["mse"],
-                results_dir=str(tmp / "results_int8"), experiment="rot")
+    fresh = cls(
+        n_filter=8,
+        network=LSTM_NET if name == "lstm" else RKN_NET,
+        metrics=["mse"],
+        results_dir=str(tmp / "results_int8"),
+        experiment="rot",
+    )
     fast_trainer(tmp, max_epochs=1).test(fresh, rotation(tmp), ckpt_path=str(tmp / "int8.ckpt"))
     rounded = 0
     for key, value in fresh.state_dict().items():
@@ -199,10 +225,18 @@ def test_checkpoints_of_the_other_kind_are_refused(trained, tmp_path):
     # an SSM checkpoint given to a baseline
     ssm_ckpt = ModelCheckpoint(dirpath=tmp_path / "ssm", save_last=True)
     fast_trainer(tmp_path, max_epochs=1, callbacks=[ssm_ckpt]).fit(ssm, rotation(tmp_path))
-    baseline = cls(n_filter=8, network=LSTM_NET if name == "lstm" else RKN_NET, metrics=["mse"],
-                   results_dir=str(tmp_path / "results"))
-    with pytest.raises(ValueError, match=rf"the checkpoint is an SSM \(or one of its encoder stages\), not a {cls.__name__}"):
-        fast_trainer(tmp_path, max_epochs=1).test(baseline, rotation(tmp_path), ckpt_path=str(tmp_path / "ssm" / "last.ckpt"))
+    baseline = cls(
+        n_filter=8,
+        network=LSTM_NET if name == "lstm" else RKN_NET,
+        metrics=["mse"],
+        results_dir=str(tmp_path / "results"),
+    )
+    with pytest.raises(
+        ValueError, match=rf"the checkpoint is an SSM \(or one of its encoder stages\), not a {cls.__name__}"
+    ):
+        fast_trainer(tmp_path, max_epochs=1).test(
+            baseline, rotation(tmp_path), ckpt_path=str(tmp_path / "ssm" / "last.ckpt")
+        )
 
 
 def test_training_windows_are_consecutive_steps_of_each_sequence():

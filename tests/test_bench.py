@@ -7,10 +7,9 @@ import pytest
 import torch
 
 from benchmarks import bench_allocator, bench_train_step, bench_two_jobs, bench_ukf, profile_decoder
-from ssm_ms.nets import native
 from benchmarks.reference_structure import RefDecoder, RefLocallyLinear, RefTrainer, ref_ukf
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
-from ssm_ms.nets import ConvDecoder, LocallyLinearTransition
+from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, native
 from ssm_ms.training.shooting import compile_unavailable_reason, multiple_shooting_loss
 
 
@@ -97,8 +96,10 @@ def test_two_jobs_benchmark_refuses_zero_rounds_before_starting_workers(capsys):
 
 def _train_step_rows(out, compiled: bool) -> list[str]:
     """Run the train-step benchmark at its tiny size; its SSM-LL rows (reference first, then ours)."""
-    bench_train_step.main(["--tiny", "--rounds", "1", "--steps", "1", "--threads", "1", "--models", "SSM-LL",
-                           "--out", str(out)] + (["--compiled"] if compiled else []))
+    bench_train_step.main(
+        ["--tiny", "--rounds", "1", "--steps", "1", "--threads", "1", "--models", "SSM-LL", "--out", str(out)]
+        + (["--compiled"] if compiled else [])
+    )
     rows = [line for line in out.read_text().splitlines() if line.startswith("| SSM-LL")]
     assert len(rows) >= 2 and "reference structure" in rows[0] and "ssm-ms, float32" in rows[1]
     return rows
@@ -151,8 +152,10 @@ def test_results_say_shared_when_other_processes_ran_not_after_a_busy_minute():
     # a process still running beside the measurement (another job) is: about one more core, where one is free
     free = (os.cpu_count() or 1) - background
     if free < 1.2:
-        pytest.skip(f"the machine's other jobs keep {background:.2f} of {os.cpu_count()} cores busy: no free core to "
-                    "see one more process on")
+        pytest.skip(
+            f"the machine's other jobs keep {background:.2f} of {os.cpu_count()} cores busy: no free core to "
+            "see one more process on"
+        )
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
         time.sleep(0.3)  # its interpreter has started
@@ -200,18 +203,44 @@ def test_epoch_profile_shares_from_a_profiler_table():
 
 def test_allocator_benchmark_runs_at_a_tiny_size(tmp_path):
     """The README's oscillator example stands in for the quad: an SSM fitted one epoch, then its encoder's steps."""
-    from tests.test_cli import ROOT as CLI_ROOT, oscillator_file, outputs, run
+    from tests.test_cli import ROOT as CLI_ROOT
+    from tests.test_cli import oscillator_file, outputs, run
 
     data = ["--data.init_args.train_path", str(oscillator_file(tmp_path))]
     started = time.time()
     ssm_config = CLI_ROOT / "configs" / "oscillator.yaml"
-    run(tmp_path, "fit", ssm_config, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
-        "--trainer.limit_val_batches", "1", *data)
+    run(
+        tmp_path,
+        "fit",
+        ssm_config,
+        "--trainer.max_epochs",
+        "1",
+        "--trainer.limit_train_batches",
+        "2",
+        "--trainer.limit_val_batches",
+        "1",
+        *data,
+    )
     out = tmp_path / "allocator.md"
-    bench_allocator.main(["--config", "configs/oscillator_encoder.yaml", "--rounds", "1", "--warm", "1",
-                          "--steps", "1", "--settings", "trim 2 GiB",
-                          "--ssm", str(outputs(tmp_path, ssm_config) / "checkpoints" / "last.ckpt"),
-                          "--out", str(out), *data])
+    bench_allocator.main(
+        [
+            "--config",
+            "configs/oscillator_encoder.yaml",
+            "--rounds",
+            "1",
+            "--warm",
+            "1",
+            "--steps",
+            "1",
+            "--settings",
+            "trim 2 GiB",
+            "--ssm",
+            str(outputs(tmp_path, ssm_config) / "checkpoints" / "last.ckpt"),
+            "--out",
+            str(out),
+            *data,
+        ]
+    )
     rows = [line for line in out.read_text().splitlines() if line.startswith("| trim")]
     assert [row.split(" | ")[0] for row in rows] == ["| trim off", "| trim 2 GiB"]  # the base is always measured
     assert rows[0].split(" | ")[5] == "1.00"  # the base's ratio to itself

@@ -31,7 +31,14 @@ SSM_CONFIGS = sorted(p for p in CPU.glob("*.yaml") if not p.stem.endswith(("_enc
 TINY = {  # data overrides that make each data set a handful of short trajectories
     "pendulum": ["--data.init_args.n_train", "8", "--data.init_args.n_test", "4", "--data.init_args.workers", "1"],
     "quad": ["--data.init_args.n_train", "4", "--data.init_args.n_test", "2", "--data.init_args.workers", "1"],
-    "lorenz": ["--data.init_args.n_train", "4", "--data.init_args.n_test", "4", "--data.init_args.train_steps", "10000"],
+    "lorenz": [
+        "--data.init_args.n_train",
+        "4",
+        "--data.init_args.n_test",
+        "4",
+        "--data.init_args.train_steps",
+        "10000",
+    ],
     "mnist": ["--data.init_args.n_train", "8", "--data.init_args.n_test", "4", "--data.init_args.batch_size", "4"],
 }
 
@@ -39,12 +46,17 @@ TINY = {  # data overrides that make each data set a handful of short trajectori
 # The analysis of the Lorenz stages at a size for tests (the shipped configs compute it at full length).
 # (the true system's exponents take ~15 s of Benettin QR at the shipped length on 2 cores)
 CHEAP_TRUE_SYSTEM = '"true_system": {"runs": 2, "lyapunov_steps": 50, "transient": 10, "align": 10}'
-CHEAP_ANALYSIS = ["--model.init_args.analysis", '{"valid_time": {"n_filter": 1000, "horizon": 1000}, '
-                  '"dynamics": {"runs": 2, "lyapunov_steps": 50, "transient": 10, "align": 10, "free_steps": 200}, '
-                  f'{CHEAP_TRUE_SYSTEM}}}']
+CHEAP_ANALYSIS = [
+    "--model.init_args.analysis",
+    '{"valid_time": {"n_filter": 1000, "horizon": 1000}, '
+    '"dynamics": {"runs": 2, "lyapunov_steps": 50, "transient": 10, "align": 10, "free_steps": 200}, '
+    f"{CHEAP_TRUE_SYSTEM}}}",
+]
 # a baseline has no f to study: the valid time, in Lyapunov times of the true system
-CHEAP_BASELINE_ANALYSIS = ["--model.init_args.analysis",
-                           f'{{"valid_time": {{"n_filter": 1000, "horizon": 1000}}, {CHEAP_TRUE_SYSTEM}}}']
+CHEAP_BASELINE_ANALYSIS = [
+    "--model.init_args.analysis",
+    f'{{"valid_time": {{"n_filter": 1000, "horizon": 1000}}, {CHEAP_TRUE_SYSTEM}}}',
+]
 
 
 def family(name: str) -> str:
@@ -52,20 +64,40 @@ def family(name: str) -> str:
 
 
 def run(tmp: Path, subcommand: str, config: Path, *extra: str):
-    args = [subcommand, "--config", str(config),
-            "--trainer.logger.init_args.save_dir", str(tmp / "runs"),
-            "--trainer.logger.init_args.version", "t",
-            "--trainer.enable_progress_bar", "false",
-            "--trainer.enable_model_summary", "false"]
+    args = [
+        subcommand,
+        "--config",
+        str(config),
+        "--trainer.logger.init_args.save_dir",
+        str(tmp / "runs"),
+        "--trainer.logger.init_args.version",
+        "t",
+        "--trainer.enable_progress_bar",
+        "false",
+        "--trainer.enable_model_summary",
+        "false",
+    ]
     if "--data.init_args.data_dir" not in extra and load_config(config)["data"]["class_path"] != FILES:
         args += ["--data.init_args.data_dir", str(tmp / "data")]
     return main(args + list(extra))
 
 
 def fit_tiny(tmp: Path, config: Path, *extra: str):
-    return run(tmp, "fit", config, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
-               "--trainer.limit_val_batches", "1", "--trainer.check_val_every_n_epoch", "1",
-               *TINY[family(config.stem)], *extra)
+    return run(
+        tmp,
+        "fit",
+        config,
+        "--trainer.max_epochs",
+        "1",
+        "--trainer.limit_train_batches",
+        "2",
+        "--trainer.limit_val_batches",
+        "1",
+        "--trainer.check_val_every_n_epoch",
+        "1",
+        *TINY[family(config.stem)],
+        *extra,
+    )
 
 
 def outputs(tmp: Path, config: Path) -> Path:
@@ -101,10 +133,27 @@ def pendulum_ssm(tmp_path_factory):
 def test_encoder_stage_and_test_protocol_from_the_cli(pendulum_ssm):
     tmp, ssm_ckpt = pendulum_ssm
     config = CPU / "pendulum_encoder.yaml"
-    stage = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt), "--model.init_args.results_dir", str(tmp / "results"),
-             "--model.init_args.figures_dir", str(tmp / "figures"), *TINY["pendulum"]]
-    run(tmp, "fit", config, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
-        "--trainer.limit_val_batches", "1", *stage)
+    stage = [
+        "--model.init_args.ssm_checkpoint",
+        str(ssm_ckpt),
+        "--model.init_args.results_dir",
+        str(tmp / "results"),
+        "--model.init_args.figures_dir",
+        str(tmp / "figures"),
+        *TINY["pendulum"],
+    ]
+    run(
+        tmp,
+        "fit",
+        config,
+        "--trainer.max_epochs",
+        "1",
+        "--trainer.limit_train_batches",
+        "2",
+        "--trainer.limit_val_batches",
+        "1",
+        *stage,
+    )
     enc_ckpt = outputs(tmp, config) / "checkpoints" / "last.ckpt"
     assert enc_ckpt.is_file()
     # the SSM's checkpoint need not be given again: --ckpt_path's recorded one is used
@@ -120,15 +169,29 @@ def test_ukf_stage_from_the_cli(tmp_path):
     ssm = CPU / "lorenz_T1000.yaml"
     fit_tiny(tmp_path, ssm)
     ssm_ckpt = outputs(tmp_path, ssm) / "checkpoints" / "last.ckpt"
-    cli = run(tmp_path, "test", CPU / "lorenz_T1000_ukf.yaml", "--model.init_args.ssm_checkpoint", str(ssm_ckpt),
-        "--model.init_args.results_dir", str(tmp_path / "results"), "--model.init_args.figures_dir",
-        str(tmp_path / "figures"), "--trainer.limit_test_batches", "1", *TINY["lorenz"], *CHEAP_ANALYSIS)
+    cli = run(
+        tmp_path,
+        "test",
+        CPU / "lorenz_T1000_ukf.yaml",
+        "--model.init_args.ssm_checkpoint",
+        str(ssm_ckpt),
+        "--model.init_args.results_dir",
+        str(tmp_path / "results"),
+        "--model.init_args.figures_dir",
+        str(tmp_path / "figures"),
+        "--trainer.limit_test_batches",
+        "1",
+        *TINY["lorenz"],
+        *CHEAP_ANALYSIS,
+    )
     # the SSM loaded inside the CLI-built forecaster keeps its own hyperparameters, not the forecaster's
     assert cli.model.ssm.hparams["node_init_map"] == {0: 0} and "n_filter" not in cli.model.ssm.hparams
     saved = json.loads((tmp_path / "results" / "lorenz_T1000_cpu.json").read_text())["runs"]["ukf"]
     assert "ukf/clean/mse" in saved["summary"]
     # the analysis ran with the settings given on the command line, and the true system's exponents were cached
-    assert saved["analysis"]["dynamics"]["lyapunov"]["steps"] == 50 and saved["analysis"]["valid_time"]["horizon"] == 1000
+    assert (
+        saved["analysis"]["dynamics"]["lyapunov"]["steps"] == 50 and saved["analysis"]["valid_time"]["horizon"] == 1000
+    )
     assert saved["analysis"]["true_system"]["largest"] > 0
     assert list((tmp_path / "data").glob("lorenz-*/true_exponents_*.json"))
     assert (tmp_path / "figures" / "lorenz_T1000_cpu_ukf_lorenz_prediction.png").is_file()
@@ -136,8 +199,17 @@ def test_ukf_stage_from_the_cli(tmp_path):
     spec = importlib.util.spec_from_file_location("study", ROOT / "benchmarks" / "lorenz_cpu_study.py")
     study = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(study)
-    row = study.main([str(ssm_ckpt), "--results", str(tmp_path / "results" / "lorenz_T1000_cpu.json"), "--ukf", "ukf",
-                      "--out", str(tmp_path / "rows.jsonl")])
+    row = study.main(
+        [
+            str(ssm_ckpt),
+            "--results",
+            str(tmp_path / "results" / "lorenz_T1000_cpu.json"),
+            "--ukf",
+            "ukf",
+            "--out",
+            str(tmp_path / "rows.jsonl"),
+        ]
+    )
     ckpt = torch.load(ssm_ckpt, weights_only=False)
     assert (row["epochs"], row["steps"]) == (ckpt["epoch"] + 1, ckpt["global_step"])
     assert row["data"] == {"n_train": 4, "train_steps": 10000, "noise_std": 2.5}  # the TINY data of this test
@@ -164,13 +236,33 @@ def baseline_lorenz_data(tmp_path_factory) -> Path:
 @pytest.mark.parametrize("config", BASELINE_CONFIGS, ids=[p.stem for p in BASELINE_CONFIGS])
 def test_cpu_baseline_config_fits_and_tests(tmp_path, config, baseline_lorenz_data):
     """Each CPU-sized baseline trains a few batches, then the test protocol writes its row beside the paper's."""
-    extra = [*TINY[family(config.stem)], "--model.init_args.results_dir", str(tmp_path / "results"),
-             "--model.init_args.figures_dir", str(tmp_path / "figures")]
+    extra = [
+        *TINY[family(config.stem)],
+        "--model.init_args.results_dir",
+        str(tmp_path / "results"),
+        "--model.init_args.figures_dir",
+        str(tmp_path / "figures"),
+    ]
     if family(config.stem) == "lorenz":  # 1000-step test forecasts on two sequences are enough here
-        extra += ["--data.init_args.n_test", "2", *CHEAP_BASELINE_ANALYSIS,
-                  "--data.init_args.data_dir", str(baseline_lorenz_data)]
-    run(tmp_path, "fit", config, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
-        "--trainer.limit_val_batches", "1", *extra)
+        extra += [
+            "--data.init_args.n_test",
+            "2",
+            *CHEAP_BASELINE_ANALYSIS,
+            "--data.init_args.data_dir",
+            str(baseline_lorenz_data),
+        ]
+    run(
+        tmp_path,
+        "fit",
+        config,
+        "--trainer.max_epochs",
+        "1",
+        "--trainer.limit_train_batches",
+        "2",
+        "--trainer.limit_val_batches",
+        "1",
+        *extra,
+    )
     ckpt = outputs(tmp_path, config) / "checkpoints" / "last.ckpt"
     run(tmp_path, "test", config, "--ckpt_path", str(ckpt), "--trainer.limit_test_batches", "1", *extra)
     model = "LSTM" if config.stem.endswith("lstm") else "RKN"
@@ -181,9 +273,16 @@ def test_cpu_baseline_config_fits_and_tests(tmp_path, config, baseline_lorenz_da
     assert list((tmp_path / "figures").glob(f"{experiment}_{model.lower()}_*"))
 
 
-@pytest.mark.parametrize("config", sorted(p for folder in (CPU, ROOT / "configs") for p in
-                                          (folder / "baselines").glob("lorenz_T10*_*.yaml")
-                                          if p.stem.startswith(SWEEP_BASELINES)), ids=lambda p: str(p.relative_to(ROOT)))
+@pytest.mark.parametrize(
+    "config",
+    sorted(
+        p
+        for folder in (CPU, ROOT / "configs")
+        for p in (folder / "baselines").glob("lorenz_T10*_*.yaml")
+        if p.stem.startswith(SWEEP_BASELINES)
+    ),
+    ids=lambda p: str(p.relative_to(ROOT)),
+)
 def test_lorenz_sweep_baselines_split_their_pieces(config, tmp_path):
     """Pieces of T = 10 steps cannot hold the protocol's 10 predicted steps: 5 given, 5 predicted; pieces of 100 are
     trained whole, 90 given and 10 predicted; pieces of 10,000 whole at the paper's size, in 200-step windows (190
@@ -200,6 +299,7 @@ def test_lorenz_sweep_baselines_split_their_pieces(config, tmp_path):
 def test_cpu_lorenz_baselines_see_as_many_measurements_for_every_t():
     """The CPU twins' baselines for T = 1000 and 10,000 train on 200-step windows; the T = 10,000 data hold 4 pieces a
     step (the SSM's batch) where T = 1000's hold 40, so its epochs are 10x: the same steps x windowed measurements."""
+
     def seen(stem: str) -> int:
         cfg = OmegaConf.create(load_config(CPU / "baselines" / f"{stem}.yaml"))
         data = cfg.data.init_args
@@ -223,8 +323,19 @@ def oscillator_file(tmp: Path) -> Path:
 def test_own_data_example_config(tmp_path):
     path = oscillator_file(tmp_path)
     config = ROOT / "configs" / "oscillator.yaml"
-    run(tmp_path, "fit", config, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "2",
-        "--trainer.limit_val_batches", "1", "--data.init_args.train_path", str(path))
+    run(
+        tmp_path,
+        "fit",
+        config,
+        "--trainer.max_epochs",
+        "1",
+        "--trainer.limit_train_batches",
+        "2",
+        "--trainer.limit_val_batches",
+        "1",
+        "--data.init_args.train_path",
+        str(path),
+    )
     assert (outputs(tmp_path, config) / "checkpoints" / "last.ckpt").is_file()
 
 
@@ -353,8 +464,16 @@ def test_every_shipped_training_config_checkpoints_every_epoch():
 def test_nan_stop_names_the_last_good_epoch(rotation, capsys):
     root, fit = rotation
     with pytest.raises(SystemExit) as stop:
-        main([*fit, "--trainer.logger.init_args.version", "n", "--trainer.callbacks+=tests.test_cli.StopAt",
-              "--trainer.callbacks.epoch=2", "--trainer.callbacks.how=nan"])
+        main(
+            [
+                *fit,
+                "--trainer.logger.init_args.version",
+                "n",
+                "--trainer.callbacks+=tests.test_cli.StopAt",
+                "--trainer.callbacks.epoch=2",
+                "--trainer.callbacks.how=nan",
+            ]
+        )
     err = capsys.readouterr().err
     assert stop.value.code == 1 and "Traceback" not in err
     assert "not finite at epoch 2" in err and f"the last good checkpoint is {last_ckpt(root, 'n')}" in err
@@ -367,8 +486,14 @@ def test_ctrl_c_or_sigterm_then_resume_equals_an_uninterrupted_run(rotation, cap
     root, fit = rotation
     sigterm = signal.getsignal(signal.SIGTERM)
     main([*fit, "--trainer.logger.init_args.version", "full"])
-    interrupted = [*fit, "--trainer.logger.init_args.version", "cut", "--trainer.callbacks+=tests.test_cli.StopAt",
-                   "--trainer.callbacks.epoch=2", f"--trainer.callbacks.how={how}"]
+    interrupted = [
+        *fit,
+        "--trainer.logger.init_args.version",
+        "cut",
+        "--trainer.callbacks+=tests.test_cli.StopAt",
+        "--trainer.callbacks.epoch=2",
+        f"--trainer.callbacks.how={how}",
+    ]
     with pytest.raises(SystemExit) as stop:
         main(interrupted)
     err = capsys.readouterr().err
@@ -392,8 +517,17 @@ def test_state_dim_override_reaches_f_and_print_config(rotation, capsys):
         main([*fit, "--model.init_args.state_dim", "5", "--print_config"])
     printed = OmegaConf.create(capsys.readouterr().out).model.init_args
     assert printed.state_dim == 5 and printed.f.init_args.state_dim == 5
-    cli = main([*fit, "--model.init_args.state_dim", "5", "--trainer.max_epochs", "1",
-                "--trainer.logger.init_args.version", "d5"])
+    cli = main(
+        [
+            *fit,
+            "--model.init_args.state_dim",
+            "5",
+            "--trainer.max_epochs",
+            "1",
+            "--trainer.logger.init_args.version",
+            "d5",
+        ]
+    )
     assert cli.model.f.matrices.shape[-1] == 5 and cli.model.nodes.weight.shape[1] == 3 * 5
     # the shipped configs interpolate every f/g state size from model.init_args.state_dim (as composed: includes,
     # overlays; configs/data/ hold data sections)
@@ -410,8 +544,10 @@ def test_cli_model_reloads_in_python_with_its_config(rotation):
     root, fit = rotation
     cli = main([*fit, "--trainer.max_epochs", "1", "--trainer.logger.init_args.version", "r"])
     model = MultipleShootingModule.load_from_checkpoint(last_ckpt(root, "r"))
-    assert model.hparams["f"] == {"class_path": "ssm_ms.nets.LocallyLinearTransition",
-                                  "init_args": {"state_dim": 2, "n_matrices": 4, "hidden": 16}}
+    assert model.hparams["f"] == {
+        "class_path": "ssm_ms.nets.LocallyLinearTransition",
+        "init_args": {"state_dim": 2, "n_matrices": 4, "hidden": 16, "input_dim": 0},
+    }
     assert model.hparams["g"]["class_path"] == "ssm_ms.nets.Projection"
     x0 = torch.randn(5, 2)
     trained = cli.model.cpu().eval()
@@ -432,8 +568,19 @@ EXAMPLE_CONFIGS = sorted((ROOT / "configs" / "examples").glob("*.yaml"))
 @pytest.mark.parametrize("config", EXAMPLE_CONFIGS, ids=[p.stem for p in EXAMPLE_CONFIGS])
 def test_example_configs_layer_on_an_ssm_config(tmp_path, config):
     """configs/examples/*.yaml, added after a CPU config as the README shows, parse and set what they say."""
-    cli = main(["--config", str(CPU / "pendulum.yaml"), "--config", str(config), "--trainer.accelerator", "cpu",
-                "--trainer.logger.init_args.save_dir", str(tmp_path)], run=False)  # ddp.yaml asks for GPUs
+    cli = main(
+        [
+            "--config",
+            str(CPU / "pendulum.yaml"),
+            "--config",
+            str(config),
+            "--trainer.accelerator",
+            "cpu",
+            "--trainer.logger.init_args.save_dir",
+            str(tmp_path),
+        ],
+        run=False,
+    )  # ddp.yaml asks for GPUs
     wanted = OmegaConf.to_container(OmegaConf.load(config)).get("model", {}).get("init_args", {})
     assert wanted
     for key, value in wanted.items():

@@ -84,7 +84,8 @@ def test_overlay_semantics(tmp_path, resolve):
     (tmp_path / "data").mkdir()
     (tmp_path / "cpu").mkdir()
     (tmp_path / "data" / "lorenz.yaml").write_text(
-        "class_path: datamodules.lorenz.LorenzDataModule\ninit_args: {piece_length: 100, n_train: 20, batch_size: 8}\n")
+        "class_path: datamodules.lorenz.LorenzDataModule\ninit_args: {piece_length: 100, n_train: 20, batch_size: 8}\n"
+    )
     base = (ROOT / "configs" / "lorenz_T1000.yaml").read_text().split("\ndata:")[0] + "\ndata: data/lorenz.yaml\n"
     (tmp_path / "base.yaml").write_text(base)
     (tmp_path / "cpu" / "overlay.yaml").write_text(
@@ -93,11 +94,13 @@ def test_overlay_semantics(tmp_path, resolve):
         "trainer.callbacks:\n  - class_path: ssm_ms.checkpointing.EpochCheckpoint\n"
         "model.init_args.f.init_args.hidden: 64\n"
         "data.init_args.n_train: 10\n"
-        "seed_everything: 3\n")
+        "seed_everything: 3\n"
+    )
     (tmp_path / "cpu" / "replace.yaml").write_text(
         "config: overlay.yaml\n"
         "trainer:\n  logger:\n    class_path: lightning.pytorch.loggers.TensorBoardLogger\n"
-        "    init_args: {save_dir: elsewhere, name: replaced}\n")
+        "    init_args: {save_dir: elsewhere, name: replaced}\n"
+    )
     for config in (tmp_path / "cpu" / "overlay.yaml", tmp_path / "cpu" / "replace.yaml"):
         composed, resolved = load_config(config), resolve(config)
         assert_states(OmegaConf.to_container(OmegaConf.create(composed), resolve=True), resolved)
@@ -112,9 +115,12 @@ def test_overlay_semantics(tmp_path, resolve):
     replaced = resolve(tmp_path / "cpu" / "replace.yaml")
     assert replaced["trainer"]["logger"]["init_args"]["name"] == "replaced"
     assert replaced["trainer"]["max_epochs"] is None and replaced["trainer"]["callbacks"] is None  # section replaced
-    assert load_config(tmp_path / "cpu" / "replace.yaml")["trainer"] == {"logger": {
-        "class_path": "lightning.pytorch.loggers.TensorBoardLogger",
-        "init_args": {"save_dir": "elsewhere", "name": "replaced"}}}
+    assert load_config(tmp_path / "cpu" / "replace.yaml")["trainer"] == {
+        "logger": {
+            "class_path": "lightning.pytorch.loggers.TensorBoardLogger",
+            "init_args": {"save_dir": "elsewhere", "name": "replaced"},
+        }
+    }
 
 
 def test_an_include_loop_is_named(tmp_path):

@@ -5,16 +5,15 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 
+from ssm_ms.nets import LocallyLinearTransition, Projection
 from ssm_ms.training.constraints import (
     AugmentedLagrangianOptions,
     augmented_lagrangian,
     raised_factor,
     update_multipliers,
 )
-from ssm_ms.nets import LocallyLinearTransition, Projection
 from ssm_ms.training.shooting import multiple_shooting_loss, shooting_residuals
 from tests.conftest import RotationDataModule, fast_trainer, rotation_model
-
 
 NEWTON_GRAD_TOL = 1e-12
 
@@ -63,25 +62,38 @@ def test_augmented_lagrangian_reaches_the_kkt_point_where_the_penalty_stays_bias
     lam = torch.zeros(2, dtype=torch.float64)
     x = torch.zeros(3, dtype=torch.float64)
     for _ in range(n_outer):  # outer iterations: minimise the augmented Lagrangian, then update lambda
-        x = _minimise(lambda z: augmented_lagrangian(fit(z), A @ z - b, lam, alpha), x)
+        x = _minimise(lambda z, lam=lam: augmented_lagrangian(fit(z), A @ z - b, lam, alpha), x)
         lam = update_multipliers(lam, A @ x - b, alpha)
 
     # the error bound after n_outer iterations from lambda_0 = 0 (e_0 = -lambda*)
     H = 2 * torch.eye(3, dtype=torch.float64) + 2 * alpha / K * A.T @ A
     rate = 1 / (1 + alpha * torch.linalg.svdvals(A).min() ** 2 / K)
-    torch.testing.assert_close(torch.linalg.matrix_norm(torch.eye(2, dtype=torch.float64)
-                                                        - 2 * alpha / K * A @ torch.linalg.solve(H, A.T), ord=2),
-                               rate, rtol=1e-12, atol=0)
+    torch.testing.assert_close(
+        torch.linalg.matrix_norm(
+            torch.eye(2, dtype=torch.float64) - 2 * alpha / K * A @ torch.linalg.solve(H, A.T), ord=2
+        ),
+        rate,
+        rtol=1e-12,
+        atol=0,
+    )
     delta = 3**0.5 * NEWTON_GRAD_TOL / torch.linalg.eigvalsh(H).min()
     lam_err = rate**n_outer * lam_star.norm() + 2 * alpha * torch.linalg.matrix_norm(A, ord=2) * delta / (1 - rate)
-    x_err = (torch.linalg.matrix_norm(torch.linalg.solve(H, A.T), ord=2) / K
-             * (rate ** (n_outer - 1) * lam_star.norm() + 2 * alpha * torch.linalg.matrix_norm(A, ord=2) * delta / (1 - rate))
-             + delta)
+    x_err = (
+        torch.linalg.matrix_norm(torch.linalg.solve(H, A.T), ord=2)
+        / K
+        * (
+            rate ** (n_outer - 1) * lam_star.norm()
+            + 2 * alpha * torch.linalg.matrix_norm(A, ord=2) * delta / (1 - rate)
+        )
+        + delta
+    )
     assert x_err < 1e-8 and lam_err < 1e-7  # the bound is tight enough for the check to mean something
     assert (x - x_star).norm() <= x_err
     assert (lam - lam_star).norm() <= lam_err
 
-    x_penalty = _minimise(lambda z: augmented_lagrangian(fit(z), A @ z - b, torch.zeros(2, dtype=torch.float64), alpha), x)
+    x_penalty = _minimise(
+        lambda z: augmented_lagrangian(fit(z), A @ z - b, torch.zeros(2, dtype=torch.float64), alpha), x
+    )
     assert (x_penalty - x_star).norm() > 1e-2  # the same alpha without multipliers: biased
     assert (A @ x_penalty - b).norm() > 1e-2
 
@@ -111,8 +123,9 @@ def test_residuals_are_the_gaps_and_give_the_penalty_loss():
     assert torch.equal(fit, fit_ref)
     torch.testing.assert_close(c.pow(2).mean(), gap_ref, rtol=1e-14, atol=0)
     # zero multipliers: the augmented Lagrangian is the paper's penalty
-    torch.testing.assert_close(augmented_lagrangian(fit, c, torch.zeros_like(c), 7.0), fit_ref + 7.0 * gap_ref,
-                               rtol=1e-14, atol=0)
+    torch.testing.assert_close(
+        augmented_lagrangian(fit, c, torch.zeros_like(c), 7.0), fit_ref + 7.0 * gap_ref, rtol=1e-14, atol=0
+    )
 
 
 class MultiplierCheck(Callback):
@@ -144,8 +157,12 @@ class MultiplierCheck(Callback):
 @pytest.mark.parametrize("node_optimizer", ["dense", "sparse"])
 def test_multipliers_follow_lambda_plus_two_alpha_gap_on_their_cadence(tmp_path, rotation_dm, node_optimizer):
     check = MultiplierCheck()
-    model = rotation_model(constraint="augmented_lagrangian", constraint_options={"every_n_epochs": 2},
-                           alpha=3.0, node_optimizer=node_optimizer)
+    model = rotation_model(
+        constraint="augmented_lagrangian",
+        constraint_options={"every_n_epochs": 2},
+        alpha=3.0,
+        node_optimizer=node_optimizer,
+    )
     fast_trainer(tmp_path, max_epochs=4, callbacks=[check]).fit(model, rotation_dm)
     assert check.checked == 4 and check.untouched == 4  # 2 steps per epoch
     assert model.multipliers.shape == (8, 2 * 2) and (model.multipliers != 0).all()
@@ -162,12 +179,16 @@ def test_alpha_grows_only_when_the_gaps_stop_shrinking():
 def test_augmented_lagrangian_state_is_checkpointed_and_resumes_exactly(tmp_path):
     """Multipliers, alpha's factor and the last gap are buffers: a run stopped after 2 epochs and
     resumed ends where an uninterrupted 4-epoch run does, bit for bit (growth on every epoch)."""
+
     def dm():
         return RotationDataModule(data_dir=str(tmp_path / "data"), batch_size=4, val_trajectories=0)
 
     def model():
-        return rotation_model(constraint="augmented_lagrangian", node_optimizer="sparse",
-                              constraint_options={"growth": 2.0, "shrink": 1.01, "max_factor": 100.0})
+        return rotation_model(
+            constraint="augmented_lagrangian",
+            node_optimizer="sparse",
+            constraint_options={"growth": 2.0, "shrink": 1.01, "max_factor": 100.0},
+        )
 
     full = model()
     fast_trainer(tmp_path / "full", max_epochs=4).fit(full, dm())
@@ -205,12 +226,30 @@ def test_constraint_benchmark_runs_at_a_tiny_size(tmp_path):
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     out = tmp_path / "constraints.md"
-    rows = bench.main(["--tiny", "--experiments", "lorenz_T1000", "--variants", "penalty, alpha x0.1",
-                       "augmented Lagrangian, alpha x0.1", "penalty, sparse nodes", "--data-dir", str(tmp_path / "data"),
-                       "--workdir", str(tmp_path / "runs"), "--out", str(out)])
+    rows = bench.main(
+        [
+            "--tiny",
+            "--experiments",
+            "lorenz_T1000",
+            "--variants",
+            "penalty, alpha x0.1",
+            "augmented Lagrangian, alpha x0.1",
+            "penalty, sparse nodes",
+            "--data-dir",
+            str(tmp_path / "data"),
+            "--workdir",
+            str(tmp_path / "runs"),
+            "--out",
+            str(out),
+        ]
+    )
     text = out.read_text()
     assert "TINY sizes" in text and "## lorenz_T1000" in text
-    assert [r["variant"] for r in rows] == ["penalty, alpha x0.1", "augmented Lagrangian, alpha x0.1", "penalty, sparse nodes"]
+    assert [r["variant"] for r in rows] == [
+        "penalty, alpha x0.1",
+        "augmented Lagrangian, alpha x0.1",
+        "penalty, sparse nodes",
+    ]
     assert rows[0]["final_alpha"] == 10.0  # the config's alpha 100, times 0.1, raised at the scaled milestone
     assert rows[0]["initial_alpha"] == pytest.approx(0.1)  # the model's initial alpha 1, times 0.1
     for r in rows:

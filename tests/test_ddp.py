@@ -21,8 +21,12 @@ ROOT = Path(__file__).resolve().parents[1]
 # 11 trajectories in global batches of 4: 4, 4, 3 -> shards 2+2, 2+2, 2+1 (an uneven last step)
 CONFIGS = {
     "dense-penalty": dict(node_optimizer="dense"),
-    "sparse-al": dict(node_optimizer="sparse", node_lr=0.05, constraint="augmented_lagrangian",
-                      constraint_options={"growth": 2.0, "shrink": 1.01}),
+    "sparse-al": dict(
+        node_optimizer="sparse",
+        node_lr=0.05,
+        constraint="augmented_lagrangian",
+        constraint_options={"growth": 2.0, "shrink": 1.01},
+    ),
 }
 EPOCHS = 3
 
@@ -36,12 +40,14 @@ def _fit(name: str, out: Path, devices: int, data_dir: Path, resume: bool = Fals
 
     extra = dict(strategy="ddp", devices=2) if devices == 2 else dict(devices=1)
     ckpt = None
-    for epochs in ([EPOCHS - 1, EPOCHS] if resume else [EPOCHS]):
+    for epochs in [EPOCHS - 1, EPOCHS] if resume else [EPOCHS]:
         dm = RotationDataModule(data_dir=str(data_dir), n_train=11, batch_size=4, val_trajectories=0)
         # float64 from the start: Lightning restores a checkpoint before it converts the module to 64-true
         model = rotation_model(lr=1e-2, **CONFIGS[name]).double()
-        callbacks = [ShootingSchedule(alpha=10.0, alpha_epoch=1, lr_milestones=[2], lr_factor=0.1),
-                     EpochCheckpoint(dirpath=str(out / "checkpoints"))]  # what the configs use
+        callbacks = [
+            ShootingSchedule(alpha=10.0, alpha_epoch=1, lr_milestones=[2], lr_factor=0.1),
+            EpochCheckpoint(dirpath=str(out / "checkpoints")),
+        ]  # what the configs use
         trainer = fast_trainer(out, max_epochs=epochs, callbacks=callbacks, precision="64-true", **extra)
         trainer.fit(model, dm, ckpt_path=ckpt)
         ckpt = out / "checkpoints" / "last.ckpt"
@@ -57,16 +63,19 @@ def main(out: str, bad: bool = False) -> None:
         from tests.conftest import RotationDataModule, fast_trainer, rotation_model
 
         rank = int(os.environ.get("LOCAL_RANK", 0))
-        dm = RotationDataModule(data_dir=str(out_dir / f"data{rank}"), n_train=11 + rank, batch_size=4,
-                                val_trajectories=0)
+        dm = RotationDataModule(
+            data_dir=str(out_dir / f"data{rank}"), n_train=11 + rank, batch_size=4, val_trajectories=0
+        )
         dm.prepare_data()  # the Trainer prepares data on local rank 0 only
         fast_trainer(out_dir, max_epochs=1, strategy="ddp", devices=2).fit(rotation_model(), dm)
         return
     rank = int(os.environ.get("LOCAL_RANK", 0))
     for name in CONFIGS:
         torch.save(_fit(name, out_dir / name, 2, out_dir / "data"), out_dir / f"{name}-rank{rank}.pt")
-        torch.save(_fit(name, out_dir / f"{name}-resumed", 2, out_dir / "data", resume=True),
-                   out_dir / f"{name}-resumed-rank{rank}.pt")
+        torch.save(
+            _fit(name, out_dir / f"{name}-resumed", 2, out_dir / "data", resume=True),
+            out_dir / f"{name}-resumed-rank{rank}.pt",
+        )
 
 
 @pytest.fixture(scope="module")
@@ -77,8 +86,14 @@ def ddp_run(tmp_path_factory):
 
     RotationDataModule(data_dir=str(out / "data"), n_train=11, batch_size=4, val_trajectories=0).prepare_data()
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
-    proc = subprocess.run([sys.executable, "-m", "tests.test_ddp", str(out)], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "tests.test_ddp", str(out)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out
 
@@ -117,8 +132,8 @@ def test_global_batches_are_sharded_without_repeats():
         streams = [list(s) for s in shards]
         local = batch // world
         for k, start in enumerate(range(0, n, batch)):
-            union = [i for stream in streams for i in stream[k * local:(k + 1) * local]]
-            assert union == order[start:start + batch]  # rank order = one-device order
+            union = [i for stream in streams for i in stream[k * local : (k + 1) * local]]
+            assert union == order[start : start + batch]  # rank order = one-device order
         assert sorted(i for s in streams for i in s) == list(range(n))
     with pytest.raises(ValueError, match="batch_size=10 is the global batch, split over 3 devices"):
         GlobalBatchShardSampler(n, 10, 3, 0)
@@ -128,10 +143,18 @@ def test_global_batches_are_sharded_without_repeats():
 
 def test_ranks_with_different_training_sets_are_refused(tmp_path):
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
-    proc = subprocess.run([sys.executable, "-m", "tests.test_ddp", str(tmp_path), "bad"], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "tests.test_ddp", str(tmp_path), "bad"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode != 0
-    assert "ValueError: DDP: the ranks hold different node tables (rows per rank: [11, 12])" in proc.stderr, proc.stderr[-3000:]
+    assert "ValueError: DDP: the ranks hold different node tables (rows per rank: [11, 12])" in proc.stderr, (
+        proc.stderr[-3000:]
+    )
 
 
 if __name__ == "__main__":

@@ -52,8 +52,11 @@ def test_no_work_item_numbers_in_code_or_tests():
     """Tests and code say what they check, not which ticket asked for it."""
     files = sorted((ROOT / "tests").glob("*.py")) + sorted((ROOT / "ssm_ms").rglob("*.py"))
     files += sorted((ROOT / "datamodules").glob("*.py")) + sorted((ROOT / "benchmarks").glob("*.py"))
-    hits = {str(p.relative_to(ROOT)): WORK_ITEM.findall(p.read_text(encoding="utf-8"))
-            for p in files if p.name != "test_docs.py"}
+    hits = {
+        str(p.relative_to(ROOT)): WORK_ITEM.findall(p.read_text(encoding="utf-8"))
+        for p in files
+        if p.name != "test_docs.py"
+    }
     assert {k: v for k, v in hits.items() if v} == {}
 
 
@@ -64,8 +67,11 @@ def test_no_internal_work_item_numbers(path: Path):
 
 
 def test_every_docs_page_is_in_the_readme_index():
-    linked = {Path(t.split("#", 1)[0]).name for t in links((ROOT / "README.md").read_text(encoding="utf-8"))
-              if t.startswith("docs/")}
+    linked = {
+        Path(t.split("#", 1)[0]).name
+        for t in links((ROOT / "README.md").read_text(encoding="utf-8"))
+        if t.startswith("docs/")
+    }
     missing = sorted(p.name for p in DOCS[1:] if p.name not in linked)
     assert missing == [], f"docs pages the README does not link to: {missing}"
 

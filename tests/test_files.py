@@ -203,8 +203,9 @@ def test_no_test_split(tmp_path):
 def test_normalisation_vectors(tmp_path):
     y = (rng().normal(size=(6, 20, 3)) * [1.0, 5.0, 0.1] + [2.0, -3.0, 10.0]).astype(np.float32)
     te = rng(1).normal(size=(2, 20, 3)).astype(np.float32)
-    dm = FileDataModule(train_path=save(tmp_path / "y.npy", y=y), test_path=save(tmp_path / "t.npy", y=te),
-                        normalize=True)
+    dm = FileDataModule(
+        train_path=save(tmp_path / "y.npy", y=y), test_path=save(tmp_path / "t.npy", y=te), normalize=True
+    )
     dm.setup()
     y64 = y.astype(np.float64)
     mean, std = y64.mean(axis=(0, 1)), y64.std(axis=(0, 1))
@@ -248,7 +249,10 @@ def test_sizes_come_from_headers_only(tmp_path, monkeypatch):
 def test_arguments_are_yaml_expressible(tmp_path):
     from jsonargparse import ArgumentParser
 
-    a, b = save(tmp_path / "a.npy", y=np.ones((2, 3, 1), np.float32)), save(tmp_path / "b.npy", y=np.ones((1, 3, 1), np.float32))
+    a, b = (
+        save(tmp_path / "a.npy", y=np.ones((2, 3, 1), np.float32)),
+        save(tmp_path / "b.npy", y=np.ones((1, 3, 1), np.float32)),
+    )
     parser = ArgumentParser()
     parser.add_class_arguments(FileDataModule, "data")
     cfg = parser.parse_string(f"data:\n  train_path: [{a}, {b}]\n  normalize: true\n  test_fraction: 0.3\n")
@@ -280,7 +284,9 @@ def test_ragged_trajectories(tmp_path):
 @pytest.mark.parametrize("shape", [(5,), (4, 6), (1, 2, 3, 4, 5, 6)])
 def test_wrong_rank(tmp_path, shape):
     path = save(tmp_path / "w.npy", y=np.zeros(shape, np.float32))
-    with pytest.raises(ValueError, match=rf"shape {re.escape(str(shape))}.*accepted layouts: \[N, T, D\] vectors, \[N, T, H, W\]"):
+    with pytest.raises(
+        ValueError, match=rf"shape {re.escape(str(shape))}.*accepted layouts: \[N, T, D\] vectors, \[N, T, H, W\]"
+    ):
         FileDataModule(train_path=path)
 
 
@@ -290,7 +296,9 @@ def test_mismatched_shapes(tmp_path):
     c = save(tmp_path / "c.npy", y=np.zeros((2, 5, 4), np.float32))
     with pytest.raises(ValueError, match=r"b\.npy holds trajectories of shape \(6, 3\) but .*a\.npy holds \(5, 3\)"):
         FileDataModule(train_path=[a, b])
-    with pytest.raises(ValueError, match=r"val_path: observations of shape \(4,\) do not match the training observations \(3,\)"):
+    with pytest.raises(
+        ValueError, match=r"val_path: observations of shape \(4,\) do not match the training observations \(3,\)"
+    ):
         FileDataModule(train_path=a, val_path=c)
     # grey [N, T, H, W] and one-channel [N, T, 1, H, W] images are the same observations
     g = save(tmp_path / "g.npy", y=np.zeros((1, 2, 4, 4), np.uint8))
@@ -301,13 +309,17 @@ def test_mismatched_shapes(tmp_path):
 def test_clean_targets_of_another_shape(tmp_path):
     y = np.zeros((3, 5, 2), np.float32)
     path = save(tmp_path / "d.npz", y=y, y_clean=np.zeros((3, 5, 1), np.float32))
-    with pytest.raises(ValueError, match=r"clean targets have shape \(3, 5, 1\) but the measurements have shape \(3, 5, 2\)"):
+    with pytest.raises(
+        ValueError, match=r"clean targets have shape \(3, 5, 1\) but the measurements have shape \(3, 5, 2\)"
+    ):
         FileDataModule(train_path=path, clean_key="y_clean")
     with pytest.raises(ValueError, match=r"train_clean_path: the clean targets have shape \(2, 5, 2\)"):
         FileDataModule(train_path=path, train_clean_path=save(tmp_path / "c.npy", y=y[:2]))
     with pytest.raises(ValueError, match="holds no array 'clean'"):
         FileDataModule(train_path=path, clean_key="clean")
-    with pytest.raises(ValueError, match=r"clean_key applies to \.npz files.*pass the noiseless targets as train_clean_path"):
+    with pytest.raises(
+        ValueError, match=r"clean_key applies to \.npz files.*pass the noiseless targets as train_clean_path"
+    ):
         FileDataModule(train_path=save(tmp_path / "y.npy", y=y), clean_key="y_clean")
 
 
@@ -317,7 +329,9 @@ def test_non_finite_values(tmp_path, bad):
     y[1, 3, 0] = bad
     good = save(tmp_path / "good.npy", y=np.zeros((3, 5, 2), np.float32))
     dm = FileDataModule(train_path=[good, save(tmp_path / "bad.npy", y=y)])
-    with pytest.raises(ValueError, match=r"bad\.npy holds a non-finite value .* at index \(1, 3, 0\) \(trajectory, time"):
+    with pytest.raises(
+        ValueError, match=r"bad\.npy holds a non-finite value .* at index \(1, 3, 0\) \(trajectory, time"
+    ):
         dm.setup()
     clean = save(tmp_path / "rec.npz", y=np.zeros((3, 5, 2), np.float32), y_clean=y)
     with pytest.raises(ValueError, match=r"rec\.npz \(array 'y_clean'\) holds a non-finite value .* \(1, 3, 0\)"):
@@ -361,8 +375,14 @@ def test_example_oscillator_data(tmp_path):
     # y_clean solves x'' + 2 zeta omega x' + omega^2 x = 0 (default zeta 0.05, omega pi) from its first sample.
     zeta, omega = 0.05, np.pi
     for j in (0, 17):
-        sol = solve_ivp(lambda _, s: [s[1], -2 * zeta * omega * s[1] - omega**2 * s[0]], (0, float(t[-1])),
-                        clean[j, 0].astype(np.float64), t_eval=t.astype(np.float64), rtol=1e-10, atol=1e-10)
+        sol = solve_ivp(
+            lambda _, s: [s[1], -2 * zeta * omega * s[1] - omega**2 * s[0]],
+            (0, float(t[-1])),
+            clean[j, 0].astype(np.float64),
+            t_eval=t.astype(np.float64),
+            rtol=1e-10,
+            atol=1e-10,
+        )
         np.testing.assert_allclose(sol.y.T, clean[j], atol=1e-5)
     noise = (y - clean).astype(np.float64).ravel()
     assert abs(noise.std() - 0.05) < 5 * 0.05 / np.sqrt(2 * noise.size)

@@ -328,7 +328,10 @@ def test_gradients_low_rank_innovation_gradcheck():
 
     def run(weight, y):
         ukf = UnscentedKalmanFilter(
-            lambda x: torch.sin(x * weight), lambda x: torch.tanh(x @ proj.T), process_var=0.05, measurement_var=r,
+            lambda x: torch.sin(x * weight),
+            lambda x: torch.tanh(x @ proj.T),
+            process_var=0.05,
+            measurement_var=r,
             state_dim=1,
         )
         assert ukf._setup(1, 4, F64, torch.device("cpu")).mode == "low_rank"
@@ -473,7 +476,14 @@ def test_particle_filter_matches_kalman_filter(autocast):
     if autocast:  # float32 filter, f and g in bfloat16: the estimates must stay as close
         f, g, y = f.float(), g.float(), y.float()
     pf = ParticleFilter(
-        f, g, n_particles=n, state_dim=d, process_std=q**0.5, measurement_std=r**0.5, init_std=0.1**0.5, seed=0,
+        f,
+        g,
+        n_particles=n,
+        state_dim=d,
+        process_std=q**0.5,
+        measurement_std=r**0.5,
+        init_std=0.1**0.5,
+        seed=0,
         autocast=autocast,
     )
     res = pf.filter(y, return_particles=True)

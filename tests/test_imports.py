@@ -60,8 +60,12 @@ def test_the_circle_check_finds_a_circle(monkeypatch):
     """The check itself: a graph with base -> files -> base is refused."""
     import pytest
 
-    fake = {"datamodules.base": {"datamodules.files", "datamodules.arrays", "datamodules.samplers"},
-            "datamodules.files": {"datamodules.base"}, "datamodules.arrays": set(), "datamodules.samplers": set()}
+    fake = {
+        "datamodules.base": {"datamodules.files", "datamodules.arrays", "datamodules.samplers"},
+        "datamodules.files": {"datamodules.base"},
+        "datamodules.arrays": set(),
+        "datamodules.samplers": set(),
+    }
     monkeypatch.setitem(globals(), "data_graph", lambda: fake)
     with pytest.raises(AssertionError, match="import circle"):
         test_data_modules_import_each_other_without_a_circle()
@@ -74,8 +78,10 @@ def method_graph() -> dict[str, set[str]]:
     for p in (ROOT / "ssm_ms").rglob("*.py"):
         parts = p.relative_to(ROOT).with_suffix("").parts
         files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = p
-    return {name: {d for d in imported_modules(path) if d in files and d != name and not name.startswith(d + ".")}
-            for name, path in files.items()}
+    return {
+        name: {d for d in imported_modules(path) if d in files and d != name and not name.startswith(d + ".")}
+        for name, path in files.items()
+    }
 
 
 def test_the_method_imports_without_a_circle():
@@ -98,7 +104,7 @@ def test_drawing_is_apart_from_the_callbacks():
 LAYERS = {
     0: ("ssm_ms.runtime", "ssm_ms.training", "ssm_ms.nets", "ssm_ms.checkpointing", "ssm_ms.drawing"),
     1: ("ssm_ms.module", "ssm_ms.schedule", "ssm_ms.viz", "ssm_ms.analysis", "ssm_ms.export"),
-    2: ("ssm_ms.inference", "ssm_ms.forecasting", "ssm_ms.baselines"),
+    2: ("ssm_ms.inference", "ssm_ms.forecasting", "ssm_ms.baselines", "ssm_ms.control"),
     3: ("ssm_ms.cli", "ssm_ms.reproduce", "ssm_ms.pretrained"),
 }
 
@@ -124,7 +130,9 @@ def test_no_module_imports_a_higher_layer():
 def test_the_method_never_imports_the_data_sets():
     for path in sorted((ROOT / "ssm_ms").rglob("*.py")):
         data = sorted(m for m in imported_modules(path) if m == "datamodules" or m.startswith("datamodules."))
-        assert not data, f"{path.relative_to(ROOT)} imports {data}: the data set passes what it knows in (e.g. dm.wing_level())"
+        assert not data, (
+            f"{path.relative_to(ROOT)} imports {data}: the data set passes what it knows in (e.g. dm.wing_level())"
+        )
 
 
 def test_the_layer_check_sees_an_upward_import(monkeypatch):

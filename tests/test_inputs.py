@@ -51,8 +51,10 @@ def test_fully_connected_with_inputs_is_x_plus_mlp_of_x_and_u():
     torch.testing.assert_close(f(x, u), x + f.mlp(torch.cat([x, u], 1)))
 
 
-@pytest.mark.parametrize("make", [lambda m: LocallyLinearTransition(3, 2, 4, input_dim=m),
-                                  lambda m: FullyConnectedTransition(3, [4], input_dim=m)])
+@pytest.mark.parametrize(
+    "make",
+    [lambda m: LocallyLinearTransition(3, 2, 4, input_dim=m), lambda m: FullyConnectedTransition(3, [4], input_dim=m)],
+)
 def test_inputs_given_or_missing_are_named(make):
     with pytest.raises(ValueError, match="needs inputs u"):
         make(2)(torch.zeros(1, 3))
@@ -108,8 +110,11 @@ def linear_data(n: int, t: int, noise: float, seed: int = 0) -> dict[str, np.nda
         ys.append(x @ C.T)
         x = x @ A.T + u[:, k] @ B.T
     y = np.stack(ys, 1)
-    return {"y": (y + noise * rng.normal(size=y.shape)).astype(np.float32), "y_clean": y.astype(np.float32),
-            "u": u.astype(np.float32)}
+    return {
+        "y": (y + noise * rng.normal(size=y.shape)).astype(np.float32),
+        "y_clean": y.astype(np.float32),
+        "u": u.astype(np.float32),
+    }
 
 
 def markov(a, b, c, steps: int = 12) -> np.ndarray:
@@ -135,8 +140,11 @@ def test_a_linear_system_is_recovered_to_its_markov_parameters():
     assert fit.item() < 1.3 * 0.05**2 and gap.item() < 1e-5  # the noise's variance: nothing left to explain
     with torch.no_grad():
         zero, none = torch.zeros(1, 2), torch.zeros(1, 1)
-        learned = markov(f.matrix(zero, none)[0].double().numpy(), f.input_matrix(zero, none)[0].double().numpy(),
-                         g.weight.double().numpy())
+        learned = markov(
+            f.matrix(zero, none)[0].double().numpy(),
+            f.input_matrix(zero, none)[0].double().numpy(),
+            g.weight.double().numpy(),
+        )
     true = markov(A, B, C)
     assert np.abs(learned - true).max() < 0.02 * np.abs(true).max(), (learned.round(3), true.round(3))
 
@@ -158,20 +166,27 @@ def test_files_serve_inputs_normalised_and_the_module_trains_on_them(tmp_path):
     mean, std = data["u"].mean(), data["u"].std()
     np.testing.assert_allclose(batch["u"].numpy(), (u_raw - mean) / std, rtol=1e-4, atol=1e-5)
     assert dm.state_dict()["input_normalizer"]["mean"].item() == pytest.approx(mean, rel=1e-5)
-    model = MultipleShootingModule(LocallyLinearTransition(2, 2, 8, input_dim=1), LinearReadout(2, 1),
-                                   state_dim=2, n_nodes=4)
+    model = MultipleShootingModule(
+        LocallyLinearTransition(2, 2, 8, input_dim=1), LinearReadout(2, 1), state_dim=2, n_nodes=4
+    )
     fast_trainer(tmp_path, max_epochs=2, limit_val_batches=1).fit(model, dm)
     autonomous = MultipleShootingModule(LocallyLinearTransition(2, 2, 8), LinearReadout(2, 1), state_dim=2, n_nodes=4)
     with pytest.raises(ValueError, match="f takes 0 inputs per step but the data have 1: give f input_dim: 1"):
         fast_trainer(tmp_path, max_epochs=1).fit(autonomous, dm)
 
 
-@pytest.mark.parametrize("change,match", [
-    (lambda d: d.pop("u"), r"input_key 'u'"),
-    (lambda d: d.update(u=d["u"][:, :10]), r"holds 16 trajectories of 10 inputs but its measurements hold 16 of 20"),
-    (lambda d: d.update(u=(d["u"] * 100).astype(np.uint8)), r"must be a float \(or signed integer\) array"),
-    (lambda d: d["u"].__setitem__((3, 4, 0), np.nan), r"(?i)nan|not finite"),
-])
+@pytest.mark.parametrize(
+    "change,match",
+    [
+        (lambda d: d.pop("u"), r"input_key 'u'"),
+        (
+            lambda d: d.update(u=d["u"][:, :10]),
+            r"holds 16 trajectories of 10 inputs but its measurements hold 16 of 20",
+        ),
+        (lambda d: d.update(u=(d["u"] * 100).astype(np.uint8)), r"must be a float \(or signed integer\) array"),
+        (lambda d: d["u"].__setitem__((3, 4, 0), np.nan), r"(?i)nan|not finite"),
+    ],
+)
 def test_bad_inputs_are_refused_with_one_message(tmp_path, change, match):
     data = linear_data(16, 20, 0.05)
     change(data)

@@ -108,7 +108,9 @@ def test_paper_piece_counts_without_generating(tmp_path):
 
 @pytest.mark.parametrize("bad", [300, 7, 20_000])
 def test_invalid_piece_length(bad, tmp_path):
-    with pytest.raises(ValueError, match=rf"piece_length={bad} does not divide train_steps=10000.*Valid choices: \[1, 2, 4, 5, 8, 10,"):
+    with pytest.raises(
+        ValueError, match=rf"piece_length={bad} does not divide train_steps=10000.*Valid choices: \[1, 2, 4, 5, 8, 10,"
+    ):
         LorenzDataModule(piece_length=bad, data_dir=str(tmp_path))
     with pytest.raises(ValueError, match="piece_length must be a positive integer"):
         LorenzDataModule(piece_length=0, data_dir=str(tmp_path))

@@ -41,8 +41,10 @@ def test_mse_summed_over_a_frame_against_hand_computation():
     torch.manual_seed(1)
     pred, target = torch.rand(2, 3, 1, 2, 3, dtype=torch.float64), torch.rand(2, 3, 1, 2, 3, dtype=torch.float64)
     for b in range(2):
-        frames = [sum((pred[b, t, 0, i, j].item() - target[b, t, 0, i, j].item()) ** 2 for i in range(2) for j in range(3))
-                  for t in range(3)]
+        frames = [
+            sum((pred[b, t, 0, i, j].item() - target[b, t, 0, i, j].item()) ** 2 for i in range(2) for j in range(3))
+            for t in range(3)
+        ]
         assert mse_sum_per_sequence(pred, target)[b].item() == pytest.approx(sum(frames) / 3)
 
 
@@ -66,8 +68,11 @@ def naive_ssim(a: list, b: list, k: int = 11, sigma: float = 1.5) -> float:
                     m["bb"] += wt * pb * pb
                     m["ab"] += wt * pa * pb
             va, vb, cab = m["aa"] - m["a"] ** 2, m["bb"] - m["b"] ** 2, m["ab"] - m["a"] * m["b"]
-            values.append((2 * m["a"] * m["b"] + 1e-4) * (2 * cab + 9e-4)
-                          / ((m["a"] ** 2 + m["b"] ** 2 + 1e-4) * (va + vb + 9e-4)))
+            values.append(
+                (2 * m["a"] * m["b"] + 1e-4)
+                * (2 * cab + 9e-4)
+                / ((m["a"] ** 2 + m["b"] ** 2 + 1e-4) * (va + vb + 9e-4))
+            )
     return sum(values) / len(values)
 
 
@@ -85,7 +90,9 @@ def test_ssim_against_a_loop_over_windows():
 
 
 def test_ssim_refuses_frames_it_cannot_score():
-    with pytest.raises(ValueError, match="metric 'ssim' needs image frames .* at least 11 x 11 pixels, got \\[2, 5, 3\\]"):
+    with pytest.raises(
+        ValueError, match="metric 'ssim' needs image frames .* at least 11 x 11 pixels, got \\[2, 5, 3\\]"
+    ):
         ssim_per_sequence(torch.zeros(2, 5, 3), torch.zeros(2, 5, 3))
 
 

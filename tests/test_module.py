@@ -107,8 +107,14 @@ def test_validation_rolls_out_the_first_node_over_val_horizon_steps(tmp_path, va
     """val/rollout_mse against a plain loop: the true rotation from each validation trajectory's first node,
     over its whole length (12 steps) or over the first val_horizon steps only."""
     dm = RotationDataModule(data_dir=str(tmp_path), val_trajectories=4)
-    model = MultipleShootingModule(ExactRotation(learnable=False), Projection([0]), state_dim=2, n_nodes=3,
-                                   num_trajectories=8, val_horizon=val_horizon)
+    model = MultipleShootingModule(
+        ExactRotation(learnable=False),
+        Projection([0]),
+        state_dim=2,
+        n_nodes=3,
+        num_trajectories=8,
+        val_horizon=val_horizon,
+    )
     with torch.no_grad():
         model.nodes.weight.copy_(torch.randn(8, 6, generator=torch.Generator().manual_seed(1)))
     logged = fast_trainer(tmp_path, max_epochs=1).validate(model, dm, verbose=False)[0]
@@ -202,13 +208,16 @@ def test_a_float64_run_resumes_bit_for_bit_though_f_and_g_are_built_in_float32(t
     assert full.f.matrices.dtype == torch.float32  # built as the CLI builds it
     fast_trainer(tmp_path / "full", max_epochs=3, precision="64-true").fit(full, dm())
     first = rotation_model(**args)
-    fast_trainer(tmp_path / "a", max_epochs=2, precision="64-true",
-                 callbacks=[EpochCheckpoint(dirpath=str(tmp_path / "ckpt"))]).fit(first, dm())
+    fast_trainer(
+        tmp_path / "a", max_epochs=2, precision="64-true", callbacks=[EpochCheckpoint(dirpath=str(tmp_path / "ckpt"))]
+    ).fit(first, dm())
     saved = torch.load(tmp_path / "ckpt" / "last.ckpt", weights_only=True)["state_dict"]
     rounded = [k for k, v in saved.items() if v.dtype == torch.float64 and not torch.equal(v, v.float().double())]
     assert {"f.matrices", "nodes.weight"} <= set(rounded)  # float32 would change them: the test can see rounding
     resumed = rotation_model(**args)
-    fast_trainer(tmp_path / "b", max_epochs=3, precision="64-true").fit(resumed, dm(), ckpt_path=str(tmp_path / "ckpt" / "last.ckpt"))
+    fast_trainer(tmp_path / "b", max_epochs=3, precision="64-true").fit(
+        resumed, dm(), ckpt_path=str(tmp_path / "ckpt" / "last.ckpt")
+    )
     a, b = full.state_dict(), resumed.state_dict()
     assert a.keys() == b.keys()
     for key in a:

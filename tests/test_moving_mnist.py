@@ -35,8 +35,14 @@ needs_real_mnist = pytest.mark.skipif(
     not HAVE_REAL_MNIST, reason=f"real MNIST files not found under {SHARED_DATA}/MNIST/raw"
 )
 
-TYPE_CODES = {np.dtype(np.uint8): 0x08, np.dtype(np.int8): 0x09, np.dtype(np.int16): 0x0B,
-              np.dtype(np.int32): 0x0C, np.dtype(np.float32): 0x0D, np.dtype(np.float64): 0x0E}
+TYPE_CODES = {
+    np.dtype(np.uint8): 0x08,
+    np.dtype(np.int8): 0x09,
+    np.dtype(np.int16): 0x0B,
+    np.dtype(np.int32): 0x0C,
+    np.dtype(np.float32): 0x0D,
+    np.dtype(np.float64): 0x0E,
+}
 
 
 # ---------------------------------------------------------------------------------- helpers
@@ -85,8 +91,17 @@ def tiny(tmp_path):
 
 
 def tiny_dm(root: Path, **kw) -> MovingMNISTDataModule:
-    args = dict(mnist_root=str(root), n_train=40, n_test=10, image_size=24, digit_size=8, step=3.0,
-                batch_size=8, val_trajectories=5, data_dir=str(root / "cache"))
+    args = dict(
+        mnist_root=str(root),
+        n_train=40,
+        n_test=10,
+        image_size=24,
+        digit_size=8,
+        step=3.0,
+        batch_size=8,
+        val_trajectories=5,
+        data_dir=str(root / "cache"),
+    )
     args.update(kw)
     return MovingMNISTDataModule(**args)
 
@@ -107,12 +122,24 @@ def naive_frames(digits: np.ndarray, digit_indices, top_left, image_size: int) -
 
 # ---------------------------------------------------------------------------------- IDX reading
 @pytest.mark.parametrize("gz", [False, True])
-@pytest.mark.parametrize("dtype,shape", [(np.uint8, (5, 7, 3)), (np.uint8, (11,)), (np.int16, (4, 6)),
-                                         (np.int32, (3, 2, 2)), (np.float32, (9,)), (np.float64, (2, 3))])
+@pytest.mark.parametrize(
+    "dtype,shape",
+    [
+        (np.uint8, (5, 7, 3)),
+        (np.uint8, (11,)),
+        (np.int16, (4, 6)),
+        (np.int32, (3, 2, 2)),
+        (np.float32, (9,)),
+        (np.float64, (2, 3)),
+    ],
+)
 def test_read_idx_round_trip(tmp_path, gz, dtype, shape):
     rng = np.random.default_rng(1)
-    a = (rng.normal(size=shape) * 1000).astype(dtype) if dtype not in (np.uint8,) else \
-        rng.integers(0, 256, size=shape).astype(np.uint8)
+    a = (
+        (rng.normal(size=shape) * 1000).astype(dtype)
+        if dtype not in (np.uint8,)
+        else rng.integers(0, 256, size=shape).astype(np.uint8)
+    )
     path = write_idx(tmp_path / "x-idx", a, gz=gz)
     b = read_idx(path)
     assert b.shape == a.shape and b.dtype == np.dtype(dtype) and b.dtype.isnative
@@ -168,8 +195,12 @@ def test_missing_files_error_names_looked_up_paths(tmp_path):
     with pytest.raises(FileNotFoundError) as e:
         check_mnist_files(tmp_path)
     msg = str(e.value)
-    for name in ("train-images-idx3-ubyte", "train-labels-idx1-ubyte", "t10k-images-idx3-ubyte",
-                 "t10k-labels-idx1-ubyte"):
+    for name in (
+        "train-images-idx3-ubyte",
+        "train-labels-idx1-ubyte",
+        "t10k-images-idx3-ubyte",
+        "t10k-labels-idx1-ubyte",
+    ):
         assert str(raw / f"{name}.gz") in msg and str(raw / name) in msg
     assert "mnist_root" in msg and "download: true" in msg and "vision" in msg
     # the DataModule says the same before anything else happens
@@ -273,8 +304,11 @@ def test_trajectory_is_a_pure_function_of_seed_split_index():
     b = trajectory(5, "train", 123, 60000)
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])
-    for other in (trajectory(5, "train", 124, 60000), trajectory(5, "test", 123, 60000),
-                  trajectory(6, "train", 123, 60000)):
+    for other in (
+        trajectory(5, "train", 124, 60000),
+        trajectory(5, "test", 123, 60000),
+        trajectory(6, "train", 123, 60000),
+    ):
         assert not np.array_equal(a["positions"], other["positions"])
 
 
@@ -363,13 +397,16 @@ def test_normalize_true_is_refused():
         MovingMNISTDataModule(normalize=True)
 
 
-@pytest.mark.parametrize("kw,match", [
-    (dict(digit_size=30, image_size=24), "digit_size"),
-    (dict(n_train=0), "n_train"),
-    (dict(step=-1.0), "step"),
-    (dict(step=float("nan")), "step"),
-    (dict(seed=-2), "seed"),
-])
+@pytest.mark.parametrize(
+    "kw,match",
+    [
+        (dict(digit_size=30, image_size=24), "digit_size"),
+        (dict(n_train=0), "n_train"),
+        (dict(step=-1.0), "step"),
+        (dict(step=float("nan")), "step"),
+        (dict(seed=-2), "seed"),
+    ],
+)
 def test_bad_arguments(kw, match):
     with pytest.raises(ValueError, match=match):
         MovingMNISTDataModule(**kw)
@@ -440,8 +477,9 @@ def test_real_digits_smoke():
         digits = np.frombuffer(f.read(), np.uint8, offset=16).reshape(10000, 28, 28)
     tr = test.trajectory(7)
     check_motion(tr, 36.0, 3.6)
-    np.testing.assert_allclose(test[7]["y"][:, 0].numpy(), naive_frames(digits, tr["digit_indices"],
-                                                                         tr["top_left"], 64), atol=1e-7)
+    np.testing.assert_allclose(
+        test[7]["y"][:, 0].numpy(), naive_frames(digits, tr["digit_indices"], tr["top_left"], 64), atol=1e-7
+    )
     # two digits of ~100-200 lit pixels each: a frame lights a few hundred pixels
     lit = (test[7]["y"] > 0).sum(dim=(1, 2, 3))
     assert ((lit > 50) & (lit < 2 * 28 * 28)).all()

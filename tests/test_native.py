@@ -140,8 +140,11 @@ def test_native_path_steps_aside_where_it_cannot_run(needs_native):
     params = {k: v.detach() for k, v in fused.named_parameters()}
     tangents = {k: torch.randn_like(v) for k, v in params.items()}
     _, got = jvp(lambda p: functional_call(fused, p, (x,)), (params,), (tangents,))
-    _, want = jvp(lambda p: functional_call(plain, p, (x.double(),)),
-                  ({k: v.double() for k, v in params.items()},), ({k: v.double() for k, v in tangents.items()},))
+    _, want = jvp(
+        lambda p: functional_call(plain, p, (x.double(),)),
+        ({k: v.double() for k, v in params.items()},),
+        ({k: v.double() for k, v in tangents.items()},),
+    )
     torch.testing.assert_close(got.double(), want, rtol=1e-4, atol=1e-5)
     # a trace cannot record a call through ctypes: tracing runs the torch path (here the "plain" backend's NCHW
     # layers, the ones ssm_ms.export writes), so the traced graph is whole

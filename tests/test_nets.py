@@ -29,8 +29,10 @@ def test_fully_connected_is_residual():
     assert [m.out_features for m in f.mlp if isinstance(m, torch.nn.Linear)] == [8, 8, 3]
 
 
-@pytest.mark.parametrize("preset, size, channels", [("pendulum", 24, [16, 12, 1]), ("quad", 48, [16, 16, 12, 1]),
-                                                    ("mnist", 64, [512, 256, 256, 1])])
+@pytest.mark.parametrize(
+    "preset, size, channels",
+    [("pendulum", 24, [16, 12, 1]), ("quad", 48, [16, 16, 12, 1]), ("mnist", 64, [512, 256, 256, 1])],
+)
 def test_decoder_presets(preset, size, channels, decoder_path):
     if preset == "mnist" and decoder_path == "native":
         pytest.skip("Moving MNIST's stack does not fit the native kernels (refused: test_native.py)")
@@ -81,8 +83,10 @@ def test_decoder_and_projection_errors():
         p(torch.zeros(1, 2))
 
 
-@pytest.mark.parametrize("preset, shape, features", [("pendulum", (1, 24, 24), 64), ("quad", (1, 48, 48), 64),
-                                                     ("mnist", (1, 64, 64), 256), ("vector", (1,), 1)])
+@pytest.mark.parametrize(
+    "preset, shape, features",
+    [("pendulum", (1, 24, 24), 64), ("quad", (1, 48, 48), 64), ("mnist", (1, 64, 64), 256), ("vector", (1,), 1)],
+)
 def test_encoder_presets(preset, shape, features):
     enc = StateEncoder(7, shape, preset=preset, hidden=16)
     assert enc.lstm.input_size == features
@@ -95,12 +99,20 @@ def test_encoder_presets(preset, shape, features):
     torch.testing.assert_close(enc(y2)[:, :3], out[:, :3])
 
 
-@pytest.mark.parametrize("c_in, c_out, kernel, stride, size", [(16, 12, 3, 2, (11, 11)), (32, 16, 5, 3, (3, 3)),
-                                                              (3, 5, 4, 2, (4, 6)), (2, 3, 2, 3, (5, 2)),
-                                                              (4, 2, 3, 1, (5, 5)),
-                                                              # k^2 C_out <= C_in: the matrix-product path
-                                                              (12, 1, 2, 1, (23, 23)), (16, 1, 4, 2, (5, 7)),
-                                                              (18, 2, 3, 2, (4, 5))])
+@pytest.mark.parametrize(
+    "c_in, c_out, kernel, stride, size",
+    [
+        (16, 12, 3, 2, (11, 11)),
+        (32, 16, 5, 3, (3, 3)),
+        (3, 5, 4, 2, (4, 6)),
+        (2, 3, 2, 3, (5, 2)),
+        (4, 2, 3, 1, (5, 5)),
+        # k^2 C_out <= C_in: the matrix-product path
+        (12, 1, 2, 1, (23, 23)),
+        (16, 1, 4, 2, (5, 7)),
+        (18, 2, 3, 2, (4, 5)),
+    ],
+)
 @pytest.mark.parametrize("channels_last", [False, True])
 def test_fast_conv_transpose_equals_torch_with_gradients_and_jvp(c_in, c_out, kernel, stride, size, channels_last):
     from torch.func import jvp
@@ -118,13 +130,17 @@ def test_fast_conv_transpose_equals_torch_with_gradients_and_jvp(c_in, c_out, ke
     want = torch.nn.functional.conv_transpose2d(x, w, b, stride)
     torch.testing.assert_close(got, want)
     weight = torch.randn_like(want)
-    for u, v in zip(torch.autograd.grad((got * weight).sum(), [x, w, b]),
-                    torch.autograd.grad((want * weight).sum(), [x, w, b])):
+    for u, v in zip(
+        torch.autograd.grad((got * weight).sum(), [x, w, b]), torch.autograd.grad((want * weight).sum(), [x, w, b])
+    ):
         torch.testing.assert_close(u, v)
     tangents = (torch.randn_like(x), torch.randn_like(w), torch.randn_like(b))
     _, t_got = jvp(lambda *a: conv_transpose2d(*a, stride), (x.detach(), w.detach(), b.detach()), tangents)
-    _, t_want = jvp(lambda *a: torch.nn.functional.conv_transpose2d(*a, stride=stride),
-                    (x.detach(), w.detach(), b.detach()), tangents)
+    _, t_want = jvp(
+        lambda *a: torch.nn.functional.conv_transpose2d(*a, stride=stride),
+        (x.detach(), w.detach(), b.detach()),
+        tangents,
+    )
     torch.testing.assert_close(t_got, t_want)
 
 

@@ -10,16 +10,15 @@ import torch
 import torch.nn.functional as F
 from omegaconf import OmegaConf
 
-from ssm_ms.cli import main
 from ssm_ms.module import MultipleShootingModule
-from ssm_ms.nets import ConvDecoder
-from ssm_ms.nets import LinearReadout
+from ssm_ms.nets import ConvDecoder, LinearReadout
 from ssm_ms.nets.decoder import PRESETS
 from tests.test_cli import CPU, ROOT, fit_tiny, outputs, run
 
 
-def conv_transpose_out(size: int, kernel: int, stride: int, padding: int = 0, dilation: int = 1,
-                       output_padding: int = 0) -> int:
+def conv_transpose_out(
+    size: int, kernel: int, stride: int, padding: int = 0, dilation: int = 1, output_padding: int = 0
+) -> int:
     """PyTorch's documented ConvTranspose2d output size."""
     return (size - 1) * stride - 2 * padding + dilation * (kernel - 1) + output_padding + 1
 
@@ -52,8 +51,10 @@ def reference_decode(g: ConvDecoder, x: torch.Tensor, image_size: int, drawn: in
     return h[..., start : start + image_size, start : start + image_size]
 
 
-@pytest.mark.parametrize("preset, image_size", [("pendulum", 24), ("pendulum", 32), ("pendulum", 33), ("quad", 24),
-                                                ("quad", 40), ("mnist", 32), ("mnist", 50)])
+@pytest.mark.parametrize(
+    "preset, image_size",
+    [("pendulum", 24), ("pendulum", 32), ("pendulum", 33), ("quad", 24), ("quad", 40), ("mnist", 32), ("mnist", 50)],
+)
 def test_decoder_at_a_new_size_against_the_output_formula(preset, image_size):
     torch.manual_seed(0)
     channels = {"mnist": 24}.get(preset)  # a narrower mnist stem keeps the test small
@@ -73,8 +74,11 @@ def test_decoder_at_a_new_size_against_the_output_formula(preset, image_size):
 
 
 def test_decoder_refuses_a_size_it_cannot_draw():
-    with pytest.raises(ValueError, match=r"'quad' preset cannot draw 16x16 .* smallest it draws is 24x24 "
-                                         r"\(exactly 24, 36, 48, 60, .*at least 24"):
+    with pytest.raises(
+        ValueError,
+        match=r"'quad' preset cannot draw 16x16 .* smallest it draws is 24x24 "
+        r"\(exactly 24, 36, 48, 60, .*at least 24",
+    ):
         ConvDecoder(3, "quad", image_size=16)
     with pytest.raises(ValueError, match="give one"):
         ConvDecoder(3, None, stem_channels=4, stem_size=3, layers=[[1, 3, 2]], image_size=9)
@@ -82,8 +86,16 @@ def test_decoder_refuses_a_size_it_cannot_draw():
 
 def test_image_size_override_fits_one_batch_and_print_config_shows_it(tmp_path, capsys):
     config = CPU / "pendulum.yaml"
-    override = ["--data.init_args.image_size", "32", "--data.init_args.n_train", "2", "--data.init_args.n_test", "2",
-                "--data.init_args.batch_size", "2"]
+    override = [
+        "--data.init_args.image_size",
+        "32",
+        "--data.init_args.n_train",
+        "2",
+        "--data.init_args.n_test",
+        "2",
+        "--data.init_args.batch_size",
+        "2",
+    ]
     with pytest.raises(SystemExit):
         run(tmp_path, "fit", config, *override, "--print_config")
     printed = OmegaConf.create(capsys.readouterr().out)
@@ -98,9 +110,20 @@ def test_image_size_override_fits_one_batch_and_print_config_shows_it(tmp_path, 
     model = MultipleShootingModule.load_from_checkpoint(ssm_ckpt)
     assert model.obs_shape() == (1, 32, 32)
     # the encoder stage, given the same option, reads the 32x32 frames
-    stage = run(tmp_path, "fit", CPU / "pendulum_encoder.yaml", *override, "--trainer.max_epochs", "1",
-                "--trainer.limit_val_batches", "0", "--model.init_args.ssm_checkpoint", str(ssm_ckpt),
-                "--model.init_args.results_dir", str(tmp_path / "results"))
+    stage = run(
+        tmp_path,
+        "fit",
+        CPU / "pendulum_encoder.yaml",
+        *override,
+        "--trainer.max_epochs",
+        "1",
+        "--trainer.limit_val_batches",
+        "0",
+        "--model.init_args.ssm_checkpoint",
+        str(ssm_ckpt),
+        "--model.init_args.results_dir",
+        str(tmp_path / "results"),
+    )
     assert stage.model.encoder.obs_shape == (1, 32, 32)
     assert stage.trainer.fit_loop.epoch_loop.batch_progress.total.completed == 1
 
@@ -124,8 +147,18 @@ def test_measured_channels_come_from_the_file(tmp_path, capsys):
         run(tmp_path, "fit", config, *args, "--print_config")
     printed = OmegaConf.create(capsys.readouterr().out).model.init_args.g.init_args
     assert printed.out_features is None  # the file's, known once it is read
-    cli = run(tmp_path, "fit", config, *args, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "1",
-              "--trainer.limit_val_batches", "0")
+    cli = run(
+        tmp_path,
+        "fit",
+        config,
+        *args,
+        "--trainer.max_epochs",
+        "1",
+        "--trainer.limit_train_batches",
+        "1",
+        "--trainer.limit_val_batches",
+        "0",
+    )
     g = cli.model.g
     assert isinstance(g, torch.nn.Linear) and g.weight.shape == (3, 4) and g.bias.shape == (3,)
     assert cli.model.hparams["g"]["init_args"]["out_features"] == 3

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from ssm_ms.cli import main as cli_main
 from ssm_ms.checkpointing import INT8_KEY, SSM_DIGEST_KEY, read_checkpoint
+from ssm_ms.cli import main as cli_main
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.pretrained import DROPPED, HALF_KEY, NARROW_MIN_NUMEL, main, strip
 
@@ -20,12 +20,20 @@ COMMITTED = sorted((ROOT / "pretrained").glob("*.ckpt"))
 
 def fake_checkpoint() -> dict:
     return {
-        "epoch": 3, "global_step": 30, "pytorch-lightning_version": "2.6.0",
+        "epoch": 3,
+        "global_step": 30,
+        "pytorch-lightning_version": "2.6.0",
         "state_dict": {"big": torch.randn(NARROW_MIN_NUMEL + 1), "small": torch.randn(7), "count": torch.tensor(4)},
-        "optimizer_states": [{"state": {0: {"exp_avg": torch.randn(3)}}}], "lr_schedulers": [{}],
-        "loops": {"fit_loop": {}}, "callbacks": {"EpochCheckpoint": {}},
-        "hyper_parameters": {"ssm_checkpoint": "runs/x/version_0/checkpoints/last.ckpt", "n_filter": 50,
-                             "results_dir": "results", "figures_dir": "results/figures"},
+        "optimizer_states": [{"state": {0: {"exp_avg": torch.randn(3)}}}],
+        "lr_schedulers": [{}],
+        "loops": {"fit_loop": {}},
+        "callbacks": {"EpochCheckpoint": {}},
+        "hyper_parameters": {
+            "ssm_checkpoint": "runs/x/version_0/checkpoints/last.ckpt",
+            "n_filter": 50,
+            "results_dir": "results",
+            "figures_dir": "results/figures",
+        },
         "PendulumDataModule": {"name": "pendulum", "generator_params": {"seed": 0}},
     }
 
@@ -37,7 +45,9 @@ def test_strip_drops_training_state_and_keeps_the_rest():
     assert set(out) == set(ckpt) - set(DROPPED)
     for key, value in ckpt["state_dict"].items():
         assert torch.equal(out["state_dict"][key], value) and out["state_dict"][key].dtype == value.dtype
-    assert out["PendulumDataModule"] == ckpt["PendulumDataModule"] and out["hyper_parameters"] == ckpt["hyper_parameters"]
+    assert (
+        out["PendulumDataModule"] == ckpt["PendulumDataModule"] and out["hyper_parameters"] == ckpt["hyper_parameters"]
+    )
     assert "optimizer_states" in ckpt  # the input is left alone
 
 
@@ -55,7 +65,9 @@ def test_strip_half_and_ssm_path():
     assert out["hyper_parameters"]["ssm_checkpoint"] == "pretrained/x_ssm.ckpt"
     assert ckpt["hyper_parameters"]["ssm_checkpoint"].startswith("runs/")
     assert (out["hyper_parameters"]["results_dir"], out["hyper_parameters"]["figures_dir"]) == (
-        "runs/pretrained", "runs/pretrained/figures")
+        "runs/pretrained",
+        "runs/pretrained/figures",
+    )
     with pytest.raises(ValueError, match="records no SSM"):
         strip({"state_dict": {}, "hyper_parameters": {}}, ssm_checkpoint="x")
     with pytest.raises(ValueError, match="writes no results"):
@@ -79,7 +91,11 @@ def test_strip_int8_reads_back_within_half_a_step_of_each_row(tmp_path):
     ckpt["state_dict"].update(mat=mat, vec=vec, conv=conv)
     del ckpt["state_dict"]["big"]
     out = strip(ckpt, weights="int8")
-    assert {k for k, v in out["state_dict"].items() if v.dtype == torch.int8} == {"mat", "vec", "conv"} == set(out[INT8_KEY])
+    assert (
+        {k for k, v in out["state_dict"].items() if v.dtype == torch.int8}
+        == {"mat", "vec", "conv"}
+        == set(out[INT8_KEY])
+    )
     assert out["state_dict"]["small"].dtype == torch.float32 and out["state_dict"]["count"].dtype == torch.int64
     torch.save(out, tmp_path / "int8.ckpt")
     torch.save(strip(ckpt), tmp_path / "float32.ckpt")
@@ -140,8 +156,14 @@ def test_an_int8_ssm_loads_through_load_from_checkpoint(tmp_path):
 
 
 def encoder_of_config(tmp_path: Path, ssm: Path):
-    args = ["--config", str(ROOT / "configs" / "pendulum_encoder.yaml"), "--trainer.logger.init_args.save_dir",
-            str(tmp_path), "--model.init_args.ssm_checkpoint", str(ssm)]
+    args = [
+        "--config",
+        str(ROOT / "configs" / "pendulum_encoder.yaml"),
+        "--trainer.logger.init_args.save_dir",
+        str(tmp_path),
+        "--model.init_args.ssm_checkpoint",
+        str(ssm),
+    ]
     return cli_main(args, run=False).model
 
 
@@ -150,8 +172,11 @@ def test_an_encoder_stripped_without_its_ssm_loads_it_from_the_ssm_file(tmp_path
     them back from that file: the module ends as it began. Another SSM is refused, when stripping and loading."""
     ssm = ROOT / "pretrained" / "pendulum.ckpt"
     model = encoder_of_config(tmp_path, ssm)
-    trained = {"state_dict": model.state_dict(), "hyper_parameters": {"ssm_checkpoint": "runs/x/last.ckpt"},
-               "optimizer_states": []}
+    trained = {
+        "state_dict": model.state_dict(),
+        "hyper_parameters": {"ssm_checkpoint": "runs/x/last.ckpt"},
+        "optimizer_states": [],
+    }
     out = strip(trained, ssm_checkpoint=str(ssm))
     assert not [k for k in out["state_dict"] if k.startswith("ssm.")] and SSM_DIGEST_KEY in out
     assert len(out["state_dict"]) < len(trained["state_dict"])

@@ -23,7 +23,9 @@ def test_built_by_lightning_cli_is_false_from_python_and_true_under_the_cli(monk
     model = rotation_model()
     assert "f" not in model.hparams and "g" not in model.hparams  # modules built in Python are not hyperparameters
     seen = []
-    monkeypatch.setattr(module, "built_by_lightning_cli", lambda: seen.append(private.built_by_lightning_cli()) or seen[-1])
+    monkeypatch.setattr(
+        module, "built_by_lightning_cli", lambda: seen.append(private.built_by_lightning_cli()) or seen[-1]
+    )
     cli = main(["--config", str(CPU / "pendulum.yaml"), "--data.init_args.n_train", "4"], run=False)
     assert seen == [True]
     assert cli.model.hparams["f"]["class_path"].endswith("LocallyLinearTransition")  # the config, saved

@@ -26,7 +26,9 @@ def exact_ssm(tmp_path_factory):
     """An SSM whose f is the data's true rotation (trained briefly: nodes only matter for the encoder)."""
     tmp = tmp_path_factory.mktemp("exact")
     dm = RotationDataModule(data_dir=str(tmp / "data"), seq_len=12, batch_size=4, val_trajectories=2)
-    model = MultipleShootingModule(ExactRotation(0.3, learnable=False), Projection([0]), state_dim=2, n_nodes=3, lr=0.05)
+    model = MultipleShootingModule(
+        ExactRotation(0.3, learnable=False), Projection([0]), state_dim=2, n_nodes=3, lr=0.05
+    )
     ckpt = ModelCheckpoint(dirpath=tmp / "ckpt", save_last=True)
     fast_trainer(tmp, max_epochs=40, callbacks=[ckpt]).fit(model, dm)
     return tmp, tmp / "ckpt" / "last.ckpt"
@@ -73,7 +75,10 @@ def test_protocol_bookkeeping_with_the_exact_model(exact_ssm):
     expected_noisy = (noisy[:, 8:] - clean[:, 8:]).pow(2).mean((1, 2))
     assert saved["oracle/noisy/mse"]["mean"] == pytest.approx(expected_noisy.mean().item(), rel=1e-4)
     report = (tmp / "results" / "rot.md").read_text()
-    assert "| SSM (ExactRotation) + oracle |" in report and "| last (reference, with SSM (ExactRotation) + oracle) |" in report
+    assert (
+        "| SSM (ExactRotation) + oracle |" in report
+        and "| last (reference, with SSM (ExactRotation) + oracle) |" in report
+    )
 
 
 class DivergingOracle(Oracle):
@@ -97,8 +102,15 @@ def test_a_forecast_that_diverges_is_reported_not_averaged(exact_ssm, diverged):
     others, and how many diverged."""
     tmp, ckpt = exact_ssm
     name = f"rot_nan{len(diverged)}"
-    oracle = DivergingOracle(str(ckpt), n_filter=8, metrics=["mse"], results_dir=str(tmp / "results"), experiment=name,
-                             diverged=diverged, analysis={"valid_time": {}})
+    oracle = DivergingOracle(
+        str(ckpt),
+        n_filter=8,
+        metrics=["mse"],
+        results_dir=str(tmp / "results"),
+        experiment=name,
+        diverged=diverged,
+        analysis={"valid_time": {}},
+    )
     fast_trainer(tmp, max_epochs=1).test(oracle, rotation_dm(tmp))
     saved = json.loads((tmp / "results" / f"{name}.json").read_text())["runs"]["oracle"]["summary"]
     entry = saved["oracle/clean/mse"]
@@ -119,11 +131,21 @@ def test_analysis_of_the_exact_model(exact_ssm):
     data's distribution (x = cos of a uniform phase)."""
     tmp, ckpt = exact_ssm
     dm = rotation_dm(tmp)
-    analysis = {"valid_time": {"n_filter": 4, "horizon": 8}, "dt": 0.1,
-                "dynamics": {"runs": 4, "free_runs": 6, "lyapunov_steps": 300, "transient": 10, "align": 10,
-                             "free_steps": 2000}}
-    oracle = Oracle(str(ckpt), n_filter=8, metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot_an",
-                    analysis=analysis)
+    analysis = {
+        "valid_time": {"n_filter": 4, "horizon": 8},
+        "dt": 0.1,
+        "dynamics": {
+            "runs": 4,
+            "free_runs": 6,
+            "lyapunov_steps": 300,
+            "transient": 10,
+            "align": 10,
+            "free_steps": 2000,
+        },
+    }
+    oracle = Oracle(
+        str(ckpt), n_filter=8, metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot_an", analysis=analysis
+    )
     fast_trainer(tmp, max_epochs=1).test(oracle, dm)
     run = json.loads((tmp / "results" / "rot_an.json").read_text())["runs"]["oracle"]
     vt = run["analysis"]["valid_time"]
@@ -141,8 +163,15 @@ def test_analysis_of_the_exact_model(exact_ssm):
 def test_encoder_stage_on_a_tiny_trained_checkpoint(exact_ssm):
     tmp, ckpt = exact_ssm
     dm = rotation_dm(tmp)
-    enc = StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 32}, lr=1e-2,
-                             metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot_enc")
+    enc = StateEncoderModule(
+        str(ckpt),
+        n_filter=8,
+        encoder={"preset": "vector", "hidden": 32},
+        lr=1e-2,
+        metrics=["mse"],
+        results_dir=str(tmp / "results"),
+        experiment="rot_enc",
+    )
     trainer = fast_trainer(tmp, max_epochs=30)
     dm.setup("fit")
     batch = next(iter(dm.train_dataloader()))
@@ -169,8 +198,14 @@ def test_encoder_stage_on_a_tiny_trained_checkpoint(exact_ssm):
 
 def test_ssim_on_vector_data_is_refused_before_any_sequence_is_scored(exact_ssm):
     tmp, ckpt = exact_ssm
-    ukf = FilterForecaster(str(ckpt), n_filter=8, method="ukf", metrics=["mse", "ssim"],
-                           results_dir=str(tmp / "results"), experiment="rot_ssim")
+    ukf = FilterForecaster(
+        str(ckpt),
+        n_filter=8,
+        method="ukf",
+        metrics=["mse", "ssim"],
+        results_dir=str(tmp / "results"),
+        experiment="rot_ssim",
+    )
     ukf.test_step = lambda *a, **k: pytest.fail("a sequence was scored")
     with pytest.raises(ValueError, match="metric 'ssim' needs image frames"):
         fast_trainer(tmp, max_epochs=1).test(ukf, rotation_dm(tmp))
@@ -180,8 +215,16 @@ def test_ssim_on_vector_data_is_refused_before_any_sequence_is_scored(exact_ssm)
 def test_ukf_stage_tracks_the_exact_model(exact_ssm):
     tmp, ckpt = exact_ssm
     dm = rotation_dm(tmp)
-    ukf = FilterForecaster(str(ckpt), n_filter=8, method="ukf", measurement_var=0.05**2, init_var=1.0,
-                           metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot_ukf")
+    ukf = FilterForecaster(
+        str(ckpt),
+        n_filter=8,
+        method="ukf",
+        measurement_var=0.05**2,
+        init_var=1.0,
+        metrics=["mse"],
+        results_dir=str(tmp / "results"),
+        experiment="rot_ukf",
+    )
     fast_trainer(tmp, max_epochs=1).test(ukf, dm)
     saved = json.loads((tmp / "results" / "rot_ukf.json").read_text())["runs"]["ukf"]["summary"]
     # noise std 0.05 on a unit circle: the filtered phase is accurate, the forecast too
@@ -189,16 +232,28 @@ def test_ukf_stage_tracks_the_exact_model(exact_ssm):
     assert saved["ukf/clean/mse"]["mean"] < 0.1 * saved["mean/clean/mse"]["mean"]
     # f and g in bfloat16 and the cubature rule, labelled as another method of the same experiment:
     # as accurate, and the results say how the states were inferred
-    fast = FilterForecaster(str(ckpt), n_filter=8, method="ukf", measurement_var=0.05**2, init_var=1.0,
-                            autocast="bfloat16", unscented={"beta": 0.0}, method_name="ukf_fast", metrics=["mse"],
-                            results_dir=str(tmp / "results"), experiment="rot_ukf")
+    fast = FilterForecaster(
+        str(ckpt),
+        n_filter=8,
+        method="ukf",
+        measurement_var=0.05**2,
+        init_var=1.0,
+        autocast="bfloat16",
+        unscented={"beta": 0.0},
+        method_name="ukf_fast",
+        metrics=["mse"],
+        results_dir=str(tmp / "results"),
+        experiment="rot_ukf",
+    )
     assert fast.filter.beta == 0.0
     fast_trainer(tmp, max_epochs=1).test(fast, dm)
     runs = json.loads((tmp / "results" / "rot_ukf.json").read_text())["runs"]
     assert set(runs) == {"ukf", "ukf_fast"}
     assert runs["ukf_fast"]["summary"]["ukf_fast/clean/mse"]["mean"] < 0.01
     assert runs["ukf"]["info"]["inference_settings"].endswith("alpha=1, beta=2, kappa=0; full precision")
-    assert runs["ukf_fast"]["info"]["inference_settings"].endswith("alpha=1, beta=0, kappa=0; f and g under autocast(bfloat16)")
+    assert runs["ukf_fast"]["info"]["inference_settings"].endswith(
+        "alpha=1, beta=0, kappa=0; f and g under autocast(bfloat16)"
+    )
     assert "f and g under autocast(bfloat16)" in (tmp / "results" / "rot_ukf.md").read_text()
     with pytest.raises(ValueError, match=r"unscented takes alpha, beta and kappa, got \['gamma'\]"):
         FilterForecaster(str(ckpt), n_filter=8, unscented={"gamma": 1.0})
@@ -208,7 +263,9 @@ def test_ukf_stage_tracks_the_exact_model(exact_ssm):
 
 # ---------------------------------------------------------------------------- bad input
 def test_missing_checkpoint_is_named(tmp_path):
-    with pytest.raises(FileNotFoundError, match=r"the SSM checkpoint .*nope.ckpt does not exist: train the model first"):
+    with pytest.raises(
+        FileNotFoundError, match=r"the SSM checkpoint .*nope.ckpt does not exist: train the model first"
+    ):
         StateEncoderModule(str(tmp_path / "nope.ckpt"), n_filter=5)
 
 
@@ -226,8 +283,14 @@ def test_fewer_test_sequences_are_tested_and_said(exact_ssm):
     that the test data differ from the SSM's."""
     tmp, ckpt = exact_ssm
     fit_dm = RotationDataModule(data_dir=str(tmp / "data"), seq_len=12, n_test=2, batch_size=4, val_trajectories=2)
-    enc = StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8}, metrics=["mse"],
-                             results_dir=str(tmp / "results"), experiment="rot_fewer")
+    enc = StateEncoderModule(
+        str(ckpt),
+        n_filter=8,
+        encoder={"preset": "vector", "hidden": 8},
+        metrics=["mse"],
+        results_dir=str(tmp / "results"),
+        experiment="rot_fewer",
+    )
     fast_trainer(tmp, max_epochs=1).fit(enc, fit_dm)
     test_dm = RotationDataModule(data_dir=str(tmp / "fresh"), seq_len=12, n_test=2, batch_size=4)
     fast_trainer(tmp, max_epochs=1).test(enc, test_dm)
@@ -276,10 +339,17 @@ def test_encoder_refuses_measurements_of_another_shape(exact_ssm):
 def test_particle_filter_stage_tracks_the_exact_model(exact_ssm):
     tmp, ckpt = exact_ssm
     dm = rotation_dm(tmp)
-    pf = FilterForecaster(str(ckpt), n_filter=8, method="pf", n_particles=2000, measurement_var=0.05**2,
-                          init_var=1.0, metrics=["mse"], results_dir=str(tmp / "results"), experiment="rot_pf")
+    pf = FilterForecaster(
+        str(ckpt),
+        n_filter=8,
+        method="pf",
+        n_particles=2000,
+        measurement_var=0.05**2,
+        init_var=1.0,
+        metrics=["mse"],
+        results_dir=str(tmp / "results"),
+        experiment="rot_pf",
+    )
     fast_trainer(tmp, max_epochs=1).test(pf, dm)
     saved = json.loads((tmp / "results" / "rot_pf.json").read_text())["runs"]["pf"]["summary"]
     assert saved["pf/clean/mse"]["mean"] < 0.1 * saved["mean/clean/mse"]["mean"]
-
-

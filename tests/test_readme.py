@@ -59,8 +59,9 @@ STEPS: dict[str, Step] = {
     "python cli.py fit --config configs/pendulum_encoder.yaml --model.init_args.ssm_checkpoint "
     "runs/pendulum/version_0/checkpoints/last.ckpt": Step(f"{TINY} {FEW_TRAIN}", slow_extra=TINY),
     "python cli.py test --config configs/pendulum_encoder.yaml --model.init_args.ssm_checkpoint "
-    "runs/pendulum/version_0/checkpoints/last.ckpt --ckpt_path runs/pendulum_encoder/version_0/checkpoints/last.ckpt":
-        Step(FEW_TESTS, slow_extra=""),
+    "runs/pendulum/version_0/checkpoints/last.ckpt --ckpt_path runs/pendulum_encoder/version_0/checkpoints/last.ckpt": Step(
+        FEW_TESTS, slow_extra=""
+    ),
     "python examples/make_oscillator_data.py": Step(),
     "python cli.py fit --config configs/oscillator.yaml": Step(TINY),
     "python examples/make_oscillator_data.py --out data/oscillator_new.npz --n 8 --seed 1": Step(),
@@ -82,12 +83,15 @@ STEPS: dict[str, Step] = {
     "make reproduce EXP=pendulum RESUME=reproduce-<date>-<time>": Step(quick=False, extra=f'ARGS="{TINY}"'),
     "make reproduce EXP=oscillator": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
     # the pretrained model, tested as shipped (make test: on 50 test sequences; make test-slow: all 1000)
-    "python cli.py test --config configs/pendulum_encoder.yaml --ckpt_path pretrained/pendulum_encoder.ckpt":
-        Step(FEW_TESTS, slow_extra=""),
+    "python cli.py test --config configs/pendulum_encoder.yaml --ckpt_path pretrained/pendulum_encoder.ckpt": Step(
+        FEW_TESTS, slow_extra=""
+    ),
 }
 
 # placeholders in commands, and how to fill them in the copy (the run an earlier command started)
-PLACEHOLDERS = {"reproduce-<date>-<time>": lambda root: sorted((root / "runs" / "pendulum").glob("reproduce-*"))[0].name}
+PLACEHOLDERS = {
+    "reproduce-<date>-<time>": lambda root: sorted((root / "runs" / "pendulum").glob("reproduce-*"))[0].name
+}
 
 
 # ------------------------------------------------------------------------------------------------- parsing
@@ -126,8 +130,16 @@ def is_python(command: str) -> bool:
 def clean_copy(tmp: Path) -> tuple[Path, dict[str, str]]:
     """The repository's files (tracked, and new ones not ignored: what a commit of this tree would hold) copied to
     ``tmp/repo``, with ``.venv`` linked to this environment, and an environment with an empty HOME."""
-    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
-                            capture_output=True, check=True).stdout.decode().split("\0")
+    listed = (
+        subprocess.run(
+            ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+            cwd=ROOT,
+            capture_output=True,
+            check=True,
+        )
+        .stdout.decode()
+        .split("\0")
+    )
     repo = tmp / "repo"
     for name in filter(None, listed):
         source = ROOT / name
@@ -166,8 +178,9 @@ def run_doc(doc: str, repo: Path, env: dict[str, str], slow: bool, done: set[str
                     line = line.replace(placeholder, fill(repo))
             line = f"{line} {extra}".strip()
         start = time.time()
-        proc = subprocess.run(["bash", "-c", line], cwd=repo, env=env, capture_output=True, text=True,
-                              timeout=step.timeout)
+        proc = subprocess.run(
+            ["bash", "-c", line], cwd=repo, env=env, capture_output=True, text=True, timeout=step.timeout
+        )
         print(f"{time.time() - start:6.1f} s  {line}")  # shown with pytest -s: where the suite's time goes
         assert proc.returncode == 0, (
             f"{doc}: `{line}` failed with status {proc.returncode} after {time.time() - start:.0f} s:\n"

@@ -18,8 +18,10 @@ RESULTS = ROOT / "results"
 
 def test_the_readme_tables_are_those_the_results_files_give():
     stale = readme.stale(README.read_text(encoding="utf-8"), RESULTS)
-    assert stale == [], (f"README.md's tables {stale} differ from results/*.json: run "
-                         "`python -m ssm_ms.forecasting.readme` and commit README.md")
+    assert stale == [], (
+        f"README.md's tables {stale} differ from results/*.json: run "
+        "`python -m ssm_ms.forecasting.readme` and commit README.md"
+    )
 
 
 def test_every_table_has_its_markers_in_the_readme():

@@ -16,12 +16,22 @@ def recorded(monkeypatch, tmp_path):
     """Stages recorded, not run (each takes 0 s); run folders (runs/...) under tmp_path."""
     calls: list[list[str]] = []
     written = {}
-    monkeypatch.setattr(reproduce, "run_stage", lambda args, number, resume_pipeline=None: calls.append(args) or
-                        written.update(resume_pipeline=resume_pipeline) or 0.0)
+    monkeypatch.setattr(
+        reproduce,
+        "run_stage",
+        lambda args, number, resume_pipeline=None: (
+            calls.append(args) or written.update(resume_pipeline=resume_pipeline) or 0.0
+        ),
+    )
     monkeypatch.setattr(reproduce, "_absolute", lambda path: tmp_path / path)
-    monkeypatch.setattr(reproduce, "write_pipeline", lambda results_dir, experiment, command, pipeline, replaces=None:
-                        written.update(experiment=experiment, command=command, pipeline=pipeline, replaces=replaces)
-                        or reproduce.ROOT / "README.md")
+    monkeypatch.setattr(
+        reproduce,
+        "write_pipeline",
+        lambda results_dir, experiment, command, pipeline, replaces=None: (
+            written.update(experiment=experiment, command=command, pipeline=pipeline, replaces=replaces)
+            or reproduce.ROOT / "README.md"
+        ),
+    )
     return calls, written
 
 
@@ -50,7 +60,9 @@ def test_an_experiment_runs_its_ssm_stages_then_every_baseline(recorded, capsys)
     assert option(calls[2], "--ckpt_path") == f"runs/lorenz_T1000_encoder_cpu/{version}/checkpoints/last.ckpt"
     assert option(calls[5], "--ckpt_path") == f"runs/lorenz_T1000_lstm_cpu/{version}/checkpoints/last.ckpt"
     assert "--model.init_args.ssm_checkpoint" not in calls[4] + calls[5]
-    assert written["experiment"] == "lorenz_T1000_cpu" and written["command"] == "make reproduce EXP=lorenz_T1000 SIZE=cpu"
+    assert (
+        written["experiment"] == "lorenz_T1000_cpu" and written["command"] == "make reproduce EXP=lorenz_T1000 SIZE=cpu"
+    )
     assert len(written["pipeline"]["stages"]) == 8
     assert all(s["command"] == "python cli.py " + " ".join(a) for s, a in zip(written["pipeline"]["stages"], calls))
 
@@ -59,12 +71,16 @@ def test_a_baseline_alone_and_without_baselines(recorded):
     calls, written = recorded
     reproduce.main(["pendulum_rkn"])
     assert [(a[0], option(a, "--config")) for a in calls] == [
-        ("fit", "configs/baselines/pendulum_rkn.yaml"), ("test", "configs/baselines/pendulum_rkn.yaml")]
+        ("fit", "configs/baselines/pendulum_rkn.yaml"),
+        ("test", "configs/baselines/pendulum_rkn.yaml"),
+    ]
     assert written["experiment"] == "pendulum"  # the same results file as the SSM's
     calls.clear()
     reproduce.main(["pendulum", "--no-baselines"])
     assert [option(a, "--config") for a in calls] == ["configs/pendulum.yaml"] + ["configs/pendulum_encoder.yaml"] * 2
-    assert written["command"] == "python -m ssm_ms.reproduce pendulum --no-baselines"  # not make's: it has no such option
+    assert (
+        written["command"] == "python -m ssm_ms.reproduce pendulum --no-baselines"
+    )  # not make's: it has no such option
 
 
 def test_epoch_budgets_go_to_their_own_stages_only(recorded, capsys):
@@ -72,8 +88,11 @@ def test_epoch_budgets_go_to_their_own_stages_only(recorded, capsys):
     the tests keep their configs' (they take no epochs), and the results file names the command with the budgets."""
     calls, written = recorded
     reproduce.main(["pendulum", "--encoder-epochs", "7", "--baseline-epochs", "5"])
-    budget = {(a[0], Path(option(a, "--config")).stem): option(a, "--trainer.max_epochs")
-              for a in calls if "--trainer.max_epochs" in a}
+    budget = {
+        (a[0], Path(option(a, "--config")).stem): option(a, "--trainer.max_epochs")
+        for a in calls
+        if "--trainer.max_epochs" in a
+    }
     assert budget == {("fit", "pendulum_encoder"): "7", ("fit", "pendulum_lstm"): "5", ("fit", "pendulum_rkn"): "5"}
     assert len(calls) == 7
     assert written["command"] == "python -m ssm_ms.reproduce pendulum --encoder-epochs 7 --baseline-epochs 5"
@@ -86,13 +105,16 @@ def test_options_after_a_double_dash_go_to_every_stage_last(recorded, tmp_path):
     """``-- ARGS`` (make's ARGS) is appended to every stage's command after its own options (the last value wins in
     LightningCLI), the results file names it, and a resume given other ARGS is refused."""
     calls, written = recorded
-    reproduce.main(["pendulum", "--encoder-epochs", "7", "--", "--trainer.max_epochs", "1", "--data.init_args.n_test", "9"])
+    reproduce.main(
+        ["pendulum", "--encoder-epochs", "7", "--", "--trainer.max_epochs", "1", "--data.init_args.n_test", "9"]
+    )
     assert len(calls) == 7
     assert all(a[-4:] == ["--trainer.max_epochs", "1", "--data.init_args.n_test", "9"] for a in calls)
     encoder_fit = calls[1]
     assert encoder_fit.index("7") < len(encoder_fit) - 3  # the budget first, the appended value last
-    assert written["command"] == ("python -m ssm_ms.reproduce pendulum --encoder-epochs 7 -- --trainer.max_epochs 1 "
-                                  "--data.init_args.n_test 9")
+    assert written["command"] == (
+        "python -m ssm_ms.reproduce pendulum --encoder-epochs 7 -- --trainer.max_epochs 1 --data.init_args.n_test 9"
+    )
     calls.clear()
     reproduce.main(["pendulum", "--", "--trainer.max_epochs", "1"])
     assert written["command"] == "make reproduce EXP=pendulum ARGS='--trainer.max_epochs 1'"
@@ -118,9 +140,16 @@ def _stage_in_own_group(tmp_path, args):
     script = f"from ssm_ms import reproduce; reproduce.run_stage({args!r}, 1)"
     out = open(tmp_path / "stage.log", "w")
     env = dict(__import__("os").environ, OMP_NUM_THREADS="1")
-    return subprocess.Popen([sys.executable, "-c", script], cwd=reproduce.ROOT, start_new_session=True, stdout=out,
-                            stderr=subprocess.PIPE, text=True, env=env,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    return subprocess.Popen(
+        [sys.executable, "-c", script],
+        cwd=reproduce.ROOT,
+        start_new_session=True,
+        stdout=out,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
 
 
 @pytest.mark.parametrize("how", ["ctrl-c", "sigterm", "sigint-alone"])
@@ -162,8 +191,10 @@ def test_ctrl_c_or_sigterm_during_a_stage_names_it_and_the_command_that_resumes_
         if Path(f"/proc/{stage[0]}").exists():
             os.kill(stage[0], signal.SIGKILL)
     assert proc.returncode == 130 and "Traceback" not in err, err
-    assert f"reproduce was interrupted during stage 1 (python cli.py {shlex.join(args)}); its last completed epoch " \
-           f"is saved in {ckpt}. Resume that stage with:" in err, err
+    assert (
+        f"reproduce was interrupted during stage 1 (python cli.py {shlex.join(args)}); its last completed epoch "
+        f"is saved in {ckpt}. Resume that stage with:" in err
+    ), err
     resume = err.split("Resume that stage with:")[1].strip().splitlines()[0]
     assert resume == "python cli.py " + shlex.join(args) + f" --ckpt_path {ckpt}"
     assert torch.load(ckpt, weights_only=True)["epoch"] >= 0  # a completed epoch to resume from
@@ -228,16 +259,24 @@ def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tm
     version = option(calls[0], "--trainer.logger.init_args.version")
     record = tmp_path / "runs" / "lorenz_T1000_cpu" / version / "reproduce.json"
     finished = json.loads(record.read_text())
-    assert f"finish it with:\n  python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --resume {version}" \
-        in capsys.readouterr().out  # said at the start: a run killed outright prints nothing at its end
+    assert (
+        f"finish it with:\n  python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --resume {version}"
+        in capsys.readouterr().out
+    )  # said at the start: a run killed outright prints nothing at its end
     assert finished["running"] is None and len(finished["stages"]) == 4
     assert finished["options"]["experiment"] == "lorenz_T1000" and finished["options"]["no_baselines"] is True
     # as the record reads when the machine stopped during stage 2
     stage1, stage2 = finished["stages"][0], finished["stages"][1]
     started = 1_700_000_000.0
-    record.write_text(json.dumps({"options": finished["options"], "stages": [{**stage1, "seconds": 3000.0}],
-                                  "running": {"command": stage2["command"], "started": started, "seconds": 0.0,
-                                              "runs": 1}}))
+    record.write_text(
+        json.dumps(
+            {
+                "options": finished["options"],
+                "stages": [{**stage1, "seconds": 3000.0}],
+                "running": {"command": stage2["command"], "started": started, "seconds": 0.0, "runs": 1},
+            }
+        )
+    )
     enc_ckpt = tmp_path / "runs" / "lorenz_T1000_encoder_cpu" / version / "checkpoints" / "last.ckpt"
     enc_ckpt.parent.mkdir(parents=True)
     enc_ckpt.write_bytes(b"")
@@ -254,8 +293,10 @@ def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tm
     assert [s["seconds"] for s in stages] == [3000.0, 100.0, 0.0, 0.0] and stages[1]["runs"] == 2
     assert stages[1]["command"] == stage2["command"]  # the stage's command, without the --ckpt_path it resumed with
     assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --no-baselines --size cpu"  # no --resume
-    assert written["resume_pipeline"] == f"python -m ssm_ms.reproduce lorenz_T1000 --no-baselines --size cpu " \
-                                         f"--resume {version}"  # what an interrupted stage prints
+    assert (
+        written["resume_pipeline"] == f"python -m ssm_ms.reproduce lorenz_T1000 --no-baselines --size cpu "
+        f"--resume {version}"
+    )  # what an interrupted stage prints
     assert json.loads(record.read_text())["running"] is None
 
 
@@ -288,18 +329,32 @@ def test_a_pipeline_killed_mid_fit_resumes_to_the_same_model_as_an_uninterrupted
     config.write_text(ROTATION.format(root=tmp_path).replace("max_epochs: 4", "max_epochs: 6"))
 
     def args(version):
-        return ["fit", "--config", str(config), "--trainer.logger.init_args.version", version,
-                "--trainer.callbacks+=tests.test_reproduce.KillAt"]
+        return [
+            "fit",
+            "--config",
+            str(config),
+            "--trainer.logger.init_args.version",
+            version,
+            "--trainer.callbacks+=tests.test_reproduce.KillAt",
+        ]
 
     def ckpt(version):
         return tmp_path / "runs" / "rot" / version / "checkpoints" / "last.ckpt"
 
     record = tmp_path / "reproduce.json"
-    script = (f"from pathlib import Path; from ssm_ms import reproduce; "
-              f"reproduce.Pipeline(Path({str(record)!r}), {{}}, 'resume', resume=False).stage({args('cut')!r})")
+    script = (
+        f"from pathlib import Path; from ssm_ms import reproduce; "
+        f"reproduce.Pipeline(Path({str(record)!r}), {{}}, 'resume', resume=False).stage({args('cut')!r})"
+    )
     env = dict(os.environ, OMP_NUM_THREADS="1", KILL_AT_EPOCH="3")
-    proc = subprocess.Popen([sys.executable, "-c", script], cwd=reproduce.ROOT, start_new_session=True, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script],
+        cwd=reproduce.ROOT,
+        start_new_session=True,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     assert proc.wait(timeout=300) == -signal.SIGKILL
     assert torch.load(ckpt("cut"), weights_only=True)["epoch"] == 2  # epochs 0-2 kept, the run stopped in epoch 3
 
@@ -336,15 +391,31 @@ def test_a_budget_raised_on_resume_continues_that_fit_and_tests_again(recorded, 
 
     calls.clear()
     with pytest.raises(SystemExit, match=r"cannot be cut back to --encoder-epochs 5 \(it was run with 7\)"):
-        reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-baselines", "--encoder-epochs", "5", "--resume", version])
+        reproduce.main(
+            ["lorenz_T1000", "--size", "cpu", "--no-baselines", "--encoder-epochs", "5", "--resume", version]
+        )
     with pytest.raises(SystemExit, match=r"other options \(seed: None then, 1 now\)"):
-        reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-baselines", "--encoder-epochs", "9", "--seed", "1",
-                        "--resume", version])
+        reproduce.main(
+            [
+                "lorenz_T1000",
+                "--size",
+                "cpu",
+                "--no-baselines",
+                "--encoder-epochs",
+                "9",
+                "--seed",
+                "1",
+                "--resume",
+                version,
+            ]
+        )
     assert calls == []
 
     reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-baselines", "--encoder-epochs", "9", "--resume", version])
     assert [(a[0], option(a, "--config")) for a in calls] == [
-        ("fit", "configs/cpu/lorenz_T1000_encoder.yaml"), ("test", "configs/cpu/lorenz_T1000_encoder.yaml")]
+        ("fit", "configs/cpu/lorenz_T1000_encoder.yaml"),
+        ("test", "configs/cpu/lorenz_T1000_encoder.yaml"),
+    ]
     assert option(calls[0], "--trainer.max_epochs") == "9"
     assert option(calls[0], "--ckpt_path") == f"runs/lorenz_T1000_encoder_cpu/{version}/checkpoints/last.ckpt"
     stages = written["pipeline"]["stages"]
@@ -376,6 +447,7 @@ def test_a_raised_budget_interrupted_and_resumed_again_still_replaces_the_first_
 
     def stopped(args, number, resume_pipeline=None):
         raise KeyboardInterrupt  # the machine stops during the extended fit
+
     with monkeypatch.context() as patch:
         patch.setattr(reproduce, "run_stage", stopped)
         with pytest.raises(KeyboardInterrupt):
@@ -400,7 +472,9 @@ def test_a_baseline_budget_raised_on_resume_continues_the_fit_and_tests_again(re
     calls.clear()
     reproduce.main(["pendulum_lstm", "--baseline-epochs", "8", "--resume", version])
     assert [(a[0], option(a, "--trainer.max_epochs") if a[0] == "fit" else None) for a in calls] == [
-        ("fit", "8"), ("test", None)]
+        ("fit", "8"),
+        ("test", None),
+    ]
     assert option(calls[0], "--ckpt_path").endswith(f"pendulum_lstm/{version}/checkpoints/last.ckpt")
 
 
@@ -416,8 +490,16 @@ def test_a_fit_extended_on_resume_ends_as_a_fit_given_that_budget_from_the_start
     config.write_text(ROTATION.format(root=tmp_path))
 
     def args(version, epochs):
-        return ["fit", "--config", str(config), "--trainer.max_epochs", str(epochs),
-                "--trainer.logger.init_args.version", version, "--trainer.callbacks+=tests.test_reproduce.KillAt"]
+        return [
+            "fit",
+            "--config",
+            str(config),
+            "--trainer.max_epochs",
+            str(epochs),
+            "--trainer.logger.init_args.version",
+            version,
+            "--trainer.callbacks+=tests.test_reproduce.KillAt",
+        ]
 
     record = tmp_path / "reproduce.json"
     reproduce.Pipeline(record, {}, "resume", resume=False).stage(args("cut", 2))  # a process of its own, as reproduce's

@@ -82,10 +82,14 @@ def test_each_run_meets_the_paper_row_of_its_method():
 
 def test_rendered_table_puts_the_paper_beside_each_method():
     runs = {
-        "ukf": {"info": {"model": "SSM-LL", "inference": "ukf", "label": "SSM-LL + UKF"},
-                "summary": {"ukf/clean/mse": {"mean": 0.8, "std": 1.0}, "last/clean/mse": {"mean": 2.0, "std": 1.0}}},
-        "rkn": {"info": {"model": "RKN", "inference": None, "label": "RKN"},
-                "summary": {"rkn/clean/mse": {"mean": 50.0, "std": 9.0}}},
+        "ukf": {
+            "info": {"model": "SSM-LL", "inference": "ukf", "label": "SSM-LL + UKF"},
+            "summary": {"ukf/clean/mse": {"mean": 0.8, "std": 1.0}, "last/clean/mse": {"mean": 2.0, "std": 1.0}},
+        },
+        "rkn": {
+            "info": {"model": "RKN", "inference": None, "label": "RKN"},
+            "summary": {"rkn/clean/mse": {"mean": 50.0, "std": 9.0}},
+        },
     }
     report = render_markdown("lorenz_T1000_cpu", runs)
     assert "| SSM-LL + UKF | 0.8 ± 1 | SSM-UKF | 0.67 |" in report
@@ -99,21 +103,44 @@ def test_rendered_table_puts_the_paper_beside_each_method():
 def test_analysis_numbers_read_as_steps_not_exponents():
     from ssm_ms.forecasting.results import _num
 
-    assert [_num(1000.0), _num(285.4, 2), _num(811.25), _num(0.0123), _num(3.5613), _num(float("inf")), _num(None)] == \
-        ["1000", "285", "811", "0.0123", "3.56", "inf", "—"]
+    assert [_num(1000.0), _num(285.4, 2), _num(811.25), _num(0.0123), _num(3.5613), _num(float("inf")), _num(None)] == [
+        "1000",
+        "285",
+        "811",
+        "0.0123",
+        "3.56",
+        "inf",
+        "—",
+    ]
 
 
 def test_valid_time_row_after_a_json_round_trip():
     """Error growth keeps forecast-step order once JSON has made its keys strings ("1000" sorts before "250")."""
     import json
 
-    vt = {"threshold": 0.5, "truth": "noiseless", "n_filter": 1000, "horizon": 1000, "mean_steps": 811.25,
-          "std_steps": 281.0, "median_steps": 1000.0, "mean_seconds": 4.06, "mean_lyapunov_times": 3.56,
-          "censored_share": 0.61, "error_at_step": {1: 0.0014, 250: 0.062, 500: 0.21, 1000: 0.32}}
-    runs = json.loads(json.dumps({"ukf": {"info": {"label": "SSM-LL + UKF"}, "summary": {},
-                                          "analysis": {"valid_time": vt}}}, sort_keys=True))
+    vt = {
+        "threshold": 0.5,
+        "truth": "noiseless",
+        "n_filter": 1000,
+        "horizon": 1000,
+        "mean_steps": 811.25,
+        "std_steps": 281.0,
+        "median_steps": 1000.0,
+        "mean_seconds": 4.06,
+        "mean_lyapunov_times": 3.56,
+        "censored_share": 0.61,
+        "error_at_step": {1: 0.0014, 250: 0.062, 500: 0.21, 1000: 0.32},
+    }
+    runs = json.loads(
+        json.dumps(
+            {"ukf": {"info": {"label": "SSM-LL + UKF"}, "summary": {}, "analysis": {"valid_time": vt}}}, sort_keys=True
+        )
+    )
     report = render_markdown("lorenz_T1000_noiseless_cpu", runs)
-    assert "| SSM-LL + UKF | 811 ± 281 | 1000 | 4.06 | 3.56 | 0.61 | 1: 0.0014, 250: 0.062, 500: 0.21, 1000: 0.32 |" in report
+    assert (
+        "| SSM-LL + UKF | 811 ± 281 | 1000 | 4.06 | 3.56 | 0.61 | 1: 0.0014, 250: 0.062, 500: 0.21, 1000: 0.32 |"
+        in report
+    )
     assert "## The paper" not in report  # no paper table for the noise-free variant
 
 
@@ -151,8 +178,11 @@ def test_an_interrupted_write_leaves_the_results_file_as_it_was(tmp_path, monkey
 
     monkeypatch.setattr(Path, "write_text", cut_short)
     with pytest.raises(KeyboardInterrupt):
-        write_results(tmp_path, {**info, "method": "lstm", "model": "LSTM", "inference": None},
-                      {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}})
+        write_results(
+            tmp_path,
+            {**info, "method": "lstm", "model": "LSTM", "inference": None},
+            {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}},
+        )
     monkeypatch.undo()
     assert {p.name: p.read_text() for p in tmp_path.iterdir()} == before  # no half file, no leftover
     assert list(json.loads((tmp_path / "toy.json").read_text())["runs"]) == ["encoder"]
@@ -182,9 +212,18 @@ def test_an_unreadable_results_file_is_moved_aside_not_overwritten(tmp_path):
 def test_a_resumed_stage_says_so_in_the_pipeline_table(tmp_path):
     from ssm_ms.forecasting.results import write_pipeline
 
-    md = write_pipeline(tmp_path, "toy_cpu", "make reproduce EXP=toy SIZE=cpu", {"total_seconds": 9.0, "stages": [
-        {"command": "python cli.py fit --config a.yaml", "seconds": 7.5, "runs": 3},
-        {"command": "python cli.py test --config a.yaml", "seconds": 1.5}]}).read_text()
+    md = write_pipeline(
+        tmp_path,
+        "toy_cpu",
+        "make reproduce EXP=toy SIZE=cpu",
+        {
+            "total_seconds": 9.0,
+            "stages": [
+                {"command": "python cli.py fit --config a.yaml", "seconds": 7.5, "runs": 3},
+                {"command": "python cli.py test --config a.yaml", "seconds": 1.5},
+            ],
+        },
+    ).read_text()
     assert "| `python cli.py fit --config a.yaml` | 7.5 (in 3 runs: resumed from its last completed epoch) |" in md
     assert "| `python cli.py test --config a.yaml` | 1.5 |" in md
 
@@ -196,12 +235,20 @@ def test_a_record_replaces_the_one_its_run_was_started_with_and_keeps_the_others
     from ssm_ms.forecasting.results import write_pipeline
 
     def pipeline(seconds):
-        return {"total_seconds": seconds, "stages": [{"command": "python cli.py fit --config a.yaml", "seconds": seconds}]}
+        return {
+            "total_seconds": seconds,
+            "stages": [{"command": "python cli.py fit --config a.yaml", "seconds": seconds}],
+        }
 
     write_pipeline(tmp_path, "toy", "reproduce toy --encoder-epochs 8", pipeline(8.0))
     write_pipeline(tmp_path, "toy", "reproduce toy_lstm", pipeline(3.0))
-    md = write_pipeline(tmp_path, "toy", "reproduce toy --encoder-epochs 10", pipeline(10.0),
-                        replaces="reproduce toy --encoder-epochs 8").read_text()
+    md = write_pipeline(
+        tmp_path,
+        "toy",
+        "reproduce toy --encoder-epochs 10",
+        pipeline(10.0),
+        replaces="reproduce toy --encoder-epochs 8",
+    ).read_text()
     records = json.loads((tmp_path / "toy.json").read_text())["pipelines"]
     assert sorted(records) == ["reproduce toy --encoder-epochs 10", "reproduce toy_lstm"]
     assert "--encoder-epochs 8" not in md and md.count("## How this was produced") == 1
@@ -212,7 +259,7 @@ def _markdown_table(lines: list[str], first_header: str) -> list[dict[str, str]]
     start = next(i for i, line in enumerate(lines) if line.startswith(f"| {first_header} |"))
     header = [c.strip() for c in lines[start].strip("|").split("|")]
     rows = []
-    for line in lines[start + 2:]:
+    for line in lines[start + 2 :]:
         if not line.startswith("|"):
             break
         cells = [c.strip() for c in line.strip("|").split("|")]
@@ -227,8 +274,18 @@ def test_analysis_tables_leave_out_columns_no_method_fills():
     from ssm_ms.forecasting.results import render_analysis
 
     def run(label, free_run, lyap_times=None):
-        vt = {"threshold": 0.5, "truth": "noiseless", "n_filter": 50, "horizon": 50, "mean_steps": 40.0, "std_steps": 3.0,
-              "median_steps": 41.0, "mean_seconds": 4.0, "mean_lyapunov_times": lyap_times, "censored_share": 0.5}
+        vt = {
+            "threshold": 0.5,
+            "truth": "noiseless",
+            "n_filter": 50,
+            "horizon": 50,
+            "mean_steps": 40.0,
+            "std_steps": 3.0,
+            "median_steps": 41.0,
+            "mean_seconds": 4.0,
+            "mean_lyapunov_times": lyap_times,
+            "censored_share": 0.5,
+        }
         dyn = {"lyapunov": {"exponents": [0.1, -0.2], "largest": 0.1}, "free_run": free_run}
         return (label, {"info": {"label": label}, "analysis": {"valid_time": vt, "dynamics": dyn}})
 
@@ -237,11 +294,25 @@ def test_analysis_tables_leave_out_columns_no_method_fills():
     (timed,) = _markdown_table(lines, "method")
     assert "mean (Lyapunov times)" not in timed and timed["mean ± std (steps)"] == "40 ± 3"
     (dyn,) = _markdown_table(lines, "SSM (via)")
-    assert list(dyn) == ["SSM (via)", "Lyapunov exponents", "largest (true)", "free runs"] and dyn["free runs"] == "16 x 500"
+    assert (
+        list(dyn) == ["SSM (via)", "Lyapunov exponents", "largest (true)", "free runs"]
+        and dyn["free runs"] == "16 x 500"
+    )
 
-    lorenz = run("SSM-LL + UKF", {"runs": 64, "steps": 10000, "model_mean": [0.1], "model_std": [7.9],
-                                  "reference_mean": [0.0], "reference_std": [7.8], "wasserstein": [0.42],
-                                  "both_wings_share": 1.0}, lyap_times=3.2)
+    lorenz = run(
+        "SSM-LL + UKF",
+        {
+            "runs": 64,
+            "steps": 10000,
+            "model_mean": [0.1],
+            "model_std": [7.9],
+            "reference_mean": [0.0],
+            "reference_std": [7.8],
+            "wasserstein": [0.42],
+            "both_wings_share": 1.0,
+        },
+        lyap_times=3.2,
+    )
     rows = _markdown_table(render_analysis([images, lorenz]), "SSM (via)")
     assert [r["W1 (x)"] for r in rows] == ["—", "0.42"] and [r["both wings"] for r in rows] == ["—", "1"]
     assert rows[1]["x: data mean ± std"] == "0 ± 7.8"

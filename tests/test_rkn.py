@@ -32,8 +32,8 @@ def one_thread():
 # dense references
 def dense_cov(cov: FactorizedCovariance, b: int) -> torch.Tensor:
     """The full ``2m x 2m`` covariance of sample ``b``."""
-    u, l, s = (torch.diag(x[b]) for x in cov)
-    return torch.cat([torch.cat([u, s], 1), torch.cat([s, l], 1)], 0)
+    u, low, s = (torch.diag(x[b]) for x in cov)
+    return torch.cat([torch.cat([u, s], 1), torch.cat([s, low], 1)], 0)
 
 
 def blocks(p: torch.Tensor, m: int):
@@ -187,7 +187,7 @@ def dense_transition_loop(net: RecurrentKalmanNetwork, batch: int, steps: int):
     p = (net.initial_cov * torch.eye(2 * m, dtype=F64)).expand(batch, 2 * m, 2 * m)
     q = torch.diag(torch.cat(net.transition.noise()))
     means, covs = [], []
-    for t in range(steps):
+    for _ in range(steps):
         means.append(mean)
         covs.append(p)
         a11, a12, a21, a22 = net.transition.transition_matrices(mean)
@@ -196,8 +196,12 @@ def dense_transition_loop(net: RecurrentKalmanNetwork, batch: int, steps: int):
         # the RKN keeps only the diagonals of the blocks: do the same to the dense prior
         full = a @ p @ a.transpose(1, 2) + q
         keep = torch.zeros_like(full)
-        for blk in ((slice(0, m), slice(0, m)), (slice(m, None), slice(m, None)),
-                    (slice(m, None), slice(0, m)), (slice(0, m), slice(m, None))):
+        for blk in (
+            (slice(0, m), slice(0, m)),
+            (slice(m, None), slice(m, None)),
+            (slice(m, None), slice(0, m)),
+            (slice(0, m), slice(m, None)),
+        ):
             keep[:, blk[0], blk[1]] = torch.diag_embed(torch.diagonal(full[:, blk[0], blk[1]], dim1=1, dim2=2))
         p = keep
     return torch.stack(means, 1), torch.stack(covs, 1)
@@ -235,7 +239,7 @@ def test_pure_prediction_from_a_nonzero_state():
     with torch.no_grad():
         for p in net.transition.parameters():
             p.add_(0.2 * torch.randn_like(p))
-    batch, steps, m = 2, 6, 3
+    batch, steps = 2, 6
     y = torch.randn(batch, steps, 3, dtype=F64)
     observed = torch.zeros(batch, steps, dtype=torch.bool)
     observed[:, 0] = True

@@ -110,6 +110,7 @@ class NodeProbe(Callback):
 def test_sparse_nodes_follow_the_schedule_and_resume_exactly(tmp_path):
     """node_lr is scaled at the lr milestones, the optimizer reset clears the rows' Adam state, and a
     run resumed after the reset continues bit for bit (parameters, row moments and step counts)."""
+
     def dm():
         return RotationDataModule(data_dir=str(tmp_path / "data"), batch_size=3, val_trajectories=0)
 

@@ -9,7 +9,11 @@ import pytest
 
 from ssm_ms.forecasting.seeds import main
 
-SCORES = {"config seed": (0.13, 0.50, 0.68, 0.82, 1.0), "seed1": (0.20, 0.41, 1.10, 0.79, 0.9), "seed2": (0.16, 0.62, 0.95, 0.90, 1.0)}
+SCORES = {
+    "config seed": (0.13, 0.50, 0.68, 0.82, 1.0),
+    "seed1": (0.20, 0.41, 1.10, 0.79, 0.9),
+    "seed2": (0.16, 0.62, 0.95, 0.90, 1.0),
+}
 
 
 def write_seed(results_dir, experiment, ukf, encoder, w1, largest, wings):
@@ -19,8 +23,15 @@ def write_seed(results_dir, experiment, ukf, encoder, w1, largest, wings):
     for method, mse in (("ukf", ukf), ("encoder", encoder)):
         runs[method] = {
             "info": {"experiment": experiment, "method": method, "model": "SSM-LL", "inference": method},
-            "summary": {f"{method}/clean/mse": {"mean": mse, "std": 0.1, "n": 64}, "last/clean/mse": {"mean": 9.0, "std": 1.0, "n": 64}},
-            "analysis": {"valid_time": {"mean_steps": 1000 * (1 - mse)}, "dynamics": dynamics, "true_system": {"largest": 0.88}},
+            "summary": {
+                f"{method}/clean/mse": {"mean": mse, "std": 0.1, "n": 64},
+                "last/clean/mse": {"mean": 9.0, "std": 1.0, "n": 64},
+            },
+            "analysis": {
+                "valid_time": {"mean_steps": 1000 * (1 - mse)},
+                "dynamics": dynamics,
+                "true_system": {"largest": 0.88},
+            },
         }
     (results_dir / f"{experiment}.json").write_text(json.dumps({"experiment": experiment, "runs": runs}))
 
@@ -32,13 +43,22 @@ def test_seeds_are_gathered_as_mean_and_sample_std(tmp_path, capsys):
     md = main(["lor_cpu", "--results-dir", str(tmp_path)])
     table = json.loads((tmp_path / "lor_cpu_seeds.json").read_text())
     assert table["seeds"] == ["config seed", "seed1", "seed2"]
-    for i, label in enumerate(["ukf: clean/mse", "encoder: clean/mse", "f: W1 of x over the free runs",
-                               "f: largest Lyapunov exponent", "f: free runs visiting both wings"]):
+    for i, label in enumerate(
+        [
+            "ukf: clean/mse",
+            "encoder: clean/mse",
+            "f: W1 of x over the free runs",
+            "f: largest Lyapunov exponent",
+            "f: free runs visiting both wings",
+        ]
+    ):
         values = [v[i] for v in SCORES.values()]
         got = table["summary"][label]
         assert got["mean"] == pytest.approx(statistics.mean(values)) and got["n"] == 3
         assert got["std"] == pytest.approx(statistics.stdev(values))
-    assert table["summary"]["ukf: valid time (steps)"]["mean"] == pytest.approx(1000 * (1 - statistics.mean([0.13, 0.20, 0.16])))
+    assert table["summary"]["ukf: valid time (steps)"]["mean"] == pytest.approx(
+        1000 * (1 - statistics.mean([0.13, 0.20, 0.16]))
+    )
     assert table["summary"]["true system: largest Lyapunov exponent"]["std"] == pytest.approx(0.0)
     assert not any(label.startswith("last") for label in table["rows"])  # references are not the method's scores
     text = md.read_text()

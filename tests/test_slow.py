@@ -16,17 +16,27 @@ pytestmark = pytest.mark.slow
 # What the CPU-sized Lorenz twin must reach (docs/results.md states the targets). (With 16 free runs W1 moved between
 # 0.70 and 1.14 from one snapshot to the next, benchmarks/results/lorenz_cpu_study.md; the stage configs now
 # draw 64 free runs, analysis.dynamics.free_runs, and results/lorenz_T1000_cpu.md has 0.68.)
-WINGS_SHARE = 1.0          # share of the 64 free runs that visit both wings: every one
-MAX_W1 = 1.0               # 1-Wasserstein distance of the free runs' x to the training set's noiseless x
-EXPONENT_TOLERANCE = 0.3   # largest Lyapunov exponent within 30% of the true system's
+WINGS_SHARE = 1.0  # share of the 64 free runs that visit both wings: every one
+MAX_W1 = 1.0  # 1-Wasserstein distance of the free runs' x to the training set's noiseless x
+EXPONENT_TOLERANCE = 0.3  # largest Lyapunov exponent within 30% of the true system's
 
 
 def test_demo_learns_the_pendulum(tmp_path):
     """`make demo`'s config, as shipped: the full-length rollout from the first node follows the clean frames
     far better than the best constant image (the mean frame)."""
-    cli = main(["fit", "--config", str(ROOT / "configs" / "cpu" / "pendulum.yaml"),
-                "--trainer.logger.init_args.save_dir", str(tmp_path / "runs"),
-                "--data.init_args.data_dir", str(tmp_path / "data"), "--trainer.enable_progress_bar", "false"])
+    cli = main(
+        [
+            "fit",
+            "--config",
+            str(ROOT / "configs" / "cpu" / "pendulum.yaml"),
+            "--trainer.logger.init_args.save_dir",
+            str(tmp_path / "runs"),
+            "--data.init_args.data_dir",
+            str(tmp_path / "data"),
+            "--trainer.enable_progress_bar",
+            "false",
+        ]
+    )
     model: MultipleShootingModule = cli.model
     dm = cli.datamodule
     batch = next(iter(dm.val_dataloader()))
@@ -41,10 +51,23 @@ def test_demo_learns_the_pendulum(tmp_path):
 
 def test_quadruple_pendulum_paper_config_starts_and_trains(tmp_path):
     """configs/quad.yaml as written (paper-size data: 4000 trajectories generated), a few optimizer steps."""
-    cli = main(["fit", "--config", str(ROOT / "configs" / "quad.yaml"),
-                "--trainer.logger.init_args.save_dir", str(tmp_path / "runs"),
-                "--data.init_args.data_dir", str(tmp_path / "data"), "--trainer.max_steps", "3",
-                "--trainer.limit_val_batches", "1", "--trainer.enable_progress_bar", "false"])
+    cli = main(
+        [
+            "fit",
+            "--config",
+            str(ROOT / "configs" / "quad.yaml"),
+            "--trainer.logger.init_args.save_dir",
+            str(tmp_path / "runs"),
+            "--data.init_args.data_dir",
+            str(tmp_path / "data"),
+            "--trainer.max_steps",
+            "3",
+            "--trainer.limit_val_batches",
+            "1",
+            "--trainer.enable_progress_bar",
+            "false",
+        ]
+    )
     assert cli.trainer.global_step == 3
     assert cli.datamodule.num_train_trajectories == 2000
     assert (tmp_path / "runs" / "quad").is_dir()
@@ -56,13 +79,32 @@ def test_lorenz_cpu_twin_recovers_the_attractor(tmp_path):
     from the shipped run: results/lorenz_T1000_cpu.md). 30 to 55 minutes on 2 cores, depending on the CPU."""
     import json
 
-    common = ["--trainer.logger.init_args.save_dir", str(tmp_path / "runs"), "--trainer.logger.init_args.version", "slow",
-              "--data.init_args.data_dir", str(tmp_path / "data"), "--trainer.enable_progress_bar", "false"]
+    common = [
+        "--trainer.logger.init_args.save_dir",
+        str(tmp_path / "runs"),
+        "--trainer.logger.init_args.version",
+        "slow",
+        "--data.init_args.data_dir",
+        str(tmp_path / "data"),
+        "--trainer.enable_progress_bar",
+        "false",
+    ]
     main(["fit", "--config", str(ROOT / "configs" / "cpu" / "lorenz_T1000.yaml"), *common])
     ckpt = tmp_path / "runs" / "lorenz_T1000_cpu" / "slow" / "checkpoints" / "last.ckpt"
-    main(["test", "--config", str(ROOT / "configs" / "cpu" / "lorenz_T1000_ukf.yaml"), *common,
-          "--model.init_args.ssm_checkpoint", str(ckpt), "--model.init_args.results_dir", str(tmp_path / "results"),
-          "--model.init_args.figures_dir", str(tmp_path / "figures")])
+    main(
+        [
+            "test",
+            "--config",
+            str(ROOT / "configs" / "cpu" / "lorenz_T1000_ukf.yaml"),
+            *common,
+            "--model.init_args.ssm_checkpoint",
+            str(ckpt),
+            "--model.init_args.results_dir",
+            str(tmp_path / "results"),
+            "--model.init_args.figures_dir",
+            str(tmp_path / "figures"),
+        ]
+    )
     run = json.loads((tmp_path / "results" / "lorenz_T1000_cpu.json").read_text())["runs"]["ukf"]
     analysis = run["analysis"]
     free, ly = analysis["dynamics"]["free_run"], analysis["dynamics"]["lyapunov"]

@@ -67,7 +67,9 @@ def test_sparse_mode_leaves_every_node_outside_the_batch_unchanged(tmp_path, rot
     node of the batch."""
     dense, sparse = NodeWatcher(), NodeWatcher()
     fast_trainer(tmp_path / "d", max_epochs=3, callbacks=[dense]).fit(rotation_model(), rotation_dm)
-    fast_trainer(tmp_path / "s", max_epochs=3, callbacks=[sparse]).fit(rotation_model(node_optimizer="sparse"), rotation_dm)
+    fast_trainer(tmp_path / "s", max_epochs=3, callbacks=[sparse]).fit(
+        rotation_model(node_optimizer="sparse"), rotation_dm
+    )
     assert len(sparse.steps) == len(dense.steps) == 6
     assert _outside_changes(sparse) == [0] * 6
     dense_changes = _outside_changes(dense)

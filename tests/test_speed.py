@@ -5,10 +5,15 @@ import shutil
 import pytest
 import torch
 
-from ssm_ms.runtime import perf
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, Projection
-from ssm_ms.training.shooting import CompiledRollout, compile_unavailable_reason, multiple_shooting_loss, shooting_residuals
+from ssm_ms.runtime import perf
+from ssm_ms.training.shooting import (
+    CompiledRollout,
+    compile_unavailable_reason,
+    multiple_shooting_loss,
+    shooting_residuals,
+)
 from tests.conftest import fast_trainer, rotation_model
 
 NATIVE_BF16 = perf.bf16_support("cpu")[0]
@@ -77,11 +82,12 @@ def test_bf16_refused_where_the_cpu_lacks_it(tmp_path, rotation_dm, monkeypatch)
 def test_module_rollout_uses_the_compiled_function_when_asked():
     """The module routes its rollouts through CompiledRollout (here checked without compiling: the
     object is replaced by a counting wrapper of the eager rollout)."""
-    model = MultipleShootingModule(LocallyLinearTransition(2, 4, 8), Projection([0]), state_dim=2,
-                                   num_trajectories=3, n_nodes=2)
+    model = MultipleShootingModule(
+        LocallyLinearTransition(2, 4, 8), Projection([0]), state_dim=2, num_trajectories=3, n_nodes=2
+    )
     calls = []
 
-    def counting(x0, steps):
+    def counting(x0, steps, u=None):
         calls.append(steps)
         xs = [x0]
         for _ in range(steps - 1):

@@ -31,7 +31,9 @@ def test_valid_time_of_images_scales_by_the_mean_per_pixel_variance():
         err = ((seq_pred - seq_truth) ** 2).mean(1) / pixel_var
         expected.append(next((t for t in range(6) if err[t].sqrt() > 0.5), math.inf))
     assert horizon == 6 and steps.tolist() == expected
-    curve = torch.stack([(((sp - st) ** 2).mean(1) / pixel_var).sqrt() for sp, st in zip(pred.reshape(6, 6, 4), all_truth)])
+    curve = torch.stack(
+        [(((sp - st) ** 2).mean(1) / pixel_var).sqrt() for sp, st in zip(pred.reshape(6, 6, 4), all_truth)]
+    )
     assert acc.growth() == pytest.approx({"1": 0.0, "3": curve[:, 2].mean().item(), "6": curve[:, 5].mean().item()})
     assert 0 < sum(e != math.inf for e in expected) < 6  # the case is not trivial
 
@@ -78,7 +80,9 @@ def test_valid_time_of_images_counts_the_error_above_the_reconstruction_floor():
         expected.append(next((t for t in range(h) if err[t] > 0.5), math.inf))
     assert horizon == h and steps.tolist() == expected
     assert expected[1:] == [3.0, 7.0, 11.0, math.inf] and expected[0] == 0.0  # as constructed
-    assert acc.floor() == pytest.approx(float(((est[:, :m] - truth[:, :m]) ** 2).flatten(1).mean(1).div(var).sqrt().mean()))
+    assert acc.floor() == pytest.approx(
+        float(((est[:, :m] - truth[:, :m]) ** 2).flatten(1).mean(1).div(var).sqrt().mean())
+    )
     assert acc.floor() > 0.5  # the blur alone is over the threshold:
     plain = ValidTimeAccumulator()
     plain.update(est[:, m:], truth[:, m:])
@@ -96,8 +100,12 @@ def test_a_batch_of_forecasts_is_cut_into_the_forecast_and_the_floor_frames():
     acc = ValidTimeAccumulator()
     acc.add_forecast(filtered, predicted, truth, clean=False, to_units=lambda t: 2.0 * t + 1.0)
     by_hand = ValidTimeAccumulator()
-    by_hand.update(2 * predicted + 1, 2 * truth[:, 12:17] + 1, clean=False,
-                   given=(2 * filtered[:, 2:12] + 1, 2 * truth[:, 2:12] + 1))
+    by_hand.update(
+        2 * predicted + 1,
+        2 * truth[:, 12:17] + 1,
+        clean=False,
+        given=(2 * filtered[:, 2:12] + 1, 2 * truth[:, 2:12] + 1),
+    )
     torch.testing.assert_close(acc.normalised_errors(), by_hand.normalised_errors())
     assert acc.floor() == pytest.approx(by_hand.floor()) and not acc.clean
 

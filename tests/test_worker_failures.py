@@ -48,8 +48,9 @@ def run_isolated(scenario, tmp_path: Path):
     writer.close()
     try:
         if not reader.poll(LIMIT):
-            pytest.fail(f"no answer after {LIMIT} s: the generation hangs; its stderr ends with:\n"
-                        f"{err.read_text()[-3000:]}")
+            pytest.fail(
+                f"no answer after {LIMIT} s: the generation hangs; its stderr ends with:\n{err.read_text()[-3000:]}"
+            )
         outcome = reader.recv()
     finally:
         try:
@@ -61,8 +62,9 @@ def run_isolated(scenario, tmp_path: Path):
 
 
 def tiny_module(tmp_path: Path, workers: int) -> P.PendulumDataModule:
-    return P.PendulumDataModule(n_train=6, n_test=2, duration=0.5, image_size=8, workers=workers,
-                                data_dir=str(tmp_path / "data"))
+    return P.PendulumDataModule(
+        n_train=6, n_test=2, duration=0.5, image_size=8, workers=workers, data_dir=str(tmp_path / "data")
+    )
 
 
 def generate_and_report(dm: P.PendulumDataModule) -> dict:
@@ -154,8 +156,12 @@ def test_worker_death_stops_with_one_message(tmp_path):
         return generate_and_report(tiny_module(tmp_path, 2))
 
     outcome, stderr = run_isolated(scenario, tmp_path)
-    check_failure(outcome, stderr, f"a worker process died (exit code {-signal.SIGKILL}): killed (e.g. by the "
-                                   "out-of-memory killer: try fewer `workers`) or crashed")
+    check_failure(
+        outcome,
+        stderr,
+        f"a worker process died (exit code {-signal.SIGKILL}): killed (e.g. by the "
+        "out-of-memory killer: try fewer `workers`) or crashed",
+    )
 
 
 def test_pool_still_generates_the_single_process_arrays(tmp_path):

@@ -6,7 +6,7 @@ image size unless a config names them (the decoder drawn at the data's image siz
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, NamedTuple, Optional
+from typing import Any, NamedTuple
 
 from torch import Tensor
 
@@ -26,7 +26,7 @@ class SequenceOutput(NamedTuple):
     """
 
     mean: Tensor
-    var: Optional[Tensor] = None
+    var: Tensor | None = None
 
 
 def preset_for(obs_shape: tuple[int, ...], argument: str) -> str:
@@ -45,10 +45,9 @@ def preset_for(obs_shape: tuple[int, ...], argument: str) -> str:
 def decoder_preset_shape(preset: str) -> tuple[int, int, int]:
     """Output shape of a ConvDecoder preset, from its spec (without building it)."""
     _, size, layers = DECODER_PRESETS[preset]
-    channels = 0
-    for channels, kernel, stride in layers:
+    for _, kernel, stride in layers:
         size = (size - 1) * stride + kernel
-    return (channels, size, size)
+    return (layers[-1][0] if layers else 0, size, size)
 
 
 def frame_encoder(obs_shape: tuple[int, ...], preset: str | Mapping[str, Any]) -> FrameEncoder:
@@ -58,12 +57,15 @@ def frame_encoder(obs_shape: tuple[int, ...], preset: str | Mapping[str, Any]) -
         return FrameEncoder(obs_shape, preset=preset)
     unknown = sorted(set(preset) - {"conv_channels", "final_channels", "final_relu"})
     if unknown:
-        raise ValueError(f"encoder_preset as a mapping takes conv_channels, final_channels, final_relu; unknown: {unknown}")
+        raise ValueError(
+            f"encoder_preset as a mapping takes conv_channels, final_channels, final_relu; unknown: {unknown}"
+        )
     return FrameEncoder(obs_shape, **preset)
 
 
-def image_decoder(in_features: int, obs_shape: tuple[int, ...], preset: Optional[str | Mapping[str, Any]],
-                  output: str) -> ConvDecoder:
+def image_decoder(
+    in_features: int, obs_shape: tuple[int, ...], preset: str | Mapping[str, Any] | None, output: str
+) -> ConvDecoder:
     """The paper's transposed-convolution decoder from ``in_features`` to images of ``obs_shape``
     (``preset=None``: by image size; a mapping: the layers themselves, as ``ConvDecoder``'s ``stem_channels`` and
     ``layers``), refusing one that draws another image size."""
@@ -74,8 +76,10 @@ def image_decoder(in_features: int, obs_shape: tuple[int, ...], preset: Optional
     if isinstance(preset, Mapping):
         unknown = sorted(set(preset) - {"stem_channels", "layers"})
         if unknown or "layers" not in preset:
-            raise ValueError(f"decoder_preset as a mapping takes 'layers' (and optionally 'stem_channels'), got "
-                             f"{sorted(preset)}: e.g. {{stem_channels: 64, layers: [[32, 3, 2], [1, 4, 2]]}}")
+            raise ValueError(
+                f"decoder_preset as a mapping takes 'layers' (and optionally 'stem_channels'), got "
+                f"{sorted(preset)}: e.g. {{stem_channels: 64, layers: [[32, 3, 2], [1, 4, 2]]}}"
+            )
         decoder = ConvDecoder(in_features, preset=None, output=output, image_size=image_size, **preset)
     else:
         decoder = ConvDecoder(in_features, preset=preset, output=output, image_size=image_size)

@@ -14,7 +14,7 @@ filtering, a prediction afterwards -- the same convention as :class:`~ssm_ms.bas
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any, Optional
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -42,8 +42,8 @@ class Seq2SeqLSTM(nn.Module):
         self,
         obs_shape: Sequence[int],
         hidden: int = 1024,
-        encoder_preset: Optional[str | Mapping[str, Any]] = None,
-        decoder_preset: Optional[str | Mapping[str, Any]] = None,
+        encoder_preset: str | Mapping[str, Any] | None = None,
+        decoder_preset: str | Mapping[str, Any] | None = None,
         output: str = "sigmoid",
     ):
         super().__init__()
@@ -77,7 +77,7 @@ class Seq2SeqLSTM(nn.Module):
         y = torch.where(mask, y, torch.zeros((), dtype=y.dtype, device=y.device))  # predicting: no measurement
         return torch.cat([self.frames(y), observed.unsqueeze(-1).to(y.dtype)], dim=-1)
 
-    def forward(self, y: Tensor, observed: Optional[Tensor] = None) -> SequenceOutput:
+    def forward(self, y: Tensor, observed: Tensor | None = None) -> SequenceOutput:
         """``y [B, T, *obs_shape]``, ``observed [B, T]`` (default: all) -> ``SequenceOutput(mean [B, T, *obs_shape])``."""
         if observed is None:
             observed = torch.ones(y.shape[:2], dtype=torch.bool, device=y.device)

@@ -64,7 +64,7 @@ class BaselineForecaster(ForecastModule):
         train_window: int | None = None,
         obs_shape: list[int] | None = None,
         n_predict: int | None = None,
-        metrics: list[str] = ["mse", "bce"],
+        metrics: list[str] = ["mse", "bce"],  # noqa: B006 (read, never mutated; a list for the CLI)
         **kwargs: Any,
     ):
         super().__init__(n_filter, n_predict=n_predict, metrics=metrics, **kwargs)
@@ -80,7 +80,9 @@ class BaselineForecaster(ForecastModule):
         if "obs_shape" in (network or {}):
             raise ValueError("network.obs_shape comes from the data: remove it from the config")
         if self.analysis_section("dynamics") is not None:
-            raise ValueError("analysis.dynamics studies an SSM's f; a baseline has none: keep valid_time, drop dynamics")
+            raise ValueError(
+                "analysis.dynamics studies an SSM's f; a baseline has none: keep valid_time, drop dynamics"
+            )
         self.network_kwargs = dict(network or {})
         self.loss_name, self.lr, self.train_n_filter = loss, float(lr), train_n_filter
         self.net: nn.Module | None = None
@@ -125,7 +127,9 @@ class BaselineForecaster(ForecastModule):
                 )
             self.training_split(min(dm.seq_len, self.train_window or dm.seq_len))  # fail now if nothing to predict
         if self.loss_name == "bce" and len(shape) == 1:
-            raise ValueError("loss bce is for images in [0, 1]; these measurements are vectors: use mse or gaussian_nll")
+            raise ValueError(
+                "loss bce is for images in [0, 1]; these measurements are vectors: use mse or gaussian_nll"
+            )
 
     def training_split(self, seq_len: int) -> int:
         """How many leading measurements of a training sequence of ``seq_len`` steps are given."""

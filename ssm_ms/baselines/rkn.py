@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any, NamedTuple, Optional
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -90,7 +90,7 @@ def _matvec(a: Tensor, v: Tensor) -> Tensor:
 
 
 def rkn_update(
-    mean: Tensor, cov: FactorizedCovariance, w: Tensor, w_var: Tensor, valid: Optional[Tensor] = None
+    mean: Tensor, cov: FactorizedCovariance, w: Tensor, w_var: Tensor, valid: Tensor | None = None
 ) -> tuple[Tensor, FactorizedCovariance]:
     """The RKN's Kalman update with ``H = [I_m, 0]`` and ``R = diag(w_var)``, in closed form (no inversion).
 
@@ -314,9 +314,9 @@ class RecurrentKalmanNetwork(nn.Module):
         n_basis: int = 15,
         bandwidth: int = 3,
         coeff_hidden: Sequence[int] = (),
-        encoder_preset: Optional[str | Mapping[str, Any]] = None,
+        encoder_preset: str | Mapping[str, Any] | None = None,
         encoder_hidden: Sequence[int] = (),
-        decoder_preset: Optional[str | Mapping[str, Any]] = None,
+        decoder_preset: str | Mapping[str, Any] | None = None,
         decoder_hidden: Sequence[int] = (64,),
         initial_cov: float = 10.0,
         normalize_latent_obs: bool = True,
@@ -369,7 +369,7 @@ class RecurrentKalmanNetwork(nn.Module):
         self.transition = RKNTransition(m, n_basis, bandwidth, coeff_hidden, coeff_activation, initial_transition_var)
 
         # --- decoder
-        self.decoder_var: Optional[nn.Module] = None
+        self.decoder_var: nn.Module | None = None
         if is_image:
             self.decoder: nn.Module = image_decoder(n, obs_shape, decoder_preset, output)
         else:
@@ -389,7 +389,7 @@ class RecurrentKalmanNetwork(nn.Module):
         return w, elup1(self.w_var_head(h))
 
     def initial_state(
-        self, batch: int, dtype: Optional[torch.dtype] = None, device: Optional[torch.device] = None
+        self, batch: int, dtype: torch.dtype | None = None, device: torch.device | None = None
     ) -> tuple[Tensor, FactorizedCovariance]:
         """The prior at time 0: mean 0 ``[batch, 2m]``; upper = lower = ``initial_cov``, side = 0 ``[batch, m]``."""
         p = self.w_head.weight
@@ -401,7 +401,7 @@ class RecurrentKalmanNetwork(nn.Module):
             FactorizedCovariance(full, full.clone(), torch.zeros(batch, m, dtype=dtype, device=device)),
         )
 
-    def _check_inputs(self, y: Tensor, observed: Optional[Tensor]) -> Tensor:
+    def _check_inputs(self, y: Tensor, observed: Tensor | None) -> Tensor:
         k = len(self.obs_shape)
         if y.dim() != 2 + k or tuple(y.shape[2:]) != self.obs_shape:
             raise ValueError(
@@ -422,7 +422,7 @@ class RecurrentKalmanNetwork(nn.Module):
             observed = observed != 0
         return observed.to(y.device)
 
-    def filter(self, y: Tensor, observed: Optional[Tensor] = None) -> RKNFilterResult:
+    def filter(self, y: Tensor, observed: Tensor | None = None) -> RKNFilterResult:
         """Latent posteriors: ``means [B, T, 2m]`` and ``covs`` (:class:`FactorizedCovariance`, ``[B, T, m]``).
 
         ``observed [B, T]`` (bool, default all True): where False, ``y[:, t]`` is ignored (zeroed before
@@ -452,7 +452,7 @@ class RecurrentKalmanNetwork(nn.Module):
             var = elup1(self.decoder_var(torch.cat(tuple(covs), dim=-1)))
         return SequenceOutput(mean, var)
 
-    def forward(self, y: Tensor, observed: Optional[Tensor] = None) -> SequenceOutput:
+    def forward(self, y: Tensor, observed: Tensor | None = None) -> SequenceOutput:
         """``y [B, T, *obs_shape]``, ``observed [B, T]`` -> estimates ``mean [B, T, *obs_shape]`` (and ``var``)."""
         result = self.filter(y, observed)
         return self.decode(result.means, result.covs)

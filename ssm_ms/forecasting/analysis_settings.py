@@ -199,7 +199,7 @@ def _options(cls: type) -> Any:
     fields = {}
     for f in dataclasses.fields(cls):
         section = _section_type(hints[f.name])
-        fields[f.name] = hints[f.name] if section is None else Optional[_options(section)]
+        fields[f.name] = hints[f.name] if section is None else Optional[_options(section)]  # noqa: UP045 (a type built at run time)
     return TypedDict(cls.__name__.replace("Settings", "Options"), fields, total=False)
 
 

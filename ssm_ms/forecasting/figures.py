@@ -38,7 +38,10 @@ def log_forecast_figures(module: Any, first: dict[str, torch.Tensor], n_sequence
         clean = to_units(first["y_clean"]) if "y_clean" in first else None
         if y.shape[-1] == 1:
             figures["lorenz_prediction"] = drawing.lorenz_prediction_figure(
-                to_units(y[0]), None if clean is None else clean[0], to_units(y_model[0]), k,
+                to_units(y[0]),
+                None if clean is None else clean[0],
+                to_units(y_model[0]),
+                k,
                 window=min(y.shape[1], 400),
             )
         else:

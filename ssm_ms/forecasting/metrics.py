@@ -66,8 +66,10 @@ def ssim_per_sequence(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """``[B, p, C, H, W]`` images in [0, 1] -> ``[B]``: each frame's SSIM (see the module doc: the window positions
     that lie inside the frame, no padding), averaged over frames. Computed in float64."""
     if pred.dim() != 5 or min(pred.shape[-2:]) < SSIM_WINDOW:
-        raise ValueError(f"metric 'ssim' needs image frames [B, T, C, H, W] of at least {SSIM_WINDOW} x {SSIM_WINDOW} "
-                         f"pixels, got {list(pred.shape)}: leave 'ssim' out of metrics for this data")
+        raise ValueError(
+            f"metric 'ssim' needs image frames [B, T, C, H, W] of at least {SSIM_WINDOW} x {SSIM_WINDOW} "
+            f"pixels, got {list(pred.shape)}: leave 'ssim' out of metrics for this data"
+        )
     b, p, c, h, w = pred.shape
     x = pred.detach().reshape(b * p * c, 1, h, w).double()
     y = target.detach().reshape(b * p * c, 1, h, w).double()
@@ -82,7 +84,9 @@ def ssim_per_sequence(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return ssim.reshape(b, p, -1).mean(2).mean(1).to(pred.dtype)
 
 
-def sequence_metrics(pred: torch.Tensor, target: torch.Tensor, metrics: Sequence[str], bce_reduction: str) -> dict[str, torch.Tensor]:
+def sequence_metrics(
+    pred: torch.Tensor, target: torch.Tensor, metrics: Sequence[str], bce_reduction: str
+) -> dict[str, torch.Tensor]:
     """``{metric: [B]}`` for the names in ``metrics`` (see :data:`METRICS` and the module doc)."""
     per_sequence = {
         "mse": mse_per_sequence,

@@ -30,7 +30,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, NamedTuple, Optional
+from typing import Any, NamedTuple
 
 import lightning.pytorch as pl
 import torch
@@ -172,7 +172,11 @@ class ForecastModule(pl.LightningModule):
         images it can score."""
         if stage == "predict":
             self.prediction_split()
-        obs_shape = getattr(self.datamodule, "obs_shape", None) if "ssim" in self.metric_names and stage in ("fit", "test") else None
+        obs_shape = (
+            getattr(self.datamodule, "obs_shape", None)
+            if "ssim" in self.metric_names and stage in ("fit", "test")
+            else None
+        )
         if obs_shape is not None:
             ssim_per_sequence(torch.zeros(1, 1, *obs_shape), torch.zeros(1, 1, *obs_shape))
         test = getattr(self.datamodule, "datasets", {}).get("test") if stage == "test" else None
@@ -276,8 +280,9 @@ class ForecastModule(pl.LightningModule):
         if (k, h) != (out.filtered.shape[1], out.predicted.shape[1]):
             out = self.checked_forecast(y[:, :k], h)
         truth = batch["y_clean" if "y_clean" in batch else "y"]
-        self._valid_time.add_forecast(out.filtered, out.predicted, truth, clean="y_clean" in batch,
-                                      to_units=self.to_units())
+        self._valid_time.add_forecast(
+            out.filtered, out.predicted, truth, clean="y_clean" in batch, to_units=self.to_units()
+        )
 
     def figure_batch(self, batch: Mapping[str, torch.Tensor], out: Forecast) -> dict[str, torch.Tensor]:
         """What the figures draw from the first test batch: its sequences up to the forecast's end, the forecaster's
@@ -318,8 +323,12 @@ class ForecastModule(pl.LightningModule):
         out = self.checked_forecast(y[:, :k], p, distribution=True)
         norm = self.normalizer()
         to_units = norm.denormalize if norm is not None else (lambda t: t)
-        result = {"index": batch["index"], "measured": to_units(y), "filtered": to_units(out.filtered),
-                  "predicted": to_units(out.predicted)}
+        result = {
+            "index": batch["index"],
+            "measured": to_units(y),
+            "filtered": to_units(out.filtered),
+            "predicted": to_units(out.predicted),
+        }
         if out.states is not None:
             result["states"], result["predicted_states"] = out.states[:, :k], out.states[:, k:]
         if out.state_covs is not None:
@@ -377,7 +386,9 @@ class ForecastModule(pl.LightningModule):
         if self._valid_time is not None and self._valid_time.count:
             settings = self.analysis_section("valid_time")
             out["valid_time"] = self._valid_time.report(
-                settings.threshold, settings.n_filter or self.n_filter, self.sample_period(),
+                settings.threshold,
+                settings.n_filter or self.n_filter,
+                self.sample_period(),
                 reference["largest"] if reference else None,
             )
         return out

@@ -21,10 +21,11 @@ import math
 import re
 import shlex
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from ssm_ms.forecasting.results import PAPER, _format, paper_key, paper_row
 
@@ -61,8 +62,11 @@ class Results:
         prefix of it: options a later re-test appended); of several, the one recorded closest to the run."""
         run = self.run(experiment, method)
         command = "python " + run["info"].get("command", "")
-        found = [p for p in (self.file(experiment).get("pipelines") or {}).values()
-                 if any(command.startswith(s["command"]) for s in p.get("stages", []) if " test " in s["command"])]
+        found = [
+            p
+            for p in (self.file(experiment).get("pipelines") or {}).values()
+            if any(command.startswith(s["command"]) for s in p.get("stages", []) if " test " in s["command"])
+        ]
         if not found:
             return None
         when = _date(run["info"].get("date"))
@@ -129,8 +133,12 @@ def training(pipeline: dict[str, Any]) -> str:
         epochs = _option(command, "--trainer.max_epochs")
         runs = stage.get("runs", 1)
         resumed = " resumed" if "--ckpt_path" in command.split() else ""
-        parts.append(f"{stage_label(command)}{resumed}" + (f" {epochs} epochs" if epochs else "")
-                     + f" {minutes(stage['seconds'])}" + (f" in {runs} runs" if runs > 1 else ""))
+        parts.append(
+            f"{stage_label(command)}{resumed}"
+            + (f" {epochs} epochs" if epochs else "")
+            + f" {minutes(stage['seconds'])}"
+            + (f" in {runs} runs" if runs > 1 else "")
+        )
     return ", ".join(parts)
 
 
@@ -180,16 +188,26 @@ def method_table(results: Results, groups: list[Group], with_valid: bool) -> lis
             summary = run["summary"]
             pipeline = results.pipeline(experiment, method)
             same = pipeline is not None and pipeline is previous
-            cells = [group.title if i == 0 else "", run["info"].get("label", method),
-                     " / ".join(score(summary.get(f"{method}/{m}")) for m in group.metrics),
-                     paper_cells(experiment, run, group.metrics), *([valid(run)] if with_valid else []),
-                     "the same command" if same else produced(pipeline, run)]
+            cells = [
+                group.title if i == 0 else "",
+                run["info"].get("label", method),
+                " / ".join(score(summary.get(f"{method}/{m}")) for m in group.metrics),
+                paper_cells(experiment, run, group.metrics),
+                *([valid(run)] if with_valid else []),
+                "the same command" if same else produced(pipeline, run),
+            ]
             lines.append("| " + " | ".join(cells) + " |")
             previous = pipeline
         label, experiment, method, row = group.reference
         summary = results.run(experiment, method)["summary"]
-        cells = ["", f"*{label}*", " / ".join(reference(summary.get(f"{row}/{m}")) for m in group.metrics), "",
-                 *([""] if with_valid else []), ""]
+        cells = [
+            "",
+            f"*{label}*",
+            " / ".join(reference(summary.get(f"{row}/{m}")) for m in group.metrics),
+            "",
+            *([""] if with_valid else []),
+            "",
+        ]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -199,26 +217,46 @@ IMAGES = ("noisy/mse", "noisy/bce")
 
 def full_size(results: Results) -> list[str]:
     """Tables 1 and 2 at the paper's size."""
-    return method_table(results, [
-        Group("simple pendulum (Table 1), noisy per-pixel MSE / BCE", IMAGES,
-              (("pendulum", "encoder"), ("pendulum_fc", "encoder"), ("pendulum", "lstm"), ("pendulum", "rkn")),
-              ("mean training frame", "pendulum", "encoder", "mean")),
-        Group("quadruple pendulum (Table 2), noisy per-pixel MSE / BCE", IMAGES,
-              (("quad", "encoder"), ("quad_fc", "encoder"), ("quad", "lstm"), ("quad", "rkn")),
-              ("mean training frame", "quad", "encoder", "mean")),
-    ], with_valid=True)
+    return method_table(
+        results,
+        [
+            Group(
+                "simple pendulum (Table 1), noisy per-pixel MSE / BCE",
+                IMAGES,
+                (("pendulum", "encoder"), ("pendulum_fc", "encoder"), ("pendulum", "lstm"), ("pendulum", "rkn")),
+                ("mean training frame", "pendulum", "encoder", "mean"),
+            ),
+            Group(
+                "quadruple pendulum (Table 2), noisy per-pixel MSE / BCE",
+                IMAGES,
+                (("quad", "encoder"), ("quad_fc", "encoder"), ("quad", "lstm"), ("quad", "rkn")),
+                ("mean training frame", "quad", "encoder", "mean"),
+            ),
+        ],
+        with_valid=True,
+    )
 
 
 def cpu_twins(results: Results) -> list[str]:
     """The image experiments' CPU-sized twins (Lorenz's: :func:`lorenz_sweep`)."""
-    return method_table(results, [
-        Group("simple pendulum, noisy MSE per pixel", ("noisy/mse",),
-              (("pendulum_cpu", "encoder"), ("pendulum_cpu", "lstm"), ("pendulum_cpu", "rkn")),
-              ("mean training frame", "pendulum_cpu", "encoder", "mean")),
-        Group("Moving MNIST (Table 3), BCE summed over a frame's 64x64 pixels", ("noisy/bce",),
-              (("mnist_cpu", "encoder"), ("mnist_cpu", "lstm")),
-              ("mean training frame", "mnist_cpu", "encoder", "mean")),
-    ], with_valid=False)
+    return method_table(
+        results,
+        [
+            Group(
+                "simple pendulum, noisy MSE per pixel",
+                ("noisy/mse",),
+                (("pendulum_cpu", "encoder"), ("pendulum_cpu", "lstm"), ("pendulum_cpu", "rkn")),
+                ("mean training frame", "pendulum_cpu", "encoder", "mean"),
+            ),
+            Group(
+                "Moving MNIST (Table 3), BCE summed over a frame's 64x64 pixels",
+                ("noisy/bce",),
+                (("mnist_cpu", "encoder"), ("mnist_cpu", "lstm")),
+                ("mean training frame", "mnist_cpu", "encoder", "mean"),
+            ),
+        ],
+        with_valid=False,
+    )
 
 
 LORENZ_T = (10, 100, 1000, 10000)
@@ -250,23 +288,36 @@ def lorenz_sweep(results: Results) -> list[str]:
         def cell(t: int) -> str:
             run = results.run(files[t], method)
             return f"{score(run['summary'].get(f'{method}/{LORENZ}'))} / {paper_cells(files[t], run, (LORENZ,))}"
+
         return cell
 
     for method in ("ukf", "encoder"):
         row(results.run(files[1000], method)["info"]["label"], versus(method))
-    row(f"*the learned f alone: largest Lyapunov exponent (true {_sig(true, 2)}); free runs on both wings*",
-        lambda t: _f_alone(results.run(files[t], "ukf")))
+    row(
+        f"*the learned f alone: largest Lyapunov exponent (true {_sig(true, 2)}); free runs on both wings*",
+        lambda t: _f_alone(results.run(files[t], "ukf")),
+    )
     for method in ("lstm", "rkn"):
         row(results.run(files[1000], method)["info"]["label"], versus(method))
-    row("*repeat the last estimate (reference, with the UKF)*",
-        lambda t: reference(results.run(files[t], "ukf")["summary"].get(f"last/{LORENZ}")))
-    row("*valid prediction time (steps): UKF / encoder / LSTM / RKN*",
-        lambda t: " / ".join(valid(results.run(files[t], m)) for m in ("ukf", "encoder", "lstm", "rkn")))
+    row(
+        "*repeat the last estimate (reference, with the UKF)*",
+        lambda t: reference(results.run(files[t], "ukf")["summary"].get(f"last/{LORENZ}")),
+    )
+    row(
+        "*valid prediction time (steps): UKF / encoder / LSTM / RKN*",
+        lambda t: " / ".join(valid(results.run(files[t], m)) for m in ("ukf", "encoder", "lstm", "rkn")),
+    )
     noise_free, words = NOISE_FREE
     ukf = results.run(noise_free, "ukf")
-    row("SSM-LL + UKF, noise-free measurements",
-        lambda t: f"{score(ukf['summary'].get(f'ukf/{LORENZ}'))}, valid {valid(ukf)} steps / {words} "
-        f"({produced(results.pipeline(noise_free, 'ukf'), ukf)})" if t == 1000 else "—")
+    row(
+        "SSM-LL + UKF, noise-free measurements",
+        lambda t: (
+            f"{score(ukf['summary'].get(f'ukf/{LORENZ}'))}, valid {valid(ukf)} steps / {words} "
+            f"({produced(results.pipeline(noise_free, 'ukf'), ukf)})"
+            if t == 1000
+            else "—"
+        ),
+    )
 
     def commands(t: int) -> str:
         pipelines: list[dict[str, Any]] = []
@@ -322,14 +373,19 @@ def main(argv: list[str] | None = None) -> int:
     if opts.check:
         names = stale(text, opts.results_dir)
         if names:
-            print(f"{opts.readme}: tables differ from {opts.results_dir}/*.json: {', '.join(names)} "
-                  "(python -m ssm_ms.forecasting.readme rewrites them)", file=sys.stderr)
+            print(
+                f"{opts.readme}: tables differ from {opts.results_dir}/*.json: {', '.join(names)} "
+                "(python -m ssm_ms.forecasting.readme rewrites them)",
+                file=sys.stderr,
+            )
         return 1 if names else 0
     new = render(text, opts.results_dir)
     if new != text:
         opts.readme.write_text(new, encoding="utf-8")
-    print(f"{opts.readme}: {len(MARKER.findall(new))} tables from {opts.results_dir}/*.json"
-          + ("" if new != text else " (unchanged)"))
+    print(
+        f"{opts.readme}: {len(MARKER.findall(new))} tables from {opts.results_dir}/*.json"
+        + ("" if new != text else " (unchanged)")
+    )
     return 0
 
 

@@ -19,7 +19,8 @@ import warnings
 from pathlib import Path
 from typing import Any, Union
 
-Cell = Union[tuple[float, Union[float, None]], str]
+Cell = Union[tuple[float, float | None], str]  # noqa: UP007 (a run-time alias)
+
 
 def _format(cell: Cell | None) -> str:
     """A paper cell: ``mean ± std``, ``mean`` or its words."""
@@ -31,10 +32,11 @@ def _format(cell: Cell | None) -> str:
     return f"{mean}" if std is None else f"{mean} ± {std}"
 
 
-
 _IMAGES = "per-pixel scores vs the noisy frames, mean ± std over {n} test trajectories"
-_LORENZ = ("Table 4 (Lorenz, x measured with noise std 2.5; filter 1990 steps, predict 10; MSE vs the noiseless x "
-           "in original units, 1000 test trajectories of 2000 steps; training pieces of T = {t} steps)")
+_LORENZ = (
+    "Table 4 (Lorenz, x measured with noise std 2.5; filter 1990 steps, predict 10; MSE vs the noiseless x "
+    "in original units, 1000 test trajectories of 2000 steps; training pieces of T = {t} steps)"
+)
 _LORENZ_ROWS: dict[str, dict[int, Cell]] = {
     "SSM-RNN": {10: (3592.273, None), 100: (10.284, None), 1000: (0.391, None), 10000: (0.154, None)},
     "SSM-UKF": {10: (46.702, None), 100: (10.999, None), 1000: (0.670, None), 10000: (0.335, None)},
@@ -76,10 +78,16 @@ PAPER: dict[str, dict[str, Any]] = {
         f"lorenz_T{t}": {
             "table": _LORENZ.format(t=t),
             "rows": {method: {"clean/mse": cells[t]} for method, cells in _LORENZ_ROWS.items()},
-            "notes": ["SSM-FC \"performs poorly\" on Lorenz and is not reported. The whole of Table 4 (MSE):", "",
-                      "| method | T=10 | T=100 | T=1000 | T=10,000 |", "|---|---|---|---|---|"]
-            + [f"| {method} | " + " | ".join(_format(cells[tt]) for tt in (10, 100, 1000, 10000)) + " |"
-               for method, cells in _LORENZ_ROWS.items()],
+            "notes": [
+                'SSM-FC "performs poorly" on Lorenz and is not reported. The whole of Table 4 (MSE):',
+                "",
+                "| method | T=10 | T=100 | T=1000 | T=10,000 |",
+                "|---|---|---|---|---|",
+            ]
+            + [
+                f"| {method} | " + " | ".join(_format(cells[tt]) for tt in (10, 100, 1000, 10000)) + " |"
+                for method, cells in _LORENZ_ROWS.items()
+            ],
         }
         for t in (10, 100, 1000, 10000)
     },
@@ -97,7 +105,7 @@ def paper_key(experiment: str) -> str | None:
     ``lorenz_T1000``, ``lorenz_T1000_noiseless_cpu`` -> None)."""
     for key in sorted(PAPER, key=len, reverse=True):
         if experiment == key or experiment.startswith(key + "_"):
-            rest = experiment[len(key) + 1:]
+            rest = experiment[len(key) + 1 :]
             same = all(part in SAME_SETTING or re.fullmatch(r"seed\d+", part) for part in rest.split("_"))
             return key if not rest or same else None
     return None
@@ -140,20 +148,28 @@ def render_markdown(
     paper = PAPER[key] if key is not None else None
     columns = sorted({k.split("/", 1)[1] for run in runs.values() for k in run["summary"]})
     pcols = sorted({c for r in paper["rows"].values() for c in r}) if paper else []
-    lines.append("Mean ± std over test sequences. `last`: repeat the method's estimate of the last given frame; "
-                 "`mean`: the mean training frame (references, computed by the same code).")
+    lines.append(
+        "Mean ± std over test sequences. `last`: repeat the method's estimate of the last given frame; "
+        "`mean`: the mean training frame (references, computed by the same code)."
+    )
     if paper:
-        lines.append(f"Beside each method, the paper's row for the same method ({paper['table'].split(' (')[0]}, below).")
+        lines.append(
+            f"Beside each method, the paper's row for the same method ({paper['table'].split(' (')[0]}, below)."
+        )
     if experiment.endswith("_cpu") or "_cpu_" in experiment:
-        lines.append("This is a CPU-sized twin (`configs/cpu/`: less data, smaller networks, fewer epochs than the "
-                     "paper); the paper's figures are for its full-size setting.")
+        lines.append(
+            "This is a CPU-sized twin (`configs/cpu/`: less data, smaller networks, fewer epochs than the "
+            "paper); the paper's figures are for its full-size setting."
+        )
     lines.append("")
     head = ["method", *columns] + (["paper row", *(f"paper {c}" for c in pcols)] if paper else [])
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|---" * len(head) + "|")
     # the SSMs first, then the baselines (the paper's order), each group by label
-    ordered = sorted(runs.items(), key=lambda item: (item[1]["info"].get("model") in ("LSTM", "RKN"),
-                                                     item[1]["info"].get("label", item[0])))
+    ordered = sorted(
+        runs.items(),
+        key=lambda item: (item[1]["info"].get("model") in ("LSTM", "RKN"), item[1]["info"].get("label", item[0])),
+    )
     for method, run in ordered:
         info = run["info"]
         per_row: dict[str, dict[str, dict[str, float]]] = {}
@@ -185,19 +201,39 @@ def render_markdown(
     for method, run in ordered:
         info = run["info"]
         lines.append(f"- **{info.get('label', method)}** (`{method}`): `{info.get('command', '')}`")
-        for field in ("date", "machine", "ssm_checkpoint", "checkpoint", "test_sequences", "data", "n_filter", "n_predict",
-                      "bce_reduction", "bce_clamp", "original_units", "inference_settings", "test_seconds"):
+        for field in (
+            "date",
+            "machine",
+            "ssm_checkpoint",
+            "checkpoint",
+            "test_sequences",
+            "data",
+            "n_filter",
+            "n_predict",
+            "bce_reduction",
+            "bce_clamp",
+            "original_units",
+            "inference_settings",
+            "test_seconds",
+        ):
             if info.get(field) is not None:
                 lines.append(f"  - {field}: {info[field]}")
     lines.append("")
     if pipelines:
         lines += ["## How this was produced", ""]
         for pipeline in sorted(pipelines.values(), key=lambda p: p.get("date", "")):
-            lines += [f"`{pipeline.get('command', '')}` on {pipeline.get('machine', '?')}, "
-                      f"{pipeline.get('date', '?')}: {pipeline.get('total_seconds', '?')} s in all.", ""]
+            lines += [
+                f"`{pipeline.get('command', '')}` on {pipeline.get('machine', '?')}, "
+                f"{pipeline.get('date', '?')}: {pipeline.get('total_seconds', '?')} s in all.",
+                "",
+            ]
             lines += ["| stage | seconds |", "|---|---|"]
-            lines += [f"| `{st['command']}` | {st['seconds']}" + (f" (in {st['runs']} runs: resumed from its last "
-                      "completed epoch)" if st.get("runs", 1) > 1 else "") + " |" for st in pipeline.get("stages", [])]
+            lines += [
+                f"| `{st['command']}` | {st['seconds']}"
+                + (f" (in {st['runs']} runs: resumed from its last completed epoch)" if st.get("runs", 1) > 1 else "")
+                + " |"
+                for st in pipeline.get("stages", [])
+            ]
             lines.append("")
     return "\n".join(lines)
 
@@ -207,7 +243,7 @@ def _num(value: Any, digits: int = 3) -> str:
         return "—"
     if isinstance(value, float) and value == float("inf"):
         return "inf"
-    if isinstance(value, (int, float)) and 10 ** digits <= abs(value) < 1e9:
+    if isinstance(value, (int, float)) and 10**digits <= abs(value) < 1e9:
         return f"{value:.0f}"  # whole steps read better than 1e+03
     return f"{value:.{digits}g}" if isinstance(value, (int, float)) else str(value)
 
@@ -216,8 +252,11 @@ def _table(header: list[str], rows: list[list[str]]) -> list[str]:
     """A markdown table less the columns after the first that read "—" on every row (a Lorenz-only statistic in an
     image experiment's file, say)."""
     keep = [0] + [j for j in range(1, len(header)) if any(row[j] != "—" for row in rows)]
-    return ["| " + " | ".join(header[j] for j in keep) + " |", "|" + "---|" * len(keep),
-            *("| " + " | ".join(row[j] for j in keep) + " |" for row in rows)]
+    return [
+        "| " + " | ".join(header[j] for j in keep) + " |",
+        "|" + "---|" * len(keep),
+        *("| " + " | ".join(row[j] for j in keep) + " |" for row in rows),
+    ]
 
 
 def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
@@ -238,50 +277,106 @@ def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
             f"counted as the horizon: a lower bound). Lyapunov times use the true system's largest exponent"
             + (f" ({true['largest']:.3g} per time unit, {true['source']})." if true else " (not known here).")
         )
-        lines.append(" `error at step`: the normalised error averaged over sequences at those forecast steps (how it grows).")
+        lines.append(
+            " `error at step`: the normalised error averaged over sequences at those forecast steps (how it grows)."
+        )
         if any(vt.get("given_error") is not None for _, vt in timed):
-            lines.append(" Images: the error counted is the part above the sequence's own reconstruction error on its last "
-                         "10 given frames (`given`: that floor, normalised the same way), since a decoder's blur alone "
-                         "would read as invalid from the first frame.")
+            lines.append(
+                " Images: the error counted is the part above the sequence's own reconstruction error on its last "
+                "10 given frames (`given`: that floor, normalised the same way), since a decoder's blur alone "
+                "would read as invalid from the first frame."
+            )
         rows = []
         for label, vt in timed:
             steps = sorted((vt.get("error_at_step") or {}).items(), key=lambda kv: int(kv[0]))  # JSON keys are strings
             growth = ", ".join(f"{k}: {_num(v, 2)}" for k, v in steps)
-            rows.append([label, f"{_num(vt['mean_steps'])} ± {_num(vt['std_steps'], 2)}", _num(vt['median_steps']),
-                         _num(vt.get('mean_seconds')), _num(vt.get('mean_lyapunov_times')), _num(vt['censored_share'], 2),
-                         (growth or '—') + (f"; given: {_num(vt['given_error'], 2)}"
-                                            if vt.get("given_error") is not None else "")])
-        lines += ["", *_table(["method", "mean ± std (steps)", "median (steps)", "mean (s)", "mean (Lyapunov times)",
-                               "censored", "error at step"], rows), ""]
+            rows.append(
+                [
+                    label,
+                    f"{_num(vt['mean_steps'])} ± {_num(vt['std_steps'], 2)}",
+                    _num(vt["median_steps"]),
+                    _num(vt.get("mean_seconds")),
+                    _num(vt.get("mean_lyapunov_times")),
+                    _num(vt["censored_share"], 2),
+                    (growth or "—")
+                    + (f"; given: {_num(vt['given_error'], 2)}" if vt.get("given_error") is not None else ""),
+                ]
+            )
+        lines += [
+            "",
+            *_table(
+                [
+                    "method",
+                    "mean ± std (steps)",
+                    "median (steps)",
+                    "mean (s)",
+                    "mean (Lyapunov times)",
+                    "censored",
+                    "error at step",
+                ],
+                rows,
+            ),
+            "",
+        ]
     dyn = [(label, a["dynamics"]) for label, a in runs if a.get("dynamics")]
     if dyn:
-        lines.append("**The learned f on its own**, iterated from shooting nodes (the same for every inference method "
-                     "of one SSM): Lyapunov exponents per time unit (Benettin QR on the Jacobians of f), and long free "
-                     "runs decoded by g against the data's noiseless training measurements.")
+        lines.append(
+            "**The learned f on its own**, iterated from shooting nodes (the same for every inference method "
+            "of one SSM): Lyapunov exponents per time unit (Benettin QR on the Jacobians of f), and long free "
+            "runs decoded by g against the data's noiseless training measurements."
+        )
         rows = []
         for label, d in dyn:
             ly, fr = d["lyapunov"], d.get("free_run", {})
             truth = d.get("lyapunov_true", true) or {}
-            rows.append([
-                label, ", ".join(_num(e) for e in ly["exponents"]), f"{_num(ly['largest'])} ({_num(truth.get('largest'))})",
-                f"{fr.get('runs', '—')} x {fr.get('steps', '—')}",
-                _num(fr['model_mean'][0]) + ' ± ' + _num(fr['model_std'][0]) if 'model_mean' in fr else '—',
-                _num(fr['reference_mean'][0]) + ' ± ' + _num(fr['reference_std'][0]) if 'reference_mean' in fr else '—',
-                _num(fr['wasserstein'][0]) if 'wasserstein' in fr else '—', _num(fr.get('both_wings_share'), 2)])
-        lines += ["", *_table(["SSM (via)", "Lyapunov exponents", "largest (true)", "free runs", "x: model mean ± std",
-                               "x: data mean ± std", "W1 (x)", "both wings"], rows), ""]
+            rows.append(
+                [
+                    label,
+                    ", ".join(_num(e) for e in ly["exponents"]),
+                    f"{_num(ly['largest'])} ({_num(truth.get('largest'))})",
+                    f"{fr.get('runs', '—')} x {fr.get('steps', '—')}",
+                    _num(fr["model_mean"][0]) + " ± " + _num(fr["model_std"][0]) if "model_mean" in fr else "—",
+                    _num(fr["reference_mean"][0]) + " ± " + _num(fr["reference_std"][0])
+                    if "reference_mean" in fr
+                    else "—",
+                    _num(fr["wasserstein"][0]) if "wasserstein" in fr else "—",
+                    _num(fr.get("both_wings_share"), 2),
+                ]
+            )
+        lines += [
+            "",
+            *_table(
+                [
+                    "SSM (via)",
+                    "Lyapunov exponents",
+                    "largest (true)",
+                    "free runs",
+                    "x: model mean ± std",
+                    "x: data mean ± std",
+                    "W1 (x)",
+                    "both wings",
+                ],
+                rows,
+            ),
+            "",
+        ]
         periodic = [(label, d["oscillation"]) for label, d in dyn if d.get("oscillation")]
         if periodic:
-            lines += ["**Period and amplitude** of the free runs of f from the nodes of training trajectories, decoded, "
-                      "against the data generator simulated from the same initial states over the same horizon "
-                      "(amplitude ratio: std of the last window over the first; 1 = energy kept).", "",
-                      "| SSM (via) | runs | horizon (steps) | period error, median | within 5% | amplitude ratio, model "
-                      "(median) | amplitude ratio, truth (median) | valid steps from the node (median) |",
-                      "|---|---|---|---|---|---|---|---|"]
+            lines += [
+                "**Period and amplitude** of the free runs of f from the nodes of training trajectories, decoded, "
+                "against the data generator simulated from the same initial states over the same horizon "
+                "(amplitude ratio: std of the last window over the first; 1 = energy kept).",
+                "",
+                "| SSM (via) | runs | horizon (steps) | period error, median | within 5% | amplitude ratio, model "
+                "(median) | amplitude ratio, truth (median) | valid steps from the node (median) |",
+                "|---|---|---|---|---|---|---|---|",
+            ]
             for label, o in periodic:
-                lines.append(f"| {label} | {o['runs']} | {o['horizon']} | {_num(o['median_period_error'])} | "
-                             f"{_num(o['share_within_5_percent'], 2)} | {_num(o['median_amplitude_ratio_model'])} | "
-                             f"{_num(o['median_amplitude_ratio_truth'])} | {_num(o['median_valid_steps'])} |")
+                lines.append(
+                    f"| {label} | {o['runs']} | {o['horizon']} | {_num(o['median_period_error'])} | "
+                    f"{_num(o['share_within_5_percent'], 2)} | {_num(o['median_amplitude_ratio_model'])} | "
+                    f"{_num(o['median_amplitude_ratio_truth'])} | {_num(o['median_valid_steps'])} |"
+                )
             lines.append("")
     return lines
 
@@ -307,8 +402,11 @@ def _load(json_path: Path) -> dict[str, Any]:
         n += 1
         aside = json_path.with_name(f"{json_path.name}.unreadable-{n}")
     os.replace(json_path, aside)
-    warnings.warn(f"{json_path} is not a results file (not a JSON object): moved to {aside} and a new one started; "
-                  "restore the runs it held from that file (or from git)", stacklevel=2)
+    warnings.warn(
+        f"{json_path} is not a results file (not a JSON object): moved to {aside} and a new one started; "
+        "restore the runs it held from that file (or from git)",
+        stacklevel=2,
+    )
     return {}
 
 
@@ -336,7 +434,10 @@ def _save(results_dir: Path, experiment: str, data: dict[str, Any]) -> Path:
 
 
 def write_results(
-    results_dir: Path, info: dict[str, Any], summary: dict[str, dict[str, float]], analysis: dict[str, Any] | None = None
+    results_dir: Path,
+    info: dict[str, Any],
+    summary: dict[str, dict[str, float]],
+    analysis: dict[str, Any] | None = None,
 ) -> Path:
     """Merge one test run into ``<results_dir>/<experiment>.json`` and rewrite ``<experiment>.md``."""
     results_dir.mkdir(parents=True, exist_ok=True)
@@ -349,8 +450,9 @@ def write_results(
     return _save(results_dir, experiment, data)
 
 
-def write_pipeline(results_dir: Path, experiment: str, command: str, pipeline: dict[str, Any],
-                   replaces: str | None = None) -> Path:
+def write_pipeline(
+    results_dir: Path, experiment: str, command: str, pipeline: dict[str, Any], replaces: str | None = None
+) -> Path:
     """Record how (part of) the experiment was produced -- the stages of one ``make reproduce`` command, their
     durations, the machine -- and rewrite the table. Each command keeps its own record; ``replaces`` names the
     command of a record this one supersedes (the same run, resumed with a larger epoch budget)."""

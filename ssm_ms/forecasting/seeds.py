@@ -39,8 +39,9 @@ def seed_files(results_dir: Path, experiment: str) -> dict[str, Path]:
     if base.is_file():
         files["config seed"] = base
     pattern = re.compile(re.escape(experiment) + r"_seed(\d+)")
-    seeded = [(int(m.group(1)), p) for p in results_dir.glob(f"{experiment}_seed*.json")
-              if (m := pattern.fullmatch(p.stem))]
+    seeded = [
+        (int(m.group(1)), p) for p in results_dir.glob(f"{experiment}_seed*.json") if (m := pattern.fullmatch(p.stem))
+    ]
     files.update({f"seed{n}": p for n, p in sorted(seeded)})
     return files
 
@@ -79,8 +80,10 @@ def gather(results_dir: Path, experiment: str) -> dict[str, Any]:
     """The table: ``{"seeds": [labels], "rows": {label: {seed: value}}, "summary": {label: {mean, std, n}}}``."""
     files = seed_files(results_dir, experiment)
     if not files:
-        raise SystemExit(f"no results for {experiment!r} in {results_dir}: expected {experiment}.json or "
-                         f"{experiment}_seed<N>.json (make reproduce EXP=... SEED=N writes them)")
+        raise SystemExit(
+            f"no results for {experiment!r} in {results_dir}: expected {experiment}.json or "
+            f"{experiment}_seed<N>.json (make reproduce EXP=... SEED=N writes them)"
+        )
     rows: dict[str, dict[str, float]] = {}
     for seed, path in files.items():
         for label, value in read_quantities(json.loads(path.read_text())).items():
@@ -93,8 +96,13 @@ def gather(results_dir: Path, experiment: str) -> dict[str, Any]:
         finite = [v for v in values.values() if math.isfinite(v)]
         mean, std = mean_std(finite) if finite else (math.nan, None)
         summary[label] = {"mean": mean, "std": std, "n": len(finite)}
-    return {"experiment": experiment, "seeds": list(files), "files": {s: p.name for s, p in files.items()},
-            "rows": rows, "summary": summary}
+    return {
+        "experiment": experiment,
+        "seeds": list(files),
+        "files": {s: p.name for s, p in files.items()},
+        "rows": rows,
+        "summary": summary,
+    }
 
 
 def _num(value: float | None) -> str:
@@ -103,14 +111,19 @@ def _num(value: float | None) -> str:
 
 def render(table: dict[str, Any]) -> str:
     seeds = table["seeds"]
-    lines = [f"# {table['experiment']} over {len(seeds)} seeds", "",
-             "Each seed's results file: " + ", ".join(f"{s}: `{f}`" for s, f in table["files"].items())
-             + ". Scores are each run's mean over its test sequences (the finite ones: a row `..., non-finite sequences` "
-             "counts, per seed, those whose forecast diverged, where any seed's did); the last column is the mean ± sample std over "
-             "seeds (`n`: seeds with a finite value). Made by `python -m ssm_ms.forecasting.seeds "
-             f"{table['experiment']}`.", "",
-             "| quantity | " + " | ".join(seeds) + " | mean ± std over seeds |",
-             "|---" * (len(seeds) + 2) + "|"]
+    lines = [
+        f"# {table['experiment']} over {len(seeds)} seeds",
+        "",
+        "Each seed's results file: "
+        + ", ".join(f"{s}: `{f}`" for s, f in table["files"].items())
+        + ". Scores are each run's mean over its test sequences (the finite ones: a row `..., non-finite sequences` "
+        "counts, per seed, those whose forecast diverged, where any seed's did); the last column is the mean ± sample std over "
+        "seeds (`n`: seeds with a finite value). Made by `python -m ssm_ms.forecasting.seeds "
+        f"{table['experiment']}`.",
+        "",
+        "| quantity | " + " | ".join(seeds) + " | mean ± std over seeds |",
+        "|---" * (len(seeds) + 2) + "|",
+    ]
     for label, values in table["rows"].items():
         s = table["summary"][label]
         spread = f"{_num(s['mean'])} ± {_num(s['std'])} (n = {s['n']})"

@@ -23,7 +23,9 @@ from ssm_ms.forecasting.analysis_settings import TrueSystemSettings, ValidTimeSe
 FLOOR_FRAMES = 10  # images: the valid time counts errors above the reconstruction error on the last 10 given frames
 
 
-def valid_time_split(settings: ValidTimeSettings, n_filter: int, n_predict: int | None, seq_len: int) -> tuple[int, int]:
+def valid_time_split(
+    settings: ValidTimeSettings, n_filter: int, n_predict: int | None, seq_len: int
+) -> tuple[int, int]:
     """``(k, h)``: steps given and steps forecast for the valid time, the protocol's ``n_filter`` and ``n_predict`` (else
     the rest of each sequence) where ``settings`` leave them unset."""
     k = settings.n_filter or n_filter
@@ -148,8 +150,14 @@ class ValidTimeAccumulator:
         vt = summarize_valid_time(steps, horizon, dt or 1.0, largest)
         if dt is None:
             vt = {k: v for k, v in vt.items() if "seconds" not in k and "lyapunov" not in k}
-        vt.update(threshold=threshold, n_filter=n_filter, truth="noiseless" if self.clean else "noisy", dt=dt,
-                  error_at_step=self.growth(), given_error=self.floor())
+        vt.update(
+            threshold=threshold,
+            n_filter=n_filter,
+            truth="noiseless" if self.clean else "noisy",
+            dt=dt,
+            error_at_step=self.growth(),
+            given_error=self.floor(),
+        )
         return vt
 
 
@@ -178,10 +186,19 @@ def reference_exponents(dm: Any, settings: TrueSystemSettings | None = None) -> 
         if states is None:
             return None
         x0 = torch.from_numpy(np.array(states[: settings.runs, 0], dtype=np.float64))
-        res = lyapunov_spectrum(dm.true_transition(), x0, steps=settings.lyapunov_steps, dt=float(dm.sample_period),
-                                transient=settings.transient, align=settings.align)
-        result = {"exponents": res.exponents.tolist(), "largest": float(res.exponents[0]),
-                  "source": f"the data set's equations, Benettin QR over {len(x0)} runs of {settings.lyapunov_steps} steps"}
+        res = lyapunov_spectrum(
+            dm.true_transition(),
+            x0,
+            steps=settings.lyapunov_steps,
+            dt=float(dm.sample_period),
+            transient=settings.transient,
+            align=settings.align,
+        )
+        result = {
+            "exponents": res.exponents.tolist(),
+            "largest": float(res.exponents[0]),
+            "source": f"the data set's equations, Benettin QR over {len(x0)} runs of {settings.lyapunov_steps} steps",
+        }
         if cache is not None:
             cache.write_text(json.dumps(result))
         return result

@@ -72,8 +72,16 @@ class ForecastWriter(BasePredictionWriter):
     def figures_dir(self) -> Path:
         return self.output.with_name(self.output.stem + "_figures")
 
-    def write_on_batch_end(self, trainer, pl_module, prediction: dict[str, torch.Tensor], batch_indices, batch,
-                           batch_idx: int, dataloader_idx: int = 0) -> None:
+    def write_on_batch_end(
+        self,
+        trainer,
+        pl_module,
+        prediction: dict[str, torch.Tensor],
+        batch_indices,
+        batch,
+        batch_idx: int,
+        dataloader_idx: int = 0,
+    ) -> None:
         part = {key: value.detach().cpu().numpy() for key, value in prediction.items()}
         if self.figures:
             self._draw(part, pl_module)
@@ -88,8 +96,10 @@ class ForecastWriter(BasePredictionWriter):
         np.savez(self.output, **arrays, k=np.int64(k), p=np.int64(p), method=np.str_(pl_module.method_name))
         n = len(arrays["index"])
         covs = " and covariances" if "state_cov" in arrays else ""
-        print(f"wrote {self.output}: forecasts of {p} steps after {k} given for {n} sequences (original units), "
-              f"states{covs}" + (f"; figures in {self.figures_dir}" if self.figures else ""))
+        print(
+            f"wrote {self.output}: forecasts of {p} steps after {k} given for {n} sequences (original units), "
+            f"states{covs}" + (f"; figures in {self.figures_dir}" if self.figures else "")
+        )
         self._parts = []
 
     # ------------------------------------------------------------------ figures
@@ -111,7 +121,8 @@ class ForecastWriter(BasePredictionWriter):
                 shown = min(len(measured), len(model))
                 truth[:shown] = measured[:shown]
                 every = max(1, len(model) // 20)
-                mosaic = drawing.prediction_mosaic(torch.from_numpy(truth), torch.from_numpy(model), len(filtered),
-                                               every=every)
+                mosaic = drawing.prediction_mosaic(
+                    torch.from_numpy(truth), torch.from_numpy(model), len(filtered), every=every
+                )
                 drawing.save_png(mosaic, path, scale=max(1, 96 // truth.shape[-1]))
             self._drawn += 1

@@ -45,7 +45,7 @@ class StateEncoderModule(SSMForecaster):
         n_filter: int,
         encoder: dict[str, Any] | None = None,
         lr: float = 1e-3,
-        metrics: list[str] = ["mse", "bce"],
+        metrics: list[str] = ["mse", "bce"],  # noqa: B006 (read, never mutated; a list for the CLI)
         **kwargs: Any,
     ):
         if not lr > 0:

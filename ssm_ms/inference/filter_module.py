@@ -63,7 +63,7 @@ class FilterForecaster(SSMForecaster):
         likelihood_scale: float = 1.0,
         seed: int = 0,
         autocast: str | None = None,
-        metrics: list[str] = ["mse"],
+        metrics: list[str] = ["mse"],  # noqa: B006 (read, never mutated; a list for the CLI)
         method_name: str | None = None,
         **kwargs: Any,
     ):
@@ -75,30 +75,55 @@ class FilterForecaster(SSMForecaster):
             raise ValueError(f"unscented takes alpha, beta and kappa, got {sorted(unknown)}")
         if unscented and method != "ukf":
             raise ValueError("unscented sets the UKF's sigma points: it has no effect with method 'pf', remove it")
-        super().__init__(ssm_checkpoint, n_filter=n_filter, metrics=metrics, method_name=method_name or method, **kwargs)
+        super().__init__(
+            ssm_checkpoint, n_filter=n_filter, metrics=metrics, method_name=method_name or method, **kwargs
+        )
         self.method_kind = method
         f, g = self.ssm.f, self.ssm.g
         if method == "ukf":
-            self.filter = UnscentedKalmanFilter(f, g, process_var=process_var, measurement_var=measurement_var,
-                                                init_var=init_var, state_dim=self.ssm.state_dim, autocast=autocast,
-                                                **unscented)
+            self.filter = UnscentedKalmanFilter(
+                f,
+                g,
+                process_var=process_var,
+                measurement_var=measurement_var,
+                init_var=init_var,
+                state_dim=self.ssm.state_dim,
+                autocast=autocast,
+                **unscented,
+            )
         else:
-            self.filter = ParticleFilter(f, g, n_particles=n_particles, process_std=process_std,
-                                         measurement_std=math.sqrt(measurement_var), likelihood=likelihood,
-                                         init_std=math.sqrt(init_var), resample_threshold=resample_threshold,
-                                         likelihood_scale=likelihood_scale, seed=seed, state_dim=self.ssm.state_dim,
-                                         autocast=autocast)
+            self.filter = ParticleFilter(
+                f,
+                g,
+                n_particles=n_particles,
+                process_std=process_std,
+                measurement_std=math.sqrt(measurement_var),
+                likelihood=likelihood,
+                init_std=math.sqrt(init_var),
+                resample_threshold=resample_threshold,
+                likelihood_scale=likelihood_scale,
+                seed=seed,
+                state_dim=self.ssm.state_dim,
+                autocast=autocast,
+            )
 
     def inference_settings(self) -> str:
         flt = self.filter
         if isinstance(flt, UnscentedKalmanFilter):
-            noise = f"process_var={flt.process_var.tolist()}, measurement_var={flt.measurement_var.tolist()}, " \
-                    f"init_var={flt.init_var.tolist()}, alpha={flt.alpha:g}, beta={flt.beta:g}, kappa={flt.kappa:g}"
+            noise = (
+                f"process_var={flt.process_var.tolist()}, measurement_var={flt.measurement_var.tolist()}, "
+                f"init_var={flt.init_var.tolist()}, alpha={flt.alpha:g}, beta={flt.beta:g}, kappa={flt.kappa:g}"
+            )
         else:
-            noise = f"n_particles={flt.n_particles}, process_std={flt.process_std.tolist()}, " \
-                    f"measurement_std={flt.measurement_std.tolist()}, likelihood={flt.likelihood}"
-        precision = "full precision" if flt.autocast is None else \
-            f"f and g under autocast({str(flt.autocast).removeprefix('torch.')})"
+            noise = (
+                f"n_particles={flt.n_particles}, process_std={flt.process_std.tolist()}, "
+                f"measurement_std={flt.measurement_std.tolist()}, likelihood={flt.likelihood}"
+            )
+        precision = (
+            "full precision"
+            if flt.autocast is None
+            else f"f and g under autocast({str(flt.autocast).removeprefix('torch.')})"
+        )
         return f"{type(flt).__name__}: {noise}; {precision}"
 
     def prior_mean(self, y_filter: torch.Tensor) -> torch.Tensor:

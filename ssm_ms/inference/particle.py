@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import NamedTuple, Optional, Union
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -42,7 +42,7 @@ def weighted_covariance(weights: Tensor, particles: Tensor, mean: Tensor) -> Ten
     return (dev * weights.unsqueeze(-1)).transpose(1, 2) @ dev
 
 
-def systematic_resample(weights: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
+def systematic_resample(weights: Tensor, generator: torch.Generator | None = None) -> Tensor:
     """Indices ``[B, P]`` drawn by systematic resampling from normalised ``weights [B, P]``.
 
     One uniform offset per row: ``u_j = (U + j) / P``; particle ``i`` is picked once for each ``u_j`` in
@@ -92,15 +92,15 @@ class ParticleFilter:
         f: Callable[[Tensor], Tensor],
         g: Callable[[Tensor], Tensor],
         n_particles: int = 1000,
-        process_std: Union[float, list[float]] = 1e-2,
-        measurement_std: Union[float, list[float]] = math.sqrt(0.5),
+        process_std: float | list[float] = 1e-2,
+        measurement_std: float | list[float] = 0.7071067811865476,  # sqrt(0.5): the UKF's measurement variance
         likelihood: str = "gaussian",
-        init_std: Union[float, list[float]] = math.sqrt(0.1),
+        init_std: float | list[float] = 0.31622776601683794,  # sqrt(0.1): the UKF's prior variance
         resample_threshold: float = 0.5,
         likelihood_scale: float = 1.0,
-        seed: Optional[int] = None,
-        state_dim: Optional[int] = None,
-        autocast: Optional[str] = None,
+        seed: int | None = None,
+        state_dim: int | None = None,
+        autocast: str | None = None,
     ):
         if not isinstance(n_particles, int) or n_particles < 1:
             raise ValueError(f"n_particles must be a positive int, got {n_particles!r}")
@@ -131,7 +131,7 @@ class ParticleFilter:
         for name, s in (("process_std", self.process_std), ("init_std", self.init_std)):
             if state_dim is not None and s.ndim == 1 and s.numel() != state_dim:
                 raise ValueError(f"{name} has {s.numel()} entries but state_dim is {state_dim}")
-        self.state_dim: Optional[int] = state_dim
+        self.state_dim: int | None = state_dim
 
     @staticmethod
     def _check_std(value, name: str, allow_zero: bool) -> Tensor:
@@ -150,10 +150,10 @@ class ParticleFilter:
     def filter(
         self,
         y: Tensor,
-        x0: Optional[Tensor] = None,
-        generator: Optional[torch.Generator] = None,
+        x0: Tensor | None = None,
+        generator: torch.Generator | None = None,
         return_particles: bool = False,
-    ) -> Union[Tensor, ParticleFilterResult]:
+    ) -> Tensor | ParticleFilterResult:
         """Weighted posterior means ``[B, T, d]`` of ``y [B, T, *obs_shape]``.
 
         ``x0``: centre of the initial cloud, ``[d]`` or ``[B, d]`` (default zeros). ``generator``: a
@@ -232,11 +232,14 @@ class ParticleFilter:
             means_t = torch.stack(means, dim=1)
         if not return_particles:
             return means_t
-        return ParticleFilterResult(means_t, torch.stack(ess_all, dim=1), particles, log_w.exp(), torch.stack(covs, dim=1))
+        return ParticleFilterResult(
+            means_t, torch.stack(ess_all, dim=1), particles, log_w.exp(), torch.stack(covs, dim=1)
+        )
 
     @torch.no_grad()
-    def propagate(self, particles: Tensor, weights: Tensor, steps: int,
-                  generator: Optional[torch.Generator] = None) -> Tensor:
+    def propagate(
+        self, particles: Tensor, weights: Tensor, steps: int, generator: torch.Generator | None = None
+    ) -> Tensor:
         """Covariances ``[B, steps, d, d]`` of the weighted cloud ``particles [B, P, d]``, ``weights [B, P]`` moved
         ``steps`` times through ``f`` with the process noise and no measurement (the filter's prediction)."""
         bsz, n, d = particles.shape

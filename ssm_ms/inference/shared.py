@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Optional
 
 import torch
 from torch import Tensor
@@ -24,18 +23,16 @@ def check_measurements(y: object) -> tuple[int, int]:
     return bsz, steps
 
 
-def check_autocast(name: Optional[str]) -> Optional[torch.dtype]:
+def check_autocast(name: str | None) -> torch.dtype | None:
     """``None`` or the name of a reduced precision for ``torch.autocast`` -> the torch dtype."""
     if name is None:
         return None
     if name not in AUTOCAST_DTYPES:
-        raise ValueError(
-            f"autocast must be null (full precision) or one of {sorted(AUTOCAST_DTYPES)}, got {name!r}"
-        )
+        raise ValueError(f"autocast must be null (full precision) or one of {sorted(AUTOCAST_DTYPES)}, got {name!r}")
     return AUTOCAST_DTYPES[name]
 
 
-def call_model(fn: Callable[[Tensor], Tensor], x: Tensor, autocast: Optional[torch.dtype]) -> Tensor:
+def call_model(fn: Callable[[Tensor], Tensor], x: Tensor, autocast: torch.dtype | None) -> Tensor:
     """``fn(x)``; with ``autocast`` set, under ``torch.autocast`` on ``x``'s device, cast back to ``x``'s dtype.
 
     Autocast runs the matrix products and convolutions of ``fn`` in the reduced precision (with

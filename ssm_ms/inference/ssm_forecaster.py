@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ssm_ms.checkpointing import SSM_DIGEST_KEY, read_checkpoint, state_digest
+from ssm_ms.checkpointing import SSM_DIGEST_KEY, state_digest
 from ssm_ms.forecasting.analysis_settings import DynamicsSettings, ValidTimeSettings
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
 from ssm_ms.module import MultipleShootingModule, datamodule_state, load_ssm
@@ -62,7 +62,8 @@ def check_same_data(checkpoint: Mapping[str, Any], dm: Any, ssm: MultipleShootin
         problems.append(f"the SSM has nodes for {ssm.nodes.num_embeddings} training trajectories, the data have {n}")
     if problems:
         raise ValueError(
-            "the SSM checkpoint was trained on other data: " + "; ".join(problems)
+            "the SSM checkpoint was trained on other data: "
+            + "; ".join(problems)
             + ". Use the data section of the config the SSM was trained with."
         )
 
@@ -164,8 +165,12 @@ class SSMForecaster(ForecastModule):
         name = type(self.ssm.f).__name__
         model = MODEL_NAMES.get(name, f"SSM ({name})")
         how = INFERENCE_LABELS.get(self.method_name, self.method_name)
-        return {"model": model, "inference": self.method_kind, "label": f"{model} + {how}",
-                "ssm_checkpoint": self.ssm_checkpoint}
+        return {
+            "model": model,
+            "inference": self.method_kind,
+            "label": f"{model} + {how}",
+            "ssm_checkpoint": self.ssm_checkpoint,
+        }
 
     def setup(self, stage: str) -> None:
         super().setup(stage)
@@ -203,16 +208,25 @@ class SSMForecaster(ForecastModule):
         generator = torch.Generator().manual_seed(settings.seed)
         free_runs = settings.free_runs or settings.runs
         if max(settings.runs, free_runs) > len(nodes):
-            raise ValueError(f"analysis.dynamics asks for {max(settings.runs, free_runs)} runs from shooting nodes but "
-                             f"the model has {len(nodes)}: lower analysis.dynamics.runs / free_runs")
+            raise ValueError(
+                f"analysis.dynamics asks for {max(settings.runs, free_runs)} runs from shooting nodes but "
+                f"the model has {len(nodes)}: lower analysis.dynamics.runs / free_runs"
+            )
         drawn = nodes[torch.randperm(len(nodes), generator=generator)[: max(settings.runs, free_runs)]]
         vector = len(self.ssm.obs_shape()) == 1
         report = dynamics_report(
-            self.ssm.f, self.ssm.g, drawn[: settings.runs], self.sample_period() or 1.0, to_units=to_units,
+            self.ssm.f,
+            self.ssm.g,
+            drawn[: settings.runs],
+            self.sample_period() or 1.0,
+            to_units=to_units,
             free_starts=drawn[:free_runs],
             reference=training_measurements(dm) if vector else None,
-            lyapunov_steps=settings.lyapunov_steps, transient=settings.transient, align=settings.align,
-            free_steps=settings.free_steps, wing_level=dm.wing_level() if hasattr(dm, "wing_level") else None,
+            lyapunov_steps=settings.lyapunov_steps,
+            transient=settings.transient,
+            align=settings.align,
+            free_steps=settings.free_steps,
+            wing_level=dm.wing_level() if hasattr(dm, "wing_level") else None,
         )
         if callable(getattr(dm, "true_measurements", None)):
             report["oscillation"] = self.oscillation(settings, generator)
@@ -238,17 +252,23 @@ class SSMForecaster(ForecastModule):
         error = (period_m - period_t).abs() / period_t
         window = max(2, horizon // 10)
         amp_m, amp_t = amplitude_ratio(flat_m, window), amplitude_ratio(flat_t, window)
-        pixel_var = flat_t.flatten(0, 1).var(0, unbiased=False).mean()  # as the protocol's valid time: 1 = the mean frame
+        pixel_var = (
+            flat_t.flatten(0, 1).var(0, unbiased=False).mean()
+        )  # as the protocol's valid time: 1 = the mean frame
         nrmse = ((flat_m - flat_t).pow(2).mean(-1) / pixel_var).sqrt()
         valid = valid_steps(nrmse, (self.analysis_section("valid_time") or ValidTimeSettings()).threshold)
         valid = torch.where(torch.isinf(valid), torch.full_like(valid, float(horizon)), valid)
         finite = torch.isfinite(error)
         return {
-            "runs": len(index), "horizon": horizon, "dt": dt,
-            "period_model": period_m.tolist(), "period_truth": period_t.tolist(),
+            "runs": len(index),
+            "horizon": horizon,
+            "dt": dt,
+            "period_model": period_m.tolist(),
+            "period_truth": period_t.tolist(),
             "median_period_error": float(error[finite].median()) if finite.any() else None,
             "share_within_5_percent": float((error[finite] < 0.05).double().mean()) if finite.any() else None,
-            "median_amplitude_ratio_model": float(amp_m.median()), "median_amplitude_ratio_truth": float(amp_t.median()),
+            "median_amplitude_ratio_model": float(amp_m.median()),
+            "median_amplitude_ratio_truth": float(amp_t.median()),
             "median_valid_steps": float(valid.median()),
         }
 
@@ -272,9 +292,13 @@ class SSMForecaster(ForecastModule):
                 obs_index = s_i
             if states.shape[-1] == 3:
                 figures["lorenz_prediction"] = drawing.lorenz_prediction_figure(
-                    to_units(y[0]), to_units(first["y_clean"][0]) if "y_clean" in first else to_units(y[0]),
-                    states, self.n_filter, true_state=first["state"][0] if "state" in first else None,
-                    measured_index=obs_index, window=min(y.shape[1], 400),
+                    to_units(y[0]),
+                    to_units(first["y_clean"][0]) if "y_clean" in first else to_units(y[0]),
+                    states,
+                    self.n_filter,
+                    true_state=first["state"][0] if "state" in first else None,
+                    measured_index=obs_index,
+                    window=min(y.shape[1], 400),
                 )
             x0 = self.ssm.nodes.weight[:1].view(self.ssm.n_nodes, self.ssm.state_dim)[:1]
             attractor = rollout(self.ssm.f, x0, 10_000)[0]

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable
-from typing import NamedTuple, Optional, Union
+from typing import NamedTuple, Union
 
 import torch
 from torch import Tensor
@@ -30,7 +30,7 @@ from torch import Tensor
 from ssm_ms.inference.shared import call_model, check_autocast, check_measurements
 
 # Plain types only, so that configs (jsonargparse / LightningCLI) can give them; tensors work too at run time.
-Variance = Union[float, list[float], list[list[float]]]
+Variance = Union[float, list[float], list[list[float]]]  # noqa: UP007 (a run-time alias configs are checked against)
 
 
 class CovarianceJitterWarning(UserWarning):
@@ -74,7 +74,7 @@ def _check_variance(value: Variance, name: str, allow_zero: bool) -> Tensor:
     return t
 
 
-def _variance_dim(t: Tensor) -> Optional[int]:
+def _variance_dim(t: Tensor) -> int | None:
     return None if t.ndim == 0 else t.shape[0]
 
 
@@ -101,12 +101,12 @@ class _Setup:
         self.wm_col = wm.unsqueeze(-1)  # [n, 1]
         self.sqrt_wc: Tensor = wc
         self.eye_n: Tensor = wc
-        self.r: Optional[Tensor] = None
-        self.r_std: Optional[Tensor] = None
-        self.u_scale: Optional[Tensor] = None
-        self.r_chol: Optional[Tensor] = None
-        self.h: Optional[Tensor] = None  # g(x) = h x + c when g is linear (dense mode)
-        self.c: Optional[Tensor] = None
+        self.r: Tensor | None = None
+        self.r_std: Tensor | None = None
+        self.u_scale: Tensor | None = None
+        self.r_chol: Tensor | None = None
+        self.h: Tensor | None = None  # g(x) = h x + c when g is linear (dense mode)
+        self.c: Tensor | None = None
 
 
 class UnscentedKalmanFilter:
@@ -162,9 +162,9 @@ class UnscentedKalmanFilter:
         kappa: float = 0.0,
         jitter: float = 1e-9,
         max_jitter_tries: int = 6,
-        state_dim: Optional[int] = None,
+        state_dim: int | None = None,
         innovation: str = "auto",
-        autocast: Optional[str] = None,
+        autocast: str | None = None,
     ):
         self.f, self.g = f, g
         self.autocast = check_autocast(autocast)
@@ -180,9 +180,7 @@ class UnscentedKalmanFilter:
         self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
         self.jitter, self.max_jitter_tries = float(jitter), int(max_jitter_tries)
         self.innovation = innovation
-        dims = {
-            n: _variance_dim(v) for n, v in (("process_var", self.process_var), ("init_var", self.init_var))
-        }
+        dims = {n: _variance_dim(v) for n, v in (("process_var", self.process_var), ("init_var", self.init_var))}
         dims = {n: v for n, v in dims.items() if v is not None}
         if state_dim is None:
             from_f = getattr(f, "state_dim", None)
@@ -193,7 +191,7 @@ class UnscentedKalmanFilter:
             for n, v in dims.items():
                 if v != state_dim:
                     raise ValueError(f"{n} has {v} entries per side but state_dim is {state_dim}")
-        self.state_dim: Optional[int] = state_dim
+        self.state_dim: int | None = state_dim
         self._events: list[tuple[int, str, float, int]] = []
 
     # ----------------------------------------------------------------------------------------------
@@ -209,7 +207,7 @@ class UnscentedKalmanFilter:
         wc[0] = lam / (d + lam) + 1.0 - self.alpha**2 + self.beta
         return wm.to(dtype=dtype, device=device), wc.to(dtype=dtype, device=device), math.sqrt(d + lam)
 
-    def _setup(self, d: int, p: Optional[int], dtype: torch.dtype, device: torch.device) -> _Setup:
+    def _setup(self, d: int, p: int | None, dtype: torch.dtype, device: torch.device) -> _Setup:
         """Everything a step needs that does not change over time, built once per call (p=None: predict only)."""
         wm, wc, scale = self.weights(d, dtype, device)
         eye = torch.eye(d, dtype=dtype, device=device)
@@ -253,7 +251,7 @@ class UnscentedKalmanFilter:
 
     def _linear_observation(
         self, d: int, p: int, dtype: torch.dtype, device: torch.device
-    ) -> tuple[Optional[Tensor], Optional[Tensor]]:
+    ) -> tuple[Tensor | None, Tensor | None]:
         """``(H [p, d], c [p] or None)`` when ``g(x) = H x + c`` is known to be linear, else ``(None, None)``."""
         g = self.g
         if isinstance(g, torch.nn.Linear):
@@ -388,7 +386,7 @@ class UnscentedKalmanFilter:
         return mean + (w_c * w_e).sum(-2), cov - (w_ct * w_c if p == 1 else w_ct @ w_c)
 
     # ----------------------------------------------------------------------------------------------
-    def filter(self, y: Tensor, x0: Optional[Tensor] = None, P0: Optional[Tensor] = None) -> UKFResult:
+    def filter(self, y: Tensor, x0: Tensor | None = None, P0: Tensor | None = None) -> UKFResult:
         """Filtered means ``[B, T, d]`` and covariances ``[B, T, d, d]`` of ``y [B, T, *obs_shape]``.
 
         ``x0``: prior mean at time 0, ``[d]`` or ``[B, d]`` (default zeros). ``P0``: prior covariance,
@@ -404,7 +402,9 @@ class UnscentedKalmanFilter:
         try:
             probe = call_model(self.g, mean[:1], self.autocast)
         except RuntimeError as err:
-            raise ValueError(f"g failed on a state of dimension {d} ({err}): does state_dim match the SSM's g?") from err
+            raise ValueError(
+                f"g failed on a state of dimension {d} ({err}): does state_dim match the SSM's g?"
+            ) from err
         if not isinstance(probe, Tensor) or probe.ndim < 1 or probe.shape[0] != 1:
             raise ValueError("g must map [N, d] states to a tensor [N, *obs_shape]")
         if tuple(probe.shape[1:]) != tuple(y.shape[2:]):
@@ -444,7 +444,7 @@ class UnscentedKalmanFilter:
             )
         self._events = []
 
-    def _resolve_state_dim(self, x0: Optional[Tensor], P0: Optional[Tensor]) -> int:
+    def _resolve_state_dim(self, x0: Tensor | None, P0: Tensor | None) -> int:
         cands = []
         if x0 is not None:
             cands.append(("x0", torch.as_tensor(x0).shape[-1] if torch.as_tensor(x0).ndim else None))

@@ -6,6 +6,11 @@ from ssm_ms.nets.readout import LinearReadout, Projection
 from ssm_ms.nets.transition import FullyConnectedTransition, LocallyLinearTransition
 
 __all__ = [
-    "ConvDecoder", "FrameEncoder", "FullyConnectedTransition", "LinearReadout", "LocallyLinearTransition", "Projection",
+    "ConvDecoder",
+    "FrameEncoder",
+    "FullyConnectedTransition",
+    "LinearReadout",
+    "LocallyLinearTransition",
+    "Projection",
     "StateEncoder",
 ]

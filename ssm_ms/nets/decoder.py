@@ -132,12 +132,19 @@ class ConvDecoder(nn.Module):
             self.deconv.to(memory_format=torch.channels_last)
         self.backend = backend
         if backend == "native":
-            reason = kernels.unavailable_reason() or (None if self.native_fits else (
-                f"one sample of this stack needs {self.native_scratch()} floats of scratch, more than the kernels' "
-                f"{kernels.NATIVE_SCRATCH} (NATIVE_SCRATCH)"))
+            reason = kernels.unavailable_reason() or (
+                None
+                if self.native_fits
+                else (
+                    f"one sample of this stack needs {self.native_scratch()} floats of scratch, more than the kernels' "
+                    f"{kernels.NATIVE_SCRATCH} (NATIVE_SCRATCH)"
+                )
+            )
             if reason is not None:
-                raise ValueError(f"ConvDecoder backend 'native' cannot run here: {reason}; use backend 'auto' (the "
-                                 "default: the kernels where they run on a CPU with AVX-512) or 'torch'")
+                raise ValueError(
+                    f"ConvDecoder backend 'native' cannot run here: {reason}; use backend 'auto' (the "
+                    "default: the kernels where they run on a CPU with AVX-512) or 'torch'"
+                )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         lead = x.shape[:-1]
@@ -219,7 +226,9 @@ class ConvDecoder(nn.Module):
             if isinstance(layer, nn.ConvTranspose2d):  # no bias: a zero one (the operator takes every tensor)
                 bias = layer.bias if layer.bias is not None else layer.weight.new_zeros(layer.out_channels)
                 norm = layers[i + 1] if i + 1 < len(layers) and isinstance(layers[i + 1], nn.LayerNorm) else None
-                per_layer.append((layer.weight, bias, *((norm.weight, norm.bias) if norm is not None else (None, None))))
+                per_layer.append(
+                    (layer.weight, bias, *((norm.weight, norm.bias) if norm is not None else (None, None)))
+                )
                 eps.append(norm.eps if norm is not None else 0.0)
         params = kernels.ops.flat_params(per_layer)
         geometry = self.geometry
@@ -254,8 +263,10 @@ def _say_choice(simd: str | None) -> None:
     if auto_path("cpu", simd) == "native":
         _log.info("ConvDecoder backend 'auto': the native kernels on this CPU (AVX-512), where they can run")
     else:
-        _log.info("ConvDecoder backend 'auto': the torch path on this CPU (%s)",
-                  "AVX2, no AVX-512" if simd == "avx2" else "neither AVX-512 nor AVX2 with FMA")
+        _log.info(
+            "ConvDecoder backend 'auto': the torch path on this CPU (%s)",
+            "AVX2, no AVX-512" if simd == "avx2" else "neither AVX-512 nor AVX2 with FMA",
+        )
 
 
 def drawn_size(stem_size: int, layers: Sequence[Sequence[int]]) -> int:

@@ -61,7 +61,9 @@ class FrameEncoder(nn.Module):
             c, h, w = obs_shape
             for out_c in conv_channels:
                 if h < 4 or w < 4:
-                    raise ValueError(f"images of shape {list(obs_shape)} are too small for {len(conv_channels)} conv blocks")
+                    raise ValueError(
+                        f"images of shape {list(obs_shape)} are too small for {len(conv_channels)} conv blocks"
+                    )
                 layers += [nn.Conv2d(c, out_c, 3), nn.LayerNorm((out_c, h - 2, w - 2)), nn.ReLU(), nn.MaxPool2d(2)]
                 c, h, w = out_c, (h - 2) // 2, (w - 2) // 2
             if final_channels is not None:
@@ -87,7 +89,7 @@ class FrameEncoder(nn.Module):
         if tuple(y.shape[y.dim() - n_obs :]) != self.obs_shape:
             raise ValueError(
                 f"the encoder was built for measurements of shape {list(self.obs_shape)}, "
-                f"got {list(y.shape[y.dim() - n_obs:])}"
+                f"got {list(y.shape[y.dim() - n_obs :])}"
             )
         lead = y.shape[: y.dim() - n_obs]
         return self.cnn(y.reshape(-1, *self.obs_shape)).reshape(*lead, self.out_features)

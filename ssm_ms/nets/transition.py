@@ -38,11 +38,15 @@ class LocallyLinearTransition(nn.Module):
     def __init__(self, state_dim: int, n_matrices: int = 32, hidden: int = 1024, input_dim: int = 0):
         super().__init__()
         if state_dim < 1 or n_matrices < 1 or hidden < 1 or input_dim < 0:
-            raise ValueError(f"state_dim, n_matrices and hidden must be >= 1 and input_dim >= 0, got {state_dim}, "
-                             f"{n_matrices}, {hidden}, {input_dim}")
+            raise ValueError(
+                f"state_dim, n_matrices and hidden must be >= 1 and input_dim >= 0, got {state_dim}, "
+                f"{n_matrices}, {hidden}, {input_dim}"
+            )
         self.state_dim, self.n_matrices, self.input_dim = state_dim, n_matrices, input_dim
         self.beta = nn.Sequential(
-            nn.Linear(state_dim + input_dim, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, n_matrices),
+            nn.Linear(state_dim + input_dim, hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden, n_matrices),
             nn.Softmax(dim=-1),
         )
         # [K * d, d]: row block k is A_k; [K * d, m]: row block k is B_k. Uniform(-1/sqrt(K d), 1/sqrt(K d)), like
@@ -86,8 +90,10 @@ class FullyConnectedTransition(nn.Module):
     def __init__(self, state_dim: int, hidden: Sequence[int] = (512, 512, 512), input_dim: int = 0):
         super().__init__()
         if state_dim < 1 or any(h < 1 for h in hidden) or input_dim < 0:
-            raise ValueError(f"state_dim and hidden widths must be >= 1 and input_dim >= 0, got {state_dim}, "
-                             f"{list(hidden)}, {input_dim}")
+            raise ValueError(
+                f"state_dim and hidden widths must be >= 1 and input_dim >= 0, got {state_dim}, "
+                f"{list(hidden)}, {input_dim}"
+            )
         self.state_dim, self.input_dim = state_dim, input_dim
         layers: list[nn.Module] = []
         width = state_dim + input_dim

@@ -74,9 +74,13 @@ def quiet_note(others: float | None) -> str:
     """One sentence for a results file: what :meth:`CpuWatch.others` measured and what it means for the figures."""
     if others is None:
         return "other processes' CPU use during the run: not measured (no /proc/stat here)"
-    head = (f"other processes kept {others:.2f} cores busy on average during the run (/proc/stat less this "
-            "benchmark's own processes)")
+    head = (
+        f"other processes kept {others:.2f} cores busy on average during the run (/proc/stat less this "
+        "benchmark's own processes)"
+    )
     if others > SHARED_CORES:
-        return (head + ": the machine was shared with other jobs, so absolute figures are slower than on a quiet "
-                "machine; the same-round ratios are the comparison")
+        return (
+            head + ": the machine was shared with other jobs, so absolute figures are slower than on a quiet "
+            "machine; the same-round ratios are the comparison"
+        )
     return head + ": the machine was otherwise quiet"

@@ -52,7 +52,7 @@ def configure_allocator(mmap_threshold: int = 1 << 30, trim_threshold: int = -1)
     return _configured
 
 
-def bf16_support(device: "str | object" = "cpu") -> tuple[bool, str]:
+def bf16_support(device: str | object = "cpu") -> tuple[bool, str]:
     """Whether ``device`` runs bfloat16 natively, and if not, why (one sentence for an error message).
 
     CPU: the AVX512-BF16 or AMX instructions (without them PyTorch emulates bfloat16 through float32,
@@ -77,7 +77,7 @@ def bf16_support(device: "str | object" = "cpu") -> tuple[bool, str]:
     return False, f"bfloat16 support on {device.type!r} devices is not known to ssm-ms"
 
 
-def check_precision(precision: "str | int", device: "str | object") -> None:
+def check_precision(precision: str | int, device: str | object) -> None:
     """Refuse ``trainer.precision`` in bfloat16 (``bf16-mixed``, ``bf16-true``) where ``device`` lacks it natively.
 
     Raises ``ValueError`` naming the machine's problem and the fix (``trainer.precision: 32``): a bfloat16

@@ -27,7 +27,9 @@ def in_functorch_transform(t: torch.Tensor) -> bool:
 def has_forward_tangent(t: torch.Tensor) -> bool:
     """Whether ``t`` carries a forward-mode AD tangent (``torch.autograd.forward_ad``'s private level counter
     tells cheaply whether any dual level is open; ``unpack_dual`` then says whether ``t`` is dual)."""
-    return torch.autograd.forward_ad._current_level >= 0 and torch.autograd.forward_ad.unpack_dual(t).tangent is not None
+    return (
+        torch.autograd.forward_ad._current_level >= 0 and torch.autograd.forward_ad.unpack_dual(t).tangent is not None
+    )
 
 
 def dynamo_supported() -> bool:

@@ -25,7 +25,7 @@ multiplied by ``growth`` (at most ``max_factor``).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -80,8 +80,9 @@ def check_constraint(constraint: str, n_nodes: int) -> None:
         )
 
 
-def augmented_lagrangian(fit: torch.Tensor, residual: torch.Tensor, multipliers: torch.Tensor,
-                         alpha: torch.Tensor | float) -> torch.Tensor:
+def augmented_lagrangian(
+    fit: torch.Tensor, residual: torch.Tensor, multipliers: torch.Tensor, alpha: torch.Tensor | float
+) -> torch.Tensor:
     """``fit + mean(multipliers * c) + alpha * mean(c^2)`` (``multipliers`` shaped like ``c``)."""
     return fit + (multipliers * residual).mean() + alpha * residual.pow(2).mean()
 

@@ -40,7 +40,9 @@ Rollout = Callable[..., torch.Tensor]  # (x0 [N, d], steps, u [N, steps - 1, m] 
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 
 
-def rollout(f: Callable[..., torch.Tensor], x0: torch.Tensor, steps: int, u: torch.Tensor | None = None) -> torch.Tensor:
+def rollout(
+    f: Callable[..., torch.Tensor], x0: torch.Tensor, steps: int, u: torch.Tensor | None = None
+) -> torch.Tensor:
     """States ``x0, f(x0), ..., f^{steps-1}(x0)``: ``[N, d] -> [N, steps, d]``.
 
     With inputs ``u [N, >= steps - 1, m]``, ``x[k + 1] = f(x[k], u[:, k])`` (inputs past ``steps - 1`` are not

@@ -46,8 +46,10 @@ FLAG_SETS = (
 # torch-only path (pendulum decoder, 4000 frames, 2 threads, an AVX-512 Xeon: plain -O3 403 ms, plain loops built
 # for AVX2 364 ms, torch-only 196 ms; the intrinsics: benchmarks/results/decoder_profile*.md), so other CPUs run
 # the torch-only path, silently.
-NO_SIMD = ("this CPU has neither AVX-512 nor AVX2 with FMA (per /proc/cpuinfo): the kernels need one of them, "
-           "the torch-only path runs")
+NO_SIMD = (
+    "this CPU has neither AVX-512 nor AVX2 with FMA (per /proc/cpuinfo): the kernels need one of them, "
+    "the torch-only path runs"
+)
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -119,8 +121,9 @@ def _build() -> tuple[ctypes.CDLL | None, str | None, str | None]:
                 target.parent.mkdir(parents=True, exist_ok=True)
                 fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
                 os.close(fd)
-                result = subprocess.run([cc, *flags, "-shared", "-fPIC", "-o", tmp, str(SOURCE), "-lm"],
-                                        capture_output=True, text=True)
+                result = subprocess.run(
+                    [cc, *flags, "-shared", "-fPIC", "-o", tmp, str(SOURCE), "-lm"], capture_output=True, text=True
+                )
                 if result.returncode != 0:
                     os.unlink(tmp)
                     lines = result.stderr.splitlines()
@@ -149,10 +152,21 @@ class ConvStackArgs(ctypes.Structure):
     the C struct's order; a library whose struct has another size is refused)."""
 
     _fields_ = [
-        ("layers", ctypes.c_int64), ("geo", ctypes.c_void_p), ("params", ctypes.c_void_p), ("eps", ctypes.c_void_p),
-        ("rows", ctypes.c_int64), ("x", ctypes.c_void_p), ("out", ctypes.c_void_p), ("saved", ctypes.c_void_p),
-        ("stats", ctypes.c_void_p), ("dout", ctypes.c_void_p), ("dx", ctypes.c_void_p), ("grads", ctypes.c_void_p),
-        ("goff", ctypes.c_void_p), ("gsize", ctypes.c_int64), ("threads", ctypes.c_int64),
+        ("layers", ctypes.c_int64),
+        ("geo", ctypes.c_void_p),
+        ("params", ctypes.c_void_p),
+        ("eps", ctypes.c_void_p),
+        ("rows", ctypes.c_int64),
+        ("x", ctypes.c_void_p),
+        ("out", ctypes.c_void_p),
+        ("saved", ctypes.c_void_p),
+        ("stats", ctypes.c_void_p),
+        ("dout", ctypes.c_void_p),
+        ("dx", ctypes.c_void_p),
+        ("grads", ctypes.c_void_p),
+        ("goff", ctypes.c_void_p),
+        ("gsize", ctypes.c_int64),
+        ("threads", ctypes.c_int64),
     ]
 
 
@@ -166,8 +180,10 @@ def _declare(lib: ctypes.CDLL) -> str | None:
     lib.conv_stack_forward.argtypes, lib.conv_stack_forward.restype = [args], n
     lib.conv_stack_backward.argtypes, lib.conv_stack_backward.restype = [args], n
     if lib.conv_stack_args_size() != ctypes.sizeof(ConvStackArgs):
-        return (f"its conv_stack_args has {lib.conv_stack_args_size()} bytes, ConvStackArgs "
-                f"{ctypes.sizeof(ConvStackArgs)}: the two must list the same fields")
+        return (
+            f"its conv_stack_args has {lib.conv_stack_args_size()} bytes, ConvStackArgs "
+            f"{ctypes.sizeof(ConvStackArgs)}: the two must list the same fields"
+        )
     return None
 
 
@@ -178,9 +194,12 @@ def library() -> ctypes.CDLL | None:
             _state["lib"], _state["reason"], _state["key"] = _build()
             on_purpose = _state["reason"] == NO_SIMD
             if _state["lib"] is None and not on_purpose:
-                warnings.warn(f"ssm_ms: the decoder's native kernels are off, running the torch path: "
-                              f"{_state['reason']} (a ConvDecoder with backend 'torch' does not ask for them)",
-                              RuntimeWarning, stacklevel=2)
+                warnings.warn(
+                    f"ssm_ms: the decoder's native kernels are off, running the torch path: "
+                    f"{_state['reason']} (a ConvDecoder with backend 'torch' does not ask for them)",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
         return _state["lib"]  # type: ignore[return-value]
 
 

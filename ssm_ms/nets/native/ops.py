@@ -66,9 +66,17 @@ def _call(fn, layers, pointers, eps, x, saved, stats, **fields) -> None:
     """One kernel call: a :class:`ConvStackArgs` of the fields both directions share and ``fields`` (the rest, as
     addresses or integers); the ctypes arrays it points to live until the call returns."""
     geo, eps_arr = _geo(layers), (ctypes.c_float * len(layers))(*eps)
-    args = ConvStackArgs(layers=len(layers), geo=ctypes.addressof(geo), params=ctypes.addressof(pointers),
-                         eps=ctypes.addressof(eps_arr), rows=x.shape[0], x=x.data_ptr(), saved=saved.data_ptr(),
-                         stats=stats.data_ptr(), **fields)
+    args = ConvStackArgs(
+        layers=len(layers),
+        geo=ctypes.addressof(geo),
+        params=ctypes.addressof(pointers),
+        eps=ctypes.addressof(eps_arr),
+        rows=x.shape[0],
+        x=x.data_ptr(),
+        saved=saved.data_ptr(),
+        stats=stats.data_ptr(),
+        **fields,
+    )
     check(fn(ctypes.byref(args)))
 
 
@@ -78,8 +86,9 @@ def _fresh(t: torch.Tensor) -> torch.Tensor:
 
 
 @torch.library.custom_op("ssm_ms::conv_stack", mutates_args=(), device_types="cpu")
-def conv_stack_op(x: torch.Tensor, geometry: list[int], eps: list[float], params: list[torch.Tensor]
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def conv_stack_op(
+    x: torch.Tensor, geometry: list[int], eps: list[float], params: list[torch.Tensor]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A ConvDecoder's transposed convolutions, each but the last followed by ``LayerNorm((C, H, W))`` and a ReLU,
     one sample at a time in cache (float32, CPU).
 
@@ -109,8 +118,15 @@ def _(x, geometry, eps, params):
 
 
 @torch.library.custom_op("ssm_ms::conv_stack_backward", mutates_args=(), device_types="cpu")
-def conv_stack_backward_op(x: torch.Tensor, saved: torch.Tensor, stats: torch.Tensor, grad: torch.Tensor,
-                           geometry: list[int], eps: list[float], params: list[torch.Tensor]) -> list[torch.Tensor]:
+def conv_stack_backward_op(
+    x: torch.Tensor,
+    saved: torch.Tensor,
+    stats: torch.Tensor,
+    grad: torch.Tensor,
+    geometry: list[int],
+    eps: list[float],
+    params: list[torch.Tensor],
+) -> list[torch.Tensor]:
     """Gradients of :func:`conv_stack_op`'s first output: ``[dx, d(each param)...]``, shaped as ``x`` and the
     parameters. Per-thread partial parameter gradients, summed in order: the same bits run to run for
     a given thread count."""
@@ -123,8 +139,21 @@ def conv_stack_backward_op(x: torch.Tensor, saved: torch.Tensor, stats: torch.Te
     dx = x.new_empty(x.shape)
     goff_arr = (ctypes.c_int64 * (4 * len(goff)))(*[o for offsets in goff for o in offsets])
     x, grad = x.contiguous(), grad.contiguous()  # held: the kernels read their memory
-    _call(lib.conv_stack_backward, layers, pointers, eps, x, saved, stats, dout=grad.data_ptr(), dx=dx.data_ptr(),
-          grads=grads.data_ptr(), goff=ctypes.addressof(goff_arr), gsize=gsize, threads=count)
+    _call(
+        lib.conv_stack_backward,
+        layers,
+        pointers,
+        eps,
+        x,
+        saved,
+        stats,
+        dout=grad.data_ptr(),
+        dx=dx.data_ptr(),
+        grads=grads.data_ptr(),
+        goff=ctypes.addressof(goff_arr),
+        gsize=gsize,
+        threads=count,
+    )
     del packed
     total = grads.sum(0)
     per_layer = []

@@ -39,8 +39,10 @@ def test_jacobians_of_the_project_networks_match_finite_differences():
     torch.manual_seed(0)
     d = 3
     x = torch.randn(4, d, dtype=F64)
-    transitions = [LocallyLinearTransition(d, n_matrices=4, hidden=16).double(),
-                   FullyConnectedTransition(d, (16, 16)).double()]
+    transitions = [
+        LocallyLinearTransition(d, n_matrices=4, hidden=16).double(),
+        FullyConnectedTransition(d, (16, 16)).double(),
+    ]
     observations = [small_decoder(d), Projection([0, 2])]
     for f in transitions:
         for g in observations:
@@ -60,8 +62,13 @@ def test_jacobians_of_the_project_networks_match_finite_differences():
     assert torch.equal(c, torch.eye(d, dtype=F64)[[0, 2]].expand(4, 2, d))
 
 
-@pytest.mark.parametrize("make", [lambda d, m: LocallyLinearTransition(d, n_matrices=4, hidden=16, input_dim=m),
-                                  lambda d, m: FullyConnectedTransition(d, (16, 16), input_dim=m)])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda d, m: LocallyLinearTransition(d, n_matrices=4, hidden=16, input_dim=m),
+        lambda d, m: FullyConnectedTransition(d, (16, 16), input_dim=m),
+    ],
+)
 def test_linearize_with_inputs_gives_b_by_central_differences(make):
     """A driven f(x, u): A = df/dx at fixed u and B = df/du at fixed x, against central differences."""
     torch.manual_seed(0)
@@ -114,8 +121,13 @@ def run_fresh(folder, cases: dict[str, tuple[str, torch.Tensor]], tmp_path) -> d
     """Outputs of the exported files, each case ``(file relative to folder, input)``, from a new interpreter in
     isolated mode (``-I``) where ``ssm_ms``, ``datamodules`` and ``lightning`` cannot be imported."""
     torch.save(cases, tmp_path / "cases.pt")
-    proc = subprocess.run([sys.executable, "-I", "-c", FRESH, str(folder), str(tmp_path / "cases.pt"),
-                           str(tmp_path / "out.pt")], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-I", "-c", FRESH, str(folder), str(tmp_path / "cases.pt"), str(tmp_path / "out.pt")],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "Warning" not in proc.stderr, proc.stderr
     return torch.load(tmp_path / "out.pt")
@@ -163,8 +175,7 @@ def test_export_from_a_checkpoint_on_the_command_line(tmp_path, capsys):
     assert info["normalization"]["mean"] == pytest.approx([y.mean().item()], rel=1e-5)
     assert info["normalization"]["std"] == pytest.approx([y.std(unbiased=False).item()], rel=1e-4)
     x = torch.randn(3, 2)
-    got = run_fresh(tmp_path / "exported", {"f": ("f.pt2", x), "g": ("g.pt2", x), "f:jacobian": ("f.pt2", x)},
-                    tmp_path)
+    got = run_fresh(tmp_path / "exported", {"f": ("f.pt2", x), "g": ("g.pt2", x), "f:jacobian": ("f.pt2", x)}, tmp_path)
     with torch.no_grad():
         torch.testing.assert_close(got["f"], model.f(x))
         torch.testing.assert_close(got["g"], model.g(x))

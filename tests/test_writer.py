@@ -23,10 +23,24 @@ K, P = 20, 10  # samples given, steps forecast (the test protocol's n_filter, n_
 
 
 def cli(tmp: Path, subcommand: str, config: str, *extra: str):
-    return main([subcommand, "--config", str(CONFIGS / config),
-                 "--trainer.logger.init_args.save_dir", str(tmp / "runs"), "--trainer.logger.init_args.version", "t",
-                 "--trainer.enable_progress_bar", "false", "--trainer.enable_model_summary", "false",
-                 "--data.init_args.train_path", str(tmp / "osc.npz"), *extra])
+    return main(
+        [
+            subcommand,
+            "--config",
+            str(CONFIGS / config),
+            "--trainer.logger.init_args.save_dir",
+            str(tmp / "runs"),
+            "--trainer.logger.init_args.version",
+            "t",
+            "--trainer.enable_progress_bar",
+            "false",
+            "--trainer.enable_model_summary",
+            "false",
+            "--data.init_args.train_path",
+            str(tmp / "osc.npz"),
+            *extra,
+        ]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -43,14 +57,30 @@ def oscillator(tmp_path_factory):
 
 
 def stage_args(tmp: Path, ckpt: Path) -> list[str]:
-    return ["--model.init_args.ssm_checkpoint", str(ckpt), "--model.init_args.results_dir", str(tmp / "results"),
-            "--model.init_args.figures_dir", "null", "--model.init_args.n_filter", str(K),
-            "--model.init_args.n_predict", str(P), "--model.init_args.analysis", "null"]
+    return [
+        "--model.init_args.ssm_checkpoint",
+        str(ckpt),
+        "--model.init_args.results_dir",
+        str(tmp / "results"),
+        "--model.init_args.figures_dir",
+        "null",
+        "--model.init_args.n_filter",
+        str(K),
+        "--model.init_args.n_predict",
+        str(P),
+        "--model.init_args.analysis",
+        "null",
+    ]
 
 
 def writer(output: Path, figures: int = 0) -> list[str]:
-    return ["--trainer.callbacks+=ssm_ms.forecasting.ForecastWriter", "--trainer.callbacks.output", str(output),
-            "--trainer.callbacks.figures", str(figures)]
+    return [
+        "--trainer.callbacks+=ssm_ms.forecasting.ForecastWriter",
+        "--trainer.callbacks.output",
+        str(output),
+        "--trainer.callbacks.figures",
+        str(figures),
+    ]
 
 
 def predict_file(tmp: Path, y: np.ndarray, name: str = "new.npz") -> Path:
@@ -88,8 +118,19 @@ def test_ukf_predict_gives_the_test_protocol_forecasts_in_original_units(oscilla
     cli(tmp, "test", "oscillator_ukf.yaml", *stage_args(tmp, ckpt))
     summary = json.loads((tmp / "results" / "oscillator.json").read_text())["runs"]["ukf"]["summary"]
     source = predict_file(tmp, y)  # the test sequences as a user's file, in original units
-    cli(tmp, "predict", "oscillator_ukf.yaml", *stage_args(tmp, ckpt), "--data.init_args.predict_path", str(source),
-        "--data.init_args.predict_given", str(K), "--data.init_args.predict_steps", str(P), *writer(tmp / "ukf.npz"))
+    cli(
+        tmp,
+        "predict",
+        "oscillator_ukf.yaml",
+        *stage_args(tmp, ckpt),
+        "--data.init_args.predict_path",
+        str(source),
+        "--data.init_args.predict_given",
+        str(K),
+        "--data.init_args.predict_steps",
+        str(P),
+        *writer(tmp / "ukf.npz"),
+    )
     out = np.load(tmp / "ukf.npz")
     d = 4
     assert out["filtered"].shape == (4, K, 2) and out["predicted"].shape == (4, P, 2)
@@ -104,7 +145,9 @@ def test_ukf_predict_gives_the_test_protocol_forecasts_in_original_units(oscilla
     with torch.no_grad():
         for j in range(P):
             x = model.f(x)
-            torch.testing.assert_close(x, torch.from_numpy(out["predicted_states"][:, j]).double(), rtol=1e-4, atol=1e-5)
+            torch.testing.assert_close(
+                x, torch.from_numpy(out["predicted_states"][:, j]).double(), rtol=1e-4, atol=1e-5
+            )
             y_j = model.g(x) * std + mean
             torch.testing.assert_close(y_j, torch.from_numpy(out["predicted"][:, j]).double(), rtol=1e-4, atol=1e-5)
         filtered = model.g(torch.from_numpy(out["states"]).double()) * std + mean
@@ -113,7 +156,10 @@ def test_ukf_predict_gives_the_test_protocol_forecasts_in_original_units(oscilla
     # covariances: symmetric positive semi-definite; the first forecast one is the unscented transform of
     # the last posterior through f (alpha 1, beta 2, kappa 0: centre weights 0 and 2, the others 1 / 2d)
     # plus the process noise 1e-4 I of configs/oscillator_ukf.yaml
-    posterior, ahead = torch.from_numpy(out["state_cov"]).double(), torch.from_numpy(out["predicted_state_cov"]).double()
+    posterior, ahead = (
+        torch.from_numpy(out["state_cov"]).double(),
+        torch.from_numpy(out["predicted_state_cov"]).double(),
+    )
     assert posterior.shape == (4, K, d, d) and ahead.shape == (4, P, d, d)
     for cov in (posterior, ahead):
         torch.testing.assert_close(cov, cov.transpose(-1, -2))
@@ -136,15 +182,37 @@ def test_ukf_predict_gives_the_test_protocol_forecasts_in_original_units(oscilla
 def test_encoder_predict_gives_the_test_protocol_forecasts(oscillator):
     tmp, ckpt, y, y_clean = oscillator
     args = stage_args(tmp, ckpt)
-    cli(tmp, "fit", "oscillator_encoder.yaml", *args, "--trainer.max_epochs", "1", "--trainer.check_val_every_n_epoch", "1",
-        "--model.init_args.encoder", '{"preset": "vector", "hidden": 16}')
+    cli(
+        tmp,
+        "fit",
+        "oscillator_encoder.yaml",
+        *args,
+        "--trainer.max_epochs",
+        "1",
+        "--trainer.check_val_every_n_epoch",
+        "1",
+        "--model.init_args.encoder",
+        '{"preset": "vector", "hidden": 16}',
+    )
     enc = tmp / "runs" / "oscillator_encoder" / "t" / "checkpoints" / "last.ckpt"
     cli(tmp, "test", "oscillator_encoder.yaml", *args, "--ckpt_path", str(enc))
     summary = json.loads((tmp / "results" / "oscillator.json").read_text())["runs"]["encoder"]["summary"]
     source = predict_file(tmp, y)
-    cli(tmp, "predict", "oscillator_encoder.yaml", *args, "--ckpt_path", str(enc), "--data.init_args.predict_path",
-        str(source), "--data.init_args.predict_given", str(K), "--data.init_args.predict_steps", str(P),
-        *writer(tmp / "encoder.npz"))
+    cli(
+        tmp,
+        "predict",
+        "oscillator_encoder.yaml",
+        *args,
+        "--ckpt_path",
+        str(enc),
+        "--data.init_args.predict_path",
+        str(source),
+        "--data.init_args.predict_given",
+        str(K),
+        "--data.init_args.predict_steps",
+        str(P),
+        *writer(tmp / "encoder.npz"),
+    )
     out = np.load(tmp / "encoder.npz")
     assert str(out["method"]) == "encoder" and "state_cov" not in out.files and out["states"].shape == (4, K, 4)
     assert_protocol_scores(out, summary, "encoder", y, y_clean)
@@ -161,10 +229,23 @@ def test_predict_defaults_figures_and_the_particle_filter(oscillator, monkeypatc
     out = np.load(work / "predictions" / "oscillator_ukf.npz")
     assert out["filtered"].shape == (4, 25, 2) and out["predicted"].shape == (4, P, 2)
     # the particle filter: weighted covariances, figures of the first two sequences
-    cli(tmp, "predict", "oscillator_ukf.yaml", *stage_args(tmp, ckpt), "--model.init_args.method", "pf",
-        "--model.init_args.n_particles", "64", "--model.init_args.unscented", "null",
-        "--data.init_args.predict_path", str(source), "--data.init_args.predict_steps", "5",
-        *writer(tmp / "pf.npz", figures=2))
+    cli(
+        tmp,
+        "predict",
+        "oscillator_ukf.yaml",
+        *stage_args(tmp, ckpt),
+        "--model.init_args.method",
+        "pf",
+        "--model.init_args.n_particles",
+        "64",
+        "--model.init_args.unscented",
+        "null",
+        "--data.init_args.predict_path",
+        str(source),
+        "--data.init_args.predict_steps",
+        "5",
+        *writer(tmp / "pf.npz", figures=2),
+    )
     out = np.load(tmp / "pf.npz")
     assert str(out["method"]) == "pf" and out["predicted"].shape == (4, 5, 2)
     for key, steps in (("state_cov", 25), ("predicted_state_cov", 5)):
@@ -198,9 +279,14 @@ def test_predict_refuses_bad_inputs_with_one_message(oscillator, capsys):
         (["--data.init_args.predict_path", str(tmp / "flat.npy")], "add a trailing axis"),
         (["--data.init_args.predict_path", str(tmp / "three.npy")], "the model was trained on (2,)"),
         (["--data.init_args.predict_path", str(good), "--data.init_args.predict_key", "x"], "holds no array 'x'"),
-        (["--data.init_args.predict_path", str(good), "--data.init_args.predict_given", "41"],
-         "predict_given=41 but the sequences of predict_path have T=40"),
-        (["--data.init_args.predict_path", str(good), "--data.init_args.predict_given", "0"], "predict_given must be >= 1"),
+        (
+            ["--data.init_args.predict_path", str(good), "--data.init_args.predict_given", "41"],
+            "predict_given=41 but the sequences of predict_path have T=40",
+        ),
+        (
+            ["--data.init_args.predict_path", str(good), "--data.init_args.predict_given", "0"],
+            "predict_given must be >= 1",
+        ),
         (["--data.init_args.predict_path", str(good), "--model.init_args.n_predict", "null"], "predict_steps"),
         (["--data.init_args.predict_path", str(tmp / "nan.npy")], "non-finite"),
     ]

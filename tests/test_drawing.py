@@ -9,18 +9,18 @@ from lightning.pytorch.loggers import TensorBoardLogger
 from PIL import Image
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from ssm_ms.module import MultipleShootingModule
-from ssm_ms.nets import LocallyLinearTransition, Projection
 from ssm_ms.drawing import (
     attractor_figure,
-    loss_curves_figure,
     lorenz_prediction_figure,
+    loss_curves_figure,
     prediction_mosaic,
     save_figure,
     save_gif,
     save_png,
     shooting_figure,
 )
+from ssm_ms.module import MultipleShootingModule
+from ssm_ms.nets import LocallyLinearTransition, Projection
 from ssm_ms.viz import ShootingPictureLogger
 from tests.conftest import RotationDataModule, fast_trainer, rotation_model
 
@@ -92,8 +92,9 @@ def test_save_gif_frames_size_duration_and_pixels(tmp_path):
     gen = torch.Generator().manual_seed(2)
     t, h, w, scale, margin, label = 5, 6, 7, 3, 4, 14
     y_true, y_model = torch.rand(t, 1, h, w, generator=gen), torch.rand(t, 1, h, w, generator=gen)
-    path = save_gif(y_true, y_model, 3, tmp_path / "gif" / "seq.gif", fps=10, scale=scale, margin=margin,
-                    label_height=label)
+    path = save_gif(
+        y_true, y_model, 3, tmp_path / "gif" / "seq.gif", fps=10, scale=scale, margin=margin, label_height=label
+    )
     with Image.open(path) as im:
         assert im.n_frames == t
         assert im.size == (3 * margin + 2 * w * scale, 2 * label + h * scale)
@@ -106,8 +107,7 @@ def test_save_gif_frames_size_duration_and_pixels(tmp_path):
     x_model = 2 * margin + w * scale
     # nearest upscaling: every pixel of a block equals its corner
     block = last[label : label + h * scale, x_model : x_model + w * scale]
-    np.testing.assert_allclose(block, np.kron(np.round(y_model[-1, 0].numpy() * 255), np.ones((scale, scale))),
-                               atol=1)
+    np.testing.assert_allclose(block, np.kron(np.round(y_model[-1, 0].numpy() * 255), np.ones((scale, scale))), atol=1)
 
 
 def test_save_gif_rgb_writes_every_frame(tmp_path):
