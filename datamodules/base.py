@@ -371,7 +371,9 @@ class TrajectoryDataModule(pl.LightningDataModule):
 
     def load_predict(self) -> TrajectoryDataset:
         """The sequences of ``predict_path`` (checked like a user's training files), whole: the forecaster
-        reads the first ``predict_given`` samples and the rest, if any, is what followed them."""
+        reads the first ``predict_given`` samples and the rest, if any, is what followed them. For data driven by
+        inputs the files are ``.npz`` holding them beside the measurements (:attr:`predict_input_key`, ``[N, T_u,
+        m]``): those of the given samples, and, to forecast, those of the horizon (``T_u`` may exceed ``T``)."""
         if not self.predict_path:
             raise ValueError(
                 "nothing to predict: give the sequences to forecast with --data.init_args.predict_path FILE "
@@ -391,7 +393,36 @@ class TrajectoryDataModule(pl.LightningDataModule):
                 f"predict_given={self.predict_given} but the sequences of predict_path have T={shape[1]} samples: "
                 f"give at most {shape[1]} (or leave predict_given unset to use all of them)"
             )
-        return TrajectoryDataset({"y": load_files(heads)})
+        arrays = {"y": load_files(heads)}
+        if self.input_dim:
+            arrays["u"] = self._predict_inputs(heads, shape[0])
+        return TrajectoryDataset(arrays)
+
+    @property
+    def predict_input_key(self) -> str:
+        """The inputs' name in predict files: ``"u"`` (the files DataModule: its ``input_key``)."""
+        return getattr(self, "input_key", None) or "u"
+
+    def _predict_inputs(self, heads: list, n: int) -> np.ndarray:
+        what = f"predict_path (inputs '{self.predict_input_key}')"
+        inputs = []
+        for h in heads:
+            if h.key is None:
+                raise ValueError(
+                    f"{what}: this model is driven by {self.input_dim} inputs per step; give .npz files "
+                    f"holding them beside the measurements (numpy.savez(path, y=..., u=...)), not {h.path}"
+                )
+            u = read_header(h.path, self.predict_input_key, what)
+            check_header(u, what)
+            if len(u.shape) != 3 or u.shape[2] != self.input_dim or u.shape[0] != h.shape[0]:
+                raise ValueError(
+                    f"{what}: {u.label} must be [N, T_u, {self.input_dim}] with the measurements' N = "
+                    f"{h.shape[0]}, got {u.shape}"
+                )
+            inputs.append(u)
+        if len({u.shape[1] for u in inputs}) > 1:
+            raise ValueError(f"{what}: every file must hold inputs of the same length T_u")
+        return load_files(inputs)
 
     def predict_dataloader(self) -> DataLoader:
         if "predict" not in self.datasets:

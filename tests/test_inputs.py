@@ -194,3 +194,137 @@ def test_bad_inputs_are_refused_with_one_message(tmp_path, change, match):
     with pytest.raises(ValueError, match=match):
         dm = FileDataModule(path, input_key="u", batch_size=8)
         dm.setup("fit")
+
+
+# ---------------------------------------------------------------------------- forecasting with inputs
+class LinearSystem(torch.nn.Module):
+    """The true ``x+ = A x + B u`` as a driven transition."""
+
+    input_dim = 1
+    state_dim = 2
+
+    def __init__(self):
+        super().__init__()
+        self.register_buffer("a", torch.tensor(A, dtype=torch.float32))
+        self.register_buffer("b", torch.tensor(B, dtype=torch.float32))
+
+    def forward(self, x, u):
+        return x @ self.a.T + u @ self.b.T
+
+
+@pytest.fixture(scope="module")
+def exact_driven(tmp_path_factory):
+    """An SSM whose f is the true linear system and g its C, checkpointed after a nominal epoch, and its data."""
+    tmp = tmp_path_factory.mktemp("driven")
+    data = linear_data(12, 40, 0.01)
+    path = write(tmp / "lin.npz", **data)
+    g = torch.nn.Linear(2, 1, bias=False)
+    with torch.no_grad():
+        g.weight.copy_(torch.tensor(C, dtype=torch.float32))
+    g.requires_grad_(False)
+    model = MultipleShootingModule(LinearSystem(), g, state_dim=2, n_nodes=4, lr=1e-9)
+    dm = FileDataModule(path, clean_key="y_clean", input_key="u", batch_size=4, val_trajectories=0)
+    trainer = fast_trainer(tmp, max_epochs=1)
+    trainer.fit(model, dm)
+    trainer.save_checkpoint(tmp / "ssm.ckpt")
+    return tmp, path, data
+
+
+def test_a_driven_forecast_rolls_out_under_the_future_inputs(exact_driven):
+    """The UKF infers states under the given inputs, the forecast continues under the next ones: against a naive loop
+    of the true system from the filter's last estimate, and close to the noiseless future."""
+    from ssm_ms.inference.filter_module import FilterForecaster
+
+    tmp, _, data = exact_driven
+    forecaster = FilterForecaster(
+        str(tmp / "ssm.ckpt"), n_filter=20, method="ukf", process_var=1e-6, measurement_var=1e-4, init_var=1.0
+    )
+    assert forecaster.input_dim == 1
+    y, u = torch.from_numpy(data["y"][:3]), torch.from_numpy(data["u"][:3])
+    k, p = 20, 10
+    out = forecaster.checked_forecast(y[:, :k], p, u=u)
+    x = out.states[:, k - 1].double()
+    expected = []
+    for j in range(p):
+        x = x @ torch.tensor(A).T + u[:, k - 1 + j].double() @ torch.tensor(B).T
+        expected.append(x @ torch.tensor(C).T)
+    torch.testing.assert_close(out.predicted.double(), torch.stack(expected, 1), rtol=1e-4, atol=1e-5)
+    truth = torch.from_numpy(data["y_clean"][:3, k : k + p])
+    assert (out.predicted - truth).abs().max() < 0.05  # the filter found the state: the forecast is the future
+    with pytest.raises(ValueError, match=r"needs the inputs of those 29 transitions \(u\[0 \.\. 28\]\), got 25"):
+        forecaster.checked_forecast(y[:, :k], p, u=u[:, :25])
+    with pytest.raises(ValueError, match="got none"):
+        forecaster.checked_forecast(y[:, :k], p)
+
+
+def test_the_encoder_reads_the_input_that_led_to_each_frame():
+    """Frame t's LSTM step sees u[t-1] (zeros at t = 0): changing u[5] changes the states from t = 6 on only."""
+    from ssm_ms.nets.encoder import StateEncoder
+
+    torch.manual_seed(0)
+    enc = StateEncoder(3, [2], preset="vector", hidden=8, input_dim=1)
+    y, u = torch.randn(2, 10, 2), torch.randn(2, 9, 1)
+    changed = u.clone()
+    changed[:, 5] += 1.0
+    a, b = enc(y, u), enc(y, changed)
+    torch.testing.assert_close(a[:, :6], b[:, :6])
+    assert (a[:, 6:] - b[:, 6:]).abs().min() > 0
+    with pytest.raises(ValueError, match=r"needs the inputs u \[2, >= 9, 1\]"):
+        enc(y)
+
+
+def test_predict_takes_the_future_inputs_and_refuses_a_horizon_without_them(exact_driven, tmp_path, capsys):
+    """cli predict on new recordings: y for the 20 given samples, u for those and the 10 to forecast; the file's
+    forecast is the forecaster's; with too few inputs, one message."""
+    from ssm_ms.cli import main
+
+    ckpt, _, data = exact_driven
+    config = tmp_path / "ukf.yaml"
+    config.write_text(f"""
+model:
+  class_path: ssm_ms.inference.FilterForecaster
+  init_args: {{ssm_checkpoint: {ckpt / "ssm.ckpt"}, n_filter: 20, method: ukf, measurement_var: 1.0e-4, init_var: 1.0,
+              metrics: [mse], results_dir: {tmp_path / "results"}}}
+data:
+  class_path: datamodules.files.FileDataModule
+  init_args: {{train_path: {ckpt / "lin.npz"}, input_key: u, batch_size: 4}}
+trainer: {{accelerator: cpu, logger: false, enable_progress_bar: false, default_root_dir: {tmp_path}}}
+""")
+    new = linear_data(3, 40, 0.01, seed=7)
+    np.savez(tmp_path / "new.npz", y=new["y"][:, :20], u=new["u"][:, :29])
+    out = tmp_path / "pred.npz"
+    main(
+        [
+            "predict",
+            "--config",
+            str(config),
+            "--data.init_args.predict_path",
+            str(tmp_path / "new.npz"),
+            "--data.init_args.predict_steps",
+            "10",
+            "--trainer.callbacks+=ssm_ms.forecasting.ForecastWriter",
+            "--trainer.callbacks.output",
+            str(out),
+        ]
+    )
+    saved = np.load(out)
+    assert saved["predicted"].shape == (3, 10, 1)
+    assert np.abs(saved["predicted"] - new["y_clean"][:, 20:30]).max() < 0.05
+    np.savez(tmp_path / "short.npz", y=new["y"][:, :20], u=new["u"][:, :25])
+    with pytest.raises(SystemExit):
+        main(
+            [
+                "predict",
+                "--config",
+                str(config),
+                "--data.init_args.predict_path",
+                str(tmp_path / "short.npz"),
+                "--data.init_args.predict_steps",
+                "10",
+                "--trainer.callbacks+=ssm_ms.forecasting.ForecastWriter",
+                "--trainer.callbacks.output",
+                str(out),
+            ]
+        )
+    err = capsys.readouterr().err
+    assert "give the future inputs too" in err and "Traceback" not in err

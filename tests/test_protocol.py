@@ -46,7 +46,7 @@ class Oracle(SSMForecaster):
     def on_test_batch_start(self, batch, batch_idx, dataloader_idx=0):
         self.batch = batch
 
-    def infer(self, y_filter):
+    def infer(self, y_filter, u=None):
         k = y_filter.shape[1]
         assert torch.equal(y_filter, self.batch["y"][:, :k])  # exactly the first k measurements
         return self.batch["state"][:, :k]
@@ -88,7 +88,7 @@ class DivergingOracle(Oracle):
         super().__init__(*args, **kwargs)
         self.diverged = set(diverged)
 
-    def infer(self, y_filter):
+    def infer(self, y_filter, u=None):
         states = super().infer(y_filter).clone()
         for row, index in enumerate(self.batch["index"].tolist()):
             if index in self.diverged:

@@ -194,7 +194,7 @@ class BaselineForecaster(ForecastModule):
         return torch.optim.Adam(self.parameters(), lr=self.lr)
 
     # ------------------------------------------------------------------ the protocol's hooks
-    def forecast(self, y_filter: torch.Tensor, n_predict: int) -> Forecast:
+    def forecast(self, y_filter: torch.Tensor, n_predict: int, u: torch.Tensor | None = None) -> Forecast:
         k = y_filter.shape[1]
         future = y_filter.new_zeros(y_filter.shape[0], n_predict, *y_filter.shape[2:])
         out = self.run(torch.cat([y_filter, future], 1), k)

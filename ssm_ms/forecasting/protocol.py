@@ -139,15 +139,20 @@ class ForecastModule(pl.LightningModule):
         self._mean_frame: torch.Tensor | None = None
         self._valid_time: ValidTimeAccumulator | None = None
 
+    # inputs per step the forecaster's model is driven by (0: an autonomous system); the data must have as many
+    input_dim = 0
+
     # ------------------------------------------------------------------ to implement
-    def forecast(self, y_filter: torch.Tensor, n_predict: int) -> Forecast:
-        """Estimate of ``y_filter [B, k, *obs_shape]`` and prediction of the ``n_predict`` frames after it."""
+    def forecast(self, y_filter: torch.Tensor, n_predict: int, u: torch.Tensor | None = None) -> Forecast:
+        """Estimate of ``y_filter [B, k, *obs_shape]`` and prediction of the ``n_predict`` frames after it; for a
+        driven model, under the inputs ``u [B, k + n_predict - 1, m]``: ``u[:, t]`` moves the system from ``t`` to
+        ``t + 1``, the given ones first, then those of the forecast."""
         raise NotImplementedError
 
-    def forecast_distribution(self, y_filter: torch.Tensor, n_predict: int) -> Forecast:
+    def forecast_distribution(self, y_filter: torch.Tensor, n_predict: int, u: torch.Tensor | None = None) -> Forecast:
         """:meth:`forecast` with the states' covariances where the forecaster has them (``predict`` calls
         this one; the test protocol, which needs no covariances, calls :meth:`forecast`)."""
-        return self.forecast(y_filter, n_predict)
+        return self.forecast(y_filter, n_predict, u)
 
     def describe(self) -> dict[str, Any]:
         """What this forecaster is, for the results: ``model`` (e.g. ``"SSM-LL"``, ``"LSTM"``), ``inference``
@@ -172,6 +177,17 @@ class ForecastModule(pl.LightningModule):
         images it can score."""
         if stage == "predict":
             self.prediction_split()
+        data_inputs = int(getattr(self.datamodule, "input_dim", 0) or 0)
+        if self.datamodule is not None and data_inputs != self.input_dim:
+            raise ValueError(
+                f"{type(self).__name__} forecasts a system driven by {self.input_dim} inputs per step but the data have "
+                f"{data_inputs}: "
+                + (
+                    "this forecaster takes no inputs; test a model with input_dim > 0 on these data"
+                    if self.input_dim == 0
+                    else "give the data their inputs (FileDataModule: input_key)"
+                )
+            )
         obs_shape = (
             getattr(self.datamodule, "obs_shape", None)
             if "ssim" in self.metric_names and stage in ("fit", "test")
@@ -210,17 +226,32 @@ class ForecastModule(pl.LightningModule):
         """Split, forecast, score each prediction against each target, add to the valid time, and keep the first
         batch for the figures."""
         y_filter, y_future = split_sequence(batch["y"], self.n_filter, self.n_predict)
-        out = self.checked_forecast(y_filter, y_future.shape[1])
+        out = self.checked_forecast(y_filter, y_future.shape[1], u=batch.get("u"))
         self.score(self.predictions(out, y_future), self.targets(batch, y_future))
         if self._valid_time is not None:
             self.add_to_valid_time(batch, out)
         if self._first_batch is None:
             self._first_batch = self.figure_batch(batch, out)
 
-    def checked_forecast(self, y_filter: torch.Tensor, n_predict: int, distribution: bool = False) -> Forecast:
+    def checked_forecast(
+        self, y_filter: torch.Tensor, n_predict: int, distribution: bool = False, u: torch.Tensor | None = None
+    ) -> Forecast:
         """:meth:`forecast` (or :meth:`forecast_distribution`), refused unless its frames have the shapes of the
-        ``y_filter [B, k, *obs]`` given and of the ``[B, n_predict, *obs]`` to predict."""
-        out = (self.forecast_distribution if distribution else self.forecast)(y_filter, n_predict)
+        ``y_filter [B, k, *obs]`` given and of the ``[B, n_predict, *obs]`` to predict. A driven forecaster gets
+        the first ``k + n_predict - 1`` inputs of ``u``, refused when there are fewer: a forecast needs the inputs
+        of its whole horizon."""
+        if self.input_dim:
+            k, needed = y_filter.shape[1], y_filter.shape[1] + n_predict - 1
+            if u is None or u.shape[1] < needed:
+                have = "none" if u is None else f"{u.shape[1]}"
+                raise ValueError(
+                    f"forecasting {n_predict} steps after {k} given samples of a driven system needs the inputs of "
+                    f"those {needed} transitions (u[0 .. {needed - 1}]), got {have}: give the future inputs too"
+                )
+            u = u[:, :needed]
+        else:
+            u = None
+        out = (self.forecast_distribution if distribution else self.forecast)(y_filter, n_predict, u)
         expected = (tuple(y_filter.shape), (len(y_filter), n_predict, *y_filter.shape[2:]))
         if (tuple(out.filtered.shape), tuple(out.predicted.shape)) != expected:
             raise RuntimeError(
@@ -278,7 +309,7 @@ class ForecastModule(pl.LightningModule):
         y = batch["y"]
         k, h = self._valid_time_split(y.shape[1])
         if (k, h) != (out.filtered.shape[1], out.predicted.shape[1]):
-            out = self.checked_forecast(y[:, :k], h)
+            out = self.checked_forecast(y[:, :k], h, u=batch.get("u"))
         truth = batch["y_clean" if "y_clean" in batch else "y"]
         self._valid_time.add_forecast(
             out.filtered, out.predicted, truth, clean="y_clean" in batch, to_units=self.to_units()
@@ -320,7 +351,7 @@ class ForecastModule(pl.LightningModule):
         """
         y = batch["y"]
         k, p = self.prediction_split(y.shape[1])
-        out = self.checked_forecast(y[:, :k], p, distribution=True)
+        out = self.checked_forecast(y[:, :k], p, distribution=True, u=batch.get("u"))
         norm = self.normalizer()
         to_units = norm.denormalize if norm is not None else (lambda t: t)
         result = {

@@ -52,10 +52,10 @@ class StateEncoderModule(SSMForecaster):
             raise ValueError(f"the learning rate must be > 0, got {lr}: set model.init_args.lr (e.g. 1e-3)")
         super().__init__(ssm_checkpoint, n_filter=n_filter, metrics=metrics, **kwargs)
         kwargs = dict(encoder or {"preset": "vector" if len(self.ssm.obs_shape()) == 1 else None})
-        for reserved in ("state_dim", "obs_shape"):
+        for reserved in ("state_dim", "obs_shape", "input_dim"):
             if reserved in kwargs:
                 raise ValueError(f"encoder.{reserved} comes from the SSM checkpoint; remove it from the config")
-        self.encoder = StateEncoder(self.ssm.state_dim, self.ssm.obs_shape(), **kwargs)
+        self.encoder = StateEncoder(self.ssm.state_dim, self.ssm.obs_shape(), input_dim=self.ssm.input_dim, **kwargs)
         d = self.ssm.state_dim
         self.register_buffer("latent_mean", torch.zeros(d))
         self.register_buffer("latent_std", torch.ones(d))
@@ -63,12 +63,22 @@ class StateEncoderModule(SSMForecaster):
 
     # ------------------------------------------------------------------ targets
     @torch.no_grad()
-    def latent_targets(self, index: torch.Tensor, seq_len: int) -> torch.Tensor:
-        """The SSM's latent trajectories ``[B, T, d]`` of training trajectories ``index``."""
+    def latent_targets(self, index: torch.Tensor, seq_len: int, u: torch.Tensor | None = None) -> torch.Tensor:
+        """The SSM's latent trajectories ``[B, T, d]`` of training trajectories ``index`` (under their inputs
+        ``u [B, T, m]``, each piece its own slice, for a driven SSM)."""
         nodes = self.ssm.node_states(index)  # [B, m, d]
         b, m, d = nodes.shape
         n = seq_len // m
-        return rollout(self.ssm.f, nodes.reshape(b * m, d), n).view(b, m * n, d)
+        pieces = None if u is None else u[:, : m * n].reshape(b * m, n, -1).to(nodes)
+        return rollout(self.ssm.f, nodes.reshape(b * m, d), n, pieces).view(b, m * n, d)
+
+    def training_inputs(self, index: torch.Tensor) -> torch.Tensor | None:
+        """The inputs ``[B, T, m]`` (as served: normalised) of training trajectories ``index`` (``None``: the SSM is
+        not driven)."""
+        if not self.input_dim:
+            return None
+        train = self.datamodule.train_split()
+        return train.__getitems__(index.cpu().tolist())["u"].to(self.device)
 
     @torch.no_grad()
     def compute_latent_statistics(self, seq_len: int, chunk: int = 1024) -> None:
@@ -79,7 +89,7 @@ class StateEncoderModule(SSMForecaster):
         count = 0
         for start in range(0, n_traj, chunk):
             index = torch.arange(start, min(start + chunk, n_traj), device=self.device)
-            z = self.latent_targets(index, seq_len).double().flatten(0, 1)
+            z = self.latent_targets(index, seq_len, self.training_inputs(index)).double().flatten(0, 1)
             total += z.sum(0)
             total_sq += z.pow(2).sum(0)
             count += len(z)
@@ -100,9 +110,9 @@ class StateEncoderModule(SSMForecaster):
 
     # ------------------------------------------------------------------ training
     def _regression(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        y = batch["y"]
-        target = (self.latent_targets(batch["index"], y.shape[1]) - self.latent_mean) / self.latent_std
-        return F.mse_loss(self.encoder(y), target)
+        y, u = batch["y"], batch.get("u")
+        target = (self.latent_targets(batch["index"], y.shape[1], u) - self.latent_mean) / self.latent_std
+        return F.mse_loss(self.encoder(y, u), target)
 
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         loss = self._regression(batch)
@@ -116,10 +126,10 @@ class StateEncoderModule(SSMForecaster):
         return torch.optim.Adam(self.encoder.parameters(), lr=self.hparams.lr)
 
     # ------------------------------------------------------------------ inference
-    def infer(self, y_filter: torch.Tensor) -> torch.Tensor:
+    def infer(self, y_filter: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
         if not bool(self.latent_stats_ready):
             raise RuntimeError(
                 "this encoder has not been trained: fit it first (python cli.py fit --config <encoder config>) "
                 "and test with --ckpt_path <its checkpoint>"
             )
-        return self.encoder(y_filter) * self.latent_std + self.latent_mean
+        return self.encoder(y_filter, u) * self.latent_std + self.latent_mean

@@ -136,25 +136,30 @@ class FilterForecaster(SSMForecaster):
             x0[:, int(state_i)] = first[:, int(obs_i)]
         return x0
 
-    def infer(self, y_filter: torch.Tensor) -> torch.Tensor:
+    def infer(self, y_filter: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
         x0 = self.prior_mean(y_filter)
-        out = self.filter.filter(y_filter, x0)
+        given = None if u is None else u[:, : y_filter.shape[1] - 1]
+        out = self.filter.filter(y_filter, x0, u=given)
         return out if isinstance(out, torch.Tensor) else out.means
 
-    def infer_distribution(self, y_filter: torch.Tensor, n_predict: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def infer_distribution(
+        self, y_filter: torch.Tensor, n_predict: int, u: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Filtered means ``[B, k, d]`` (as :meth:`infer`) and covariances ``[B, k + p, d, d]``: the posterior ones
         over the ``k`` given steps, then the filter's own prediction without measurements for ``p`` steps (UKF:
         unscented time updates with the process noise; particle filter: the last posterior's weighted particles
         moved through ``f`` with the process noise). These describe the spread around the filter's predicted
         mean, which differs from the point forecast ``f^j(x[k-1])`` only by the nonlinearity of ``f``."""
         x0 = self.prior_mean(y_filter)
+        k = y_filter.shape[1]
+        given, future = (None, None) if u is None else (u[:, : k - 1], u[:, k - 1 : k - 1 + n_predict])
         if isinstance(self.filter, UnscentedKalmanFilter):
-            result = self.filter.filter(y_filter, x0)
+            result = self.filter.filter(y_filter, x0, u=given)
             mean, cov, ahead = result.means[:, -1], result.covs[:, -1], []
-            for _ in range(n_predict):
-                mean, cov = self.filter.predict(mean, cov)
+            for j in range(n_predict):
+                mean, cov = self.filter.predict(mean, cov, None if future is None else future[:, j])
                 ahead.append(cov)
             return result.means, torch.cat([result.covs, torch.stack(ahead, 1)], 1)
-        result = self.filter.filter(y_filter, x0, return_particles=True)
-        ahead = self.filter.propagate(result.particles, result.weights, n_predict)
+        result = self.filter.filter(y_filter, x0, return_particles=True, u=given)
+        ahead = self.filter.propagate(result.particles, result.weights, n_predict, u=future)
         return result.means, torch.cat([result.covs, ahead], 1)

@@ -20,7 +20,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ssm_ms.inference.shared import call_model, check_autocast, check_measurements
+from ssm_ms.inference.shared import call_model, check_autocast, check_inputs, check_measurements, driven
 
 
 class ParticleFilterResult(NamedTuple):
@@ -153,8 +153,10 @@ class ParticleFilter:
         x0: Tensor | None = None,
         generator: torch.Generator | None = None,
         return_particles: bool = False,
+        u: Tensor | None = None,
     ) -> Tensor | ParticleFilterResult:
-        """Weighted posterior means ``[B, T, d]`` of ``y [B, T, *obs_shape]``.
+        """Weighted posterior means ``[B, T, d]`` of ``y [B, T, *obs_shape]`` (with the inputs ``u [B, >= T - 1, m]``
+        of a driven ``f``: ``u[:, t]`` moves the particles from t to t+1).
 
         ``x0``: centre of the initial cloud, ``[d]`` or ``[B, d]`` (default zeros). ``generator``: a
         ``torch.Generator`` on ``y``'s device for reproducible runs. With ``return_particles`` a
@@ -163,6 +165,7 @@ class ParticleFilter:
         Runs without autograd graphs: the filter is for inference (resampling is not differentiable).
         """
         bsz, steps = check_measurements(y)
+        check_inputs(u, bsz, steps - 1, "particle filter")
         dtype, device = y.dtype, y.device
         d = self.state_dim
         if x0 is not None:
@@ -227,7 +230,8 @@ class ParticleFilter:
                 particles = particles.gather(1, idx.unsqueeze(-1).expand(bsz, n, d))
                 log_w = torch.where(need[:, None], torch.full_like(log_w, -log_n), log_w)
                 noise = torch.randn(bsz, n, d, dtype=dtype, device=device, generator=generator)
-                particles = call_model(self.f, particles.reshape(bsz * n, d), self.autocast)
+                f = driven(self.f, None if u is None else u[:, t], n)
+                particles = call_model(f, particles.reshape(bsz * n, d), self.autocast)
                 particles = particles.reshape(bsz, n, d) + proc_std * noise
             means_t = torch.stack(means, dim=1)
         if not return_particles:
@@ -238,18 +242,26 @@ class ParticleFilter:
 
     @torch.no_grad()
     def propagate(
-        self, particles: Tensor, weights: Tensor, steps: int, generator: torch.Generator | None = None
+        self,
+        particles: Tensor,
+        weights: Tensor,
+        steps: int,
+        generator: torch.Generator | None = None,
+        u: Tensor | None = None,
     ) -> Tensor:
         """Covariances ``[B, steps, d, d]`` of the weighted cloud ``particles [B, P, d]``, ``weights [B, P]`` moved
-        ``steps`` times through ``f`` with the process noise and no measurement (the filter's prediction)."""
+        ``steps`` times through ``f`` with the process noise and no measurement (the filter's prediction; under the
+        inputs ``u [B, >= steps, m]`` for a driven ``f``)."""
         bsz, n, d = particles.shape
+        check_inputs(u, bsz, steps, "particle filter")
         if generator is None and self.seed is not None:
             generator = torch.Generator(device=particles.device).manual_seed(self.seed)
         proc_std = self.process_std.to(dtype=particles.dtype, device=particles.device)
         covs = []
-        for _ in range(steps):
+        for t in range(steps):
             noise = torch.randn(bsz, n, d, dtype=particles.dtype, device=particles.device, generator=generator)
-            particles = call_model(self.f, particles.reshape(bsz * n, d), self.autocast).reshape(bsz, n, d)
+            f = driven(self.f, None if u is None else u[:, t], n)
+            particles = call_model(f, particles.reshape(bsz * n, d), self.autocast).reshape(bsz, n, d)
             particles = particles + proc_std * noise
             covs.append(weighted_covariance(weights, particles, torch.einsum("bp,bpd->bd", weights, particles)))
         return torch.stack(covs, dim=1)

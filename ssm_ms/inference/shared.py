@@ -44,3 +44,23 @@ def call_model(fn: Callable[[Tensor], Tensor], x: Tensor, autocast: torch.dtype 
     with torch.autocast(x.device.type, dtype=autocast):
         out = fn(x)
     return out.to(x.dtype) if isinstance(out, Tensor) else out  # a non-tensor: the callers' checks name it
+
+
+def driven(f: Callable[..., Tensor], u: Tensor | None, repeats: int) -> Callable[[Tensor], Tensor]:
+    """``f`` as a function of the state alone: ``f`` itself without inputs, else ``x -> f(x, u)`` with the inputs
+    ``u [B, m]`` of a batch repeated for its ``repeats`` points per trajectory (sigma points, particles), rows
+    ``[B * repeats, d]`` trajectory-major."""
+    if u is None:
+        return f
+    rows = u.repeat_interleave(repeats, dim=0)
+    return lambda x: f(x, rows.to(x.dtype))
+
+
+def check_inputs(u: Tensor | None, batch: int, steps: int, what: str) -> None:
+    """Refuse inputs ``u`` that do not cover ``steps`` transitions of ``batch`` trajectories (``[B, >= steps, m]``)."""
+    if u is None:
+        return
+    if u.dim() != 3 or u.shape[0] != batch or u.shape[1] < steps:
+        raise ValueError(
+            f"{what}: inputs u must be [B, >= {steps}, m] with B={batch} ({steps} transitions), got {list(u.shape)}"
+        )

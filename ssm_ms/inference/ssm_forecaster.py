@@ -84,9 +84,12 @@ def training_measurements(dm: Any, max_values: int = 2_000_000) -> torch.Tensor 
     return torch.from_numpy(np.array(flat[::every], dtype=np.float64))
 
 
-def predict_states(f, x_last: torch.Tensor, steps: int) -> torch.Tensor:
-    """States at the ``steps`` times after ``x_last [B, d]``: ``[B, steps, d]`` (the first is ``f(x_last)``)."""
-    return rollout(f, f(x_last), steps)
+def predict_states(f, x_last: torch.Tensor, steps: int, u: torch.Tensor | None = None) -> torch.Tensor:
+    """States at the ``steps`` times after ``x_last [B, d]``: ``[B, steps, d]`` (the first is ``f(x_last)``; for a
+    driven ``f``, ``f(x_last, u[:, 0])``, then under ``u[:, 1:]``)."""
+    if u is None:
+        return rollout(f, f(x_last), steps)
+    return rollout(f, f(x_last, u[:, 0]), steps, u[:, 1:])
 
 
 # ---------------------------------------------------------------------------- the forecaster
@@ -117,6 +120,7 @@ class SSMForecaster(ForecastModule):
         super().__init__(n_filter, **kwargs)
         self.ssm, self._ssm_checkpoint = load_ssm(ssm_checkpoint)
         self.ssm_checkpoint = str(ssm_checkpoint)
+        self.input_dim = self.ssm.input_dim
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """A file stripped without its SSM (``python -m ssm_ms.pretrained --ssm-checkpoint``) takes the SSM's weights
@@ -135,26 +139,33 @@ class SSMForecaster(ForecastModule):
         checkpoint["state_dict"] = {**checkpoint["state_dict"], **{f"ssm.{k}": v for k, v in own.items()}}
 
     # ------------------------------------------------------------------ to implement
-    def infer(self, y_filter: torch.Tensor) -> torch.Tensor:
-        """Inferred states ``[B, k, d]`` from measurements ``[B, k, *obs_shape]``."""
+    def infer(self, y_filter: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
+        """Inferred states ``[B, k, d]`` from measurements ``[B, k, *obs_shape]`` (and, for a driven SSM, the inputs
+        ``u [B, >= k - 1, m]`` between them)."""
         raise NotImplementedError
 
-    def infer_distribution(self, y_filter: torch.Tensor, n_predict: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def infer_distribution(
+        self, y_filter: torch.Tensor, n_predict: int, u: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Inferred states ``[B, k, d]`` and the covariances ``[B, k + p, d, d]`` of the inferred and the
-        ``p = n_predict`` predicted states, where the method has them (default: :meth:`infer`, ``None``)."""
-        return self.infer(y_filter), None
+        ``p = n_predict`` predicted states, where the method has them (default: :meth:`infer`, ``None``); ``u``
+        the inputs of all ``k + p - 1`` transitions for a driven SSM."""
+        return self.infer(y_filter, u), None
 
     # ------------------------------------------------------------------ the protocol's hooks
-    def forecast(self, y_filter: torch.Tensor, n_predict: int) -> Forecast:
-        return self._forecast_from(self.infer(y_filter), n_predict)
+    def forecast(self, y_filter: torch.Tensor, n_predict: int, u: torch.Tensor | None = None) -> Forecast:
+        return self._forecast_from(self.infer(y_filter, u), n_predict, u)
 
-    def forecast_distribution(self, y_filter: torch.Tensor, n_predict: int) -> Forecast:
-        states, covs = self.infer_distribution(y_filter, n_predict)
-        return self._forecast_from(states, n_predict)._replace(state_covs=covs)
+    def forecast_distribution(self, y_filter: torch.Tensor, n_predict: int, u: torch.Tensor | None = None) -> Forecast:
+        states, covs = self.infer_distribution(y_filter, n_predict, u)
+        return self._forecast_from(states, n_predict, u)._replace(state_covs=covs)
 
-    def _forecast_from(self, states: torch.Tensor, n_predict: int) -> Forecast:
-        """The prediction of ``y[k + j]`` is ``g(f^{j+1}(x[k-1]))`` from the inferred ``states [B, k, d]``."""
-        pred_states = predict_states(self.ssm.f, states[:, -1], n_predict)  # [B, p, d]
+    def _forecast_from(self, states: torch.Tensor, n_predict: int, u: torch.Tensor | None = None) -> Forecast:
+        """The prediction of ``y[k + j]`` is ``g(f^{j+1}(x[k-1]))`` from the inferred ``states [B, k, d]`` (under the
+        inputs ``u[:, k - 1 : k - 1 + p]`` for a driven SSM)."""
+        k = states.shape[1]
+        future = None if u is None else u[:, k - 1 : k - 1 + n_predict]
+        pred_states = predict_states(self.ssm.f, states[:, -1], n_predict, future)  # [B, p, d]
         return Forecast(
             filtered=decode(self.ssm.g, states),
             predicted=decode(self.ssm.g, pred_states),
@@ -174,6 +185,11 @@ class SSMForecaster(ForecastModule):
 
     def setup(self, stage: str) -> None:
         super().setup(stage)
+        if self.input_dim and self.analysis_section("dynamics") is not None:
+            raise ValueError(
+                "analysis.dynamics studies f on its own (free runs, Lyapunov exponents), but this SSM's f is driven "
+                "by inputs: remove analysis.dynamics (valid_time still applies)"
+            )
         dm = self.datamodule
         if stage == "fit":
             check_same_data(self._ssm_checkpoint, dm, self.ssm)
@@ -301,8 +317,8 @@ class SSMForecaster(ForecastModule):
                     window=min(y.shape[1], 400),
                 )
             x0 = self.ssm.nodes.weight[:1].view(self.ssm.n_nodes, self.ssm.state_dim)[:1]
-            attractor = rollout(self.ssm.f, x0, 10_000)[0]
-            if attractor.shape[-1] >= 3:
+            attractor = rollout(self.ssm.f, x0, 10_000)[0] if not self.input_dim else x0  # a driven f: no free run
+            if attractor.shape[0] > 1 and attractor.shape[-1] >= 3:
                 true = first["state"][:4] if "state" in first and first["state"].shape[-1] == 3 else None
                 figures["attractor"] = drawing.attractor_figure(
                     attractor[:, :3], title="f iterated 10,000 times from a node", true_states=true

@@ -1,4 +1,5 @@
-"""Batched unscented Kalman filter (additive noise) over a learned SSM ``x[t+1] = f(x[t])``, ``y[t] = g(x[t])``.
+"""Batched unscented Kalman filter (additive noise) over a learned SSM ``x[t+1] = f(x[t])``, ``y[t] = g(x[t])``, or
+``x[t+1] = f(x[t], u[t])`` for a system driven by known inputs (``filter(..., u=...)``, ``predict(..., u=...)``).
 
 The filter infers the states of unseen trajectories from their measurements with the learned ``f`` and
 ``g`` and nothing else (no training). It is vectorised over trajectories and sigma points: each step
@@ -27,7 +28,7 @@ from typing import NamedTuple, Union
 import torch
 from torch import Tensor
 
-from ssm_ms.inference.shared import call_model, check_autocast, check_measurements
+from ssm_ms.inference.shared import call_model, check_autocast, check_inputs, check_measurements, driven
 
 # Plain types only, so that configs (jsonargparse / LightningCLI) can give them; tensors work too at run time.
 Variance = Union[float, list[float], list[list[float]]]  # noqa: UP007 (a run-time alias configs are checked against)
@@ -307,18 +308,21 @@ class UnscentedKalmanFilter:
         return mean.unsqueeze(-2) + offsets, offsets
 
     # ----------------------------------------------------------------------------------------------
-    def predict(self, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
-        """One prediction through ``f``: posterior ``(mean [B, d], cov [B, d, d])`` at t -> prior at t+1."""
+    def predict(self, mean: Tensor, cov: Tensor, u: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """One prediction through ``f``: posterior ``(mean [B, d], cov [B, d, d])`` at t -> prior at t+1 (under the
+        inputs ``u [B, m]`` applied from t to t+1, for a driven ``f``)."""
         setup = self._setup(mean.shape[-1], None, mean.dtype, mean.device)
         self._events = []
-        mean, cov = self._predict(mean, cov, setup, -1)
+        mean, cov = self._predict(mean, cov, setup, -1, u)
         self._warn_jitter()
         return mean, 0.5 * (cov + cov.transpose(-1, -2))
 
-    def _predict(self, mean: Tensor, cov: Tensor, setup: _Setup, step: int) -> tuple[Tensor, Tensor]:
+    def _predict(
+        self, mean: Tensor, cov: Tensor, setup: _Setup, step: int, u: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
         b, d = mean.shape
         sigma, _ = self._sigma_points(mean, cov, setup, "posterior", step)
-        fx = call_model(self.f, sigma.reshape(-1, d), self.autocast)
+        fx = call_model(driven(self.f, u, sigma.shape[1]), sigma.reshape(-1, d), self.autocast)
         mean_pred = fx.reshape(b, -1) @ setup.wm_kron
         dev = fx.reshape(b, -1, d) - mean_pred.unsqueeze(-2)
         return mean_pred, torch.baddbmm(setup.q, dev.transpose(-1, -2) * setup.wc, dev)
@@ -386,13 +390,17 @@ class UnscentedKalmanFilter:
         return mean + (w_c * w_e).sum(-2), cov - (w_ct * w_c if p == 1 else w_ct @ w_c)
 
     # ----------------------------------------------------------------------------------------------
-    def filter(self, y: Tensor, x0: Tensor | None = None, P0: Tensor | None = None) -> UKFResult:
-        """Filtered means ``[B, T, d]`` and covariances ``[B, T, d, d]`` of ``y [B, T, *obs_shape]``.
+    def filter(
+        self, y: Tensor, x0: Tensor | None = None, P0: Tensor | None = None, u: Tensor | None = None
+    ) -> UKFResult:
+        """Filtered means ``[B, T, d]`` and covariances ``[B, T, d, d]`` of ``y [B, T, *obs_shape]`` (with the inputs
+        ``u [B, >= T - 1, m]`` of a driven ``f``: ``u[:, t]`` moves the state from t to t+1).
 
         ``x0``: prior mean at time 0, ``[d]`` or ``[B, d]`` (default zeros). ``P0``: prior covariance,
         ``[d, d]`` or ``[B, d, d]`` (default ``init_var``), symmetric positive definite.
         """
         bsz, steps = check_measurements(y)
+        check_inputs(u, bsz, steps - 1, "UKF")
         dtype, device = y.dtype, y.device
         d = self._resolve_state_dim(x0, P0)
         mean = self._initial_mean(x0, bsz, d, dtype, device)
@@ -422,7 +430,7 @@ class UnscentedKalmanFilter:
             means.append(mean)
             covs.append(cov)
             if t + 1 < steps:
-                mean, cov = self._predict(mean, cov, setup, t)
+                mean, cov = self._predict(mean, cov, setup, t, None if u is None else u[:, t])
         self._warn_jitter()
         covs_t = torch.stack(covs, dim=1)
         # The recursion reads only lower triangles (Cholesky); symmetrise the outputs once.

@@ -103,6 +103,8 @@ class StateEncoder(nn.Module):
         obs_shape: shape of one measurement: ``[C, H, W]`` images or ``[D]`` vectors.
         preset, conv_channels, final_channels, final_relu: the per-frame CNN, see :class:`FrameEncoder`.
         hidden: LSTM hidden size.
+        input_dim: inputs per step of a driven system (0: none). The LSTM then reads, beside frame ``t``'s
+            features, the input ``u[t - 1]`` that moved the system to it (zeros at ``t = 0``).
     """
 
     def __init__(
@@ -114,14 +116,26 @@ class StateEncoder(nn.Module):
         final_channels: int | None = None,
         final_relu: bool = False,
         hidden: int = 1024,
+        input_dim: int = 0,
     ):
         super().__init__()
         self.frames = FrameEncoder(obs_shape, preset, conv_channels, final_channels, final_relu)
-        self.obs_shape, self.state_dim = self.frames.obs_shape, state_dim
-        self.lstm = nn.LSTM(self.frames.out_features, hidden, batch_first=True)
+        self.obs_shape, self.state_dim, self.input_dim = self.frames.obs_shape, state_dim, int(input_dim)
+        self.lstm = nn.LSTM(self.frames.out_features + self.input_dim, hidden, batch_first=True)
         self.head = nn.Linear(hidden, state_dim)
 
-    def forward(self, y: torch.Tensor) -> torch.Tensor:
-        """``y [B, T, *obs_shape]`` -> latent states ``[B, T, state_dim]``."""
-        out, _ = self.lstm(self.frames(y))
+    def forward(self, y: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
+        """``y [B, T, *obs_shape]`` (and, driven, the inputs ``u [B, >= T - 1, input_dim]`` between them) -> latent
+        states ``[B, T, state_dim]``."""
+        features = self.frames(y)
+        if self.input_dim:
+            b, t = y.shape[:2]
+            if u is None or u.shape[0] != b or u.shape[1] < t - 1 or u.shape[2] != self.input_dim:
+                raise ValueError(
+                    f"the encoder of a driven system needs the inputs u [{b}, >= {t - 1}, {self.input_dim}] "
+                    f"between the frames, got {None if u is None else list(u.shape)}"
+                )
+            previous = torch.cat([u.new_zeros(b, 1, self.input_dim), u[:, : t - 1]], dim=1)
+            features = torch.cat([features, previous.to(features)], dim=-1)
+        out, _ = self.lstm(features)
         return self.head(out)
