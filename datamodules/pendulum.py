@@ -498,6 +498,65 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
+# ---------------------------------------------------------------------------------- environment
+class PendulumEnvironment:
+    """The pendulum as a system to control: the simulator of the data set (Pinocchio, RK4) and its camera, one frame
+    per call, for a batch of episodes.
+
+    :meth:`reset` places the chains at given joint angles and velocities and returns the first frames; :meth:`step`
+    holds the torques ``u [B, n_links]`` (N m) for one frame period, as the data's torques are held, and returns the
+    next frames. Frames are rendered and noised as the data's (``noise_std``, clipped, quantised to 8 bits), float32
+    ``[B, 1, H, W]`` in [0, 1]; :attr:`state` ``[B, 2 n]`` (angles, then velocities) is the truth, for scoring only.
+    The noise of episode ``i`` comes from ``numpy.random.default_rng([seed, 2, i])`` (split id 2: neither the
+    training nor the test data's streams).
+    """
+
+    def __init__(self, params: dict[str, Any], seed: int = 0):
+        self.params = dict(params)
+        self.model = pendulum_model(params["n_links"])
+        self.data = self.model.createData()
+        self.steps = int(round(params["frame_dt"] / params["dt"]))
+        self.seed = int(seed)
+        self.frame_dt = float(params["frame_dt"])
+
+    def reset(self, q0: np.ndarray, v0: np.ndarray) -> np.ndarray:
+        self.q = np.array(q0, dtype=np.float64, ndmin=2)
+        self.v = np.array(v0, dtype=np.float64, ndmin=2)
+        self.rngs = [np.random.default_rng([self.seed, 2, i]) for i in range(len(self.q))]
+        return self.frames()
+
+    @property
+    def state(self) -> np.ndarray:
+        return np.concatenate([self.q, self.v], axis=-1)
+
+    def frames(self) -> np.ndarray:
+        p = self.params
+        out = np.empty((len(self.q), 1, p["image_size"], p["image_size"]), np.float32)
+        for j, r in enumerate(self.rngs):
+            clean = render(self.q[j : j + 1], p["image_size"], p["line_width"], p["rendering"])[0]
+            noisy = np.clip(clean + np.float32(p["noise_std"]) * r.standard_normal(clean.shape, dtype=np.float32), 0, 1)
+            out[j] = quantize(noisy) / np.float32(255.0)
+        return out
+
+    def clean_frames(self) -> np.ndarray:
+        """The current frames without noise (for pictures)."""
+        p = self.params
+        return np.stack(
+            [
+                quantize(render(q[None], p["image_size"], p["line_width"], p["rendering"])[0]) / np.float32(255)
+                for q in self.q
+            ]
+        )
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        u = np.asarray(u, dtype=np.float64).reshape(len(self.q), 1, -1)
+        q, v = simulate(
+            self.model, self.data, self.q, self.v, 2, self.steps, self.params["dt"], self.params["damping"], u
+        )
+        self.q, self.v = q[:, 1], v[:, 1]
+        return self.frames()
+
+
 # ---------------------------------------------------------------------------------- DataModule
 class PendulumDataModule(TrajectoryDataModule):
     """Noisy images of an n-link pendulum (defaults: the paper's simple pendulum).
@@ -693,6 +752,10 @@ class PendulumDataModule(TrajectoryDataModule):
             [quantize(render(q[j], self.image_size, self.line_width, self.rendering)) for j in range(len(q))]
         )
         return torch.from_numpy(frames).float().div_(255.0)
+
+    def environment(self, seed: int | None = None) -> PendulumEnvironment:
+        """This data set's pendulum as a system to control, frame by frame (:class:`PendulumEnvironment`)."""
+        return PendulumEnvironment(self.generator_params(), self.seed if seed is None else seed)
 
     def generate(self, split: str) -> dict[str, np.ndarray]:
         if split not in SPLIT_IDS:

@@ -248,14 +248,8 @@ def save_gif(
         y_true, y_model: ``[T, C, H, W]`` in [0, 1], C = 1 (stored exactly as 8-bit grey) or 3 (RGB,
             quantised to a 256-colour palette by Pillow).
         n_filter: frames ``t < n_filter`` are labelled "filtering" under the model, later ones "prediction".
-        path: the .gif to write (parent folders are created).
-        fps: frames per second (GIF stores durations in 10 ms units).
-        scale: each pixel becomes a ``scale x scale`` block (nearest neighbour).
-        margin, label_height: layout. Frame size ``(3*margin + 2*W*scale) x (2*label_height + H*scale)``;
-            the ground truth sits at ``(x=margin, y=label_height)``, the model at
-            ``(x=2*margin + W*scale, y=label_height)``; the top strip names the panels ("ground truth",
-            "model"), the bottom strip shows the time step (so no two frames are identical and Pillow
-            merges none) and "filtering" / "prediction".
+        path, fps, scale, margin, label_height: as :func:`save_panel_gif` (the ground truth at ``(x=margin,
+            y=label_height)``, the model at ``(x=2*margin + W*scale, y=label_height)``).
 
     Returns:
         The path written.
@@ -265,39 +259,72 @@ def save_gif(
             f"save_gif expects y_true and y_model of the same shape [T, C, H, W], got {tuple(y_true.shape)} "
             f"and {tuple(y_model.shape)}"
         )
-    t, c, h, w = y_true.shape
-    if c not in (1, 3):
-        raise ValueError(f"save_gif draws grey (C=1) or RGB (C=3) frames, got C={c}")
-    if scale < 1 or fps <= 0:
-        raise ValueError(f"scale must be >= 1 and fps > 0, got scale={scale}, fps={fps}")
+    t = y_true.shape[0]
     if not 0 <= n_filter <= t:
         raise ValueError(f"n_filter must lie in 0..T={t}, got {n_filter}")
+    notes = [["", "filtering" if i < n_filter else "prediction"] for i in range(t)]
+    return save_panel_gif({"ground truth": y_true, "model": y_model}, path, notes, fps, scale, margin, label_height)
+
+
+def save_panel_gif(
+    panels: dict[str, torch.Tensor],
+    path,
+    notes: Sequence[Sequence[str]] | None = None,
+    fps: float = 10,
+    scale: int = 4,
+    margin: int = 4,
+    label_height: int = 14,
+) -> Path:
+    """An animated GIF of sequences side by side, one panel each, named by its key.
+
+    Args:
+        panels: ``{label: [T, C, H, W]}`` in [0, 1], all the same shape; C = 1 (stored exactly as 8-bit grey) or 3
+            (RGB, quantised to a 256-colour palette by Pillow).
+        path: the .gif to write (parent folders are created).
+        notes: per frame, one text per panel written under it (the first panel's after the time step ``t = i``,
+            which every frame shows, so that no two frames are identical and Pillow merges none).
+        fps: frames per second (GIF stores durations in 10 ms units).
+        scale: each pixel becomes a ``scale x scale`` block (nearest neighbour).
+        margin, label_height: layout. Frame size ``((P+1)*margin + P*W*scale) x (2*label_height + H*scale)`` for
+            ``P`` panels; panel ``j`` sits at ``(x=(j+1)*margin + j*W*scale, y=label_height)``, its label above it.
+
+    Returns:
+        The path written.
+    """
+    sequences = list(panels.values())
+    if not sequences or any(y.shape != sequences[0].shape or y.dim() != 4 for y in sequences):
+        raise ValueError(
+            f"save_panel_gif expects panels of one shape [T, C, H, W], got {[tuple(y.shape) for y in sequences]}"
+        )
+    t, c, h, w = sequences[0].shape
+    if c not in (1, 3):
+        raise ValueError(f"a GIF panel draws grey (C=1) or RGB (C=3) frames, got C={c}")
+    if scale < 1 or fps <= 0:
+        raise ValueError(f"scale must be >= 1 and fps > 0, got scale={scale}, fps={fps}")
+    if notes is not None and len(notes) != t:
+        raise ValueError(f"notes must hold one entry per frame ({t}), got {len(notes)}")
 
     def to_uint8(y: torch.Tensor) -> np.ndarray:  # [T, C, H, W] -> [T, H*scale, W*scale(, 3)]
         a = (_cpu(y).clamp(0, 1) * 255).round().to(torch.uint8)
         a = a.repeat_interleave(scale, dim=2).repeat_interleave(scale, dim=3).permute(0, 2, 3, 1).numpy()
         return a[..., 0] if c == 1 else a
 
-    truth, model = to_uint8(y_true), to_uint8(y_model)
+    images = [to_uint8(y) for y in sequences]
     mode, white, black = ("L", 255, 0) if c == 1 else ("RGB", (255, 255, 255), (0, 0, 0))
-    size = (3 * margin + 2 * w * scale, 2 * label_height + h * scale)
-    x_model = 2 * margin + w * scale
+    n = len(images)
+    size = ((n + 1) * margin + n * w * scale, 2 * label_height + h * scale)
+    xs = [(j + 1) * margin + j * w * scale for j in range(n)]
     font = ImageFont.load_default()
     frames = []
     for i in range(t):
         frame = Image.new(mode, size, white)
-        frame.paste(Image.fromarray(truth[i]), (margin, label_height))
-        frame.paste(Image.fromarray(model[i]), (x_model, label_height))
         draw = ImageDraw.Draw(frame)
-        draw.text((margin, 1), "ground truth", fill=black, font=font)
-        draw.text((x_model, 1), "model", fill=black, font=font)
-        draw.text((margin, label_height + h * scale + 1), f"t = {i}", fill=black, font=font)
-        draw.text(
-            (x_model, label_height + h * scale + 1),
-            "filtering" if i < n_filter else "prediction",
-            fill=black,
-            font=font,
-        )
+        for j, (label, image) in enumerate(zip(panels, images)):
+            frame.paste(Image.fromarray(image[i]), (xs[j], label_height))
+            draw.text((xs[j], 1), label, fill=black, font=font)
+            note = notes[i][j] if notes is not None and j < len(notes[i]) else ""
+            text = f"t = {i}" + (f"  {note}" if note else "") if j == 0 else note
+            draw.text((xs[j], label_height + h * scale + 1), text, fill=black, font=font)
         frames.append(frame)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -140,18 +140,24 @@ def _cell(entry: dict[str, float] | None) -> str:
 
 
 def render_markdown(
-    experiment: str, runs: dict[str, dict[str, Any]], pipelines: dict[str, dict[str, Any]] | None = None
+    experiment: str,
+    runs: dict[str, dict[str, Any]],
+    pipelines: dict[str, dict[str, Any]] | None = None,
+    heading: dict[str, str] | None = None,
 ) -> str:
-    """The markdown report of an experiment from its runs ``{method: {"info": ..., "summary": ...}}``."""
-    lines = [f"# Forecasting results: {experiment}", ""]
+    """The markdown report of an experiment from its runs ``{method: {"info": ..., "summary": ...}}`` (``heading``:
+    ``{"title", "intro"}`` of a results file that is not the forecasting protocol's, e.g. closed-loop control)."""
+    heading = heading or {
+        "title": "Forecasting results",
+        "intro": "Mean ± std over test sequences. `last`: repeat the method's estimate of the last given frame; "
+        "`mean`: the mean training frame (references, computed by the same code).",
+    }
+    lines = [f"# {heading['title']}: {experiment}", ""]
     key = paper_key(experiment)
     paper = PAPER[key] if key is not None else None
     columns = sorted({k.split("/", 1)[1] for run in runs.values() for k in run["summary"]})
     pcols = sorted({c for r in paper["rows"].values() for c in r}) if paper else []
-    lines.append(
-        "Mean ± std over test sequences. `last`: repeat the method's estimate of the last given frame; "
-        "`mean`: the mean training frame (references, computed by the same code)."
-    )
+    lines.append(heading["intro"])
     if paper:
         lines.append(
             f"Beside each method, the paper's row for the same method ({paper['table'].split(' (')[0]}, below)."
@@ -425,7 +431,7 @@ def _save(results_dir: Path, experiment: str, data: dict[str, Any]) -> Path:
     data["experiment"] = experiment
     _replace_text(results_dir / f"{experiment}.json", json.dumps(data, indent=2, sort_keys=True))
     md_path = results_dir / f"{experiment}.md"
-    text = render_markdown(experiment, data.get("runs", {}), data.get("pipelines"))
+    text = render_markdown(experiment, data.get("runs", {}), data.get("pipelines"), data.get("heading"))
     notes = results_dir / f"{experiment}{NOTES_SUFFIX}"
     if notes.is_file():  # what a person wrote about the runs (pauses, measurements beside them): kept on every rewrite
         text += f"\n## Notes\n\n(from `{notes.name}`, written by hand)\n\n{notes.read_text().strip()}\n"
@@ -438,11 +444,15 @@ def write_results(
     info: dict[str, Any],
     summary: dict[str, dict[str, float]],
     analysis: dict[str, Any] | None = None,
+    heading: dict[str, str] | None = None,
 ) -> Path:
-    """Merge one test run into ``<results_dir>/<experiment>.json`` and rewrite ``<experiment>.md``."""
+    """Merge one test run into ``<results_dir>/<experiment>.json`` and rewrite ``<experiment>.md`` (``heading``: see
+    :func:`render_markdown`, kept in the file)."""
     results_dir.mkdir(parents=True, exist_ok=True)
     experiment = info["experiment"]
     data = _load(results_dir / f"{experiment}.json")
+    if heading is not None:
+        data["heading"] = heading
     run: dict[str, Any] = {"info": info, "summary": summary}
     if analysis:
         run["analysis"] = analysis

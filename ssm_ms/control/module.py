@@ -1,0 +1,385 @@
+"""Closed-loop control of a simulated system seen through its camera, with a learned model (``python cli.py test``).
+
+Each test batch is a batch of episodes: the DataModule's test trajectories give their initial states, its
+:meth:`environment` the system (the simulator that renders a new noisy frame every period). Every period:
+
+1. the estimate: the UKF over the learned ``f(x, u)`` and ``g`` moves its belief under the torque just applied and
+   corrects it with the new frame (the true model instead reads the simulator's state: the upper bound);
+2. the plan: MPPI (:mod:`ssm_ms.control.mppi`) rolls sampled torque sequences out through ``f`` from the estimate
+   and scores them with the swing-up cost (:mod:`ssm_ms.control.cost`) on the angle each predicted state shows:
+   for a learned model, the angle of the ink of the frame its decoder draws (:mod:`ssm_ms.control.goals`, distilled
+   into a small network once, at setup); for the true model, its angle;
+3. the first torque of the plan is applied for one period.
+
+Scored on the simulator's true angle: an episode succeeds when the pendulum stays within ``tolerance`` of upright
+over its last ``success_seconds``. The results file (``results/<experiment>.md``) holds, per controller, the success
+rate, the upright error over the final window, and the planning time per control step of one episode alone; a GIF
+shows the first episode (the frames seen, what the model believes, the true pendulum).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from torch import nn
+
+from ssm_ms.control.cost import SwingUpCost, upright_error
+from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
+from ssm_ms.control.mppi import MPPISettings, RecedingHorizon
+from ssm_ms.inference.ukf import UnscentedKalmanFilter
+from ssm_ms.module import datamodule_state, load_ssm
+from ssm_ms.runtime.machine import describe
+from ssm_ms.training.shooting import decode, rollout
+
+GRAVITY = 9.81
+CONTROL_HEADING = {
+    "title": "Closed-loop control results",
+    "intro": "Swing-up and balance of the simple pendulum from its camera frames (ssm_ms/control/module.py); mean ± "
+    "std over episodes. `episodes/success`: 1 when the true angle stays within the tolerance of upright over the "
+    "final window; `episodes/upright_error_final`: the mean angle from upright over that window (rad); "
+    "`episodes/first_upright_s`: when the angle first stays up for a whole window (episodes that never do are "
+    "left out); `planning/ms_per_step`: the planner's time per control step of one episode alone.",
+}
+
+
+class TruePendulum(nn.Module):
+    """The simple pendulum's own equations, ``theta'' = -g sin(theta) - damping theta' + u`` (unit mass on a unit
+    massless link: Pinocchio's model of the data), integrated by RK4 over one frame period: the planner's true model.
+    State ``(theta, theta')``, input the joint torque."""
+
+    input_dim, state_dim = 1, 2
+
+    def __init__(self, frame_dt: float, damping: float = 0.0, substeps: int = 5):
+        super().__init__()
+        self.h, self.substeps, self.damping = frame_dt / substeps, int(substeps), float(damping)
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        theta, omega, tau = x[:, 0], x[:, 1], u[:, 0]
+
+        def acc(th: torch.Tensor, om: torch.Tensor) -> torch.Tensor:
+            return -GRAVITY * torch.sin(th) - self.damping * om + tau
+
+        h = self.h
+        for _ in range(self.substeps):
+            k1t, k1w = omega, acc(theta, omega)
+            k2t, k2w = omega + 0.5 * h * k1w, acc(theta + 0.5 * h * k1t, omega + 0.5 * h * k1w)
+            k3t, k3w = omega + 0.5 * h * k2w, acc(theta + 0.5 * h * k2t, omega + 0.5 * h * k2w)
+            k4t, k4w = omega + h * k3w, acc(theta + h * k3t, omega + h * k3w)
+            theta = theta + h / 6 * (k1t + 2 * k2t + 2 * k3t + k4t)
+            omega = omega + h / 6 * (k1w + 2 * k2w + 2 * k3w + k4w)
+        return torch.stack([theta, omega], dim=1)
+
+
+def angle_of_state(x: torch.Tensor) -> torch.Tensor:
+    """``(sin theta, cos theta)`` of true states ``(theta, theta')``."""
+    return torch.stack([torch.sin(x[:, 0]), torch.cos(x[:, 0])], dim=1)
+
+
+class ClosedLoop(pl.LightningModule):
+    """Swing up and balance a pendulum from its camera frames with a learned SSM, or with the true model (the upper
+    bound); see the module doc.
+
+    Args:
+        ssm_checkpoint: the driven SSM (``input_dim`` = the chain's joints); ``None``: plan on the true model with the
+            true state.
+        seconds: length of an episode (control periods: ``seconds / frame_dt``).
+        success_seconds, tolerance: an episode succeeds when the angle stays within ``tolerance`` (rad) of upright
+            over its last ``success_seconds``.
+        planner: :class:`~ssm_ms.control.mppi.MPPISettings` (horizon, samples, iterations, noise_std,
+            temperature, u_min, u_max in N m, smoothing).
+        cost: the :class:`~ssm_ms.control.cost.SwingUpCost` weights ``w_velocity``, ``w_input``.
+        estimator: the UKF's ``process_var``, ``measurement_var`` (the frames' pixel noise variance) and
+            ``init_var`` (``None``: the spread of the SSM's shooting nodes).
+        distill: settings of the distilled angle readout: ``rollout_steps`` (states per node under random torques),
+            ``steps`` (fitting steps), ``pivot`` (``[x, y]`` in pixels; default: the frame's centre).
+        timing_steps: control steps of one episode alone whose planning time is reported.
+        experiment, results_dir, figures_dir, method_name: where the results go and the row's name.
+        seed: the episodes' camera noise and the planner's sampling.
+    """
+
+    def __init__(
+        self,
+        ssm_checkpoint: str | None = None,
+        *,
+        seconds: float = 10.0,
+        success_seconds: float = 2.0,
+        tolerance: float = 0.3,
+        planner: dict[str, Any] | None = None,
+        cost: dict[str, Any] | None = None,
+        estimator: dict[str, Any] | None = None,
+        distill: dict[str, Any] | None = None,
+        timing_steps: int = 20,
+        experiment: str = "pendulum_control",
+        results_dir: str = "results",
+        figures_dir: str | None = "results/figures",
+        method_name: str | None = None,
+        seed: int = 0,
+    ):
+        super().__init__()
+        self.settings = MPPISettings(**(planner or {}))
+        self.cost_weights = dict(cost or {})
+        self.estimator_settings = {"process_var": 1e-4, "measurement_var": 0.04, "init_var": None, **(estimator or {})}
+        self.distill_settings = {"rollout_steps": 25, "steps": 2000, "pivot": None, **(distill or {})}
+        if not (seconds > 0 and 0 < success_seconds <= seconds and tolerance > 0 and timing_steps >= 1):
+            raise ValueError(
+                f"need seconds > 0, 0 < success_seconds <= seconds, tolerance > 0 and timing_steps >= 1, got "
+                f"{seconds}, {success_seconds}, {tolerance}, {timing_steps}"
+            )
+        self.seconds, self.success_seconds, self.tolerance = float(seconds), float(success_seconds), float(tolerance)
+        self.timing_steps, self.seed = int(timing_steps), int(seed)
+        self.experiment, self.results_dir, self.figures_dir = experiment, results_dir, figures_dir
+        self.ssm_checkpoint = ssm_checkpoint
+        self.ssm = None
+        if ssm_checkpoint is not None:
+            self.ssm, self._ssm_file = load_ssm(ssm_checkpoint)
+            if not self.ssm.input_dim:
+                raise ValueError(
+                    f"{ssm_checkpoint} is an autonomous SSM (f takes no inputs): control needs a model of the driven "
+                    "system, trained on data with inputs (e.g. configs/pendulum_torque.yaml)"
+                )
+        self.method_name = method_name or ("true model, true state" if self.ssm is None else "SSM + UKF")
+        self._episodes: list[dict[str, torch.Tensor]] = []
+
+    # ------------------------------------------------------------------ set-up
+    def setup(self, stage: str) -> None:
+        dm = self.trainer.datamodule
+        if not hasattr(dm, "environment"):
+            raise ValueError(f"{type(dm).__name__} has no environment(): closed-loop control needs a simulated system")
+        if self.ssm is not None:
+            saved = datamodule_state(self._ssm_file)
+            if saved is not None:
+                dm.load_state_dict(saved[1])  # the SSM's normalisations of frames and inputs
+        self.env = dm.environment(self.seed)
+        self.frame_dt = self.env.frame_dt
+        n_links = self.env.params["n_links"]
+        if n_links != 1:
+            raise ValueError(f"the swing-up task is the simple pendulum's: the data have {n_links} links")
+        if self.ssm is None:
+            self.f, self.features = TruePendulum(self.frame_dt, self.env.params["damping"]), angle_of_state
+            return
+        if self.ssm.input_dim != n_links:
+            raise ValueError(f"the SSM takes {self.ssm.input_dim} inputs per step, the pendulum has {n_links} joints")
+        frames_norm, inputs_norm = dm.normalizer, dm.input_normalizer
+        self.to_frames = (lambda y: y) if frames_norm is None else frames_norm.normalize
+        self.from_frames = (lambda y: y) if frames_norm is None else frames_norm.denormalize
+        to_inputs = (lambda u: u) if inputs_norm is None else inputs_norm.normalize
+        ssm_f = self.ssm.f
+        self.f = lambda x, u: ssm_f(x, to_inputs(u))  # the planner and the filter think in N m
+        nodes = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim)
+        est = self.estimator_settings
+        init_var = est["init_var"] if est["init_var"] is not None else nodes.var(0).clamp_min(1e-6).tolist()
+        self.prior = nodes.mean(0)
+        self.ukf = UnscentedKalmanFilter(
+            self.f,
+            self.ssm.g,
+            process_var=est["process_var"],
+            measurement_var=est["measurement_var"],
+            init_var=init_var,
+            state_dim=self.ssm.state_dim,
+        )
+        self.features, self.distill_error = self._distill(nodes)
+
+    def _distill(self, nodes: torch.Tensor) -> tuple[DistilledFeatures, float]:
+        """The angle the decoder draws, learned as a function of the state from the model's own states: every shooting
+        node rolled out ``rollout_steps`` steps under random torques (the data's kind of excitation)."""
+        s = self.distill_settings
+        generator = torch.Generator().manual_seed(self.seed)
+        steps, limit = int(s["rollout_steps"]), max(abs(self.settings.u_min), abs(self.settings.u_max))
+        white = torch.randn(len(nodes), steps, 1, generator=generator)
+        torques = torch.empty_like(white)
+        torques[:, 0] = white[:, 0]
+        a = math.exp(-self.frame_dt / 0.5)
+        for t in range(1, steps):
+            torques[:, t] = a * torques[:, t - 1] + math.sqrt(1 - a * a) * white[:, t]
+        torques = (0.5 * limit * torques).clamp(-limit, limit)
+        with torch.no_grad():
+            states = rollout(self.f, nodes, steps + 1, torques).reshape(-1, nodes.shape[1])
+        height, width = self.ssm.obs_shape()[-2:]
+        pivot = tuple(s["pivot"]) if s["pivot"] is not None else (width / 2, height / 2)
+
+        def target(x: torch.Tensor) -> torch.Tensor:
+            return ink_angle_features(self.from_frames(decode(self.ssm.g, x, 4096)), pivot)
+
+        return DistilledFeatures.fit(states, target, steps=int(s["steps"]), seed=self.seed)
+
+    # ------------------------------------------------------------------ episodes
+    def _controller(self, batch: int) -> RecedingHorizon:
+        cost = SwingUpCost(self.features, self.frame_dt, **self.cost_weights)
+        return RecedingHorizon(self.f, cost, self.settings, batch, 1, seed=self.seed)
+
+    @torch.no_grad()
+    def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        n = self.env.params["n_links"]
+        start = batch["state"][:, 0].double().cpu().numpy()
+        b, periods = len(start), int(round(self.seconds / self.frame_dt))
+        frames = torch.from_numpy(self.env.reset(start[:, :n], start[:, n:]))
+        controller = self._controller(b)
+        mean = cov = None
+        if self.ssm is not None:
+            mean = self.prior.expand(b, -1).clone()
+            cov = self.ukf._initial_cov(None, b, self.ssm.state_dim, mean.dtype, mean.device)
+            mean, cov = self.ukf.update(mean, cov, self.to_frames(frames))
+        seen, believed, truth, states, inputs = [frames], [], [torch.from_numpy(self.env.clean_frames())], [], []
+        states.append(torch.from_numpy(self.env.state).float())
+        plan_seconds = 0.0
+        for _ in range(periods):
+            if self.ssm is not None:
+                believed.append(self.from_frames(decode(self.ssm.g, mean)))
+            x = mean if self.ssm is not None else torch.from_numpy(self.env.state).float()
+            tick = time.perf_counter()
+            u = controller(x)
+            plan_seconds += time.perf_counter() - tick
+            frames = torch.from_numpy(self.env.step(u.double().numpy()))
+            if self.ssm is not None:
+                mean, cov = self.ukf.predict(mean, cov, u)
+                mean, cov = self.ukf.update(mean, cov, self.to_frames(frames))
+            seen.append(frames)
+            truth.append(torch.from_numpy(self.env.clean_frames()))
+            states.append(torch.from_numpy(self.env.state).float())
+            inputs.append(u.float())
+        if self.ssm is not None:
+            believed.append(self.from_frames(decode(self.ssm.g, mean)))
+        self._episodes.append(
+            {
+                "states": torch.stack(states, 1),
+                "inputs": torch.stack(inputs, 1),
+                "seen": torch.stack(seen, 1),
+                "truth": torch.stack(truth, 1),
+                "believed": torch.stack(believed, 1) if believed else None,
+                "batch_plan_seconds": torch.tensor(plan_seconds / periods),
+            }
+        )
+
+    @torch.no_grad()
+    def planning_seconds(self) -> list[float]:
+        """Seconds of planning per control step of one episode alone (hanging at rest), ``timing_steps`` steps."""
+        controller = self._controller(1)
+        x = self.prior[None].clone() if self.ssm is not None else torch.zeros(1, 2)
+        times = []
+        for _ in range(self.timing_steps):
+            tick = time.perf_counter()
+            u = controller(x)
+            times.append(time.perf_counter() - tick)
+            x = self.f(x, u)
+        return times
+
+    # ------------------------------------------------------------------ results
+    def on_test_epoch_end(self) -> None:
+        from ssm_ms.forecasting.results import write_results
+
+        runs = self._episodes
+        states = torch.cat([r["states"] for r in runs])  # [E, T+1, 2]
+        error = upright_error(states[..., 0].double())  # [E, T+1]
+        window = int(round(self.success_seconds / self.frame_dt))
+        final = error[:, -window:]
+        success = (final < self.tolerance).all(dim=1).double()
+        times = torch.tensor(self.planning_seconds(), dtype=torch.float64) * 1000
+        summary = {
+            f"{self.method_name}/episodes/success": _stats(success),
+            f"{self.method_name}/episodes/upright_error_final": _stats(final.mean(1)),
+            f"{self.method_name}/episodes/first_upright_s": _stats(
+                _first_upright(error, self.tolerance, window) * self.frame_dt
+            ),
+            f"{self.method_name}/planning/ms_per_step": _stats(times),
+        }
+        info = {
+            "experiment": self.experiment,
+            "method": self.method_name,
+            "model": "true model" if self.ssm is None else type(self.ssm.f).__name__,
+            "inference": None if self.ssm is None else "ukf",
+            "label": self.method_name,
+            "ssm_checkpoint": self.ssm_checkpoint,
+            "command": " ".join(sys.argv),
+            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "machine": describe(),
+            "test_sequences": len(success),
+            "inference_settings": self._settings_line(),
+        }
+        if self.trainer.is_global_zero:
+            write_results(Path(self.results_dir), info, summary, heading=CONTROL_HEADING)
+            self._figures(runs[0], error)
+        self.log_dict(
+            {"control/success_rate": success.mean().item(), "control/ms_per_step": times.mean().item()},
+            rank_zero_only=True,
+        )
+        self._episodes = []
+
+    def _settings_line(self) -> str:
+        s = self.settings
+        line = (
+            f"MPPI: horizon {s.horizon}, {s.samples} samples, {s.iterations} iterations, noise {s.noise_std} N m, "
+            f"temperature {s.temperature}, torque within [{s.u_min}, {s.u_max}] N m; episodes of {self.seconds} s, "
+            f"success: within {self.tolerance} rad of upright over the last {self.success_seconds} s"
+        )
+        if self.ssm is not None:
+            line += (
+                f"; UKF {self.estimator_settings}; angle readout distilled from g (held-out MSE "
+                f"{self.distill_error:.2g})"
+            )
+        return line
+
+    def _figures(self, run: dict[str, torch.Tensor], error: torch.Tensor) -> None:
+        if not self.figures_dir:
+            return
+        from ssm_ms import drawing
+
+        name = f"{self.experiment}_{self.method_name.replace(' ', '_').replace(',', '').replace('+', 'and')}"
+        panels = {"camera (seen)": run["seen"][0]}
+        if run["believed"] is not None:
+            panels["model's belief g(x)"] = run["believed"][0].clamp(0, 1)
+        panels["true pendulum"] = run["truth"][0]
+        torques = run["inputs"][0, :, 0].tolist() + [float("nan")]
+        notes = [[f"u = {u:+.2f} N m" if math.isfinite(u) else "", ""] for u in torques]
+        drawing.save_panel_gif(panels, Path(self.figures_dir) / f"{name}.gif", notes, fps=1 / self.frame_dt)
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(7, 3.2))
+        t = np.arange(error.shape[1]) * self.frame_dt
+        for row in error:
+            ax.plot(t, row.numpy(), lw=0.8, alpha=0.7)
+        ax.axhline(self.tolerance, color="k", ls="--", lw=0.8)
+        ax.axvspan(self.seconds - self.success_seconds, self.seconds, color="0.9")
+        ax.set(
+            xlabel="time (s)",
+            ylabel="angle from upright (rad)",
+            ylim=(0, math.pi),
+            title=f"{self.method_name}: {len(error)} episodes",
+        )
+        fig.tight_layout()
+        drawing.save_figure(fig, Path(self.figures_dir) / f"{name}_angles.png")
+        plt.close(fig)
+
+
+def _stats(values: torch.Tensor) -> dict[str, float]:
+    values = values.double()
+    finite = values[torch.isfinite(values)]
+    return {
+        "mean": float(finite.mean()) if len(finite) else float("nan"),
+        "std": float(finite.std(unbiased=False)) if len(finite) else float("nan"),
+        "n": int(values.numel()),
+        "non_finite": int(values.numel() - finite.numel()),
+    }
+
+
+def _first_upright(error: torch.Tensor, tolerance: float, window: int) -> torch.Tensor:
+    """Per episode, the first step from which the angle stays within ``tolerance`` for ``window`` steps (``nan``:
+    never)."""
+    inside = (error < tolerance).double()
+    out = torch.full((len(error),), float("nan"), dtype=torch.float64)
+    for e in range(len(error)):
+        runs = torch.nn.functional.conv1d(inside[e][None, None], torch.ones(1, 1, window, dtype=torch.float64))[0, 0]
+        hits = torch.nonzero(runs >= window - 0.5)
+        if len(hits):
+            out[e] = float(hits[0, 0])
+    return out

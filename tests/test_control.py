@@ -1,0 +1,131 @@
+"""Control on a learned model (ssm_ms.control): the planner's pieces against their formulas and known systems, the
+angle read from rendered frames, and the whole closed loop swinging the true pendulum up."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from datamodules import pendulum as P
+from ssm_ms.control.cost import SwingUpCost, upright_error
+from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
+from ssm_ms.control.module import TruePendulum
+from ssm_ms.control.mppi import MPPISettings, RecedingHorizon, mppi
+
+
+def test_true_pendulum_is_the_simulators_frame():
+    """The planner's true model over one 0.1 s frame against Pinocchio's simulation of the data (RK4, 5 ms)."""
+    model = P.pendulum_model(1)
+    q0, v0 = np.array([[0.3], [2.5], [-1.0]]), np.array([[0.0], [1.0], [-3.0]])
+    torque = np.array([[[2.0]], [[-3.0]], [[0.5]]])
+    q, v = P.simulate(model, model.createData(), q0, v0, 2, 20, 5e-3, 0.0, torque)
+    x = torch.tensor(np.concatenate([q0, v0], 1))
+    exact = TruePendulum(0.1, substeps=20)(x, torch.tensor(torque[:, 0]))
+    torch.testing.assert_close(exact, torch.tensor(np.concatenate([q[:, 1], v[:, 1]], 1)), rtol=0, atol=1e-9)
+    coarse = TruePendulum(0.1, substeps=5)(x, torch.tensor(torque[:, 0]))
+    assert (coarse - exact).abs().max() < 1e-3  # the planner's cheaper model
+
+
+def test_the_angle_read_from_rendered_frames():
+    """The ink's centroid about the frame's centre gives the pendulum's angle: rendered at known angles, clean and
+    noisy as the data's."""
+    angles = np.linspace(-math.pi, math.pi, 37)[:-1]
+    frames = torch.from_numpy(P.render_paper(angles[:, None], 24)).clamp(0, 1)
+    sc = ink_angle_features(frames, (12.0, 12.0))
+    read = torch.atan2(sc[:, 0], sc[:, 1]).numpy()
+    error = np.angle(np.exp(1j * (read - angles)))
+    assert np.abs(error).max() < 0.06
+    noisy = (frames + 0.2 * torch.randn(frames.shape, generator=torch.Generator().manual_seed(0))).clamp(0, 1)
+    sc = ink_angle_features(noisy, (12.0, 12.0), floor=0.5)
+    assert np.abs(np.angle(np.exp(1j * (torch.atan2(sc[:, 0], sc[:, 1]).numpy() - angles)))).max() < 0.2
+
+
+def test_swing_up_cost_is_its_formula():
+    torch.manual_seed(0)
+    b, k, h = 2, 3, 4
+    phi = torch.randn(b, k, h + 1) * 2
+    states = torch.stack([torch.sin(phi), torch.cos(phi)], -1)
+    inputs = torch.randn(b, k, h, 1)
+    cost = SwingUpCost(lambda x: x, dt=0.1, w_velocity=0.05, w_input=1e-3)(states, inputs)
+    expected = torch.zeros(b, k)
+    for i in range(b):
+        for j in range(k):
+            p = phi[i, j, 1:]
+            height = ((1 + torch.cos(p)) / 2).mean()
+            turn = torch.atan2(torch.sin(p[1:] - p[:-1]), torch.cos(p[1:] - p[:-1])) / 0.1
+            motion = ((1 - torch.cos(p[1:])) / 2 * turn**2).mean()
+            expected[i, j] = height + 0.05 * motion + 1e-3 * inputs[i, j].pow(2).mean()
+    torch.testing.assert_close(cost, expected, rtol=1e-5, atol=1e-6)
+    assert upright_error(torch.tensor([math.pi, 0.0, -math.pi + 0.1, 3 * math.pi])).tolist() == pytest.approx(
+        [0.0, math.pi, 0.1, 0.0], abs=1e-6
+    )
+
+
+def test_mppi_drives_a_point_to_its_target_within_the_bounds():
+    """x+ = x + 0.1 u, cost (x - 1)^2: the receding plan brings x from 0 to 1 and never asks for more than u_max."""
+    settings = MPPISettings(horizon=10, samples=128, iterations=2, noise_std=1.0, temperature=0.1, u_min=-2, u_max=2)
+
+    def f(x, u):
+        return x + 0.1 * u
+
+    def cost(states, inputs):
+        return (states[..., 0] - 1.0).pow(2).sum(-1)
+
+    controller = RecedingHorizon(f, cost, settings, batch=3, input_dim=1)
+    x = torch.zeros(3, 1)
+    for _ in range(20):
+        u = controller(x)
+        assert u.abs().max() <= 2.0
+        x = f(x, u)
+    assert (x - 1).abs().max() < 0.1
+    plan, best = mppi(f, cost, torch.ones(1, 1), torch.zeros(1, 5, 1), settings)
+    assert plan.abs().max() < 0.5 and best.item() < 0.05  # at the target: stay
+
+
+def test_distilled_features_fit_a_known_map():
+    torch.manual_seed(0)
+    states = torch.rand(5000, 3) * 6 - 3
+
+    def target(x):
+        return torch.stack([torch.sin(x[:, 0]), torch.cos(x[:, 0])], 1)
+
+    net, error = DistilledFeatures.fit(states, target, steps=1500)
+    assert error < 5e-3
+    torch.testing.assert_close(net(states[:5]), target(states[:5]), atol=0.15, rtol=0)
+
+
+def test_the_closed_loop_swings_the_true_pendulum_up(tmp_path):
+    """The whole loop through the command line, planning on the true model: two episodes from hanging, both upright
+    and still over their last 2 s, the results file and its figures written."""
+    from ssm_ms.cli import main
+
+    main(
+        [
+            "test",
+            "--config",
+            "configs/pendulum_true_control.yaml",
+            "--data.init_args.n_test",
+            "2",
+            "--data.init_args.data_dir",
+            str(tmp_path / "data"),
+            "--model.init_args.results_dir",
+            str(tmp_path),
+            "--model.init_args.figures_dir",
+            str(tmp_path / "figures"),
+            "--model.init_args.timing_steps",
+            "3",
+            "--trainer.logger",
+            "false",
+            "--trainer.enable_progress_bar",
+            "false",
+        ]
+    )
+    result = json.loads((tmp_path / "pendulum_control.json").read_text())["runs"]["true model, true state"]
+    assert result["summary"]["true model, true state/episodes/success"]["mean"] == 1.0
+    assert result["summary"]["true model, true state/episodes/upright_error_final"]["mean"] < 0.3
+    assert (tmp_path / "figures" / "pendulum_control_true_model_true_state.gif").is_file()
+    assert "Closed-loop control results" in (tmp_path / "pendulum_control.md").read_text()
