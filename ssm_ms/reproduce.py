@@ -302,26 +302,22 @@ class Pipeline:
         )
         tmp.replace(self.record)
 
-    def finished(self, results_dir: Path, experiment: str) -> Path:
-        """Record the finished run in ``results_dir``'s results file, in place of the record of the command it was
-        last finished with (a budget raised on resume), and note that command; return the results table's path."""
+    def finished(self, files: list[tuple[Path, str]]) -> list[Path]:
+        """Record the finished run in each ``(results_dir, experiment)`` results file its stages wrote, in place of the
+        record of the command it was last finished with (a budget raised on resume), and note that command; return
+        the results tables' paths."""
         replaces = self.recorded_command if self.recorded_command != self.command else None
-        md = write_pipeline(
-            results_dir,
-            experiment,
-            self.command,
-            replaces=replaces,
-            pipeline={
-                "stages": self.stages,
-                "total_seconds": round(sum(s["seconds"] for s in self.stages), 1),
-                "machine": describe(),
-                "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "command": self.command,
-            },
-        )
+        pipeline = {
+            "stages": self.stages,
+            "total_seconds": round(sum(s["seconds"] for s in self.stages), 1),
+            "machine": describe(),
+            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "command": self.command,
+        }
+        written = [write_pipeline(d, e, self.command, replaces=replaces, pipeline=pipeline) for d, e in files]
         self.recorded_command = self.command
         self._write()
-        return md
+        return written
 
     def stage(self, args: list[str], again: bool = False) -> bool:
         """Run ``python cli.py *args`` unless the resumed run finished it (``again``: run it all the same, an
@@ -422,28 +418,40 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(opts, name)}")
     if opts.seed is not None and opts.seed < 0:
         parser.error(f"--seed must be >= 0, got {opts.seed}")
+    suite = ROOT / "configs" / "suites" / f"{opts.experiment}.yaml"
+    if suite.is_file():  # several experiments into one results file, one after the other
+        if opts.resume:
+            parser.error(f"{opts.experiment} is a suite of experiments: resume each with its own reproduce command")
+        for experiment in load_config(suite).get("experiments", []):
+            main([experiment, *argv[1:]])
+        return
     folder = ROOT / "configs" / ("cpu" if opts.size == "cpu" else "")
     ssm_cfg = folder / f"{opts.experiment}.yaml"
     enc_cfg = folder / f"{opts.experiment}_encoder.yaml"
     ukf_cfg = folder / f"{opts.experiment}_ukf.yaml"
+    control_cfg = folder / f"{opts.experiment}_control.yaml"
     alone = folder / "baselines" / f"{opts.experiment}.yaml"
     if alone.exists():
         baselines, ssm_stages = [alone], False
-    elif ssm_cfg.exists() and enc_cfg.exists():
+    elif ssm_cfg.exists() and (enc_cfg.exists() or ukf_cfg.exists() or control_cfg.exists()):
         baselines = [] if opts.no_baselines else sorted((folder / "baselines").glob(f"{opts.experiment}_*.yaml"))
         ssm_stages = True
+    elif control_cfg.exists():  # a controller without a learned model (the true one): its test alone
+        baselines, ssm_stages = [], False
     else:
-        known = sorted(p.stem[: -len("_encoder")] for p in folder.glob("*_encoder.yaml"))
+        known = sorted(p.stem.rsplit("_", 1)[0] for p in folder.glob("*_encoder.yaml"))
+        known += sorted(p.stem[: -len("_control")] for p in folder.glob("*_control.yaml"))
         known += sorted(p.stem for p in (folder / "baselines").glob("*.yaml"))
+        known += sorted(p.stem for p in (ROOT / "configs" / "suites").glob("*.yaml"))
         raise SystemExit(
-            f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {known}"
+            f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {sorted(set(known))}"
         )
     seeded = "" if opts.seed is None else f"seed{opts.seed}"
     version = opts.resume or "reproduce-" + (seeded + "-" if seeded else "") + datetime.now().strftime("%Y%m%d-%H%M%S")
     if "/" in version or not version.startswith("reproduce-"):
         parser.error(f"--resume takes the version folder's name (reproduce-<date>-<time>), got {version!r}")
     options = _without_option(argv, "--resume")
-    first = ssm_cfg if ssm_stages else baselines[0]
+    first = ssm_cfg if ssm_stages else baselines[0] if baselines else control_cfg
     # options make does not pass: the module's command
     if opts.no_baselines or opts.encoder_epochs is not None or opts.baseline_epochs is not None:
         command = shlex.join(["python", "-m", "ssm_ms.reproduce", *options])
@@ -474,31 +482,28 @@ def main(argv: list[str] | None = None) -> None:
     configs = []
     if ssm_stages:
         ssm_ckpt = logger_dir(ssm_cfg) / version / "checkpoints" / "last.ckpt"
-        enc_ckpt = logger_dir(enc_cfg) / version / "checkpoints" / "last.ckpt"
         ssm_ran = pipeline.stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v])
         with_ssm = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt)]
-        budget = [] if opts.encoder_epochs is None else ["--trainer.max_epochs", str(opts.encoder_epochs)]
-        enc_ran = pipeline.stage(
-            ["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget, *named(enc_cfg), *v], again=ssm_ran
-        )
-        pipeline.stage(
-            [
-                "test",
-                "--config",
-                str(enc_cfg.relative_to(ROOT)),
-                *with_ssm,
-                "--ckpt_path",
-                str(enc_ckpt),
-                *named(enc_cfg),
-                *v,
-            ],
-            again=ssm_ran or enc_ran,
-        )
-        if ukf_cfg.exists():
-            pipeline.stage(
-                ["test", "--config", str(ukf_cfg.relative_to(ROOT)), *with_ssm, *named(ukf_cfg), *v], again=ssm_ran
+        if enc_cfg.exists():
+            enc_ckpt = logger_dir(enc_cfg) / version / "checkpoints" / "last.ckpt"
+            budget = [] if opts.encoder_epochs is None else ["--trainer.max_epochs", str(opts.encoder_epochs)]
+            enc_ran = pipeline.stage(
+                ["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget, *named(enc_cfg), *v],
+                again=ssm_ran,
             )
-        configs.append(enc_cfg)
+            enc_test = ["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt)]
+            pipeline.stage([*enc_test, *named(enc_cfg), *v], again=ssm_ran or enc_ran)
+            configs.append(enc_cfg)
+        for stage_cfg in (ukf_cfg, control_cfg):  # tests of the SSM with nothing to train
+            if stage_cfg.exists():
+                pipeline.stage(
+                    ["test", "--config", str(stage_cfg.relative_to(ROOT)), *with_ssm, *named(stage_cfg), *v],
+                    again=ssm_ran,
+                )
+                configs.append(stage_cfg)
+    elif control_cfg.exists() and not baselines:
+        pipeline.stage(["test", "--config", str(control_cfg.relative_to(ROOT)), *named(control_cfg), *v])
+        configs.append(control_cfg)
     baseline_budget = [] if opts.baseline_epochs is None else ["--trainer.max_epochs", str(opts.baseline_epochs)]
     for cfg in baselines:
         ckpt = logger_dir(cfg) / version / "checkpoints" / "last.ckpt"
@@ -507,11 +512,17 @@ def main(argv: list[str] | None = None) -> None:
             ["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *named(cfg), *v], again=fit_ran
         )
         configs.append(cfg)
-    experiment = experiment_name(configs[0]) + (f"_{seeded}" if seeded else "")
-    results_dir = ROOT / str(config_value(configs[0], "model.init_args.results_dir", default="results"))
-    md = pipeline.finished(results_dir, experiment)
-    print(f"\nresults: {md.relative_to(ROOT)}\n")
-    print(md.read_text())
+    files = []  # every results file the stages wrote (an SSM's stages may write to several, e.g. control)
+    for cfg in configs:
+        entry = (
+            ROOT / str(config_value(cfg, "model.init_args.results_dir", default="results")),
+            experiment_name(cfg) + (f"_{seeded}" if seeded else ""),
+        )
+        if entry not in files:
+            files.append(entry)
+    for md in pipeline.finished(files):
+        print(f"\nresults: {md.relative_to(ROOT)}\n")
+        print(md.read_text())
 
 
 if __name__ == "__main__":

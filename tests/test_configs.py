@@ -15,7 +15,7 @@ from ssm_ms.reproduce import config_value, experiment_name, load_config, logger_
 
 ROOT = Path(__file__).resolve().parents[1]
 # every runnable config: not the shared sections (configs/data/, configs/cpu/data/), not the examples added after one
-CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.yaml") if p.parent.name not in ("data", "examples"))
+CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.yaml") if p.parent.name not in ("data", "examples", "suites"))
 
 
 def is_stage(config: Path) -> bool:

@@ -515,3 +515,29 @@ def test_a_fit_extended_on_resume_ends_as_a_fit_given_that_budget_from_the_start
     assert cut["epoch"] == full["epoch"] == 4 and cut["global_step"] == full["global_step"]
     for key, value in full["state_dict"].items():
         torch.testing.assert_close(cut["state_dict"][key], value, rtol=0, atol=0)
+
+
+def test_control_stages_and_a_suite_of_experiments(recorded):
+    """An SSM's control test runs after its encoder stages, with the SSM's checkpoint; a controller without an SSM
+    (the true model) is one test stage; a suite (configs/suites/) runs its experiments one after the other."""
+    calls, written = recorded
+    reproduce.main(["pendulum_control"])
+    stages = [(a[0], option(a, "--config")) for a in calls]
+    assert stages == [
+        ("fit", "configs/pendulum_torque.yaml"),
+        ("fit", "configs/pendulum_torque_encoder.yaml"),
+        ("test", "configs/pendulum_torque_encoder.yaml"),
+        ("test", "configs/pendulum_torque_control.yaml"),
+        ("fit", "configs/pendulum_torque_single.yaml"),
+        ("test", "configs/pendulum_torque_single_control.yaml"),
+        ("test", "configs/pendulum_true_control.yaml"),
+    ]
+    single = option(calls[4], "--trainer.logger.init_args.version")
+    assert (
+        option(calls[5], "--model.init_args.ssm_checkpoint")
+        == f"runs/pendulum_torque_single/{single}/checkpoints/last.ckpt"
+    )
+    assert "--model.init_args.ssm_checkpoint" not in calls[6]
+    assert written["experiment"] == "pendulum_control"  # the last results file the suite's last experiment wrote
+    with pytest.raises(SystemExit):
+        reproduce.main(["pendulum_control", "--resume", "reproduce-1"])

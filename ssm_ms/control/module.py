@@ -88,8 +88,8 @@ class ClosedLoop(pl.LightningModule):
     bound); see the module doc.
 
     Args:
-        ssm_checkpoint: the driven SSM (``input_dim`` = the chain's joints); ``None``: plan on the true model with the
-            true state.
+        ssm_checkpoint: the driven SSM (``input_dim`` = the chain's joints).
+        true_model: plan on the pendulum's true equations with its true state instead (no ``ssm_checkpoint``).
         seconds: length of an episode (control periods: ``seconds / frame_dt``).
         success_seconds, tolerance: an episode succeeds when the angle stays within ``tolerance`` (rad) of upright
             over its last ``success_seconds``.
@@ -109,6 +109,7 @@ class ClosedLoop(pl.LightningModule):
         self,
         ssm_checkpoint: str | None = None,
         *,
+        true_model: bool = False,
         seconds: float = 10.0,
         success_seconds: float = 2.0,
         tolerance: float = 0.3,
@@ -138,6 +139,11 @@ class ClosedLoop(pl.LightningModule):
         self.experiment, self.results_dir, self.figures_dir = experiment, results_dir, figures_dir
         self.ssm_checkpoint = ssm_checkpoint
         self.ssm = None
+        if (ssm_checkpoint is None) != bool(true_model):
+            raise ValueError(
+                "give model.init_args.ssm_checkpoint (the driven SSM to plan on) or model.init_args.true_model: true "
+                "(the true equations and state), not both or neither"
+            )
         if ssm_checkpoint is not None:
             self.ssm, self._ssm_file = load_ssm(ssm_checkpoint)
             if not self.ssm.input_dim:
