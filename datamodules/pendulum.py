@@ -19,8 +19,9 @@ undamped, relative to the potential-energy scale ``g * sum of mass heights`` (``
     5e-3     4e-10 / 1e-9                   2e-5 / 2.4e-4   the default
     2.5e-3   2e-11 / 5e-11                  4e-7 / 9e-6     (40 states)
 
-(semi-implicit Euler at ``dt = 1e-3``, the reference implementation's scheme, loses ~40 % of the
-energy of a simple pendulum in 10 s). Cost: ~7 ms (1 link) and ~16 ms (4 links) of dynamics per
+(the reference implementation's scheme, semi-implicit Euler at ``dt = 1e-3``, is symplectic: its energy
+error stays bounded, at most 0.26 % of ``m g l`` over 10 s, median 0.17 %, over 2000 simple-pendulum initial
+states drawn like the paper's; measured 2026-11-26, an earlier text here said it lost 40 %). Cost: ~7 ms (1 link) and ~16 ms (4 links) of dynamics per
 trajectory, ~1 ms rendering, 1-2 ms noise, on one core of this project's machine.
 
 Images, two renderings (``rendering``):
