@@ -78,8 +78,13 @@ STEPS: dict[str, Step] = {
     # the pipelines: one epoch of two batches per stage (ARGS / after --: appended to every stage)
     "make reproduce EXP=pendulum": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
     "make reproduce EXP=pendulum SIZE=cpu": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
-    ".venv/bin/python -m ssm_ms.reproduce pendulum --encoder-epochs 120": Step(quick=False, extra=f"-- {TINY}"),
-    ".venv/bin/python -m ssm_ms.reproduce pendulum_lstm --baseline-epochs 120": Step(quick=False, extra=f"-- {TINY}"),
+    "make reproduce EXP=pendulum_control": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=3600),
+    # the controller on the true model: make test runs one episode of 1 s
+    "python cli.py test --config configs/pendulum_true_control.yaml": Step(
+        "--data.init_args.n_test 1 --model.init_args.seconds 1 --model.init_args.success_seconds 1 "
+        "--model.init_args.timing_steps 2",
+        slow_extra="",
+    ),
     "make reproduce EXP=pendulum RESUME=reproduce-<date>-<time>": Step(quick=False, extra=f'ARGS="{TINY}"'),
     "make reproduce EXP=oscillator": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
     # the pretrained model, tested as shipped (make test: on 50 test sequences; make test-slow: all 1000)
