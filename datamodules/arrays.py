@@ -141,12 +141,13 @@ def concat_shape(heads: list[ArrayHeader], what: str) -> tuple[int, ...]:
     return (sum(h.shape[0] for h in heads), *first[1:])
 
 
-def load_files(heads: list[ArrayHeader]) -> np.ndarray:
-    """The arrays of headers, checked finite, served layout, concatenated along ``N`` (one file stays mapped)."""
+def load_files(heads: list[ArrayHeader], missing: bool = False) -> np.ndarray:
+    """The arrays of headers, checked finite (with ``missing``: NaN allowed, the samples a sensor did not take; inf
+    refused), served layout, concatenated along ``N`` (one file stays mapped)."""
     arrays = []
     for h in heads:
         a = open_array(h)
-        check_finite(h.label, a)
+        check_finite(h.label, a, missing=missing)
         arrays.append(a.reshape(served_shape(a.shape)) if a.ndim == 4 else a)
     if len(arrays) == 1:
         return arrays[0]
@@ -157,15 +158,17 @@ def load_files(heads: list[ArrayHeader]) -> np.ndarray:
     return np.concatenate(arrays)
 
 
-def check_finite(name: str, a: np.ndarray, chunk: int = 1 << 22) -> None:
-    """Raise if a float array holds NaN or inf (checked in chunks: arrays may be memory-mapped)."""
+def check_finite(name: str, a: np.ndarray, chunk: int = 1 << 22, missing: bool = False) -> None:
+    """Raise if a float array holds NaN or inf (checked in chunks: arrays may be memory-mapped); with ``missing``,
+    NaN (a missing sample) is allowed and only inf refused."""
     if not np.issubdtype(a.dtype, np.floating):
         return
     flat = a.reshape(-1)
     for start in range(0, flat.size, chunk):
         block = np.asarray(flat[start : start + chunk])
-        if not np.isfinite(block).all():
-            bad = start + int(np.flatnonzero(~np.isfinite(block))[0])
+        bad_values = np.isinf(block) if missing else ~np.isfinite(block)
+        if bad_values.any():
+            bad = start + int(np.flatnonzero(bad_values)[0])
             where = np.unravel_index(bad, a.shape)
             raise ValueError(
                 f"{name} holds a non-finite value ({block[bad - start]}) at index {tuple(int(w) for w in where)} "

@@ -101,6 +101,10 @@ class TrajectoryDataset(Dataset):
     ``y`` and ``y_clean`` are converted to float and normalised per item; ``state`` is served as is.
     ``indices`` restricts the data set to some trajectories while keeping their original index
     (the validation subset of the training set uses this).
+
+    Several sensors (``streams``, their names in order): the first stream is stored as ``y`` / ``y_clean``, the
+    others as ``y_<name>`` / ``y_clean_<name>`` ``[N, T, *shape]`` (NaN where a stream did not sample); a batch's
+    ``y`` (and ``y_clean``) is every stream flattened and concatenated, ``[B, T, P]``, in that order.
     """
 
     def __init__(
@@ -109,6 +113,7 @@ class TrajectoryDataset(Dataset):
         normalizer: Normalizer | None = None,
         indices: Sequence[int] | None = None,
         input_normalizer: Normalizer | None = None,
+        streams: Sequence[str] | None = None,
     ):
         if "y" not in arrays:
             raise ValueError(f"a trajectory data set needs a 'y' array, got keys {sorted(arrays)}")
@@ -120,6 +125,10 @@ class TrajectoryDataset(Dataset):
         self.normalizer = normalizer
         self.input_normalizer = input_normalizer  # of the inputs "u" [N, T, m], where the data have them
         self.indices = np.arange(n) if indices is None else np.asarray(indices, dtype=np.int64)
+        self.streams = list(streams) if streams and len(streams) > 1 else None
+        for name in self.streams or []:
+            if name != self.streams[0] and f"y_{name}" not in self.arrays:
+                raise ValueError(f"stream {name!r} has no array 'y_{name}' (keys: {sorted(self.arrays)})")
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -130,13 +139,30 @@ class TrajectoryDataset(Dataset):
 
     @property
     def obs_shape(self) -> tuple[int, ...]:
+        if self.streams:
+            return (sum(int(np.prod(self._stream_array("y", n).shape[2:])) for n in self.streams),)
         return tuple(int(s) for s in self.arrays["y"].shape[2:])
+
+    def _stream_array(self, kind: str, name: str) -> np.ndarray:
+        return self.arrays[kind if name == self.streams[0] else f"{kind}_{name}"]
 
     def _fetch(self, j: np.ndarray | int) -> dict[str, torch.Tensor]:
         item: dict[str, Any] = {"index": torch.as_tensor(j, dtype=torch.long)}
+        packed = {f"{kind}_{n}" for kind in ("y", "y_clean") for n in (self.streams or [])[1:]}
         for key, a in self.arrays.items():
+            if key in packed:
+                continue
             t = to_float(a[j])
-            if key in ("y", "y_clean") and self.normalizer is not None:
+            if key in ("y", "y_clean") and self.streams:
+                if key == "y_clean" and any(f"y_clean_{n}" not in self.arrays for n in self.streams[1:]):
+                    continue  # some stream has no noiseless copy: no packed y_clean
+                lead = t.dim() - (a.ndim - 2)
+                t = torch.cat(
+                    [t.flatten(lead)]
+                    + [to_float(self.arrays[f"{key}_{n}"][j]).flatten(lead) for n in self.streams[1:]],
+                    dim=-1,
+                )
+            elif key in ("y", "y_clean") and self.normalizer is not None:
                 t = self.normalizer.normalize(t)
             elif key == "u" and self.input_normalizer is not None:
                 t = self.input_normalizer.normalize(t)
@@ -335,10 +361,10 @@ class TrajectoryDataModule(pl.LightningDataModule):
     def load_split(self, split: str) -> Dataset:
         """Build the data set of a split (arrays from the cache, checked for NaN / inf)."""
         arrays = self.load_arrays(split)
-        for key in ("y", "y_clean"):
+        for key in ("y", "y_clean"):  # further sensors' streams hold NaN where they did not sample
             if key in arrays:
                 check_finite(f"{self.name} {split} '{key}'", arrays[key])
-        return TrajectoryDataset(arrays)
+        return TrajectoryDataset(arrays, streams=self.stream_names)
 
     # ------------------------------------------------------------------ setup
     def setup(self, stage: str | None = None) -> None:
@@ -379,6 +405,9 @@ class TrajectoryDataModule(pl.LightningDataModule):
                 "nothing to predict: give the sequences to forecast with --data.init_args.predict_path FILE "
                 "(.npy or .npz, the layouts of training data)"
             )
+        if self.stream_names:
+            raise ValueError("predict reads one sensor's sequences: with several sensors (a list of keys, or camera and "
+                             "angle), forecast them with the test protocol (python cli.py test) instead")
         heads = [read_header(path, self.predict_key, "predict_path") for path in self.predict_path]
         for h in heads:
             check_header(h, "predict_path")
@@ -491,9 +520,10 @@ class TrajectoryDataModule(pl.LightningDataModule):
             y = batch["y"].double()
             if isinstance(train, TrajectoryDataset) and train.normalizer is not None:
                 y = train.normalizer.denormalize(y)
-            s = y.sum(dim=(0, 1))
+            observed = torch.isfinite(y)  # a sensor's missing samples (NaN) are not averaged
+            s = torch.where(observed, y, 0.0).sum(dim=(0, 1))
             total = s if total is None else total + s
-            count += y.shape[0] * y.shape[1]
+            count = count + observed.sum(dim=(0, 1))
         return (total / count).float()
 
     def mean_measurement(self) -> torch.Tensor:
@@ -521,6 +551,18 @@ class TrajectoryDataModule(pl.LightningDataModule):
         mean = s / count
         std = np.sqrt(np.maximum(s2 / count - mean**2, 0.0))
         return torch.tensor(mean, dtype=torch.float32), torch.tensor(std, dtype=torch.float32)
+
+    # ------------------------------------------------------------------ sensors
+    @property
+    def sensor_layout(self) -> list[dict[str, Any]] | None:
+        """Several sensors: ``[{"name", "shape", "noise_std"}, ...]`` in the order batches pack them
+        (:mod:`ssm_ms.nets.sensors`); ``None``: one sensor, ``y`` as it is."""
+        return None
+
+    @property
+    def stream_names(self) -> list[str] | None:
+        layout = self.sensor_layout
+        return [s["name"] for s in layout] if layout else None
 
     # ------------------------------------------------------------------ properties
     def _train(self) -> Dataset:
@@ -625,7 +667,7 @@ class TrajectoryDataModule(pl.LightningDataModule):
     def subset(self, ds: Dataset, indices: np.ndarray) -> Dataset:
         """The trajectories ``indices`` of ``ds``, keeping their index (override for non-array data)."""
         assert isinstance(ds, TrajectoryDataset)
-        return TrajectoryDataset(ds.arrays, ds.normalizer, ds.indices[indices], ds.input_normalizer)
+        return TrajectoryDataset(ds.arrays, ds.normalizer, ds.indices[indices], ds.input_normalizer, ds.streams)
 
     def test_dataloader(self) -> DataLoader:
         return self._loader(self.load("test"), self.eval_batch_size)

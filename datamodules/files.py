@@ -46,7 +46,11 @@ class FileDataModule(TrajectoryDataModule):
             targets are those rollouts) keeps the evenly spaced subset of training trajectories.
             :meth:`split_dataloader` serves the val files to any code.
         test_path: optional test files (trajectories may have another length T than training).
-        key: array name inside ``.npz`` files.
+        key: array name inside ``.npz`` files; a list of names for several sensors, one stream each (``.npz`` files
+            holding them all, same N and T): a batch's ``y`` packs them (:mod:`ssm_ms.nets.sensors`), the first
+            stream finite, the others with NaN where they did not sample (a lower rate: masked in the fit).
+        noise_std: several sensors: each stream's noise standard deviation, ``{name: std}``, which weighs the fit
+            (the maximum-likelihood weighting, each stream by ``1 / std^2``); a stream not named weighs 1.
         clean_key: optional name of the noiseless targets (``y_clean``) inside the same ``.npz`` files.
         input_key: optional name of the inputs ``u [N, T, m]`` inside the same ``.npz`` files, for a system driven
             by them (torques, voltages): ``u[:, t]`` acts between samples ``t`` and ``t + 1``, the model learns
@@ -70,9 +74,10 @@ class FileDataModule(TrajectoryDataModule):
         train_path: str | list[str],
         val_path: str | list[str] | None = None,
         test_path: str | list[str] | None = None,
-        key: str = "y",
+        key: str | list[str] = "y",
         clean_key: str | None = None,
         input_key: str | None = None,
+        noise_std: dict[str, float] | None = None,
         train_clean_path: str | list[str] | None = None,
         val_clean_path: str | list[str] | None = None,
         test_clean_path: str | list[str] | None = None,
@@ -87,7 +92,16 @@ class FileDataModule(TrajectoryDataModule):
             "val": _as_list(val_clean_path),
             "test": _as_list(test_clean_path),
         }
-        self.key, self.clean_key, self.input_key = key, clean_key, input_key
+        self.keys = [key] if isinstance(key, str) else [str(k) for k in key]
+        if not self.keys or len(set(self.keys)) != len(self.keys):
+            raise ValueError(f"key must name one array or several different ones, got {key!r}")
+        self.key, self.clean_key, self.input_key = self.keys[0], clean_key, input_key
+        self.noise_std = {str(k): float(v) for k, v in (noise_std or {}).items()}
+        unknown = sorted(set(self.noise_std) - set(self.keys))
+        if unknown or any(not v > 0 for v in self.noise_std.values()):
+            raise ValueError(f"noise_std names streams of key ({self.keys}) with stds > 0, got {noise_std}")
+        if len(self.keys) > 1 and self.normalize:
+            raise ValueError("several sensors (a list of keys) are served unnormalised: set normalize: false")
         if not self.paths["train"]:
             raise ValueError("train_path is required: a .npy / .npz file or a list of them")
         if not 0.0 <= test_fraction < 1.0:
@@ -103,6 +117,7 @@ class FileDataModule(TrajectoryDataModule):
         self.headers: dict[str, list[ArrayHeader]] = {}
         self.clean_headers: dict[str, list[ArrayHeader]] = {}
         self.input_headers: dict[str, list[ArrayHeader]] = {}
+        self.stream_headers: dict[str, dict[str, list[ArrayHeader]]] = {}  # several sensors: the other streams
         self.shapes: dict[str, tuple[int, ...]] = {}  # served shape of each split, [N, T, *obs_shape]
         for split, files in self.paths.items():
             if files:
@@ -158,7 +173,40 @@ class FileDataModule(TrajectoryDataModule):
                     f"{shape}: clean targets must have exactly the measurements' shape"
                 )
         self.input_headers[split] = self._input_headers(split, heads, shape) if self.input_key else []
+        self.stream_headers[split] = {key: self._stream_headers(split, key, heads) for key in self.keys[1:]}
         self.headers[split], self.clean_headers[split], self.shapes[split] = heads, clean, shape
+
+    def _stream_headers(self, split: str, key: str, heads: list[ArrayHeader]) -> list[ArrayHeader]:
+        """A further sensor's headers in a split's files, checked beside the first stream's (same N and T)."""
+        what = f"stream '{key}' of {split}_path"
+        streams = []
+        for h in heads:
+            if h.key is None:
+                raise ValueError(f"{what}: several sensors are read from .npz files holding them all, not {h.path}")
+            s = read_header(h.path, key, what)
+            check_header(s, what)
+            if tuple(s.shape[:2]) != tuple(h.shape[:2]):
+                raise ValueError(
+                    f"{what}: {s.label} holds {s.shape[:2]} (N, T) but '{self.key}' holds {h.shape[:2]}: "
+                    "every sensor of a trajectory has a sample slot per step (NaN where it has none)"
+                )
+            streams.append(s)
+        if (
+            split != "train"
+            and concat_shape(streams, what)[2:] != concat_shape(self.stream_headers["train"][key], what)[2:]
+        ):
+            raise ValueError(f"{what}: its samples' shape differs from the training files'")
+        return streams
+
+    @property
+    def sensor_layout(self) -> list[dict[str, Any]] | None:
+        """Several sensors: the streams of ``key`` in order, their shapes as served and ``noise_std``."""
+        if len(self.keys) == 1:
+            return None
+        shapes = {self.keys[0]: tuple(self.shapes["train"][2:])}
+        for key in self.keys[1:]:
+            shapes[key] = tuple(concat_shape(self.stream_headers["train"][key], f"stream '{key}'")[2:])
+        return [{"name": k, "shape": list(shapes[k]), "noise_std": self.noise_std.get(k, 1.0)} for k in self.keys]
 
     def _input_headers(self, split: str, heads: list[ArrayHeader], shape: tuple[int, ...]) -> list[ArrayHeader]:
         """The inputs' headers of a split's files, checked: one ``[N, T, m]`` array per file beside ``y``."""
@@ -197,6 +245,9 @@ class FileDataModule(TrajectoryDataModule):
 
     @property
     def obs_shape(self) -> tuple[int, ...]:
+        layout = self.sensor_layout
+        if layout:  # the streams packed
+            return (sum(int(np.prod(s["shape"])) for s in layout),)
         return tuple(self.shapes["train"][2:])
 
     @property
@@ -213,7 +264,8 @@ class FileDataModule(TrajectoryDataModule):
         return {
             "paths": self.paths,
             "clean_paths": self.clean_paths,
-            "key": self.key,
+            "key": self.key if len(self.keys) == 1 else self.keys,
+            **({"noise_std": self.noise_std} if self.noise_std else {}),
             "clean_key": self.clean_key,
             "input_key": self.input_key,
             "test_fraction": self.test_fraction,
@@ -232,6 +284,8 @@ class FileDataModule(TrajectoryDataModule):
                 full["y_clean"] = load_files(self.clean_headers["train"])
             if self.input_headers["train"]:
                 full["u"] = load_files(self.input_headers["train"])
+            for key, heads in self.stream_headers["train"].items():
+                full[f"y_{key}"] = load_files(heads, missing=True)
             cut = len(full["y"]) - self.n_holdout
             self._arrays["train"] = {k: a[:cut] for k, a in full.items()}
             self._arrays["test"] = {k: a[cut:] for k, a in full.items()}
@@ -241,13 +295,15 @@ class FileDataModule(TrajectoryDataModule):
                 arrays["y_clean"] = load_files(self.clean_headers[split])
             if self.input_headers[split]:
                 arrays["u"] = load_files(self.input_headers[split])
+            for key, heads in self.stream_headers[split].items():
+                arrays[f"y_{key}"] = load_files(heads, missing=True)
             self._arrays[split] = arrays
         return self._arrays[split]
 
     def load_split(self, split: str) -> TrajectoryDataset:
         if split not in self.splits:
             raise ValueError(f"no {split} split: this FileDataModule has {list(self.splits)} (pass {split}_path)")
-        return TrajectoryDataset(self._split_arrays(split))
+        return TrajectoryDataset(self._split_arrays(split), streams=self.stream_names)
 
     def stage_splits(self, stage: str | None) -> tuple[str, ...]:
         """The base's, and the val files for ``fit`` and ``validate``."""

@@ -411,18 +411,26 @@ def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int)
     u = torques_of(params, rngs, n_frames)
     q, v = simulate(_WORKER["model"], _WORKER["data"], q0, v0, n_frames, steps, params["dt"], params["damping"], u)
     count = stop - start
-    y = np.empty((count, n_frames, 1, size, size), np.uint8)
-    y_clean = np.empty_like(y)
-    for j, r in enumerate(rngs):
-        clean = render(q[j], size, params["line_width"], params["rendering"])
-        noise = r.standard_normal(clean.shape, dtype=np.float32)
-        noise *= np.float32(params["noise_std"])
-        noise += clean
-        np.clip(noise, 0.0, 1.0, out=noise)
-        y[j] = quantize(noise)
-        y_clean[j] = quantize(clean)
-    state = np.concatenate([q, v], axis=-1).astype(np.float32)
-    out = {"y": y, "y_clean": y_clean, "state": state}
+    sensors = params.get("sensors", ["image"])
+    out: dict[str, np.ndarray] = {"state": np.concatenate([q, v], axis=-1).astype(np.float32)}
+    if "image" in sensors:
+        y = np.empty((count, n_frames, 1, size, size), np.uint8)
+        y_clean = np.empty_like(y)
+        for j, r in enumerate(rngs):
+            clean = render(q[j], size, params["line_width"], params["rendering"])
+            noise = r.standard_normal(clean.shape, dtype=np.float32)
+            noise *= np.float32(params["noise_std"])
+            noise += clean
+            np.clip(noise, 0.0, 1.0, out=noise)
+            y[j] = quantize(noise)
+            y_clean[j] = quantize(clean)
+        out.update(y=y, y_clean=y_clean)
+    if "angle" in sensors:  # joint encoders: the angles with noise, every angle_every frames (NaN between)
+        noise = np.stack([r.standard_normal(q[j].shape) for j, r in enumerate(rngs)])
+        angle = (q + params["angle_noise_std"] * noise).astype(np.float32)
+        angle[:, np.arange(n_frames) % params["angle_every"] != 0] = np.nan
+        key, clean_key = ("y", "y_clean") if sensors[0] == "angle" else ("y_angle", "y_clean_angle")
+        out.update({key: angle, clean_key: q.astype(np.float32)})
     if u is not None:
         out["u"] = u.astype(np.float32)
     return out
@@ -504,12 +512,14 @@ class PendulumEnvironment:
     """The pendulum as a system to control: the simulator of the data set (Pinocchio, RK4) and its camera, one frame
     per call, for a batch of episodes.
 
-    :meth:`reset` places the chains at given joint angles and velocities and returns the first frames; :meth:`step`
-    holds the torques ``u [B, n_links]`` (N m) for one frame period, as the data's torques are held, and returns the
-    next frames. Frames are rendered and noised as the data's (``noise_std``, clipped, quantised to 8 bits), float32
-    ``[B, 1, H, W]`` in [0, 1]; :attr:`state` ``[B, 2 n]`` (angles, then velocities) is the truth, for scoring only.
-    The noise of episode ``i`` comes from ``numpy.random.default_rng([seed, 2, i])`` (split id 2: neither the
-    training nor the test data's streams).
+    :meth:`reset` places the chains at given joint angles and velocities and returns the first measurements;
+    :meth:`step` holds the torques ``u [B, n_links]`` (N m) for one frame period, as the data's torques are held, and
+    returns the next. Measurements are made as the data's: frames rendered and noised (``noise_std``, clipped,
+    quantised to 8 bits), float32 ``[B, 1, H, W]`` in [0, 1]; with the data's ``sensors`` the angles too, noised
+    (``angle_noise_std``; NaN between samples every ``angle_every`` periods), packed as a batch's ``y`` is
+    (``[B, P]``; the angle alone ``[B, n]``). :attr:`state` ``[B, 2 n]`` (angles, then velocities) is the truth, for
+    scoring only. The noise of episode ``i`` comes from ``numpy.random.default_rng([seed, 2, i])`` (split id 2:
+    neither the training nor the test data's streams).
     """
 
     def __init__(self, params: dict[str, Any], seed: int = 0):
@@ -524,7 +534,24 @@ class PendulumEnvironment:
         self.q = np.array(q0, dtype=np.float64, ndmin=2)
         self.v = np.array(v0, dtype=np.float64, ndmin=2)
         self.rngs = [np.random.default_rng([self.seed, 2, i]) for i in range(len(self.q))]
-        return self.frames()
+        self.period = 0
+        return self.measure()
+
+    def measure(self) -> np.ndarray:
+        """The measurements now, in the data's layout (see the class doc)."""
+        sensors = self.params.get("sensors", ["image"])
+        parts = {}
+        if "image" in sensors:
+            parts["image"] = self.frames()
+        if "angle" in sensors:
+            noise = np.stack([r.standard_normal(self.q.shape[1]) for r in self.rngs])
+            angle = (self.q + self.params["angle_noise_std"] * noise).astype(np.float32)
+            if self.period % self.params["angle_every"]:
+                angle[:] = np.nan
+            parts["angle"] = angle
+        if len(parts) == 1:
+            return next(iter(parts.values()))
+        return np.concatenate([parts[s].reshape(len(self.q), -1) for s in sensors], axis=1)
 
     @property
     def state(self) -> np.ndarray:
@@ -555,7 +582,8 @@ class PendulumEnvironment:
             self.model, self.data, self.q, self.v, 2, self.steps, self.params["dt"], self.params["damping"], u
         )
         self.q, self.v = q[:, 1], v[:, 1]
-        return self.frames()
+        self.period += 1
+        return self.measure()
 
 
 # ---------------------------------------------------------------------------------- DataModule
@@ -617,10 +645,15 @@ class PendulumDataModule(TrajectoryDataModule):
         workers: int | None = None,
         torque_limit: float = 0.0,
         torque_correlation: float = 0.5,
+        sensors: list[str] | None = None,
+        angle_noise_std: float = 0.05,
+        angle_every: int = 1,
         **kwargs: Any,
     ):
         super().__init__(seed=seed, **kwargs)
         self.torque_limit, self.torque_correlation = float(torque_limit), float(torque_correlation)
+        self.sensors = list(sensors or ["image"])
+        self.angle_noise_std, self.angle_every = float(angle_noise_std), int(angle_every)
         self.n_links = int(n_links)
         self.image_size = int(image_size)
         self.n_train, self.n_test = int(n_train), int(n_test)
@@ -661,6 +694,19 @@ class PendulumDataModule(TrajectoryDataModule):
             f"image_size >= {smallest}" + (" or a thinner line_width" if self.rendering == "analytic" else ""),
         )
         need(self.damping >= 0, f"damping must be >= 0 (tau = -damping * velocity), got {self.damping}")
+        need(
+            self.sensors in (["image"], ["angle"], ["image", "angle"], ["angle", "image"]),
+            f"sensors must be [image], [angle] or both (in the order they are packed), got {self.sensors}",
+        )
+        need(
+            self.angle_noise_std > 0 and self.angle_every >= 1,
+            f"angle_noise_std must be > 0 (rad) and angle_every >= 1 (frames), got {self.angle_noise_std}, "
+            f"{self.angle_every}",
+        )
+        need(
+            self.sensors == ["image"] or not self.normalize,
+            "several sensors (or an angle alone) are served unnormalised: set normalize: false",
+        )
         need(
             self.torque_limit >= 0 and self.torque_correlation > 0,
             f"torque_limit must be >= 0 (N m; 0: a free chain) and torque_correlation > 0 (s), got "
@@ -724,6 +770,12 @@ class PendulumDataModule(TrajectoryDataModule):
                 if self.torque_limit
                 else {}
             ),
+            # other sensors than the camera only: the camera's data stay as they were
+            **(
+                {"sensors": self.sensors, "angle_noise_std": self.angle_noise_std, "angle_every": self.angle_every}
+                if self.sensors != ["image"]
+                else {}
+            ),
         }
 
     @property
@@ -754,6 +806,18 @@ class PendulumDataModule(TrajectoryDataModule):
         )
         return torch.from_numpy(frames).float().div_(255.0)
 
+    @property
+    def sensor_layout(self) -> list[dict[str, Any]] | None:
+        """Camera and joint encoders together: the image (pixel noise ``noise_std``) and the angles (noise
+        ``angle_noise_std``), packed in the order of ``sensors``; ``None`` for one sensor."""
+        if len(self.sensors) == 1:
+            return None
+        streams = {
+            "image": {"name": "image", "shape": [1, self.image_size, self.image_size], "noise_std": self.noise_std},
+            "angle": {"name": "angle", "shape": [self.n_links], "noise_std": self.angle_noise_std},
+        }
+        return [streams[s] for s in self.sensors]
+
     def environment(self, seed: int | None = None) -> PendulumEnvironment:
         """This data set's pendulum as a system to control, frame by frame (:class:`PendulumEnvironment`)."""
         return PendulumEnvironment(self.generator_params(), self.seed if seed is None else seed)
@@ -764,11 +828,14 @@ class PendulumDataModule(TrajectoryDataModule):
         params = self.generator_params()
         count = self.n_train if split == "train" else self.n_test
         n, size, frames = self.n_links, self.image_size, self.n_frames
-        out = {
-            "y": np.empty((count, frames, 1, size, size), np.uint8),
-            "y_clean": np.empty((count, frames, 1, size, size), np.uint8),
-            "state": np.empty((count, frames, 2 * n), np.float32),
-        }
+        out = {"state": np.empty((count, frames, 2 * n), np.float32)}
+        if "image" in self.sensors:
+            out["y"] = np.empty((count, frames, 1, size, size), np.uint8)
+            out["y_clean"] = np.empty((count, frames, 1, size, size), np.uint8)
+        if "angle" in self.sensors:
+            key, clean_key = ("y", "y_clean") if self.sensors[0] == "angle" else ("y_angle", "y_clean_angle")
+            out[key] = np.empty((count, frames, n), np.float32)
+            out[clean_key] = np.empty((count, frames, n), np.float32)
         if self.torque_limit:
             out["u"] = np.empty((count, frames, n), np.float32)
         tasks = [(params, SPLIT_IDS[split], s, min(s + CHUNK_SIZE, count)) for s in range(0, count, CHUNK_SIZE)]

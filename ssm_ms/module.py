@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ssm_ms.checkpointing import read_checkpoint, restore_float_weights
+from ssm_ms.nets.sensors import SensorLayout
 from ssm_ms.runtime.perf import check_precision
 from ssm_ms.runtime.private import built_by_lightning_cli
 from ssm_ms.training import distributed
@@ -241,6 +242,7 @@ class MultipleShootingModule(pl.LightningModule):
             self._make_nodes(int(n))
         if dm is not None and hasattr(dm, "seq_len"):
             self.check_inputs(int(getattr(dm, "input_dim", 0)))
+            self.adopt_sensors(getattr(dm, "sensor_layout", None))
             self.adopt_measurement_shape(tuple(dm.obs_shape))
             self.check_data(dm.seq_len, dm.obs_shape, getattr(dm, "num_train_trajectories", None))
             if stage == "fit" and self.hparams.loss == "bce" and hasattr(dm, "check_range"):
@@ -249,6 +251,30 @@ class MultipleShootingModule(pl.LightningModule):
                 self.init_nodes_from_measurements(dm.node_measurements(self.n_nodes))
         if stage == "fit" and distributed.world_size() > 1:  # before DDP compares the ranks' models
             self._check_replicated_tables()
+
+    def adopt_sensors(self, layout: Any) -> None:
+        """Several sensors (:mod:`ssm_ms.nets.sensors`): weigh each measurement component by the inverse of its
+        stream's noise variance in the fit (scaled to average 1) and leave missing samples (NaN) out; a ``g`` with
+        one head per stream must name the streams of the data, in their order and shapes."""
+        self._missing = bool(layout)
+        if not layout:
+            return
+        layout = SensorLayout.from_state_dict(layout) if not isinstance(layout, SensorLayout) else layout
+        self.register_buffer("measurement_weights", layout.weights().to(self.alpha), persistent=False)
+        shapes = getattr(self.g, "shapes", None)
+        if shapes is not None:
+            expected = {s.name: tuple(s.shape) for s in layout.streams}
+            if list(shapes) != list(expected) or any(tuple(shapes[k]) != expected[k] for k in expected):
+                raise ValueError(
+                    f"g's heads give the streams {dict(shapes)} but the data's sensors are {expected}: give g one head "
+                    "per sensor, in the data's order and shapes"
+                )
+
+    def _fit_options(self) -> dict[str, Any]:
+        """The fit's per-component weights and missing-sample masking (several sensors), or the paper's plain fit."""
+        if not getattr(self, "_missing", False):
+            return {}
+        return {"weights": self.measurement_weights, "missing": True}
 
     def check_inputs(self, data_inputs: int) -> None:
         """Fail before training when ``f`` and the data disagree on the inputs per step."""
@@ -398,6 +424,7 @@ class MultipleShootingModule(pl.LightningModule):
             self.hparams.decode_chunk,
             self._rollout_fn,
             batch.get("u"),
+            **self._fit_options(),
         )
 
     # ------------------------------------------------------------------ training
@@ -411,13 +438,29 @@ class MultipleShootingModule(pl.LightningModule):
         self._need_inputs(u, 1)
         if self.al_options is None:
             fit, gap = multiple_shooting_loss(
-                self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn, u
+                self.f,
+                self.g,
+                nodes,
+                batch["y"],
+                self.hparams.loss,
+                self.hparams.decode_chunk,
+                self._rollout_fn,
+                u,
+                **self._fit_options(),
             )
             loss = fit + self.alpha * gap
             residual = None
         else:
             fit, residual = shooting_residuals(
-                self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn, u
+                self.f,
+                self.g,
+                nodes,
+                batch["y"],
+                self.hparams.loss,
+                self.hparams.decode_chunk,
+                self._rollout_fn,
+                u,
+                **self._fit_options(),
             )
             gap = residual.pow(2).mean()
             lam = self.multipliers[index].view_as(residual)
@@ -453,11 +496,11 @@ class MultipleShootingModule(pl.LightningModule):
         x0 = self.node_states(batch["index"])[:, 0]
         _, y_hat = self(x0, y.shape[1], batch["u"][:, :horizon] if "u" in batch else None)
         bs = len(y)
-        self.log("val/rollout_mse", F.mse_loss(y_hat, y), batch_size=bs, prog_bar=True)
+        self.log("val/rollout_mse", _masked_mse(y_hat, y), batch_size=bs, prog_bar=True)
         out = {"index": batch["index"], "y": y, "y_hat": y_hat}
         if "y_clean" in batch:
             y_clean = batch["y_clean"][:, :horizon]
-            self.log("val/rollout_mse_clean", F.mse_loss(y_hat, y_clean), batch_size=bs)
+            self.log("val/rollout_mse_clean", _masked_mse(y_hat, y_clean), batch_size=bs)
             out["y_clean"] = y_clean
         return out
 
@@ -591,6 +634,12 @@ class MultipleShootingModule(pl.LightningModule):
                 + "\nResume with the config saved beside the checkpoint (config.yaml in its run folder), "
                 "or start a fresh run without --ckpt_path."
             )
+
+
+def _masked_mse(y_hat: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """MSE over the measured elements (a sensor's missing samples are NaN)."""
+    observed = torch.isfinite(y)
+    return F.mse_loss(y_hat, y) if bool(observed.all()) else F.mse_loss(y_hat[observed], y[observed])
 
 
 # ---------------------------------------------------------------------------- a trained model from its file

@@ -36,6 +36,7 @@ from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
 from ssm_ms.control.mppi import MPPISettings, RecedingHorizon
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.module import datamodule_state, load_ssm
+from ssm_ms.nets.sensors import SensorLayout
 from ssm_ms.runtime.machine import describe
 from ssm_ms.training.shooting import decode, rollout
 
@@ -96,8 +97,8 @@ class ClosedLoop(pl.LightningModule):
         planner: :class:`~ssm_ms.control.mppi.MPPISettings` (horizon, samples, iterations, noise_std,
             temperature, u_min, u_max in N m, smoothing).
         cost: the :class:`~ssm_ms.control.cost.SwingUpCost` weights ``w_velocity``, ``w_input``.
-        estimator: the UKF's ``process_var``, ``measurement_var`` (the frames' pixel noise variance) and
-            ``init_var`` (``None``: the spread of the SSM's shooting nodes).
+        estimator: the UKF's ``process_var``, ``measurement_var`` (``None``: the data's sensor noise, per stream with
+            several sensors) and ``init_var`` (``None``: the spread of the SSM's shooting nodes).
         distill: settings of the distilled angle readout: ``rollout_steps`` (states per node under random torques),
             ``steps`` (fitting steps), ``pivot`` (``[x, y]`` in pixels; default: the frame's centre).
         timing_steps: control steps of one episode alone whose planning time is reported.
@@ -127,7 +128,7 @@ class ClosedLoop(pl.LightningModule):
         super().__init__()
         self.settings = MPPISettings(**(planner or {}))
         self.cost_weights = dict(cost or {})
-        self.estimator_settings = {"process_var": 1e-4, "measurement_var": 0.04, "init_var": None, **(estimator or {})}
+        self.estimator_settings = {"process_var": 1e-4, "measurement_var": None, "init_var": None, **(estimator or {})}
         self.distill_settings = {"rollout_steps": 25, "steps": 2000, "pivot": None, **(distill or {})}
         if not (seconds > 0 and 0 < success_seconds <= seconds and tolerance > 0 and timing_steps >= 1):
             raise ValueError(
@@ -168,6 +169,9 @@ class ClosedLoop(pl.LightningModule):
         n_links = self.env.params["n_links"]
         if n_links != 1:
             raise ValueError(f"the swing-up task is the simple pendulum's: the data have {n_links} links")
+        layout = SensorLayout.from_state_dict(dm.sensor_layout) if dm.sensor_layout else None
+        sensors = list(getattr(dm, "sensors", ["image"]))
+        self.streams = layout.split if layout is not None else (lambda y: {sensors[0]: y})
         if self.ssm is None:
             self.f, self.features = TruePendulum(self.frame_dt, self.env.params["damping"]), angle_of_state
             return
@@ -182,12 +186,17 @@ class ClosedLoop(pl.LightningModule):
         nodes = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim)
         est = self.estimator_settings
         init_var = est["init_var"] if est["init_var"] is not None else nodes.var(0).clamp_min(1e-6).tolist()
+        measurement_var = est["measurement_var"]
+        if measurement_var is None:  # the sensors' own noise (several sensors: each stream's)
+            measurement_var = layout.variances().tolist() if layout is not None else float(dm.noise_std) ** 2
+            if sensors == ["angle"]:
+                measurement_var = float(dm.angle_noise_std) ** 2
         self.prior = nodes.mean(0)
         self.ukf = UnscentedKalmanFilter(
             self.f,
             self.ssm.g,
             process_var=est["process_var"],
-            measurement_var=est["measurement_var"],
+            measurement_var=measurement_var,
             init_var=init_var,
             state_dim=self.ssm.state_dim,
         )
@@ -208,11 +217,15 @@ class ClosedLoop(pl.LightningModule):
         torques = (0.5 * limit * torques).clamp(-limit, limit)
         with torch.no_grad():
             states = rollout(self.f, nodes, steps + 1, torques).reshape(-1, nodes.shape[1])
-        height, width = self.ssm.obs_shape()[-2:]
-        pivot = tuple(s["pivot"]) if s["pivot"] is not None else (width / 2, height / 2)
 
         def target(x: torch.Tensor) -> torch.Tensor:
-            return ink_angle_features(self.from_frames(decode(self.ssm.g, x, 4096)), pivot)
+            parts = self.streams(self.from_frames(decode(self.ssm.g, x, 4096)))
+            if "image" in parts:  # the angle of the ink the model draws
+                image = parts["image"]
+                pivot = tuple(s["pivot"]) if s["pivot"] is not None else (image.shape[-1] / 2, image.shape[-2] / 2)
+                return ink_angle_features(image, pivot)
+            angle = parts["angle"][:, 0]  # the joint angle the model expects its encoder to read
+            return torch.stack([torch.sin(angle), torch.cos(angle)], dim=1)
 
         return DistilledFeatures.fit(states, target, steps=int(s["steps"]), seed=self.seed)
 
@@ -231,14 +244,15 @@ class ClosedLoop(pl.LightningModule):
         mean = cov = None
         if self.ssm is not None:
             mean = self.prior.expand(b, -1).clone()
-            cov = self.ukf._initial_cov(None, b, self.ssm.state_dim, mean.dtype, mean.device)
+            cov = self.ukf.initial_covariance(b, self.ssm.state_dim, mean.dtype, mean.device)
             mean, cov = self.ukf.update(mean, cov, self.to_frames(frames))
-        seen, believed, truth, states, inputs = [frames], [], [torch.from_numpy(self.env.clean_frames())], [], []
+        truth, states, inputs = [torch.from_numpy(self.env.clean_frames())], [], []
+        seen, believed = [self._image(frames)], []
         states.append(torch.from_numpy(self.env.state).float())
         plan_seconds = 0.0
         for _ in range(periods):
             if self.ssm is not None:
-                believed.append(self.from_frames(decode(self.ssm.g, mean)))
+                believed.append(self._image(self.from_frames(decode(self.ssm.g, mean))))
             x = mean if self.ssm is not None else torch.from_numpy(self.env.state).float()
             tick = time.perf_counter()
             u = controller(x)
@@ -247,22 +261,26 @@ class ClosedLoop(pl.LightningModule):
             if self.ssm is not None:
                 mean, cov = self.ukf.predict(mean, cov, u)
                 mean, cov = self.ukf.update(mean, cov, self.to_frames(frames))
-            seen.append(frames)
+            seen.append(self._image(frames))
             truth.append(torch.from_numpy(self.env.clean_frames()))
             states.append(torch.from_numpy(self.env.state).float())
             inputs.append(u.float())
         if self.ssm is not None:
-            believed.append(self.from_frames(decode(self.ssm.g, mean)))
+            believed.append(self._image(self.from_frames(decode(self.ssm.g, mean))))
         self._episodes.append(
             {
                 "states": torch.stack(states, 1),
                 "inputs": torch.stack(inputs, 1),
-                "seen": torch.stack(seen, 1),
+                "seen": torch.stack(seen, 1) if seen[0] is not None else None,
                 "truth": torch.stack(truth, 1),
-                "believed": torch.stack(believed, 1) if believed else None,
+                "believed": torch.stack(believed, 1) if believed and believed[0] is not None else None,
                 "batch_plan_seconds": torch.tensor(plan_seconds / periods),
             }
         )
+
+    def _image(self, measurement: torch.Tensor) -> torch.Tensor | None:
+        """The camera's part of a measurement (``None`` without a camera), for the pictures."""
+        return self.streams(measurement).get("image")
 
     @torch.no_grad()
     def planning_seconds(self) -> list[float]:
@@ -338,7 +356,7 @@ class ClosedLoop(pl.LightningModule):
         from ssm_ms import drawing
 
         name = f"{self.experiment}_{self.method_name.replace(' ', '_').replace(',', '').replace('+', 'and')}"
-        panels = {"camera (seen)": run["seen"][0]}
+        panels = {"camera (seen)": run["seen"][0]} if run["seen"] is not None else {}
         if run["believed"] is not None:
             panels["model's belief g(x)"] = run["believed"][0].clamp(0, 1)
         panels["true pendulum"] = run["truth"][0]

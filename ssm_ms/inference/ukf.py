@@ -348,6 +348,10 @@ class UnscentedKalmanFilter:
         gy = call_model(self.g, sigma.reshape(-1, d), self.autocast).reshape(b, sigma.shape[1], p)
         y_pred = (gy * setup.wm_col).sum(-2)
         y_dev = gy - y_pred.unsqueeze(-2)  # [B, n, p]
+        observed = torch.isfinite(y_flat)
+        if not bool(observed.all()):  # samples a sensor did not take (NaN): no information, as an infinite variance
+            y_dev = y_dev * observed.unsqueeze(-2)
+            y_flat = torch.where(observed, y_flat, y_pred)
         innov = (y_flat - y_pred).unsqueeze(-1)  # [B, p, 1]
         if setup.mode == "dense":
             # One product gives C^T and S: [x_dev, y_dev]^T Wc [x_dev, y_dev].
@@ -451,6 +455,10 @@ class UnscentedKalmanFilter:
                 stacklevel=3,
             )
         self._events = []
+
+    def initial_covariance(self, batch: int, d: int, dtype: torch.dtype, device: torch.device | None = None) -> Tensor:
+        """The default prior covariance ``[batch, d, d]`` (``init_var``), for a filter run step by step."""
+        return self._initial_cov(None, batch, d, dtype, device or torch.device("cpu"))
 
     def _resolve_state_dim(self, x0: Tensor | None, P0: Tensor | None) -> int:
         cands = []

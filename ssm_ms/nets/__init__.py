@@ -3,6 +3,7 @@
 from ssm_ms.nets.decoder import ConvDecoder
 from ssm_ms.nets.encoder import FrameEncoder, StateEncoder
 from ssm_ms.nets.readout import LinearReadout, Projection
+from ssm_ms.nets.sensors import SensorHeads
 from ssm_ms.nets.transition import FullyConnectedTransition, LocallyLinearTransition
 
 __all__ = [
@@ -12,5 +13,6 @@ __all__ = [
     "LinearReadout",
     "LocallyLinearTransition",
     "Projection",
+    "SensorHeads",
     "StateEncoder",
 ]

@@ -35,6 +35,23 @@ def loss_function(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Ten
     return LOSSES[name]
 
 
+def weighted_fit(
+    loss: str, y_hat: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None, missing: bool = False
+) -> torch.Tensor:
+    """The fit of several sensors: the elementwise ``loss`` weighted per component by ``weights`` (broadcast over
+    ``y``'s trailing dimensions: one per measurement component), averaged over the observed elements; with
+    ``missing``, the NaN elements of ``y`` (samples a sensor did not take) are left out."""
+    loss_function(loss)
+    observed = torch.isfinite(y) if missing else None
+    target = y if observed is None else torch.where(observed, y, y_hat.detach())
+    per_element = (F.mse_loss if loss == "mse" else F.binary_cross_entropy)(y_hat, target, reduction="none")
+    if weights is not None:
+        per_element = per_element * weights.to(per_element)
+    if observed is None:
+        return per_element.mean()
+    return (per_element * observed).sum() / observed.sum().clamp_min(1)
+
+
 Rollout = Callable[..., torch.Tensor]  # (x0 [N, d], steps, u [N, steps - 1, m] or None) -> [N, steps, d]
 
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
@@ -131,6 +148,8 @@ def shooting_residuals(
     decode_chunk: int | None = None,
     rollout_fn: Rollout | None = None,
     u: torch.Tensor | None = None,
+    weights: torch.Tensor | None = None,
+    missing: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(fit, c)``: the fit term of :func:`multiple_shooting_loss` and the continuity gaps themselves,
     ``c[b, i] = s[b, i+1] - f^n(s[b, i])``, shape ``[B, m-1, d]`` (empty when ``m = 1``). Arguments as
@@ -149,7 +168,10 @@ def shooting_residuals(
             f"the observation model outputs measurements of shape {tuple(y_hat.shape[2:])} but the data "
             f"have shape {tuple(y.shape[2:])}: make g's output match the data (e.g. decoder preset / image size)"
         )
-    fit = loss_fn(y_hat.reshape(y.shape), y)
+    if weights is None and not missing:
+        fit = loss_fn(y_hat.reshape(y.shape), y)
+    else:
+        fit = weighted_fit(loss, y_hat.reshape(y.shape), y, weights, missing)
     end = states[:, n].view(b, m, d)
     return fit, nodes[:, 1:] - end[:, :-1]
 
@@ -163,6 +185,8 @@ def multiple_shooting_loss(
     decode_chunk: int | None = None,
     rollout_fn: Rollout | None = None,
     u: torch.Tensor | None = None,
+    weights: torch.Tensor | None = None,
+    missing: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The two terms of the multiple-shooting objective.
 
@@ -177,12 +201,14 @@ def multiple_shooting_loss(
             with ``f``; a :class:`CompiledRollout` of ``f`` gives the same values).
         u: inputs ``[B, T, m_u]`` for a transition ``f(x, u)`` (``None``: ``f(x)``, an autonomous system); piece
             ``i`` rolls out under ``u[:, i n : (i + 1) n]``.
+        weights, missing: several sensors (:mod:`ssm_ms.nets.sensors`): the fit weighs measurement component ``c``
+            by ``weights[c]`` and, with ``missing``, leaves out the NaN elements of ``y`` (:func:`weighted_fit`).
 
     Returns:
         ``(fit, gap)``: ``fit`` is the mean over all elements of ``loss(g(f^k(s_i)), y[(i-1)n + k])``;
         ``gap`` is the mean over all elements of ``(s_{i+1} - f^n(s_i))^2``, ``i = 1..m-1``, and exactly
         zero when ``m = 1`` (the initial value problem).
     """
-    fit, residual = shooting_residuals(f, g, nodes, y, loss, decode_chunk, rollout_fn, u)
+    fit, residual = shooting_residuals(f, g, nodes, y, loss, decode_chunk, rollout_fn, u, weights, missing)
     gap = fit.new_zeros(()) if residual.numel() == 0 else residual.pow(2).mean()
     return fit, gap

@@ -1,0 +1,147 @@
+"""Several sensors at once (ssm_ms.nets.sensors): the packed layout, the weighted and masked fit against a naive
+loop, the UKF's update without a missing sample against a filter that never had that sensor, and the data modules
+serving camera and joint angle (pendulum) or several keys (files), one at a lower rate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from datamodules.files import FileDataModule
+from datamodules.pendulum import PendulumDataModule
+from ssm_ms.inference.ukf import UnscentedKalmanFilter
+from ssm_ms.module import MultipleShootingModule
+from ssm_ms.nets import ConvDecoder, LinearReadout, LocallyLinearTransition
+from ssm_ms.nets.sensors import SensorHeads, SensorLayout, Stream
+from ssm_ms.training.shooting import weighted_fit
+from tests.conftest import fast_trainer
+
+
+def test_layout_packs_splits_and_weighs_by_the_inverse_noise_variance():
+    layout = SensorLayout([Stream("image", (1, 2, 2), 0.2), Stream("angle", (1,), 0.05)])
+    assert layout.size == 5 and layout.names == ["image", "angle"]
+    parts = {"image": torch.arange(8.0).view(2, 1, 2, 2), "angle": torch.tensor([[9.0], [10.0]])}
+    packed = layout.pack(parts)
+    assert packed.tolist() == [[0, 1, 2, 3, 9], [4, 5, 6, 7, 10]]
+    back = layout.split(packed)
+    assert torch.equal(back["image"], parts["image"]) and torch.equal(back["angle"], parts["angle"])
+    raw = torch.tensor([1 / 0.04] * 4 + [1 / 0.0025])
+    torch.testing.assert_close(layout.weights(), raw / raw.mean())
+    torch.testing.assert_close(layout.variances(), torch.tensor([0.04] * 4 + [0.0025]))
+    assert SensorLayout.from_state_dict(layout.state_dict()) == layout
+
+
+def test_weighted_fit_with_missing_samples_against_a_naive_loop():
+    torch.manual_seed(0)
+    y_hat, y = torch.rand(2, 3, 4), torch.rand(2, 3, 4)
+    y[0, 1, 3] = y[1, 2, 3] = float("nan")
+    w = torch.tensor([1.0, 1.0, 2.0, 0.5])
+    total, count = 0.0, 0
+    for b in range(2):
+        for t in range(3):
+            for c in range(4):
+                if torch.isfinite(y[b, t, c]):
+                    total += w[c] * (y_hat[b, t, c] - y[b, t, c]) ** 2
+                    count += 1
+    torch.testing.assert_close(weighted_fit("mse", y_hat, y, w, missing=True), total / count)
+    clean = torch.nan_to_num(y)
+    torch.testing.assert_close(weighted_fit("mse", y_hat, clean), torch.nn.functional.mse_loss(y_hat, clean))
+
+
+def test_ukf_update_skips_a_missing_sensor_exactly():
+    """Linear g of two sensors; with the second's sample NaN, the update equals that of a filter whose g is the first
+    sensor alone."""
+    torch.manual_seed(0)
+    h = torch.randn(3, 2, dtype=torch.float64)
+
+    def g(x):
+        return x @ h.T
+
+    def g_first(x):
+        return x @ h[:2].T
+
+    mean, cov = torch.randn(4, 2, dtype=torch.float64), torch.eye(2, dtype=torch.float64).expand(4, 2, 2) * 0.5
+    y = torch.randn(4, 3, dtype=torch.float64)
+    y[:, 2] = float("nan")
+    both = UnscentedKalmanFilter(lambda x: x, g, measurement_var=[0.1, 0.2, 0.3], state_dim=2, innovation="low_rank")
+    first = UnscentedKalmanFilter(lambda x: x, g_first, measurement_var=[0.1, 0.2], state_dim=2, innovation="low_rank")
+    m1, c1 = both.update(mean, cov, y)
+    m2, c2 = first.update(mean, cov, y[:, :2])
+    torch.testing.assert_close(m1, m2)
+    torch.testing.assert_close(c1, c2)
+
+
+@pytest.fixture(scope="module")
+def camera_and_angle(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("sensors")
+    kw = dict(n_train=6, n_test=2, data_dir=str(tmp), workers=1, batch_size=3, val_trajectories=2, torque_limit=2.0)
+    both = PendulumDataModule(sensors=["image", "angle"], angle_noise_std=0.05, angle_every=2, **kw)
+    both.prepare_data()
+    both.setup("fit")
+    camera = PendulumDataModule(**kw)
+    camera.prepare_data()
+    camera.setup("fit")
+    return both, camera
+
+
+def test_pendulum_serves_camera_and_angle_packed(camera_and_angle):
+    both, camera = camera_and_angle
+    assert both.sensor_layout == [
+        {"name": "image", "shape": [1, 24, 24], "noise_std": 0.2},
+        {"name": "angle", "shape": [1], "noise_std": 0.05},
+    ]
+    item, alone = both.train_split()[2], camera.train_split()[2]
+    assert item["y"].shape == (100, 577)
+    # the camera's frames are the single-sensor data's (the angle's noise is drawn after the image's)
+    torch.testing.assert_close(item["y"][:, :576].view(100, 1, 24, 24), alone["y"])
+    angle, truth = item["y"][:, 576], item["state"][:, 0]
+    assert torch.isnan(angle[1::2]).all() and torch.isfinite(angle[::2]).all()  # every second frame
+    assert (angle[::2] - truth[::2]).std() == pytest.approx(0.05, rel=0.35)
+    torch.testing.assert_close(item["y_clean"][:, 576], truth)
+    assert both.obs_shape == (577,)
+
+
+def test_a_model_of_camera_and_angle_trains_with_the_weighted_masked_fit(camera_and_angle, tmp_path):
+    both, _ = camera_and_angle
+    torch.manual_seed(0)
+    g = SensorHeads(4, {"image": ConvDecoder(4, preset="pendulum"), "angle": LinearReadout(4, 1)})
+    model = MultipleShootingModule(LocallyLinearTransition(4, 2, 8, input_dim=1), g, state_dim=4, n_nodes=4)
+    fast_trainer(tmp_path, max_epochs=1, limit_val_batches=1).fit(model, both)
+    batch = next(iter(both.train_dataloader()))
+    fit, _ = model.shooting_loss(batch)
+    nodes = model.node_states(batch["index"])
+    from ssm_ms.training.shooting import rollout
+
+    states = rollout(model.f, nodes.reshape(-1, 4), 26, batch["u"].reshape(-1, 25, 1))[:, :25]
+    y_hat = g(states.reshape(-1, 4)).view(batch["y"].shape)
+    layout = SensorLayout.from_state_dict(both.sensor_layout)
+    torch.testing.assert_close(fit, weighted_fit("mse", y_hat, batch["y"], layout.weights(), missing=True))
+    bad = SensorHeads(4, {"angle": LinearReadout(4, 1), "image": ConvDecoder(4, preset="pendulum")})
+    with pytest.raises(ValueError, match="one head per sensor, in the data's order"):
+        fast_trainer(tmp_path, max_epochs=1).fit(
+            MultipleShootingModule(LocallyLinearTransition(4, 2, 8, input_dim=1), bad, state_dim=4, n_nodes=4), both
+        )
+
+
+def test_files_with_several_keys(tmp_path):
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(8, 12, 2)).astype(np.float32), rng.normal(size=(8, 12, 1)).astype(np.float32)
+    b[:, 1::3] = np.nan  # sampled every third step
+    np.savez(tmp_path / "rec.npz", pos=a, enc=b)
+    dm = FileDataModule(str(tmp_path / "rec.npz"), key=["pos", "enc"], noise_std={"enc": 0.5}, batch_size=4)
+    assert dm.sensor_layout == [
+        {"name": "pos", "shape": [2], "noise_std": 1.0},
+        {"name": "enc", "shape": [1], "noise_std": 0.5},
+    ]
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    expected = np.concatenate([a, b], -1)[batch["index"].numpy()]
+    np.testing.assert_array_equal(batch["y"].numpy(), expected)
+    np.savez(tmp_path / "short.npz", pos=a, enc=b[:, :6])
+    with pytest.raises(ValueError, match=r"every sensor of a trajectory has a sample slot per step"):
+        FileDataModule(str(tmp_path / "short.npz"), key=["pos", "enc"])
+    b[0, 0, 0] = np.inf
+    np.savez(tmp_path / "inf.npz", pos=a, enc=b)
+    with pytest.raises(ValueError, match="non-finite"):
+        FileDataModule(str(tmp_path / "inf.npz"), key=["pos", "enc"]).setup("fit")
