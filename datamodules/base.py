@@ -406,8 +406,10 @@ class TrajectoryDataModule(pl.LightningDataModule):
                 "(.npy or .npz, the layouts of training data)"
             )
         if self.stream_names:
-            raise ValueError("predict reads one sensor's sequences: with several sensors (a list of keys, or camera and "
-                             "angle), forecast them with the test protocol (python cli.py test) instead")
+            raise ValueError(
+                "predict reads one sensor's sequences: with several sensors (a list of keys, or camera and "
+                "angle), forecast them with the test protocol (python cli.py test) instead"
+            )
         heads = [read_header(path, self.predict_key, "predict_path") for path in self.predict_path]
         for h in heads:
             check_header(h, "predict_path")
