@@ -120,6 +120,8 @@ def test_the_closed_loop_swings_the_true_pendulum_up(tmp_path):
             "3",
             "--trainer.logger",
             "false",
+            "--trainer.default_root_dir",
+            str(tmp_path),
             "--trainer.enable_progress_bar",
             "false",
         ]
