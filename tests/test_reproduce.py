@@ -531,6 +531,8 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         ("fit", "configs/pendulum_torque_single.yaml"),
         ("test", "configs/pendulum_torque_single_control.yaml"),
         ("test", "configs/pendulum_true_control.yaml"),
+        ("fit", "configs/pendulum_sensors.yaml"),
+        ("test", "configs/pendulum_sensors_control.yaml"),
     ]
     single = option(calls[4], "--trainer.logger.init_args.version")
     assert (
