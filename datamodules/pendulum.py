@@ -337,6 +337,14 @@ def quantize(img: np.ndarray) -> np.ndarray:
     return np.rint(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
+def angle_reading(q: np.ndarray) -> np.ndarray:
+    """What the joint encoders report for angles ``[..., n]``: ``[sin q_1 .. sin q_n, cos q_1 .. cos q_n]``
+    (float32, ``[..., 2 n]``). The sine and cosine, not the angle: a driven joint turns over and over (the
+    torque-driven data reach 137 rad), and an angle without bound is one no network extrapolates; this reading is
+    bounded, continuous through upright (a wrapped angle jumps there) and the observation of gym's Pendulum."""
+    return np.concatenate([np.sin(q), np.cos(q)], axis=-1).astype(np.float32)
+
+
 # ---------------------------------------------------------------------------------- generation
 _WORKER: dict[str, Any] = {}
 PINOCCHIO_HINT = (
@@ -427,10 +435,10 @@ def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int)
         out.update(y=y, y_clean=y_clean)
     if "angle" in sensors:  # joint encoders: the angles with noise, every angle_every frames (NaN between)
         noise = np.stack([r.standard_normal(q[j].shape) for j, r in enumerate(rngs)])
-        angle = (q + params["angle_noise_std"] * noise).astype(np.float32)
+        angle = angle_reading(q + params["angle_noise_std"] * noise)
         angle[:, np.arange(n_frames) % params["angle_every"] != 0] = np.nan
         key, clean_key = ("y", "y_clean") if sensors[0] == "angle" else ("y_angle", "y_clean_angle")
-        out.update({key: angle, clean_key: q.astype(np.float32)})
+        out.update({key: angle, clean_key: angle_reading(q)})
     if u is not None:
         out["u"] = u.astype(np.float32)
     return out
@@ -515,9 +523,9 @@ class PendulumEnvironment:
     :meth:`reset` places the chains at given joint angles and velocities and returns the first measurements;
     :meth:`step` holds the torques ``u [B, n_links]`` (N m) for one frame period, as the data's torques are held, and
     returns the next. Measurements are made as the data's: frames rendered and noised (``noise_std``, clipped,
-    quantised to 8 bits), float32 ``[B, 1, H, W]`` in [0, 1]; with the data's ``sensors`` the angles too, noised
+    quantised to 8 bits), float32 ``[B, 1, H, W]`` in [0, 1]; with the data's ``sensors`` the encoders' reading too
     (``angle_noise_std``; NaN between samples every ``angle_every`` periods), packed as a batch's ``y`` is
-    (``[B, P]``; the angle alone ``[B, n]``). :attr:`state` ``[B, 2 n]`` (angles, then velocities) is the truth, for
+    (``[B, P]``; the reading alone ``[B, 2 n]``, :func:`angle_reading` of the angles noised). :attr:`state` ``[B, 2 n]`` (angles, then velocities) is the truth, for
     scoring only. The noise of episode ``i`` comes from ``numpy.random.default_rng([seed, 2, i])`` (split id 2:
     neither the training nor the test data's streams).
     """
@@ -545,7 +553,7 @@ class PendulumEnvironment:
             parts["image"] = self.frames()
         if "angle" in sensors:
             noise = np.stack([r.standard_normal(self.q.shape[1]) for r in self.rngs])
-            angle = (self.q + self.params["angle_noise_std"] * noise).astype(np.float32)
+            angle = angle_reading(self.q + self.params["angle_noise_std"] * noise)
             if self.period % self.params["angle_every"]:
                 angle[:] = np.nan
             parts["angle"] = angle
@@ -617,7 +625,14 @@ class PendulumDataModule(TrajectoryDataModule):
         torque_limit: the largest joint torque of the excitation, in N m (0, the default: a free chain, the
             paper's). One unit mass on a unit link weighs 9.81 N m against gravity at the horizontal: a limit of
             3 lifts it to about 18 degrees, and anything higher takes pumping energy.
+            The correlated excitation does pump: the default data's pendulum turns over, its angle reaching
+            137 rad within 10 s.
         torque_correlation: correlation time of the excitation, in seconds (default 0.5 s: five frames).
+        sensors: what measures the chain, packed per step in this order: ``["image"]`` (the default, the camera),
+            ``["angle"]`` (the joint encoders alone) or both. The encoders report :func:`angle_reading` of the
+            noised angles, ``[sin q, cos q]`` (``2 n_links`` values per step).
+        angle_noise_std: std of the encoders' Gaussian noise on each angle (rad), before the sine and cosine.
+        angle_every: the encoders sample every ``angle_every`` frames (NaN between).
         **kwargs: the :class:`~datamodules.base.TrajectoryDataModule` arguments (``data_dir``,
             ``batch_size``, ``eval_batch_size``, ``num_workers``, ``val_trajectories``, ``normalize``,
             ``shuffle``).
@@ -772,7 +787,12 @@ class PendulumDataModule(TrajectoryDataModule):
             ),
             # other sensors than the camera only: the camera's data stay as they were
             **(
-                {"sensors": self.sensors, "angle_noise_std": self.angle_noise_std, "angle_every": self.angle_every}
+                {
+                    "sensors": self.sensors,
+                    "angle_noise_std": self.angle_noise_std,
+                    "angle_every": self.angle_every,
+                    "angle_reading": "sin_cos",
+                }
                 if self.sensors != ["image"]
                 else {}
             ),
@@ -814,7 +834,7 @@ class PendulumDataModule(TrajectoryDataModule):
             return None
         streams = {
             "image": {"name": "image", "shape": [1, self.image_size, self.image_size], "noise_std": self.noise_std},
-            "angle": {"name": "angle", "shape": [self.n_links], "noise_std": self.angle_noise_std},
+            "angle": {"name": "angle", "shape": [2 * self.n_links], "noise_std": self.angle_noise_std},
         }
         return [streams[s] for s in self.sensors]
 
@@ -834,8 +854,8 @@ class PendulumDataModule(TrajectoryDataModule):
             out["y_clean"] = np.empty((count, frames, 1, size, size), np.uint8)
         if "angle" in self.sensors:
             key, clean_key = ("y", "y_clean") if self.sensors[0] == "angle" else ("y_angle", "y_clean_angle")
-            out[key] = np.empty((count, frames, n), np.float32)
-            out[clean_key] = np.empty((count, frames, n), np.float32)
+            out[key] = np.empty((count, frames, 2 * n), np.float32)
+            out[clean_key] = np.empty((count, frames, 2 * n), np.float32)
         if self.torque_limit:
             out["u"] = np.empty((count, frames, n), np.float32)
         tasks = [(params, SPLIT_IDS[split], s, min(s + CHUNK_SIZE, count)) for s in range(0, count, CHUNK_SIZE)]

@@ -89,23 +89,27 @@ def test_pendulum_serves_camera_and_angle_packed(camera_and_angle):
     both, camera = camera_and_angle
     assert both.sensor_layout == [
         {"name": "image", "shape": [1, 24, 24], "noise_std": 0.2},
-        {"name": "angle", "shape": [1], "noise_std": 0.05},
+        {"name": "angle", "shape": [2], "noise_std": 0.05},
     ]
     item, alone = both.train_split()[2], camera.train_split()[2]
-    assert item["y"].shape == (100, 577)
+    assert item["y"].shape == (100, 578)
     # the camera's frames are the single-sensor data's (the angle's noise is drawn after the image's)
     torch.testing.assert_close(item["y"][:, :576].view(100, 1, 24, 24), alone["y"])
-    angle, truth = item["y"][:, 576], item["state"][:, 0]
-    assert torch.isnan(angle[1::2]).all() and torch.isfinite(angle[::2]).all()  # every second frame
-    assert (angle[::2] - truth[::2]).std() == pytest.approx(0.05, rel=0.35)
-    torch.testing.assert_close(item["y_clean"][:, 576], truth)
-    assert both.obs_shape == (577,)
+    reading, truth = item["y"][:, 576:], item["state"][:, 0].double()
+    assert torch.isnan(reading[1::2]).all() and torch.isfinite(reading[::2]).all()  # every second frame
+    # the encoder reports the sine and cosine of the angle it measures with noise
+    measured = torch.atan2(reading[::2, 0], reading[::2, 1]).double()
+    error = torch.remainder(measured - truth[::2] + torch.pi, 2 * torch.pi) - torch.pi
+    assert error.std() == pytest.approx(0.05, rel=0.35) and error.abs().max() < 0.3
+    assert reading[::2].norm(dim=1).sub(1).abs().max() < 1e-5
+    torch.testing.assert_close(item["y_clean"][:, 576:].double(), torch.stack([truth.sin(), truth.cos()], 1))
+    assert both.obs_shape == (578,)
 
 
 def test_a_model_of_camera_and_angle_trains_with_the_weighted_masked_fit(camera_and_angle, tmp_path):
     both, _ = camera_and_angle
     torch.manual_seed(0)
-    g = SensorHeads(4, {"image": ConvDecoder(4, preset="pendulum"), "angle": LinearReadout(4, 1)})
+    g = SensorHeads(4, {"image": ConvDecoder(4, preset="pendulum"), "angle": LinearReadout(4, 2)})
     model = MultipleShootingModule(LocallyLinearTransition(4, 2, 8, input_dim=1), g, state_dim=4, n_nodes=4)
     fast_trainer(tmp_path, max_epochs=1, limit_val_batches=1).fit(model, both)
     batch = next(iter(both.train_dataloader()))
@@ -117,7 +121,7 @@ def test_a_model_of_camera_and_angle_trains_with_the_weighted_masked_fit(camera_
     y_hat = g(states.reshape(-1, 4)).view(batch["y"].shape)
     layout = SensorLayout.from_state_dict(both.sensor_layout)
     torch.testing.assert_close(fit, weighted_fit("mse", y_hat, batch["y"], layout.weights(), missing=True))
-    bad = SensorHeads(4, {"angle": LinearReadout(4, 1), "image": ConvDecoder(4, preset="pendulum")})
+    bad = SensorHeads(4, {"angle": LinearReadout(4, 2), "image": ConvDecoder(4, preset="pendulum")})
     with pytest.raises(ValueError, match="one head per sensor, in the data's order"):
         fast_trainer(tmp_path, max_epochs=1).fit(
             MultipleShootingModule(LocallyLinearTransition(4, 2, 8, input_dim=1), bad, state_dim=4, n_nodes=4), both

@@ -224,8 +224,8 @@ class ClosedLoop(pl.LightningModule):
                 image = parts["image"]
                 pivot = tuple(s["pivot"]) if s["pivot"] is not None else (image.shape[-1] / 2, image.shape[-2] / 2)
                 return ink_angle_features(image, pivot)
-            angle = parts["angle"][:, 0]  # the joint angle the model expects its encoder to read
-            return torch.stack([torch.sin(angle), torch.cos(angle)], dim=1)
+            reading = parts["angle"][:, :: parts["angle"].shape[1] // 2]  # the (sin, cos) of the joint's angle
+            return reading / reading.norm(dim=1, keepdim=True).clamp_min(1e-6)
 
         return DistilledFeatures.fit(states, target, steps=int(s["steps"]), seed=self.seed)
 
