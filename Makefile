@@ -11,7 +11,7 @@ SIZE   ?= paper
 CONSTRAINTS_PENDULUM ?= 0.3
 CONSTRAINTS_LORENZ   ?= 0.2
 
-.PHONY: install demo test format test-slow tensorboard bench reproduce
+.PHONY: install demo test format test-slow tensorboard bench reproduce peers
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -36,6 +36,12 @@ test: $(STAMP)
 format: $(STAMP)
 	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
+
+## deepSI, the peer of benchmarks/bench_deepsi.py (optional, never needed by `make test`): installed beside the pinned
+## torch without its own dependencies (an unpinned torch would pull several GB of CUDA wheels), then those it needs.
+peers: $(STAMP)
+	$(PY) -m pip install --quiet --no-deps "deepsi==0.4.*"
+	$(PY) -m pip install --quiet cloudpickle "nonlinear_benchmarks<0.2" requests progressbar2 scipy
 
 ## Long tests excluded from `make test`.
 test-slow: $(STAMP)

@@ -1,0 +1,336 @@
+"""ssm-ms beside deepSI's SUBNET, its closest published peer, on the same data, time budget and test sequences;
+writes benchmarks/results/deepsi.md.
+
+Run from the repository root, with deepSI installed (``make peers``)::
+
+    python benchmarks/bench_deepsi.py [--systems pendulum lorenz] [--tiny]
+
+(``--tiny``: a few trajectories and steps, a minute: the script's own check, no figures worth reading.)
+
+SUBNET (Beintema, Toth & Schoukens 2021; PyPI ``deepsi``) learns ``x+ = f(x, u)``, ``y = h(x)`` with an encoder
+from the ``na`` past outputs and ``nb`` past inputs to the state, trained on a truncated simulation loss over
+``T`` steps from every window of the data: the relative of multiple shooting that estimates each piece's initial
+state with a network instead of holding it as a free parameter.
+
+Each system:
+
+1. the data are generated (or read from the cache) by ssm-ms's data module of the system's config;
+2. ssm-ms trains with ``python cli.py fit --config benchmarks/configs/deepsi_<system>.yaml`` (fixed epochs);
+   the wall time of that command is the budget;
+3. deepSI trains a SUBNET (its defaults: ``nx = 10``, residual MLPs of 2 x 64 units, Adam at 1e-3, batches of
+   256 windows, ``T = 50``) on the same training sequences for the same wall time, in chunks of ``--val-freq``
+   iterations with one optimizer; its validation simulates 16 training sequences over the test's horizon;
+   both its last and its best-on-validation models are scored;
+4. both forecast every test sequence ``n_predict`` steps after ``n_filter`` given measurements (and, for the
+   pendulum, the torques of all steps): ssm-ms's states from its UKF with the learned ``f`` and ``g``, deepSI's
+   from its encoder on the last ``na`` / ``nb`` given samples; the score is the MSE against the noiseless
+   measurement in original units (the encoder's sine and cosine; Lorenz's x), the same code for both.
+
+One torch job at a time: the two trainings run one after the other, 2 torch threads each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import copy
+import datetime
+import importlib
+import importlib.metadata
+import json
+import os
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from ssm_ms.inference.filter_module import FilterForecaster  # noqa: E402
+from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
+from ssm_ms.reproduce import load_config  # noqa: E402
+from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
+
+# Per system: ssm-ms's config, the test protocol, the UKF's noise (ssm-ms's training units) and deepSI's windows.
+SYSTEMS = {
+    "pendulum": {
+        "title": "torque-driven pendulum, joint encoder (sin, cos of the angle noised by 0.05 rad)",
+        "config": "benchmarks/configs/deepsi_pendulum.yaml",
+        "n_filter": 50,
+        "n_predict": 50,
+        "ukf": {"measurement_var": 0.05**2, "process_var": 1e-6, "init_var": 0.1},
+        "deepsi": {"na": 20, "nb": 20},
+        "units": "(sin, cos)^2",
+        "tiny": {"data": {"n_train": 16, "n_test": 8}, "epochs": 2},
+    },
+    "lorenz": {
+        "title": "Lorenz, noisy x (std 2.5)",
+        "config": "benchmarks/configs/deepsi_lorenz.yaml",
+        "n_filter": 1990,
+        "n_predict": 10,
+        "ukf": {"measurement_var": 0.5, "process_var": 1e-6, "init_var": 0.1},  # the paper's, normalised units
+        "deepsi": {"na": 50, "nb": 50},
+        "units": "x^2",
+        "tiny": {"data": {"n_train": 1, "train_steps": 5000, "n_test": 4}, "epochs": 2},
+    },
+}
+VAL_SEQUENCES = 16  # deepSI's validation: simulations of as many training sequences over the test's horizon
+
+
+def build_datamodule(config: dict, overrides: dict):
+    """The config's data module, with ``overrides`` on its ``init_args``."""
+    module, name = config["data"]["class_path"].rsplit(".", 1)
+    cls = getattr(importlib.import_module(module), name)
+    return cls(**{**config["data"].get("init_args", {}), **overrides})
+
+
+def cli_overrides(overrides: dict) -> list[str]:
+    return [f"--data.init_args.{k}={json.dumps(v)}" for k, v in overrides.items()]
+
+
+def train_ssm_ms(system: dict, data_overrides: dict, epochs: int | None, save_dir: Path, version: str, log: Path):
+    """``cli.py fit`` of the system's config; returns (checkpoint, wall seconds, epochs)."""
+    cmd = [
+        sys.executable,
+        "cli.py",
+        "fit",
+        "--config",
+        system["config"],
+        f"--trainer.logger.init_args.save_dir={save_dir}",
+        f"--trainer.logger.init_args.version={version}",
+        "--trainer.enable_progress_bar=false",
+        *cli_overrides(data_overrides),
+    ]
+    if epochs is not None:
+        cmd.append(f"--trainer.max_epochs={epochs}")
+    print("ssm-ms:", shlex.join(cmd), f"(log {log})", flush=True)
+    start = time.perf_counter()
+    with open(log, "w") as out:
+        done = subprocess.run(cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+    seconds = time.perf_counter() - start
+    if done.returncode:
+        sys.exit(f"ssm-ms training failed (exit {done.returncode}): see {log}")
+    name = load_config(ROOT / system["config"])["trainer"]["logger"]["init_args"]["name"]
+    ckpt = save_dir / name / version / "checkpoints" / "last.ckpt"
+    epochs_done = torch.load(ckpt, map_location="cpu", weights_only=False)["epoch"] + 1
+    return ckpt, seconds, epochs_done
+
+
+@torch.inference_mode()
+def forecast_ssm_ms(ckpt: Path, system: dict, dm, y: np.ndarray, u: np.ndarray | None) -> np.ndarray:
+    """ssm-ms's forecasts ``[N, n_predict, p]`` (original units): UKF over the given steps, then ``f`` and ``g``."""
+    k, p = system["n_filter"], system["n_predict"]
+    forecaster = FilterForecaster(str(ckpt), n_filter=k, n_predict=p, method="ukf", **system["ukf"])
+    forecaster.eval()
+    _, checkpoint = load_ssm(ckpt)
+    dm.load_state_dict(datamodule_state(checkpoint)[1])  # the normalisation the SSM was trained with
+    out = []
+    for start in range(0, len(y), 100):
+        yb = dm.normalizer.normalize(torch.from_numpy(np.array(y[start : start + 100, :k])))
+        ub = None
+        if u is not None:
+            ub = dm.input_normalizer.normalize(torch.from_numpy(np.array(u[start : start + 100, : k + p])))
+        predicted = forecaster.forecast(yb, p, ub).predicted
+        out.append(dm.normalizer.denormalize(predicted).numpy())
+    return np.concatenate(out)
+
+
+def io_data(deepSI, y: np.ndarray, u: np.ndarray | None, dt: float) -> list:
+    """deepSI's data: one ``Input_output_data`` per sequence (inputs of width 0 where the system has none)."""
+    seqs = []
+    for i in range(len(y)):
+        ui = np.zeros((y.shape[1], 0), np.float32) if u is None else np.asarray(u[i], np.float32)
+        seqs.append(deepSI.Input_output_data(u=ui, y=np.asarray(y[i], np.float32), sampling_time=dt))
+    return seqs
+
+
+def train_deepsi(deepSI, train: list, val: list, budget: float, system: dict, val_freq: int, log: Path):
+    """SUBNET trained for ``budget`` wall seconds; returns (last model, best model, iterations, seconds, curve)."""
+    nu, ny, norm = deepSI.get_nu_ny_and_auto_norm(train)
+    model = deepSI.SUBNET(nu, ny, norm, **system["deepsi"])
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    best, best_val, iterations, curve = copy.deepcopy(model), float("inf"), 0, []
+    start = time.perf_counter()
+    with open(log, "w") as out:
+        while time.perf_counter() - start < budget:
+            # deepSI.fit validates at its first and last iteration and hands back the best of the two: the chunk's
+            # last model is taken from what it returns, the best over all chunks kept here
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):  # its prints and progress bar
+                d = deepSI.fit(
+                    model, train, val, n_its=val_freq, T=50, batch_size=256, val_freq=val_freq, optimizer=optimizer
+                )
+            model.load_state_dict(d["last_model"].state_dict())
+            iterations += val_freq
+            nrms = float(d["NRMS_val"][-1])
+            curve.append((iterations, round(time.perf_counter() - start, 1), nrms))
+            print(f"deepSI: {iterations} iterations, {curve[-1][1]:.0f} s, validation NRMS {nrms:.4f}", flush=True)
+            if nrms <= best_val:
+                best, best_val = copy.deepcopy(model), nrms
+    return model, best, iterations, time.perf_counter() - start, curve
+
+
+@torch.no_grad()
+def forecast_deepsi(model, system: dict, y: np.ndarray, u: np.ndarray | None) -> np.ndarray:
+    k, p = system["n_filter"], system["n_predict"]
+    na, nb = system["deepsi"]["na"], system["deepsi"]["nb"]
+    u = np.zeros((*y.shape[:2], 0), np.float32) if u is None else u
+    y_t, u_t = torch.from_numpy(np.array(y, np.float32)), torch.from_numpy(np.array(u, np.float32))
+    model.eval()
+    out = [
+        model(u_t[s : s + 100, k - nb : k], y_t[s : s + 100, k - na : k], u_t[s : s + 100, k : k + p]).numpy()
+        for s in range(0, len(y), 100)
+    ]
+    return np.concatenate(out).reshape(len(y), p, -1)
+
+
+def scores(predicted: np.ndarray, truth: np.ndarray) -> dict:
+    err = (predicted.reshape(truth.shape) - truth) ** 2
+    return {"mse": float(err.mean()), "first": float(err[:, 0].mean()), "last": float(err[:, -1].mean())}
+
+
+def run_system(name: str, args, deepSI, work: Path) -> dict:
+    system = SYSTEMS[name]
+    config = load_config(ROOT / system["config"])
+    data_overrides = dict(system["tiny"]["data"]) if args.tiny else {}
+    dm = build_datamodule(config, data_overrides)
+    dm.prepare_data()  # generated once, before any clock starts
+    train, test = dm.load_arrays("train"), dm.load_arrays("test")
+    k, p = system["n_filter"], system["n_predict"]
+    version = f"{name}-{datetime.datetime.now(datetime.timezone.utc):%Y%m%d-%H%M%S}"
+    ckpt, ssm_seconds, epochs = train_ssm_ms(
+        system,
+        data_overrides,
+        system["tiny"]["epochs"] if args.tiny else None,
+        work,
+        version,
+        work / f"{version}-ssm_ms.log",
+    )
+    print(f"ssm-ms: {epochs} epochs in {ssm_seconds:.0f} s", flush=True)
+    truth = np.asarray(test["y_clean"])[:, k : k + p]
+    u_test = np.asarray(test["u"]) if "u" in test else None
+    ssm_pred = forecast_ssm_ms(ckpt, system, dm, test["y"], u_test)
+
+    dt = float(dm.sample_period)
+    u_train = np.asarray(train["u"]) if "u" in train else None
+    train_seqs = io_data(deepSI, train["y"], u_train, dt)
+    horizon = max(system["deepsi"]["na"], system["deepsi"]["nb"]) + p
+    val_y = np.asarray(train["y"][:VAL_SEQUENCES, :horizon])
+    val_u = None if u_train is None else u_train[:VAL_SEQUENCES, :horizon]
+    val_seqs = io_data(deepSI, val_y, val_u, dt)
+    budget = args.deepsi_seconds or ssm_seconds
+    last, best, iterations, deepsi_seconds, curve = train_deepsi(
+        deepSI, train_seqs, val_seqs, budget, system, args.val_freq, work / f"{version}-deepsi.log"
+    )
+    rows = [
+        {
+            "method": "ssm-ms (SSM-LL, multiple shooting; UKF)",
+            "seconds": ssm_seconds,
+            "steps": f"{epochs} epochs",
+            **scores(ssm_pred, truth),
+        },
+        {
+            "method": "deepSI SUBNET, last model",
+            "seconds": deepsi_seconds,
+            "steps": f"{iterations} iterations",
+            **scores(forecast_deepsi(last, system, test["y"], u_test), truth),
+        },
+        {
+            "method": "deepSI SUBNET, best on validation",
+            "seconds": deepsi_seconds,
+            "steps": f"{iterations} iterations",
+            **scores(forecast_deepsi(best, system, test["y"], u_test), truth),
+        },
+    ]
+    return {
+        "system": name,
+        "title": system["title"],
+        "units": system["units"],
+        "n_filter": k,
+        "n_predict": p,
+        "train_shape": list(np.shape(train["y"])),
+        "test_shape": list(np.shape(test["y"])),
+        "truth_var": float(truth.var()),
+        "ssm_ms_config": system["config"],
+        "deepsi_settings": {**system["deepsi"], "nx": 10, "T": 50, "batch_size": 256, "lr": 1e-3},
+        "deepsi_curve": curve,
+        "rows": rows,
+    }
+
+
+def write(results: list[dict], args, watch_note: str, out: Path) -> None:
+    lines = [
+        "# ssm-ms beside deepSI's SUBNET: same data, same time budget, same test sequences (one run)",
+        "",
+        f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
+        f"- Machine: {describe()}",
+        f"- Others' CPU use: {watch_note}",
+        f"- Command: `{shlex.join(['python', 'benchmarks/bench_deepsi.py', *args.argv])}`",
+        f"- deepSI {args.deepsi_version}; set-up and protocol: the docstring of `benchmarks/bench_deepsi.py`.",
+        "- Score: MSE of the forecast against the noiseless measurement, mean over test sequences and predicted "
+        "steps (first / last: the first and last predicted step alone); `/ ssm-ms`: the ratio of the MSEs.",
+        "",
+    ]
+    for r in results:
+        ref = r["rows"][0]["mse"]
+        lines += [
+            f"## {r['title']}",
+            "",
+            f"Training sequences {r['train_shape']}, test sequences {r['test_shape']}; forecast {r['n_predict']} "
+            f"steps after {r['n_filter']} given; variance of the true values forecast: {r['truth_var']:.4g} "
+            f"{r['units']}. ssm-ms: `{r['ssm_ms_config']}`; deepSI: {r['deepsi_settings']}.",
+            "",
+            f"| Method | training wall (s) | training | MSE ({r['units']}) | / ssm-ms | first step | last step |",
+            "|---|---:|---|---:|---:|---:|---:|",
+        ]
+        for row in r["rows"]:
+            lines.append(
+                f"| {row['method']} | {row['seconds']:.0f} | {row['steps']} | {row['mse']:.4g} | "
+                f"{row['mse'] / ref:.2f} | {row['first']:.4g} | {row['last']:.4g} |"
+            )
+        curve = ", ".join(
+            f"{it}: {nrms:.3f}" for it, _, nrms in r["deepsi_curve"][:: max(1, len(r["deepsi_curve"]) // 12)]
+        )
+        lines += ["", f"deepSI's validation NRMS by iteration: {curve}.", ""]
+    out.write_text("\n".join(lines))
+    out.with_suffix(".json").write_text(json.dumps(results, indent=1) + "\n")
+    print(f"wrote {out} and {out.with_suffix('.json')}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--systems", nargs="+", choices=sorted(SYSTEMS), default=["pendulum", "lorenz"])
+    parser.add_argument("--tiny", action="store_true", help="a few trajectories and epochs: the script's check")
+    parser.add_argument("--val-freq", type=int, default=250, help="deepSI iterations between validations")
+    parser.add_argument("--deepsi-seconds", type=float, default=None, help="deepSI's budget (default: ssm-ms's time)")
+    parser.add_argument("--work", default="runs/bench_deepsi", help="logs, checkpoints, deepSI's own files")
+    parser.add_argument(
+        "--out", default=None, help="results file (default benchmarks/results/deepsi.md; --tiny: in --work)"
+    )
+    args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        import deepSI
+    except ImportError:
+        sys.exit("deepSI is not installed: make peers (installs deepsi beside the pinned torch, without its deps)")
+    args.deepsi_version = importlib.metadata.version("deepSI")
+    work = (ROOT / args.work).resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    os.environ["HOME"] = str(work / "home")  # deepSI writes its checkpoints under ~/.deepSI-checkpoints
+    torch.set_num_threads(2)
+    out = (
+        Path(args.out)
+        if args.out
+        else (work / "deepsi_tiny.md" if args.tiny else ROOT / "benchmarks/results/deepsi.md")
+    )
+    watch = CpuWatch()
+    results = [run_system(name, args, deepSI, work) for name in args.systems]
+    write(results, args, quiet_note(watch.others()), out)
+
+
+if __name__ == "__main__":
+    main()
