@@ -54,6 +54,7 @@ tensorboard: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/bench_train_step.py
 	$(PY) benchmarks/bench_train_step.py --threads 1 --rounds 4 --out benchmarks/results/train_step_threads1.md
+	$(PY) benchmarks/bench_train_step.py --models SSM-LL --no-bf16 --inputs --out benchmarks/results/train_step_inputs.md
 	$(PY) benchmarks/profile_decoder.py
 	$(PY) benchmarks/profile_epoch.py
 	$(PY) benchmarks/profile_decoder.py --cflags "-O3 -mavx2 -mfma -funroll-loops" --out benchmarks/results/decoder_profile_avx2.md

@@ -56,7 +56,8 @@ from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
 from ssm_ms.reproduce import load_config  # noqa: E402
 from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
 
-# Per system: ssm-ms's config, the test protocol, the UKF's noise (ssm-ms's training units) and deepSI's windows.
+# Per system: ssm-ms's config, the test protocol, the UKF's noise (ssm-ms's training units; or the UKF stage config
+# that holds it) and deepSI's windows.
 SYSTEMS = {
     "pendulum": {
         "title": "torque-driven pendulum, joint encoder (sin, cos of the angle noised by 0.05 rad)",
@@ -73,7 +74,7 @@ SYSTEMS = {
         "config": "benchmarks/configs/deepsi_lorenz.yaml",
         "n_filter": 1990,
         "n_predict": 10,
-        "ukf": {"measurement_var": 0.5, "process_var": 1e-6, "init_var": 0.1},  # the paper's, normalised units
+        "ukf": "configs/cpu/lorenz_T1000_ukf.yaml",  # the CPU-sized Lorenz's UKF stage: its noise settings
         "deepsi": {"na": 50, "nb": 50},
         "units": "x^2",
         "tiny": {"data": {"n_train": 1, "train_steps": 5000, "n_test": 4}, "epochs": 2},
@@ -125,7 +126,11 @@ def train_ssm_ms(system: dict, data_overrides: dict, epochs: int | None, save_di
 def forecast_ssm_ms(ckpt: Path, system: dict, dm, y: np.ndarray, u: np.ndarray | None) -> np.ndarray:
     """ssm-ms's forecasts ``[N, n_predict, p]`` (original units): UKF over the given steps, then ``f`` and ``g``."""
     k, p = system["n_filter"], system["n_predict"]
-    forecaster = FilterForecaster(str(ckpt), n_filter=k, n_predict=p, method="ukf", **system["ukf"])
+    settings = system["ukf"]
+    if isinstance(settings, str):  # a UKF stage's config
+        stage = load_config(ROOT / settings)["model"]["init_args"]
+        settings = {key: stage[key] for key in ("measurement_var", "process_var", "init_var")}
+    forecaster = FilterForecaster(str(ckpt), n_filter=k, n_predict=p, method="ukf", **settings)
     forecaster.eval()
     _, checkpoint = load_ssm(ckpt)
     dm.load_state_dict(datamodule_state(checkpoint)[1])  # the normalisation the SSM was trained with

@@ -22,6 +22,8 @@ Implementations:
 * ``ours-torch``: the same with ``ConvDecoder(backend="torch")``, the torch-only decoder;
 * ``ours-bf16``: the same under ``torch.autocast(device, bfloat16)``, what ``trainer.precision: bf16-mixed``
   does (only where the device has native bfloat16 instructions; else it is reported as skipped);
+* ``ours-inputs`` (``--inputs``): float32, ``f(x, u)`` with one input per step (the torque-driven pendulum's
+  shape), the inputs sliced per piece as training does; its ratio to ``ours`` is the cost of inputs;
 * ``ours-compiled`` (``--compiled``): float32 with ``compile_rollout`` (``reduce-overhead`` on a GPU:
   torch.compile and CUDA graphs; ``default`` on CPU); its first (compiling) steps are in the warm-up.
 
@@ -55,6 +57,7 @@ LABELS = {
     "ours-torch": "ssm-ms, float32, torch-only decoder (native kernels off)",
     "ours-bf16": "ssm-ms, bf16-mixed (autocast bfloat16)",
     "ours-compiled": "ssm-ms, float32, compiled rollout",
+    "ours-inputs": "ssm-ms, float32, driven: f(x, u) with one input per step",
 }
 
 
@@ -78,10 +81,11 @@ def build(impl: str, model: str, size: dict, device: str = "cpu"):
     from ssm_ms.module import MultipleShootingModule
     from ssm_ms.nets import ConvDecoder, FullyConnectedTransition, LocallyLinearTransition, native
 
+    inputs = 1 if impl == "ours-inputs" else 0
     f = (
-        LocallyLinearTransition(d, size["k"], size["hidden"])
+        LocallyLinearTransition(d, size["k"], size["hidden"], input_dim=inputs)
         if model == "SSM-LL"
-        else FullyConnectedTransition(d, (size["fc"],) * 3)
+        else FullyConnectedTransition(d, (size["fc"],) * 3, input_dim=inputs)
     )
     compiled = ("reduce-overhead" if device == "cuda" else "default") if impl == "ours-compiled" else None
     kernels = "native" if device == "cpu" and native.library() is not None else "torch"
@@ -93,6 +97,8 @@ def build(impl: str, model: str, size: dict, device: str = "cpu"):
         module.nodes.weight.normal_(0.0, 0.1)
     opt = module.configure_optimizers()
     batch = {"index": index.to(device), "y": y}
+    if inputs:
+        batch["u"] = torch.randn(b, m * n, inputs, generator=gen).to(device)
     bf16 = impl == "ours-bf16"
 
     def step() -> float:
@@ -233,6 +239,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--models", nargs="+", default=["SSM-LL", "SSM-FC"], choices=["SSM-LL", "SSM-FC"])
     parser.add_argument("--no-bf16", action="store_true", help="leave out the bf16-mixed variant")
     parser.add_argument("--compiled", action="store_true", help="add the compiled-rollout variant")
+    parser.add_argument("--inputs", action="store_true", help="add the driven model f(x, u), one input per step")
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--tiny", action="store_true", help="tiny sizes, to check that the script runs")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "train_step.md"))
@@ -262,6 +269,8 @@ def main(argv: list[str] | None = None) -> None:
             bf16_note = f"bf16-mixed not measured: this {args.device} has no native bfloat16 instructions"
     if args.compiled:
         impls.append("ours-compiled")
+    if args.inputs:
+        impls.append("ours-inputs")
     start = datetime.now(timezone.utc)
     watch = CpuWatch()
     discard = 0 if args.tiny else args.discard
@@ -304,6 +313,14 @@ def main(argv: list[str] | None = None) -> None:
             lines.append(
                 f"| {model} | {LABELS[impl]} | {statistics.median(ts):.3f} | {min(ts):.3f} | "
                 f"{statistics.median(ratios):.2f} | {', '.join(f'{r:.2f}' for r in ratios)} |"
+            )
+    if args.inputs:
+        lines.append("")
+        for model, res in results.items():
+            rel = [a / b for a, b in zip(res["per_round"]["ours-inputs"], res["per_round"]["ours"])]
+            lines.append(
+                f"- {model}, the driven model's step over the same model without inputs (per-round medians): "
+                f"median {statistics.median(rel):.3f} ({', '.join(f'{r:.3f}' for r in rel)})"
             )
     text = "\n".join(lines) + "\n"
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

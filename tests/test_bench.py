@@ -68,8 +68,9 @@ def test_reference_ukf_agrees_with_ours_on_a_linear_system():
 def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
     out = tmp_path / f"{script}.md"
     if script == "train_step":
-        rows = _train_step_rows(out, compiled=False)
+        rows = _train_step_rows(out, compiled=False, inputs=True)
         assert not any("compiled rollout" in row for row in rows)
+        assert "driven: f(x, u)" in rows[-1] and "over the same model without inputs" in out.read_text()
     elif script == "profile_decoder":
         profile_decoder.main(["--tiny", "--threads", "1", "--repeats", "1", "--out", str(out)])
         text = out.read_text()
@@ -94,11 +95,12 @@ def test_two_jobs_benchmark_refuses_zero_rounds_before_starting_workers(capsys):
     assert stop.value.code == 2 and "--rounds 0: give at least 1 round and 1 step" in capsys.readouterr().err
 
 
-def _train_step_rows(out, compiled: bool) -> list[str]:
+def _train_step_rows(out, compiled: bool, inputs: bool = False) -> list[str]:
     """Run the train-step benchmark at its tiny size; its SSM-LL rows (reference first, then ours)."""
     bench_train_step.main(
         ["--tiny", "--rounds", "1", "--steps", "1", "--threads", "1", "--models", "SSM-LL", "--out", str(out)]
         + (["--compiled"] if compiled else [])
+        + (["--inputs"] if inputs else [])
     )
     rows = [line for line in out.read_text().splitlines() if line.startswith("| SSM-LL")]
     assert len(rows) >= 2 and "reference structure" in rows[0] and "ssm-ms, float32" in rows[1]

@@ -261,6 +261,24 @@ def test_ukf_stage_tracks_the_exact_model(exact_ssm):
         FilterForecaster(str(ckpt), n_filter=8, method="pf", unscented={"beta": 0.0})
 
 
+def test_ukf_prior_mean_is_the_mean_node_or_zero(exact_ssm):
+    tmp, ckpt = exact_ssm
+    y = torch.randn(3, 8, 2)
+    nodes = FilterForecaster(str(ckpt), n_filter=8)
+    zero = FilterForecaster(str(ckpt), n_filter=8, init_mean="zero")
+    ssm = nodes.ssm
+    mean_node = ssm.nodes.weight.detach().view(-1, ssm.state_dim).mean(0)
+    mapping = {int(k): int(v) for k, v in (ssm.hparams.get("node_init_map") or {}).items()}
+    expect_nodes, expect_zero = mean_node.expand(3, -1).clone(), torch.zeros(3, ssm.state_dim)
+    for state_i, obs_i in mapping.items():
+        expect_nodes[:, state_i] = expect_zero[:, state_i] = y[:, 0, obs_i]
+    torch.testing.assert_close(nodes.prior_mean(y), expect_nodes)
+    torch.testing.assert_close(zero.prior_mean(y), expect_zero)
+    assert zero.inference_settings().endswith("init_mean=zero; full precision")
+    with pytest.raises(ValueError, match="init_mean must be 'nodes'"):
+        FilterForecaster(str(ckpt), n_filter=8, init_mean="mean")
+
+
 # ---------------------------------------------------------------------------- bad input
 def test_missing_checkpoint_is_named(tmp_path):
     with pytest.raises(

@@ -32,6 +32,9 @@ class FilterForecaster(SSMForecaster):
         measurement_var: measurement noise variance, in the units the SSM was trained in
             (normalised for Lorenz; paper: 0.5).
         init_var: prior variance at time 0 (paper: 0.1).
+        init_mean: the prior mean at time 0 of the components no measurement sets (``node_init_map``):
+            ``"nodes"`` (the default) the mean of the SSM's shooting nodes, ``"zero"`` zero, as the paper's filter
+            (docs/method.md, "The UKF against the paper's": their measured effect on Lorenz).
         unscented: the UKF's sigma-point parameters, any of ``alpha``, ``beta``, ``kappa`` (default
             ``{alpha: 1, beta: 2, kappa: 0}``); ``{beta: 0}`` is the cubature rule, 2d points instead of 2d+1.
         n_particles, likelihood, resample_threshold, likelihood_scale, seed: particle filter settings
@@ -56,6 +59,7 @@ class FilterForecaster(SSMForecaster):
         process_std: float = 1e-2,
         measurement_var: float = 0.5,
         init_var: float = 0.1,
+        init_mean: str = "nodes",
         unscented: dict[str, float] | None = None,
         n_particles: int = 1000,
         likelihood: str = "gaussian",
@@ -69,6 +73,8 @@ class FilterForecaster(SSMForecaster):
     ):
         if method not in ("ukf", "pf"):
             raise ValueError(f"method must be 'ukf' or 'pf', got {method!r}")
+        if init_mean not in ("nodes", "zero"):
+            raise ValueError(f"init_mean must be 'nodes' (the shooting nodes' mean) or 'zero', got {init_mean!r}")
         unscented = dict(unscented or {})
         unknown = set(unscented) - {"alpha", "beta", "kappa"}
         if unknown:
@@ -79,6 +85,7 @@ class FilterForecaster(SSMForecaster):
             ssm_checkpoint, n_filter=n_filter, metrics=metrics, method_name=method_name or method, **kwargs
         )
         self.method_kind = method
+        self.init_mean = init_mean
         f, g = self.ssm.f, self.ssm.g
         if method == "ukf":
             self.filter = UnscentedKalmanFilter(
@@ -124,11 +131,15 @@ class FilterForecaster(SSMForecaster):
             if flt.autocast is None
             else f"f and g under autocast({str(flt.autocast).removeprefix('torch.')})"
         )
-        return f"{type(flt).__name__}: {noise}; {precision}"
+        start = "" if self.init_mean == "nodes" else f"; init_mean={self.init_mean}"
+        return f"{type(flt).__name__}: {noise}{start}; {precision}"
 
     def prior_mean(self, y_filter: torch.Tensor) -> torch.Tensor:
-        """``[B, d]``: mean shooting node, with measured components taken from ``y[0]``."""
+        """``[B, d]``: the mean shooting node (``init_mean: zero``: zero), with measured components taken from
+        ``y[0]``."""
         x0 = self.ssm.nodes.weight.view(-1, self.ssm.n_nodes, self.ssm.state_dim).mean((0, 1))
+        if self.init_mean == "zero":
+            x0 = torch.zeros_like(x0)
         x0 = x0.to(y_filter).expand(len(y_filter), -1).clone()
         mapping = self.ssm.hparams.get("node_init_map") or {}
         first = y_filter[:, 0].reshape(len(y_filter), -1)
