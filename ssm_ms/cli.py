@@ -283,12 +283,22 @@ def _help_command(args: list[str] | None) -> str:
     return f"python cli.py {subcommand} --help" if subcommand else "python cli.py --help"
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to ``sys.stderr`` as it is when a line is logged, not as it was when the handler was made: a stderr
+    redirected or captured since (``main`` called again in one process, under pytest) gets the lines, and a closed
+    one is never written to."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr
+        super().emit(record)
+
+
 def show_package_log() -> None:
     """The ``ssm_ms`` logger's INFO lines (e.g. which decoder backend ``auto`` chose) on stderr, as Lightning shows its
     own; once per process."""
     log = logging.getLogger("ssm_ms")
     if not log.handlers:
-        handler = logging.StreamHandler()
+        handler = _StderrHandler()
         handler.setFormatter(logging.Formatter("%(message)s"))
         log.addHandler(handler)
         log.setLevel(logging.INFO)

@@ -5,10 +5,13 @@ instantiates as written; stage configs share their SSM config's data section."""
 from __future__ import annotations
 
 import importlib.util
+import io
 import json
+import logging
 import math
 import os
 import signal
+import sys
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -18,7 +21,7 @@ from lightning.pytorch.callbacks import Callback
 from omegaconf import OmegaConf
 
 from ssm_ms.baselines import BaselineForecaster
-from ssm_ms.cli import main
+from ssm_ms.cli import main, show_package_log
 from ssm_ms.control import ClosedLoop
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.reproduce import load_config
@@ -587,3 +590,18 @@ def test_example_configs_layer_on_an_ssm_config(tmp_path, config):
     assert wanted
     for key, value in wanted.items():
         assert cli.model.hparams[key] == value, key
+
+
+def test_the_package_log_goes_to_the_stderr_of_the_moment(monkeypatch):
+    """Lines logged after stderr was redirected (and the first one closed: pytest's capture of an earlier test) go
+    to the new stderr, not to the closed stream with a 'Logging error' traceback."""
+    log = logging.getLogger("ssm_ms")
+    monkeypatch.setattr(log, "handlers", [])
+    first, second = io.StringIO(), io.StringIO()
+    monkeypatch.setattr(sys, "stderr", first)
+    show_package_log()
+    log.info("one")
+    first.close()
+    monkeypatch.setattr(sys, "stderr", second)
+    log.info("two")
+    assert second.getvalue() == "two\n"
