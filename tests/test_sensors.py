@@ -10,6 +10,7 @@ import torch
 
 from datamodules.files import FileDataModule
 from datamodules.pendulum import PendulumDataModule
+from ssm_ms.inference.filter_module import FilterForecaster
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import ConvDecoder, LinearReadout, LocallyLinearTransition
@@ -111,7 +112,8 @@ def test_a_model_of_camera_and_angle_trains_with_the_weighted_masked_fit(camera_
     torch.manual_seed(0)
     g = SensorHeads(4, {"image": ConvDecoder(4, preset="pendulum"), "angle": LinearReadout(4, 2)})
     model = MultipleShootingModule(LocallyLinearTransition(4, 2, 8, input_dim=1), g, state_dim=4, n_nodes=4)
-    fast_trainer(tmp_path, max_epochs=1, limit_val_batches=1).fit(model, both)
+    trainer = fast_trainer(tmp_path, max_epochs=1, limit_val_batches=1)
+    trainer.fit(model, both)
     batch = next(iter(both.train_dataloader()))
     fit, _ = model.shooting_loss(batch)
     nodes = model.node_states(batch["index"])
@@ -121,6 +123,14 @@ def test_a_model_of_camera_and_angle_trains_with_the_weighted_masked_fit(camera_
     y_hat = g(states.reshape(-1, 4)).view(batch["y"].shape)
     layout = SensorLayout.from_state_dict(both.sensor_layout)
     torch.testing.assert_close(fit, weighted_fit("mse", y_hat, batch["y"], layout.weights(), missing=True))
+    # the UKF of the test protocol weighs each stream by its own noise unless told otherwise
+    trainer.save_checkpoint(tmp_path / "ssm.ckpt")
+    for given, expected in ((None, [0.2**2] * 576 + [0.05**2] * 2), (0.3, 0.3)):
+        ukf = FilterForecaster(
+            str(tmp_path / "ssm.ckpt"), n_filter=50, measurement_var=given, results_dir=str(tmp_path), experiment="s"
+        )
+        fast_trainer(tmp_path, max_epochs=1).test(ukf, both)
+        torch.testing.assert_close(ukf.filter.measurement_var.double(), torch.tensor(expected, dtype=torch.float64))
     bad = SensorHeads(4, {"angle": LinearReadout(4, 2), "image": ConvDecoder(4, preset="pendulum")})
     with pytest.raises(ValueError, match="one head per sensor, in the data's order"):
         fast_trainer(tmp_path, max_epochs=1).fit(

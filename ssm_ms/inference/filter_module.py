@@ -16,6 +16,7 @@ import torch
 from ssm_ms.inference.particle import ParticleFilter
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
+from ssm_ms.nets.sensors import SensorLayout
 
 
 class FilterForecaster(SSMForecaster):
@@ -29,8 +30,9 @@ class FilterForecaster(SSMForecaster):
         process_std: process noise std of the particle filter: it keeps the cloud from collapsing
             after resampling, so it must be larger than the UKF's (1e-3 lost Lorenz's unobserved
             components in our tests, 1e-2 tracked them).
-        measurement_var: measurement noise variance, in the units the SSM was trained in
-            (normalised for Lorenz; paper: 0.5).
+        measurement_var: measurement noise variance, in the units the SSM was trained in (normalised for Lorenz;
+            paper: 0.5); a scalar or one per measured component. Unset: for data of several sensors (their
+            ``sensor_layout``), each component's stream's ``noise_std ** 2``; else 0.5.
         init_var: prior variance at time 0 (paper: 0.1).
         init_mean: the prior mean at time 0 of the components no measurement sets (``node_init_map``):
             ``"nodes"`` (the default) the mean of the SSM's shooting nodes, ``"zero"`` zero, as the paper's filter
@@ -57,7 +59,7 @@ class FilterForecaster(SSMForecaster):
         method: str = "ukf",
         process_var: float = 1e-6,
         process_std: float = 1e-2,
-        measurement_var: float = 0.5,
+        measurement_var: float | list[float] | None = None,
         init_var: float = 0.1,
         init_mean: str = "nodes",
         unscented: dict[str, float] | None = None,
@@ -86,6 +88,8 @@ class FilterForecaster(SSMForecaster):
         )
         self.method_kind = method
         self.init_mean = init_mean
+        self.measurement_var_given = measurement_var is not None  # else the data's sensors' noise, at setup
+        measurement_var = 0.5 if measurement_var is None else measurement_var
         f, g = self.ssm.f, self.ssm.g
         if method == "ukf":
             self.filter = UnscentedKalmanFilter(
@@ -104,7 +108,7 @@ class FilterForecaster(SSMForecaster):
                 g,
                 n_particles=n_particles,
                 process_std=process_std,
-                measurement_std=math.sqrt(measurement_var),
+                measurement_std=torch.as_tensor(measurement_var, dtype=torch.float64).sqrt().tolist(),
                 likelihood=likelihood,
                 init_std=math.sqrt(init_var),
                 resample_threshold=resample_threshold,
@@ -113,6 +117,16 @@ class FilterForecaster(SSMForecaster):
                 state_dim=self.ssm.state_dim,
                 autocast=autocast,
             )
+
+    def setup(self, stage: str) -> None:
+        super().setup(stage)
+        layout = getattr(self.datamodule, "sensor_layout", None)
+        if layout and not self.measurement_var_given:
+            variances = SensorLayout.from_state_dict(layout).variances().tolist()
+            if isinstance(self.filter, UnscentedKalmanFilter):
+                self.filter.measurement_var = torch.tensor(variances, dtype=self.filter.measurement_var.dtype)
+            else:
+                self.filter.measurement_std = torch.tensor(variances, dtype=self.filter.measurement_std.dtype).sqrt()
 
     def inference_settings(self) -> str:
         flt = self.filter
