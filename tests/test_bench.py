@@ -64,7 +64,10 @@ def test_reference_ukf_agrees_with_ours_on_a_linear_system():
     torch.testing.assert_close(ours.means, ref)
 
 
-@pytest.mark.parametrize("script", ["train_step", "ukf", "profile_decoder", "two_jobs"])
+# two_jobs starts seven worker processes one after the other (~40 s): a slow test
+@pytest.mark.parametrize(
+    "script", ["train_step", "ukf", "profile_decoder", pytest.param("two_jobs", marks=pytest.mark.slow)]
+)
 def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
     out = tmp_path / f"{script}.md"
     if script == "train_step":
@@ -203,6 +206,7 @@ def test_epoch_profile_shares_from_a_profiler_table():
     assert sum(got.values()) == pytest.approx(total)
 
 
+@pytest.mark.slow  # an SSM and an encoder fitted through the CLI, then the benchmark's workers (~15 s)
 def test_allocator_benchmark_runs_at_a_tiny_size(tmp_path):
     """The README's oscillator example stands in for the quad: an SSM fitted one epoch, then its encoder's steps."""
     from tests.test_cli import ROOT as CLI_ROOT
