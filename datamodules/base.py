@@ -214,7 +214,8 @@ class TrajectoryDataModule(pl.LightningDataModule):
             ``python cli.py predict``, in the layouts of :mod:`datamodules.files` (``[N, T, D]``,
             ``[N, T, H, W]``, ``[N, T, C, H, W]``) and in the measurements' original units: they are
             normalised with the statistics the model was trained with.
-        predict_key: the array's name inside ``.npz`` files.
+        predict_key: the array's name inside ``.npz`` files (several sensors: each stream's array is read by
+            the stream's name instead).
         predict_given: how many of each sequence's first samples the forecaster sees (``k``; default
             all of them: forecast what comes after the recording).
         predict_steps: how many steps to forecast after them (``p``; default the forecaster's
@@ -399,35 +400,55 @@ class TrajectoryDataModule(pl.LightningDataModule):
         """The sequences of ``predict_path`` (checked like a user's training files), whole: the forecaster
         reads the first ``predict_given`` samples and the rest, if any, is what followed them. For data driven by
         inputs the files are ``.npz`` holding them beside the measurements (:attr:`predict_input_key`, ``[N, T_u,
-        m]``): those of the given samples, and, to forecast, those of the horizon (``T_u`` may exceed ``T``)."""
+        m]``): those of the given samples, and, to forecast, those of the horizon (``T_u`` may exceed ``T``).
+        Several sensors: ``.npz`` files holding one array per stream, named as the streams (:attr:`sensor_layout`;
+        ``predict_key`` is not read), the streams after the first with NaN where they did not sample."""
         if not self.predict_path:
             raise ValueError(
                 "nothing to predict: give the sequences to forecast with --data.init_args.predict_path FILE "
                 "(.npy or .npz, the layouts of training data)"
             )
-        if self.stream_names:
-            raise ValueError(
-                "predict reads one sensor's sequences: with several sensors (a list of keys, or camera and "
-                "angle), forecast them with the test protocol (python cli.py test) instead"
-            )
-        heads = [read_header(path, self.predict_key, "predict_path") for path in self.predict_path]
+        layout = {s["name"]: tuple(s["shape"]) for s in self.sensor_layout or []}
+        keys = list(layout) or [self.predict_key]
+        heads = [read_header(path, keys[0], "predict_path") for path in self.predict_path]
         for h in heads:
             check_header(h, "predict_path")
+            if layout and h.key is None:
+                raise ValueError(
+                    f"predict_path: a model of several sensors reads .npz files holding one array per sensor, named "
+                    f"{keys} (numpy.savez(path, {', '.join(f'{k}=...' for k in keys)})), not {h.path}"
+                )
         shape = concat_shape(heads, "predict_path")  # served [N, T, *obs]
-        if tuple(shape[2:]) != tuple(self.obs_shape):
-            raise ValueError(
-                f"predict_path: the sequences hold measurements of shape {tuple(shape[2:])} but the model was "
-                f"trained on {tuple(self.obs_shape)} (served layout [N, T, *obs]): give recordings of the same sensors"
-            )
+        arrays = {"y": load_files(heads)}
+        shapes = {keys[0]: tuple(shape[2:])}
+        for key in keys[1:]:  # further sensors: same N and T, NaN where they did not sample
+            what = f"predict_path (stream '{key}')"
+            streams = [read_header(h.path, key, what) for h in heads]
+            for h, s in zip(heads, streams):
+                check_header(s, what)
+                if tuple(s.shape[:2]) != tuple(h.shape[:2]):
+                    raise ValueError(
+                        f"{what}: {s.label} holds {s.shape[:2]} (N, T) but '{keys[0]}' holds {h.shape[:2]}: every "
+                        "sensor of a sequence has a sample slot per step (NaN where it has none)"
+                    )
+            shapes[key] = tuple(concat_shape(streams, what)[2:])
+            arrays[f"y_{key}"] = load_files(streams, missing=True)
+        expected = layout or {keys[0]: tuple(self.obs_shape)}
+        for key, got in shapes.items():
+            if got != expected[key]:
+                named = f" '{key}'" if layout else ""
+                raise ValueError(
+                    f"predict_path: the sequences hold measurements{named} of shape {got} but the model was trained "
+                    f"on {expected[key]} (served layout [N, T, *obs]): give recordings of the same sensors"
+                )
         if self.predict_given is not None and self.predict_given > shape[1]:
             raise ValueError(
                 f"predict_given={self.predict_given} but the sequences of predict_path have T={shape[1]} samples: "
                 f"give at most {shape[1]} (or leave predict_given unset to use all of them)"
             )
-        arrays = {"y": load_files(heads)}
         if self.input_dim:
             arrays["u"] = self._predict_inputs(heads, shape[0])
-        return TrajectoryDataset(arrays)
+        return TrajectoryDataset(arrays, streams=list(layout) or None)
 
     @property
     def predict_input_key(self) -> str:

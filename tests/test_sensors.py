@@ -159,3 +159,49 @@ def test_files_with_several_keys(tmp_path):
     np.savez(tmp_path / "inf.npz", pos=a, enc=b)
     with pytest.raises(ValueError, match="non-finite"):
         FileDataModule(str(tmp_path / "inf.npz"), key=["pos", "enc"]).setup("fit")
+
+
+def test_predict_writes_each_sensor_in_its_own_shape(tmp_path):
+    """``cli.py predict`` of a two-sensor model: each stream read by its name, forecast, written in its own shape."""
+    from ssm_ms.forecasting.writer import ForecastWriter
+
+    rng = np.random.default_rng(0)
+    pos, enc = rng.normal(size=(8, 30, 2)).astype(np.float32), rng.normal(size=(8, 30, 1)).astype(np.float32)
+    enc[:, 1::2] = np.nan  # the encoder samples every other step
+    np.savez(tmp_path / "rec.npz", pos=pos, enc=enc)
+    np.savez(tmp_path / "new.npz", pos=pos[:3, :12], enc=enc[:3, :12])
+    dm = FileDataModule(
+        str(tmp_path / "rec.npz"),
+        key=["pos", "enc"],
+        noise_std={"pos": 0.1, "enc": 0.2},
+        normalize=False,
+        batch_size=4,
+        predict_path=str(tmp_path / "new.npz"),
+        predict_steps=5,
+    )
+    torch.manual_seed(0)
+    g = SensorHeads(3, {"pos": LinearReadout(3, 2), "enc": LinearReadout(3, 1)})
+    model = MultipleShootingModule(LocallyLinearTransition(3, 2, 8), g, state_dim=3, n_nodes=3)
+    trainer = fast_trainer(tmp_path, max_epochs=1, limit_val_batches=1)
+    trainer.fit(model, dm)
+    trainer.save_checkpoint(tmp_path / "ssm.ckpt")
+    ukf = FilterForecaster(str(tmp_path / "ssm.ckpt"), n_filter=10, results_dir=str(tmp_path), experiment="s")
+    out = tmp_path / "forecast.npz"
+    fast_trainer(tmp_path, max_epochs=1, callbacks=[ForecastWriter(str(out), figures=1)]).predict(ukf, dm)
+    got = np.load(out)
+    assert "filtered" not in got and "predicted" not in got
+    assert got["filtered_pos"].shape == (3, 12, 2) and got["filtered_enc"].shape == (3, 12, 1)
+    assert got["predicted_pos"].shape == (3, 5, 2) and got["predicted_enc"].shape == (3, 5, 1)
+    with torch.no_grad():  # each stream is its own head of g on the forecast's states, not a slice of a packed vector
+        states = torch.from_numpy(got["predicted_states"]).reshape(-1, 3)
+        for name in ("pos", "enc"):
+            head = g.heads[name](states).reshape(got[f"predicted_{name}"].shape).numpy()
+            np.testing.assert_allclose(got[f"predicted_{name}"], head, rtol=1e-4, atol=1e-5)
+    assert {p.name for p in (tmp_path / "forecast_figures").iterdir()} == {
+        "sequence_00000_pos.png",
+        "sequence_00000_enc.png",
+    }
+    np.savez(tmp_path / "one.npz", pos=pos[:3, :12])  # a sensor missing from the file: one message
+    dm.predict_path, dm.datasets = [str(tmp_path / "one.npz")], {}
+    with pytest.raises(ValueError, match="stream 'enc'"):
+        dm.load_predict()

@@ -21,6 +21,10 @@ key                       shape                   what
 ``k``, ``p``, ``method``  scalars                 the split and the forecaster (its results label)
 ========================  ======================  ==============================================
 
+Several sensors (:mod:`ssm_ms.nets.sensors`): each stream's measurements under its own keys,
+``filtered_<name>`` ``[N, k, *shape]`` and ``predicted_<name>`` ``[N, p, *shape]``, in place of the packed
+``filtered`` and ``predicted``; the figures one PNG per sequence and stream (``sequence_00000_<name>.png``).
+
 Measurements (``filtered``, ``predicted``) are in the units of the file (the data normalisation kept in
 the checkpoint is undone); states and covariances in the model's latent units. With ``figures`` set, one
 PNG per sequence goes to the folder ``<output without .npz>_figures/``: vectors as each component over
@@ -37,8 +41,11 @@ import numpy as np
 import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 
+from ssm_ms.nets.sensors import SensorLayout
+
 # predict_step outputs that are not written to the .npz (the figures use them)
 NOT_SAVED = ("measured",)
+MEASUREMENTS = ("measured", "filtered", "predicted")  # split per stream with several sensors
 
 
 class ForecastWriter(BasePredictionWriter):
@@ -83,6 +90,13 @@ class ForecastWriter(BasePredictionWriter):
         dataloader_idx: int = 0,
     ) -> None:
         part = {key: value.detach().cpu().numpy() for key, value in prediction.items()}
+        layout = getattr(trainer.datamodule, "sensor_layout", None)
+        if layout:  # several sensors: each stream's measurements in its own shape
+            layout = SensorLayout.from_state_dict(layout)
+            for key in MEASUREMENTS:
+                packed = part.pop(key)
+                for name, stream in layout.split(torch.from_numpy(packed)).items():
+                    part[f"{key}_{name}"] = stream.numpy()
         if self.figures:
             self._draw(part, pl_module)
         self._parts.append({key: value for key, value in part.items() if key not in NOT_SAVED})
@@ -91,7 +105,9 @@ class ForecastWriter(BasePredictionWriter):
         if not self._parts or not trainer.is_global_zero:
             return
         arrays = {key: np.concatenate([part[key] for part in self._parts]) for key in self._parts[0]}
-        k, p = arrays["filtered"].shape[1], arrays["predicted"].shape[1]
+        filtered = next(a for key, a in arrays.items() if key.startswith("filtered"))
+        predicted = next(a for key, a in arrays.items() if key.startswith("predicted") and "state" not in key)
+        k, p = filtered.shape[1], predicted.shape[1]
         self.output.parent.mkdir(parents=True, exist_ok=True)
         np.savez(self.output, **arrays, k=np.int64(k), p=np.int64(p), method=np.str_(pl_module.method_name))
         n = len(arrays["index"])
@@ -104,25 +120,35 @@ class ForecastWriter(BasePredictionWriter):
 
     # ------------------------------------------------------------------ figures
     def _draw(self, part: dict[str, np.ndarray], pl_module: Any) -> None:
-        from ssm_ms import drawing
-        from ssm_ms.forecasting import figures
-
+        streams = [""] if "measured" in part else [k[len("measured_") :] for k in part if k.startswith("measured_")]
         for b, index in enumerate(part["index"]):
             if 0 <= self.figures <= self._drawn:
                 return
-            measured, filtered, predicted = part["measured"][b], part["filtered"][b], part["predicted"][b]
-            path = self.figures_dir / f"sequence_{int(index):05d}.png"
-            title = f"sequence {int(index)}: {pl_module.method_name}, {len(filtered)} given, {len(predicted)} forecast"
-            if measured.ndim == 2:  # vectors [T, D]
-                drawing.save_figure(figures.forecast_figure(measured, filtered, predicted, title), path)
-            else:  # images [T, C, H, W]: given then following frames over the model's frames
-                model = np.concatenate([filtered, predicted])
-                truth = np.ones_like(model)  # blank where the file holds nothing after the given frames
-                shown = min(len(measured), len(model))
-                truth[:shown] = measured[:shown]
-                every = max(1, len(model) // 20)
-                mosaic = drawing.prediction_mosaic(
-                    torch.from_numpy(truth), torch.from_numpy(model), len(filtered), every=every
+            for stream in streams:
+                suffix = f"_{stream}" if stream else ""
+                measured, filtered, predicted = (part[key + suffix][b] for key in MEASUREMENTS)
+                path = self.figures_dir / f"sequence_{int(index):05d}{suffix}.png"
+                title = (
+                    f"sequence {int(index)}{' ' + stream if stream else ''}: {pl_module.method_name}, "
+                    f"{len(filtered)} given, {len(predicted)} forecast"
                 )
-                drawing.save_png(mosaic, path, scale=max(1, 96 // truth.shape[-1]))
+                self._draw_one(measured, filtered, predicted, title, path)
             self._drawn += 1
+
+    @staticmethod
+    def _draw_one(measured: np.ndarray, filtered: np.ndarray, predicted: np.ndarray, title: str, path: Path) -> None:
+        from ssm_ms import drawing
+        from ssm_ms.forecasting import figures
+
+        if measured.ndim == 2:  # vectors [T, D]
+            drawing.save_figure(figures.forecast_figure(measured, filtered, predicted, title), path)
+        else:  # images [T, C, H, W]: given then following frames over the model's frames
+            model = np.concatenate([filtered, predicted])
+            truth = np.ones_like(model)  # blank where the file holds nothing after the given frames
+            shown = min(len(measured), len(model))
+            truth[:shown] = measured[:shown]
+            every = max(1, len(model) // 20)
+            mosaic = drawing.prediction_mosaic(
+                torch.from_numpy(truth), torch.from_numpy(model), len(filtered), every=every
+            )
+            drawing.save_png(mosaic, path, scale=max(1, 96 // truth.shape[-1]))
