@@ -205,3 +205,48 @@ def test_predict_writes_each_sensor_in_its_own_shape(tmp_path):
     dm.predict_path, dm.datasets = [str(tmp_path / "one.npz")], {}
     with pytest.raises(ValueError, match="stream 'enc'"):
         dm.load_predict()
+
+
+def test_the_test_protocol_scores_each_sensor_over_the_frames_it_sampled(tmp_path):
+    """Several sensors are scored stream by stream, a frame a sensor did not sample (NaN) left out: against a naive
+    loop over the sequences and frames of the UKF's own forecasts."""
+    import json
+
+    rng = np.random.default_rng(1)
+    pos, enc = rng.normal(size=(8, 30, 2)).astype(np.float32), rng.normal(size=(8, 30, 1)).astype(np.float32)
+    enc[:, 1::3] = np.nan  # the encoder samples two steps of every three
+    np.savez(tmp_path / "rec.npz", pos=pos, enc=enc)
+    dm = FileDataModule(
+        str(tmp_path / "rec.npz"),
+        test_path=str(tmp_path / "rec.npz"),
+        key=["pos", "enc"],
+        noise_std={"pos": 0.1, "enc": 0.2},
+        normalize=False,
+        batch_size=8,
+    )
+    torch.manual_seed(0)
+    g = SensorHeads(3, {"pos": LinearReadout(3, 2), "enc": LinearReadout(3, 1)})
+    model = MultipleShootingModule(LocallyLinearTransition(3, 2, 8), g, state_dim=3, n_nodes=3)
+    trainer = fast_trainer(tmp_path, max_epochs=1, limit_val_batches=1)
+    trainer.fit(model, dm)
+    trainer.save_checkpoint(tmp_path / "ssm.ckpt")
+    ukf = FilterForecaster(
+        str(tmp_path / "ssm.ckpt"), n_filter=10, metrics=["mse", "bce"], results_dir=str(tmp_path), experiment="s"
+    )
+    fast_trainer(tmp_path, max_epochs=1).test(ukf, dm)
+    summary = json.loads((tmp_path / "s.json").read_text())["runs"]["ukf"]["summary"]
+    assert "ukf/noisy/enc/bce" not in summary and "ukf/noisy/mse" not in summary  # no bce of a vector, no packed score
+    y = torch.from_numpy(np.concatenate([pos, enc], -1))
+    with torch.no_grad():
+        predicted = ukf.forecast(y[:, :10], 20).predicted.double().numpy()
+    for name, cols in (("pos", slice(0, 2)), ("enc", slice(2, 3))):
+        per_sequence = []
+        for b in range(8):
+            frames = [
+                np.mean((predicted[b, j, cols] - y[b, 10 + j, cols].double().numpy()) ** 2)
+                for j in range(20)
+                if np.isfinite(y[b, 10 + j, cols].numpy()).all()
+            ]
+            per_sequence.append(np.mean(frames))
+        assert summary[f"ukf/noisy/{name}/mse"]["mean"] == pytest.approx(np.mean(per_sequence), rel=1e-4)
+        assert summary[f"ukf/noisy/{name}/mse"]["non_finite"] == 0

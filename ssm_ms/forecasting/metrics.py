@@ -14,6 +14,9 @@ Metrics (per test sequence, then mean and std over sequences by :func:`sequence_
 * ``ssim`` (images in [0, 1]): the structural similarity of each predicted frame (Wang et al. 2004: an 11 x 11
   Gaussian window of std 1.5, ``C1 = 0.01^2``, ``C2 = 0.03^2``, averaged over the window positions inside
   the frame and over channels, as OpenSTL computes it), averaged over the predicted frames; higher is better.
+
+Several sensors (:mod:`ssm_ms.nets.sensors`) are scored stream by stream, each in its own shape, a frame a stream
+did not sample (NaN) left out of its average (``sequence_metrics(..., missing=True)``).
 """
 
 from __future__ import annotations
@@ -42,29 +45,39 @@ def split_sequence(y: torch.Tensor, n_filter: int, n_predict: int | None = None)
     return y[:, :n_filter], y[:, n_filter : n_filter + p]
 
 
-def mse_per_sequence(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """``[B, p, ...]`` -> ``[B]``: squared error averaged over frame elements and frames."""
-    return (pred - target).pow(2).flatten(1).mean(1)
+def over_frames(per_frame: torch.Tensor, sampled: torch.Tensor | None = None) -> torch.Tensor:
+    """``[B, p]`` per-frame scores -> ``[B]``: their mean over the frames, or over the ``sampled [B, p]`` ones
+    (NaN for a sequence with none)."""
+    if sampled is None:
+        return per_frame.mean(1)
+    return torch.where(sampled, per_frame, 0.0).sum(1) / sampled.sum(1)
 
 
-def bce_per_sequence(pred: torch.Tensor, target: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
-    """``[B, p, ...]`` -> ``[B]``: binary cross-entropy per frame (mean or sum over its elements), averaged over frames."""
+def mse_per_sequence(pred: torch.Tensor, target: torch.Tensor, sampled: torch.Tensor | None = None) -> torch.Tensor:
+    """``[B, p, ...]`` -> ``[B]``: squared error averaged over frame elements and (``sampled``) frames."""
+    return over_frames((pred - target).pow(2).flatten(2).mean(2), sampled)
+
+
+def bce_per_sequence(
+    pred: torch.Tensor, target: torch.Tensor, reduction: str = "mean", sampled: torch.Tensor | None = None
+) -> torch.Tensor:
+    """``[B, p, ...]`` -> ``[B]``: binary cross-entropy per frame (mean or sum over its elements), averaged over
+    (``sampled``) frames."""
     if reduction not in ("mean", "sum"):
         raise ValueError(f"bce_reduction must be 'mean' or 'sum', got {reduction!r}")
     e = -(target * torch.log(pred + BCE_EPS) + (1 - target) * torch.log(1 - pred + BCE_EPS))
     per_frame = e.flatten(2)
-    per_frame = per_frame.mean(2) if reduction == "mean" else per_frame.sum(2)
-    return per_frame.mean(1)
+    return over_frames(per_frame.mean(2) if reduction == "mean" else per_frame.sum(2), sampled)
 
 
-def mse_sum_per_sequence(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """``[B, p, ...]`` -> ``[B]``: squared error summed over a frame's elements, averaged over frames."""
-    return (pred - target).pow(2).flatten(2).sum(2).mean(1)
+def mse_sum_per_sequence(pred: torch.Tensor, target: torch.Tensor, sampled: torch.Tensor | None = None) -> torch.Tensor:
+    """``[B, p, ...]`` -> ``[B]``: squared error summed over a frame's elements, averaged over (``sampled``) frames."""
+    return over_frames((pred - target).pow(2).flatten(2).sum(2), sampled)
 
 
-def ssim_per_sequence(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def ssim_per_sequence(pred: torch.Tensor, target: torch.Tensor, sampled: torch.Tensor | None = None) -> torch.Tensor:
     """``[B, p, C, H, W]`` images in [0, 1] -> ``[B]``: each frame's SSIM (see the module doc: the window positions
-    that lie inside the frame, no padding), averaged over frames. Computed in float64."""
+    that lie inside the frame, no padding), averaged over (``sampled``) frames. Computed in float64."""
     if pred.dim() != 5 or min(pred.shape[-2:]) < SSIM_WINDOW:
         raise ValueError(
             f"metric 'ssim' needs image frames [B, T, C, H, W] of at least {SSIM_WINDOW} x {SSIM_WINDOW} "
@@ -81,20 +94,26 @@ def ssim_per_sequence(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     var_x, var_y, cov = xx - mu_x**2, yy - mu_y**2, xy - mu_x * mu_y
     c1, c2 = SSIM_K1**2, SSIM_K2**2
     ssim = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
-    return ssim.reshape(b, p, -1).mean(2).mean(1).to(pred.dtype)
+    return over_frames(ssim.reshape(b, p, -1).mean(2), sampled).to(pred.dtype)
 
 
 def sequence_metrics(
-    pred: torch.Tensor, target: torch.Tensor, metrics: Sequence[str], bce_reduction: str
+    pred: torch.Tensor, target: torch.Tensor, metrics: Sequence[str], bce_reduction: str, missing: bool = False
 ) -> dict[str, torch.Tensor]:
-    """``{metric: [B]}`` for the names in ``metrics`` (see :data:`METRICS` and the module doc)."""
+    """``{metric: [B]}`` for the names in ``metrics`` (see :data:`METRICS` and the module doc). With ``missing``,
+    a target frame holding NaN is one the sensor did not sample: each sequence's scores average over its sampled
+    frames only (NaN for a sequence with none; a NaN forecast of a sampled frame still scores NaN)."""
+    sampled = None
+    if missing:
+        sampled = ~target.isnan().flatten(2).any(2)
+        target = torch.where(target.isnan(), 0.5, target)  # any finite value: those frames are left out
     per_sequence = {
         "mse": mse_per_sequence,
-        "bce": lambda p, t: bce_per_sequence(p, t, bce_reduction),
+        "bce": lambda p, t, s: bce_per_sequence(p, t, bce_reduction, s),
         "mse_sum": mse_sum_per_sequence,
         "ssim": ssim_per_sequence,
     }
-    return {name: per_sequence[name](pred, target) for name in metrics}
+    return {name: per_sequence[name](pred, target, sampled) for name in metrics}
 
 
 # ---------------------------------------------------------------------------- summaries

@@ -52,6 +52,7 @@ from ssm_ms.forecasting.valid_time import (
     reference_exponents,
     valid_time_split,
 )
+from ssm_ms.nets.sensors import SensorLayout
 from ssm_ms.runtime.machine import describe
 
 
@@ -130,6 +131,7 @@ class ForecastModule(pl.LightningModule):
         self.bce_reduction, self.original_units = bce_reduction, bool(original_units)
         self.experiment, self.results_dir, self.figures_dir = experiment, results_dir, figures_dir
         self.metric_names = list(metrics)
+        self.sensor_layout: SensorLayout | None = None  # several sensors: the data's, at setup (scored per stream)
         self.method_name = method_name or self.method_kind
         self.analysis_settings: AnalysisSettings | None = AnalysisSettings.of(analysis)  # None: no analysis
         if isinstance(analysis, AnalysisSettings):  # checkpoints hold plain values (read with weights_only)
@@ -188,13 +190,14 @@ class ForecastModule(pl.LightningModule):
                     else "give the data their inputs (FileDataModule: input_key)"
                 )
             )
-        obs_shape = (
-            getattr(self.datamodule, "obs_shape", None)
-            if "ssim" in self.metric_names and stage in ("fit", "test")
-            else None
-        )
-        if obs_shape is not None:
-            ssim_per_sequence(torch.zeros(1, 1, *obs_shape), torch.zeros(1, 1, *obs_shape))
+        layout = getattr(self.datamodule, "sensor_layout", None)
+        self.sensor_layout = SensorLayout.from_state_dict(layout) if layout else None
+        if "ssim" in self.metric_names and stage in ("fit", "test") and self.datamodule is not None:
+            shapes = [tuple(self.datamodule.obs_shape)]
+            if self.sensor_layout is not None:  # several sensors: the image streams are scored by ssim
+                shapes = [s.shape for s in self.sensor_layout.streams if "ssim" in self.stream_metrics(s.shape)]
+            for shape in shapes:
+                ssim_per_sequence(torch.zeros(1, 1, *shape), torch.zeros(1, 1, *shape))
         test = getattr(self.datamodule, "datasets", {}).get("test") if stage == "test" else None
         seq_len = getattr(test, "seq_len", None)
         if seq_len is not None:
@@ -286,16 +289,34 @@ class ForecastModule(pl.LightningModule):
 
     def score(self, predictions: Mapping[str, torch.Tensor], targets: Mapping[str, torch.Tensor]) -> None:
         """Every metric of each prediction against each target, per sequence, recorded as
-        ``<prediction>/<target>/<metric>`` (summarised over the test set at the end: :meth:`on_test_epoch_end`)."""
+        ``<prediction>/<target>/<metric>`` (summarised over the test set at the end: :meth:`on_test_epoch_end`);
+        several sensors stream by stream, ``<prediction>/<target>/<stream>/<metric>`` (:meth:`stream_metrics`)."""
         to_units = self.to_units()
         if to_units is not None:
             predictions = {name: to_units(v) for name, v in predictions.items()}
             targets = {name: to_units(v) for name, v in targets.items()}
+        layout = self.sensor_layout
         for method, pred in predictions.items():
             for target_name, target in targets.items():
-                scores = sequence_metrics(pred, target, self.metric_names, self.bce_reduction)
-                for metric, values in scores.items():
-                    self._record(f"{method}/{target_name}/{metric}", values)
+                if layout is None:
+                    scores = sequence_metrics(pred, target, self.metric_names, self.bce_reduction)
+                    for metric, values in scores.items():
+                        self._record(f"{method}/{target_name}/{metric}", values)
+                    continue
+                # several sensors: each stream in its own shape, its unsampled frames left out
+                streams = zip(layout.streams, layout.split(pred).values(), layout.split(target).values())
+                for stream, p, t in streams:
+                    names = self.stream_metrics(stream.shape)
+                    for metric, values in sequence_metrics(p, t, names, self.bce_reduction, missing=True).items():
+                        self._record(f"{method}/{target_name}/{stream.name}/{metric}", values)
+
+    def stream_metrics(self, shape: Sequence[int]) -> list[str]:
+        """The metrics of one sensor's stream of samples of ``shape``: an image stream ``[C, H, W]`` all of
+        :attr:`metric_names`; a vector stream those of them that score any values (``mse``, ``mse_sum``; ``mse``
+        where neither is asked), as ``bce`` and ``ssim`` need images in [0, 1]."""
+        if len(shape) == 3:
+            return list(self.metric_names)
+        return [m for m in self.metric_names if m in ("mse", "mse_sum")] or ["mse"]
 
     def _record(self, key: str, values: torch.Tensor) -> None:
         name = key.replace("/", "__")  # ModuleDict keys cannot hold "/"

@@ -306,7 +306,7 @@ class SSMForecaster(ForecastModule):
                 if norm is not None:
                     states[:, s_i] = states[:, s_i] * norm.std[o_i] + norm.mean[o_i]
                 obs_index = s_i
-            if states.shape[-1] == 3:
+            if states.shape[-1] == 3 and y.shape[-1] == 1:  # a three-state system seen through one component
                 figures["lorenz_prediction"] = drawing.lorenz_prediction_figure(
                     to_units(y[0]),
                     to_units(first["y_clean"][0]) if "y_clean" in first else to_units(y[0]),
