@@ -13,6 +13,7 @@ import torch
 from lightning.pytorch.callbacks import Callback
 
 from ssm_ms.drawing import figure_to_image, reconstruction_grid, series_figure, shooting_figure
+from ssm_ms.nets.sensors import by_stream
 
 
 def tensorboard_writer(trainer: pl.Trainer):
@@ -30,7 +31,8 @@ class ReconstructionLogger(Callback):
     Uses what ``validation_step`` returns for its first batch (``y``, ``y_hat``, optional
     ``y_clean``): the training trajectories of the validation subset, rolled out from their first
     shooting node over their whole length. Images go to ``val/reconstruction`` (rows: measured,
-    clean when known, model; one column per ``T / max_frames`` frames), vectors to a figure.
+    clean when known, model; one column per ``T / max_frames`` frames), vectors to a figure; several sensors one
+    picture per stream, ``val/reconstruction/<stream>``.
 
     Args:
         every_n_epochs: log when ``epoch % every_n_epochs == 0`` (and at the last epoch).
@@ -56,14 +58,16 @@ class ReconstructionLogger(Callback):
         writer = tensorboard_writer(trainer)
         if writer is None:
             return
-        y, y_hat, y_clean = outputs["y"], outputs["y_hat"], outputs.get("y_clean")
-        step = trainer.global_step
-        if y.dim() == 5:
-            grid = reconstruction_grid(y, y_hat, y_clean, self.max_trajectories, self.max_frames)
-            writer.add_image("val/reconstruction", grid, step)
-        elif y.dim() == 3:
-            fig = series_figure(y, y_hat, y_clean, self.max_trajectories, title=f"epoch {trainer.current_epoch}")
-            writer.add_figure("val/reconstruction", fig, step)
+        step, layout = trainer.global_step, getattr(trainer.datamodule, "sensor_layout", None)
+        streams = by_stream(layout, outputs["y"], outputs["y_hat"], outputs.get("y_clean"))
+        for name, (y, y_hat, y_clean) in streams.items():  # several sensors: one picture per stream
+            tag = "val/reconstruction" + (f"/{name}" if name else "")
+            if y.dim() == 5:
+                grid = reconstruction_grid(y, y_hat, y_clean, self.max_trajectories, self.max_frames)
+                writer.add_image(tag, grid, step)
+            elif y.dim() == 3:
+                fig = series_figure(y, y_hat, y_clean, self.max_trajectories, title=f"epoch {trainer.current_epoch}")
+                writer.add_figure(tag, fig, step)
 
 
 class ShootingPictureLogger(Callback):

@@ -231,9 +231,16 @@ def test_the_test_protocol_scores_each_sensor_over_the_frames_it_sampled(tmp_pat
     trainer.fit(model, dm)
     trainer.save_checkpoint(tmp_path / "ssm.ckpt")
     ukf = FilterForecaster(
-        str(tmp_path / "ssm.ckpt"), n_filter=10, metrics=["mse", "bce"], results_dir=str(tmp_path), experiment="s"
+        str(tmp_path / "ssm.ckpt"),
+        n_filter=10,
+        metrics=["mse", "bce"],
+        results_dir=str(tmp_path),
+        figures_dir=str(tmp_path / "figures"),
+        experiment="s",
     )
     fast_trainer(tmp_path, max_epochs=1).test(ukf, dm)
+    drawn = {p.name for p in (tmp_path / "figures").iterdir()}
+    assert {"s_ukf_prediction_pos.png", "s_ukf_lorenz_prediction_enc.png"} <= drawn  # each stream its own figure
     summary = json.loads((tmp_path / "s.json").read_text())["runs"]["ukf"]["summary"]
     assert "ukf/noisy/enc/bce" not in summary and "ukf/noisy/mse" not in summary  # no bce of a vector, no packed score
     y = torch.from_numpy(np.concatenate([pos, enc], -1))
@@ -250,3 +257,38 @@ def test_the_test_protocol_scores_each_sensor_over_the_frames_it_sampled(tmp_pat
             per_sequence.append(np.mean(frames))
         assert summary[f"ukf/noisy/{name}/mse"]["mean"] == pytest.approx(np.mean(per_sequence), rel=1e-4)
         assert summary[f"ukf/noisy/{name}/mse"]["non_finite"] == 0
+
+
+def test_reconstruction_logger_draws_each_sensor_in_its_own_shape():
+    """The camera's frames as an image grid, the joint reading as a series: one TensorBoard picture per stream."""
+    from types import SimpleNamespace
+
+    from ssm_ms.viz import ReconstructionLogger
+
+    class Writer:
+        def __init__(self):
+            self.images, self.figures = {}, {}
+
+        def add_image(self, tag, image, step):
+            self.images[tag] = image
+
+        def add_figure(self, tag, figure, step):
+            self.figures[tag] = figure
+
+    writer = Writer()
+    layout = [
+        {"name": "image", "shape": [1, 24, 24], "noise_std": 0.2},
+        {"name": "angle", "shape": [2], "noise_std": 0.05},
+    ]
+    trainer = SimpleNamespace(
+        sanity_checking=False,
+        loggers=[SimpleNamespace(experiment=writer)],
+        datamodule=SimpleNamespace(sensor_layout=layout),
+        global_step=0,
+        current_epoch=0,
+        max_epochs=1,
+    )
+    y = torch.rand(2, 10, 578)
+    ReconstructionLogger().on_validation_batch_end(trainer, None, {"y": y, "y_hat": y}, None, 0)
+    assert set(writer.images) == {"val/reconstruction/image"} and set(writer.figures) == {"val/reconstruction/angle"}
+    assert writer.images["val/reconstruction/image"].shape[-1] > 24  # a grid of frames, not a strip of numbers

@@ -10,11 +10,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from ssm_ms.nets.sensors import by_stream
+
 
 def log_forecast_figures(module: Any, first: dict[str, torch.Tensor], n_sequences: int = 4) -> None:
     """``module``: a :class:`~ssm_ms.forecasting.protocol.ForecastModule` (not imported: the protocol calls this).
     Prediction mosaics / GIF (images) or the prediction plot over time (vectors), plus the forecaster's
-    own figures (:meth:`ForecastModule.forecast_figures`), to TensorBoard and, with ``figures_dir``, to files."""
+    own figures (:meth:`ForecastModule.forecast_figures`), to TensorBoard and, with ``figures_dir``, to files.
+    Several sensors: each stream's, its name appended to the figure's."""
     from ssm_ms import drawing
     from ssm_ms.viz import tensorboard_writer
 
@@ -22,32 +25,37 @@ def log_forecast_figures(module: Any, first: dict[str, torch.Tensor], n_sequence
     out_dir = Path(module.figures_dir) if module.figures_dir else None
     name = f"{module.experiment_name()}_{module.method_name}"
     k = module.n_filter
-    y, y_model = first["y"], first["y_model"]
     figures: dict[str, Any] = module.forecast_figures(first)
-    if y.dim() == 5:  # images
-        every = 1 if y.shape[1] <= 20 else 10
-        mosaic = drawing.prediction_mosaic(y[:n_sequences], y_model[:n_sequences], k, every=every)
-        if writer is not None:
-            writer.add_image(f"test/{module.method_name}/prediction_mosaic", mosaic, 0)
-        if out_dir is not None:
-            drawing.save_png(mosaic, out_dir / f"{name}_mosaic.png", scale=max(1, 256 // y.shape[-1]))
-            drawing.save_gif(y[0], y_model[0], k, out_dir / f"{name}.gif")
-    elif y.dim() == 3 and "lorenz_prediction" not in figures:  # vectors: the measured components over time
-        norm = module.normalizer()
-        to_units = (lambda t: norm.denormalize(t)) if norm is not None else (lambda t: t)
-        clean = to_units(first["y_clean"]) if "y_clean" in first else None
-        if y.shape[-1] == 1:
-            figures["lorenz_prediction"] = drawing.lorenz_prediction_figure(
-                to_units(y[0]),
-                None if clean is None else clean[0],
-                to_units(y_model[0]),
-                k,
-                window=min(y.shape[1], 400),
-            )
-        else:
-            figures["prediction"] = drawing.series_figure(
-                to_units(y), to_units(y_model), clean, title=f"filtering {k} steps, then prediction"
-            )
+    norm = module.normalizer()
+    to_units = (lambda t: norm.denormalize(t)) if norm is not None else (lambda t: t)
+    drawn = first["y"], first["y_model"], first.get("y_clean")
+    if module.sensor_layout is not None:  # several sensors: to units packed (the statistics are of the packed vector)
+        drawn, to_units = tuple(None if t is None else to_units(t) for t in drawn), (lambda t: t)
+    streams = by_stream(module.sensor_layout, *drawn)
+    for stream, (y, y_model, y_clean) in streams.items():  # several sensors: each stream drawn in its own shape
+        suffix = f"_{stream}" if stream else ""
+        if y.dim() == 5:  # images
+            every = 1 if y.shape[1] <= 20 else 10
+            mosaic = drawing.prediction_mosaic(y[:n_sequences], y_model[:n_sequences], k, every=every)
+            if writer is not None:
+                writer.add_image(f"test/{module.method_name}/prediction_mosaic{suffix}", mosaic, 0)
+            if out_dir is not None:
+                drawing.save_png(mosaic, out_dir / f"{name}{suffix}_mosaic.png", scale=max(1, 256 // y.shape[-1]))
+                drawing.save_gif(y[0], y_model[0], k, out_dir / f"{name}{suffix}.gif")
+        elif y.dim() == 3 and "lorenz_prediction" not in figures:  # vectors: the measured components over time
+            clean = to_units(y_clean) if y_clean is not None else None
+            if y.shape[-1] == 1:
+                figures[f"lorenz_prediction{suffix}"] = drawing.lorenz_prediction_figure(
+                    to_units(y[0]),
+                    None if clean is None else clean[0],
+                    to_units(y_model[0]),
+                    k,
+                    window=min(y.shape[1], 400),
+                )
+            else:
+                figures[f"prediction{suffix}"] = drawing.series_figure(
+                    to_units(y), to_units(y_model), clean, title=f"filtering {k} steps, then prediction"
+                )
     shared = getattr(module, "shared_figures", ())
     for key, fig in figures.items():
         if writer is not None:

@@ -26,6 +26,18 @@ import torch
 from torch import nn
 
 
+def by_stream(
+    layout: SensorLayout | Sequence[Mapping] | None, *tensors: torch.Tensor | None
+) -> dict[str, tuple[torch.Tensor | None, ...]]:
+    """Measurements ``[..., P]`` split for drawing: ``{"": tensors}`` for one sensor (``layout`` ``None``), else
+    ``{name: (each tensor's stream [..., *shape])}`` in the layout's order (``None`` stays ``None``)."""
+    if not layout:
+        return {"": tensors}
+    layout = layout if isinstance(layout, SensorLayout) else SensorLayout.from_state_dict(layout)
+    parts = [None if t is None else layout.split(t) for t in tensors]
+    return {name: tuple(None if p is None else p[name] for p in parts) for name in layout.names}
+
+
 @dataclass(frozen=True)
 class Stream:
     """One sensor: its ``name``, the ``shape`` of one sample (``[C, H, W]`` an image, ``[D]`` a vector) and the
