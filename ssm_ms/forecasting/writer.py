@@ -90,6 +90,7 @@ class ForecastWriter(BasePredictionWriter):
         dataloader_idx: int = 0,
     ) -> None:
         part = {key: value.detach().cpu().numpy() for key, value in prediction.items()}
+        self._split = (part["filtered"].shape[1], part["predicted"].shape[1])  # k, p
         layout = getattr(trainer.datamodule, "sensor_layout", None)
         if layout:  # several sensors: each stream's measurements in its own shape
             layout = SensorLayout.from_state_dict(layout)
@@ -105,9 +106,7 @@ class ForecastWriter(BasePredictionWriter):
         if not self._parts or not trainer.is_global_zero:
             return
         arrays = {key: np.concatenate([part[key] for part in self._parts]) for key in self._parts[0]}
-        filtered = next(a for key, a in arrays.items() if key.startswith("filtered"))
-        predicted = next(a for key, a in arrays.items() if key.startswith("predicted") and "state" not in key)
-        k, p = filtered.shape[1], predicted.shape[1]
+        k, p = self._split
         self.output.parent.mkdir(parents=True, exist_ok=True)
         np.savez(self.output, **arrays, k=np.int64(k), p=np.int64(p), method=np.str_(pl_module.method_name))
         n = len(arrays["index"])
