@@ -3,13 +3,13 @@
 Run from the repository root::
 
     python benchmarks/fit_by_speed.py --ssm-checkpoint runs/pendulum_torque/<version>/checkpoints/last.ckpt \\
-        [--data configs/data/pendulum_torque.yaml] [--trajectories 100] [--out benchmarks/results/fit_by_speed.md]
+        [--config configs/pendulum_torque.yaml] [--trajectories 100] [--out benchmarks/results/fit_by_speed.md]
 
 Each of the first ``--trajectories`` training trajectories is rolled out piece by piece from its own shooting nodes
 under its own inputs (what the shooting loss fits), decoded by ``g``, and each frame's squared error against the
 noiseless frame is binned by the true angular speed ``|q'|`` of the first joint at that frame. Beside it, the error
-of drawing nothing (an empty frame), which a model that has not learned a regime can fall behind. The data config
-must describe the data the SSM was trained on (its normalisation comes from the checkpoint).
+of predicting zeros (an empty frame), which a model that has not learned a regime can fall behind. ``--config`` is
+the config the SSM was trained with (its data section is read; the normalisation comes from the checkpoint).
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def errors_by_frame(ssm, dm: PendulumDataModule, count: int) -> tuple[np.ndarray
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--ssm-checkpoint", required=True, help="a trained pendulum SSM (last.ckpt)")
-    parser.add_argument("--data", default="configs/data/pendulum_torque.yaml", help="the data it was trained on")
+    parser.add_argument("--config", default="configs/pendulum_torque.yaml", help="the config it was trained with")
     parser.add_argument("--trajectories", type=int, default=100, help="training trajectories scored")
     parser.add_argument("--data-dir", default="data", help="where the data are cached")
     parser.add_argument("--out", default="benchmarks/results/fit_by_speed.md")
@@ -70,7 +70,10 @@ def main(argv: list[str] | None = None) -> None:
             f"no SSM checkpoint at {ckpt}: train one first (python cli.py fit --config configs/pendulum_torque.yaml)"
         )
     ssm, saved = load_ssm(ckpt)
-    init = {**load_config(ROOT / args.data)["init_args"], "data_dir": args.data_dir}
+    data = load_config(ROOT / args.config)["data"]
+    if data.get("class_path") != "datamodules.pendulum.PendulumDataModule":
+        sys.exit(f"{args.config}: its data are not the pendulum's ({data.get('class_path')}); give a pendulum config")
+    init = {**data["init_args"], "data_dir": args.data_dir}
     dm = PendulumDataModule(**init)
     state = datamodule_state(saved)
     if state is not None:
@@ -85,10 +88,10 @@ def main(argv: list[str] | None = None) -> None:
         f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
         f"- Machine: {describe()}",
         f"- Command: `{shlex.join(['python', 'benchmarks/fit_by_speed.py', *(argv if argv is not None else sys.argv[1:])])}`",
-        f"- Data: `{args.data}`, the first {count} training trajectories; each piece rolled out from its own node under "
-        "its own inputs, decoded by g; mean squared error per frame against the noiseless frame.",
+        f"- Data: those of `{args.config}`, the first {count} training trajectories; each piece rolled out from its own "
+        "node under its own inputs, decoded by g; mean squared error per frame against the noiseless frame.",
         "",
-        "| angular speed (rad/s) | share of frames | model | empty frame | model / empty |",
+        "| angular speed (rad/s) | share of frames | model | zeros (an empty frame) | model / zeros |",
         "|---|---:|---:|---:|---:|",
     ]
     for lo, hi in BANDS:
