@@ -141,6 +141,25 @@ def concat_shape(heads: list[ArrayHeader], what: str) -> tuple[int, ...]:
     return (sum(h.shape[0] for h in heads), *first[1:])
 
 
+def stream_headers(heads: list[ArrayHeader], key: str, first: str, what: str) -> list[ArrayHeader]:
+    """A further sensor's array ``key`` in the ``.npz`` files of ``heads`` (the first sensor's, named ``first``),
+    checked: one per file, numeric, with the first sensor's ``N`` and ``T`` (a sample slot per step, NaN where the
+    sensor has none)."""
+    streams = []
+    for h in heads:
+        if h.key is None:
+            raise ValueError(f"{what}: several sensors are read from .npz files holding them all, not {h.path}")
+        s = read_header(h.path, key, what)
+        check_header(s, what)
+        if tuple(s.shape[:2]) != tuple(h.shape[:2]):
+            raise ValueError(
+                f"{what}: {s.label} holds {s.shape[:2]} (N, T) but '{first}' holds {h.shape[:2]}: "
+                "every sensor of a trajectory has a sample slot per step (NaN where it has none)"
+            )
+        streams.append(s)
+    return streams
+
+
 def load_files(heads: list[ArrayHeader], missing: bool = False) -> np.ndarray:
     """The arrays of headers, checked finite (with ``missing``: NaN allowed, the samples a sensor did not take; inf
     refused), served layout, concatenated along ``N`` (one file stays mapped)."""

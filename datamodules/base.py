@@ -39,7 +39,14 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
 
-from datamodules.arrays import check_finite, check_header, concat_shape, load_files, read_header
+from datamodules.arrays import (
+    check_finite,
+    check_header,
+    concat_shape,
+    load_files,
+    read_header,
+    stream_headers,
+)
 from datamodules.samplers import EpochSeededSampler, GlobalBatchShardSampler
 
 
@@ -423,14 +430,7 @@ class TrajectoryDataModule(pl.LightningDataModule):
         shapes = {keys[0]: tuple(shape[2:])}
         for key in keys[1:]:  # further sensors: same N and T, NaN where they did not sample
             what = f"predict_path (stream '{key}')"
-            streams = [read_header(h.path, key, what) for h in heads]
-            for h, s in zip(heads, streams):
-                check_header(s, what)
-                if tuple(s.shape[:2]) != tuple(h.shape[:2]):
-                    raise ValueError(
-                        f"{what}: {s.label} holds {s.shape[:2]} (N, T) but '{keys[0]}' holds {h.shape[:2]}: every "
-                        "sensor of a sequence has a sample slot per step (NaN where it has none)"
-                    )
+            streams = stream_headers(heads, key, keys[0], what)
             shapes[key] = tuple(concat_shape(streams, what)[2:])
             arrays[f"y_{key}"] = load_files(streams, missing=True)
         expected = layout or {keys[0]: tuple(self.obs_shape)}

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from torch.utils.data import DataLoader
 
-from datamodules.arrays import ArrayHeader, check_header, concat_shape, load_files, read_header
+from datamodules.arrays import ArrayHeader, check_header, concat_shape, load_files, read_header, stream_headers
 from datamodules.base import TrajectoryDataModule, TrajectoryDataset
 
 
@@ -179,18 +179,7 @@ class FileDataModule(TrajectoryDataModule):
     def _stream_headers(self, split: str, key: str, heads: list[ArrayHeader]) -> list[ArrayHeader]:
         """A further sensor's headers in a split's files, checked beside the first stream's (same N and T)."""
         what = f"stream '{key}' of {split}_path"
-        streams = []
-        for h in heads:
-            if h.key is None:
-                raise ValueError(f"{what}: several sensors are read from .npz files holding them all, not {h.path}")
-            s = read_header(h.path, key, what)
-            check_header(s, what)
-            if tuple(s.shape[:2]) != tuple(h.shape[:2]):
-                raise ValueError(
-                    f"{what}: {s.label} holds {s.shape[:2]} (N, T) but '{self.key}' holds {h.shape[:2]}: "
-                    "every sensor of a trajectory has a sample slot per step (NaN where it has none)"
-                )
-            streams.append(s)
+        streams = stream_headers(heads, key, self.key, what)
         if (
             split != "train"
             and concat_shape(streams, what)[2:] != concat_shape(self.stream_headers["train"][key], what)[2:]

@@ -161,23 +161,21 @@ def test_files_with_several_keys(tmp_path):
         FileDataModule(str(tmp_path / "inf.npz"), key=["pos", "enc"]).setup("fit")
 
 
-def test_predict_writes_each_sensor_in_its_own_shape(tmp_path):
-    """``cli.py predict`` of a two-sensor model: each stream read by its name, forecast, written in its own shape."""
-    from ssm_ms.forecasting.writer import ForecastWriter
-
-    rng = np.random.default_rng(0)
+def two_sensor_ssm(
+    tmp_path, seed: int, every: int, **data
+) -> tuple[np.ndarray, np.ndarray, FileDataModule, SensorHeads]:
+    """Recordings of two sensors, ``pos`` [2] every step and ``enc`` [1] missing one step in ``every`` (NaN), in
+    ``rec.npz`` (and their first 3 sequences' first 12 steps in ``new.npz``); their data module (``data``: more
+    arguments) and an SSM of one head per sensor fitted one epoch, saved as ``ssm.ckpt``. Returns the recordings,
+    the data module and ``g``."""
+    rng = np.random.default_rng(seed)
     pos, enc = rng.normal(size=(8, 30, 2)).astype(np.float32), rng.normal(size=(8, 30, 1)).astype(np.float32)
-    enc[:, 1::2] = np.nan  # the encoder samples every other step
+    enc[:, 1::every] = np.nan
     np.savez(tmp_path / "rec.npz", pos=pos, enc=enc)
     np.savez(tmp_path / "new.npz", pos=pos[:3, :12], enc=enc[:3, :12])
+    kwargs = {"batch_size": 4, **data}
     dm = FileDataModule(
-        str(tmp_path / "rec.npz"),
-        key=["pos", "enc"],
-        noise_std={"pos": 0.1, "enc": 0.2},
-        normalize=False,
-        batch_size=4,
-        predict_path=str(tmp_path / "new.npz"),
-        predict_steps=5,
+        str(tmp_path / "rec.npz"), key=["pos", "enc"], noise_std={"pos": 0.1, "enc": 0.2}, normalize=False, **kwargs
     )
     torch.manual_seed(0)
     g = SensorHeads(3, {"pos": LinearReadout(3, 2), "enc": LinearReadout(3, 1)})
@@ -185,6 +183,14 @@ def test_predict_writes_each_sensor_in_its_own_shape(tmp_path):
     trainer = fast_trainer(tmp_path, max_epochs=1, limit_val_batches=1)
     trainer.fit(model, dm)
     trainer.save_checkpoint(tmp_path / "ssm.ckpt")
+    return pos, enc, dm, g
+
+
+def test_predict_writes_each_sensor_in_its_own_shape(tmp_path):
+    """``cli.py predict`` of a two-sensor model: each stream read by its name, forecast, written in its own shape."""
+    from ssm_ms.forecasting.writer import ForecastWriter
+
+    pos, enc, dm, g = two_sensor_ssm(tmp_path, seed=0, every=2, predict_path=str(tmp_path / "new.npz"), predict_steps=5)
     ukf = FilterForecaster(str(tmp_path / "ssm.ckpt"), n_filter=10, results_dir=str(tmp_path), experiment="s")
     out = tmp_path / "forecast.npz"
     fast_trainer(tmp_path, max_epochs=1, callbacks=[ForecastWriter(str(out), figures=1)]).predict(ukf, dm)
@@ -212,24 +218,7 @@ def test_the_test_protocol_scores_each_sensor_over_the_frames_it_sampled(tmp_pat
     loop over the sequences and frames of the UKF's own forecasts."""
     import json
 
-    rng = np.random.default_rng(1)
-    pos, enc = rng.normal(size=(8, 30, 2)).astype(np.float32), rng.normal(size=(8, 30, 1)).astype(np.float32)
-    enc[:, 1::3] = np.nan  # the encoder samples two steps of every three
-    np.savez(tmp_path / "rec.npz", pos=pos, enc=enc)
-    dm = FileDataModule(
-        str(tmp_path / "rec.npz"),
-        test_path=str(tmp_path / "rec.npz"),
-        key=["pos", "enc"],
-        noise_std={"pos": 0.1, "enc": 0.2},
-        normalize=False,
-        batch_size=8,
-    )
-    torch.manual_seed(0)
-    g = SensorHeads(3, {"pos": LinearReadout(3, 2), "enc": LinearReadout(3, 1)})
-    model = MultipleShootingModule(LocallyLinearTransition(3, 2, 8), g, state_dim=3, n_nodes=3)
-    trainer = fast_trainer(tmp_path, max_epochs=1, limit_val_batches=1)
-    trainer.fit(model, dm)
-    trainer.save_checkpoint(tmp_path / "ssm.ckpt")
+    pos, enc, dm, _ = two_sensor_ssm(tmp_path, seed=1, every=3, test_path=str(tmp_path / "rec.npz"), batch_size=8)
     ukf = FilterForecaster(
         str(tmp_path / "ssm.ckpt"),
         n_filter=10,
