@@ -436,32 +436,14 @@ class MultipleShootingModule(pl.LightningModule):
         nodes = self.node_states(index) if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
         u = batch.get("u")
         self._need_inputs(u, 1)
+        # the same arguments to the plain loss and to the residuals of the augmented Lagrangian
+        args = (self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn, u)
         if self.al_options is None:
-            fit, gap = multiple_shooting_loss(
-                self.f,
-                self.g,
-                nodes,
-                batch["y"],
-                self.hparams.loss,
-                self.hparams.decode_chunk,
-                self._rollout_fn,
-                u,
-                **self._fit_options(),
-            )
+            fit, gap = multiple_shooting_loss(*args, **self._fit_options())
             loss = fit + self.alpha * gap
             residual = None
         else:
-            fit, residual = shooting_residuals(
-                self.f,
-                self.g,
-                nodes,
-                batch["y"],
-                self.hparams.loss,
-                self.hparams.decode_chunk,
-                self._rollout_fn,
-                u,
-                **self._fit_options(),
-            )
+            fit, residual = shooting_residuals(*args, **self._fit_options())
             gap = residual.pow(2).mean()
             lam = self.multipliers[index].view_as(residual)
             loss = augmented_lagrangian(fit, residual, lam, self.alpha * self.alpha_factor)
