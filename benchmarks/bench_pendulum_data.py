@@ -54,7 +54,7 @@ def energy_drift(n: int, max_velocity: float, step: float, count: int = 48) -> t
     q0 = rng.uniform(-math.pi, math.pi, (count, n))
     v0 = rng.uniform(-max_velocity, max_velocity, (count, n))
     model = P.pendulum_model(n)
-    q, v = P.simulate(model, model.createData(), q0, v0, 101, int(round(0.1 / step)), step)
+    q, v, _ = P.simulate(model, model.createData(), q0, v0, 101, int(round(0.1 / step)), step)
     e = chain_energy(q, v)
     drift = np.abs(e - e[:, :1]).max(1) / (P.GRAVITY * n * (n + 1) / 2)
     return float(np.median(drift)), float(drift.max())
@@ -72,7 +72,7 @@ def cost_split(cfg: dict, count: int = P.CHUNK_SIZE, repeats: int = 3) -> dict[s
         q0 = rng.uniform(-dm.max_angle, dm.max_angle, (count, dm.n_links))
         v0 = rng.uniform(-dm.max_velocity, dm.max_velocity, (count, dm.n_links))
         t = time.perf_counter()
-        q, _ = P.simulate(model, data, q0, v0, dm.n_frames, int(round(dm.frame_dt / dm.dt)), dm.dt, dm.damping)
+        q, _, _ = P.simulate(model, data, q0, v0, dm.n_frames, int(round(dm.frame_dt / dm.dt)), dm.dt, dm.damping)
         times["dynamics"].append(time.perf_counter() - t)
         t = time.perf_counter()
         clean = [P.render(q[j], dm.image_size, dm.line_width, dm.rendering) for j in range(count)]

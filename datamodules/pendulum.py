@@ -119,8 +119,9 @@ def simulate(
     dt: float,
     damping: float = 0.0,
     torques: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """RK4-integrate a batch of trajectories; returns angles and velocities at every frame.
+    max_energy: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """RK4-integrate a batch of trajectories; returns angles, velocities and applied torques at every frame.
 
     Args:
         model, data: a Pinocchio model (see :func:`pendulum_model`) and its data.
@@ -131,9 +132,14 @@ def simulate(
         damping: viscous joint damping, ``tau = -damping * v``.
         torques: applied joint torques ``[B, >= n_frames - 1, n]`` (N m), held from frame ``t`` to frame ``t + 1``
             (a zero-order hold: what a controller acting once per frame applies); added to the damping torque.
+        max_energy: with ``torques``, an energy bound (J above hanging at rest, :func:`chain_energy`): at each
+            frame, a trajectory whose energy is above it gets no torque that would do positive work (``u . v >
+            0``: the torque is replaced by 0 for that frame; torques past the last frame are left as given).
+            ``None``: the torques as given.
 
     Returns:
-        ``q, v`` of shape ``[B, n_frames, n]`` (float64; angles are not wrapped).
+        ``q, v`` of shape ``[B, n_frames, n]`` (float64; angles are not wrapped) and the torques applied
+        (float64, the shape of ``torques``; ``None`` without torques).
 
     The batch dimension only amortises NumPy's per-call overhead: every operation on the batch is
     element-wise and ``pin.aba`` runs per trajectory, so each trajectory's result is bit-identical
@@ -158,6 +164,9 @@ def simulate(
         torques = np.asarray(torques, dtype=np.float64)
         if torques.ndim != 3 or torques.shape[0] != batch or torques.shape[2] != n or torques.shape[1] < n_frames - 1:
             raise ValueError(f"torques must be [{batch}, >= {n_frames - 1}, {n}], got {torques.shape}")
+        torques = torques.copy()  # gated in place below
+    elif max_energy is not None:
+        raise ValueError("max_energy bounds the work of given torques: pass torques too")
     applied = np.zeros((batch, n))
 
     driven = torques is not None
@@ -174,6 +183,9 @@ def simulate(
     for frame in range(n_frames):
         out_q[:, frame] = q
         out_v[:, frame] = v
+        if max_energy is not None and frame < torques.shape[1]:  # the frame's torque, gated by its state
+            pumping = (chain_energy(q, v) > max_energy) & (np.sum(torques[:, frame] * v, axis=1) > 0)
+            torques[pumping, frame] = 0.0
         if frame == n_frames - 1:
             break
         if torques is not None:
@@ -196,7 +208,19 @@ def simulate(
             a4 = accel()
             q = q + h6 * (v + 2.0 * v2 + 2.0 * v3 + v4)
             v = v + h6 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
-    return out_q, out_v
+    return out_q, out_v, torques
+
+
+def chain_energy(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The chain's mechanical energy above hanging at rest (J), ``[...]`` of angles and velocities ``[..., n]``
+    (:func:`pendulum_model`'s chain: unit point masses at the ends of unit links, relative joint angles):
+    kinetic ``1/2 sum_k |p_k'|^2`` plus potential ``g sum_k (k - depth_k)``, mass ``k`` at depth
+    ``sum_{j<=k} cos phi_j`` below the pivot. One link: ``v^2 / 2 + g (1 - cos q)``; upright at rest ``2 g``."""
+    phi, omega = np.cumsum(q, axis=-1), np.cumsum(v, axis=-1)
+    vy, vz = np.cumsum(omega * np.cos(phi), axis=-1), np.cumsum(omega * np.sin(phi), axis=-1)
+    depth = np.cumsum(np.cos(phi), axis=-1)
+    k = np.arange(1, q.shape[-1] + 1)
+    return 0.5 * np.sum(vy**2 + vz**2, axis=-1) + GRAVITY * np.sum(k - depth, axis=-1)
 
 
 # ----------------------------------------------------------------------------------- rendering
@@ -417,7 +441,18 @@ def generate_chunk(params: dict[str, Any], split_id: int, start: int, stop: int)
     steps = int(round(params["frame_dt"] / params["dt"]))
     rngs, q0, v0 = initial_states(params, split_id, range(start, stop))
     u = torques_of(params, rngs, n_frames)
-    q, v = simulate(_WORKER["model"], _WORKER["data"], q0, v0, n_frames, steps, params["dt"], params["damping"], u)
+    q, v, u = simulate(
+        _WORKER["model"],
+        _WORKER["data"],
+        q0,
+        v0,
+        n_frames,
+        steps,
+        params["dt"],
+        params["damping"],
+        u,
+        params.get("max_energy"),
+    )
     count = stop - start
     sensors = params.get("sensors", ["image"])
     out: dict[str, np.ndarray] = {"state": np.concatenate([q, v], axis=-1).astype(np.float32)}
@@ -586,7 +621,7 @@ class PendulumEnvironment:
 
     def step(self, u: np.ndarray) -> np.ndarray:
         u = np.asarray(u, dtype=np.float64).reshape(len(self.q), 1, -1)
-        q, v = simulate(
+        q, v, _ = simulate(
             self.model, self.data, self.q, self.v, 2, self.steps, self.params["dt"], self.params["damping"], u
         )
         self.q, self.v = q[:, 1], v[:, 1]
@@ -628,6 +663,10 @@ class PendulumDataModule(TrajectoryDataModule):
             The correlated excitation does pump: the default data's pendulum turns over, its angle reaching
             137 rad within 10 s.
         torque_correlation: correlation time of the excitation, in seconds (default 0.5 s: five frames).
+        max_energy: an energy bound on the excitation, J above hanging at rest (:func:`chain_energy`; the simple
+            pendulum upright at rest has ``2 g = 19.62``): above it, a torque that would add energy is not applied
+            that frame (:func:`simulate`), so the data cover the speeds that reach upright without spinning far
+            beyond them. ``None`` (the default): no bound.
         sensors: what measures the chain, packed per step in this order: ``["image"]`` (the default, the camera),
             ``["angle"]`` (the joint encoders alone) or both. The encoders report :func:`angle_reading` of the
             noised angles, ``[sin q, cos q]`` (``2 n_links`` values per step).
@@ -660,6 +699,7 @@ class PendulumDataModule(TrajectoryDataModule):
         workers: int | None = None,
         torque_limit: float = 0.0,
         torque_correlation: float = 0.5,
+        max_energy: float | None = None,
         sensors: list[str] | None = None,
         angle_noise_std: float = 0.05,
         angle_every: int = 1,
@@ -667,6 +707,7 @@ class PendulumDataModule(TrajectoryDataModule):
     ):
         super().__init__(seed=seed, **kwargs)
         self.torque_limit, self.torque_correlation = float(torque_limit), float(torque_correlation)
+        self.max_energy = None if max_energy is None else float(max_energy)
         self.sensors = list(sensors or ["image"])
         self.angle_noise_std, self.angle_every = float(angle_noise_std), int(angle_every)
         self.n_links = int(n_links)
@@ -728,6 +769,11 @@ class PendulumDataModule(TrajectoryDataModule):
             f"{self.torque_limit}, {self.torque_correlation}",
         )
         need(
+            self.max_energy is None or (self.max_energy > 0 and self.torque_limit > 0),
+            f"max_energy bounds the excitation's work: it needs torque_limit > 0 and must be > 0 (J above hanging "
+            f"at rest), got max_energy {self.max_energy} with torque_limit {self.torque_limit}",
+        )
+        need(
             self.max_angle >= 0 and self.max_velocity >= 0,
             f"max_angle and max_velocity are half-widths of uniform ranges and must be >= 0, got "
             f"{self.max_angle}, {self.max_velocity}",
@@ -785,6 +831,7 @@ class PendulumDataModule(TrajectoryDataModule):
                 if self.torque_limit
                 else {}
             ),
+            **({"max_energy": self.max_energy} if self.max_energy is not None else {}),
             # other sensors than the camera only: the camera's data stay as they were
             **(
                 {
@@ -817,10 +864,12 @@ class PendulumDataModule(TrajectoryDataModule):
             raise ValueError(f"unknown split {split!r}: the pendulum data set has splits {sorted(SPLIT_IDS)}")
         params = self.generator_params()
         rngs, q0, v0 = initial_states(params, SPLIT_IDS[split], index)
-        u = torques_of(params, rngs, int(n_frames))  # the same torques as the data's, continued
+        u = torques_of(params, rngs, int(n_frames))  # the same torques as the data's (and gating), continued
         model = pendulum_model(self.n_links)
         steps = int(round(self.frame_dt / self.dt))
-        q, _ = simulate(model, model.createData(), q0, v0, int(n_frames), steps, self.dt, self.damping, u)
+        q, _, _ = simulate(
+            model, model.createData(), q0, v0, int(n_frames), steps, self.dt, self.damping, u, self.max_energy
+        )
         frames = np.stack(
             [quantize(render(q[j], self.image_size, self.line_width, self.rendering)) for j in range(len(q))]
         )

@@ -22,7 +22,7 @@ def test_true_pendulum_is_the_simulators_frame():
     model = P.pendulum_model(1)
     q0, v0 = np.array([[0.3], [2.5], [-1.0]]), np.array([[0.0], [1.0], [-3.0]])
     torque = np.array([[[2.0]], [[-3.0]], [[0.5]]])
-    q, v = P.simulate(model, model.createData(), q0, v0, 2, 20, 5e-3, 0.0, torque)
+    q, v, _ = P.simulate(model, model.createData(), q0, v0, 2, 20, 5e-3, 0.0, torque)
     x = torch.tensor(np.concatenate([q0, v0], 1))
     exact = TruePendulum(0.1, substeps=20)(x, torch.tensor(torque[:, 0]))
     torch.testing.assert_close(exact, torch.tensor(np.concatenate([q[:, 1], v[:, 1]], 1)), rtol=0, atol=1e-9)

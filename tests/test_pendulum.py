@@ -47,7 +47,7 @@ def lagrangian_rhs(n: int, damping: float):
 def simulate(n, q0, v0, duration=10.0, frame_dt=0.1, dt=5e-3, damping=0.0):
     model = P.pendulum_model(n)
     frames = int(round(duration / frame_dt))
-    return P.simulate(model, model.createData(), q0, v0, frames, int(round(frame_dt / dt)), dt, damping)
+    return P.simulate(model, model.createData(), q0, v0, frames, int(round(frame_dt / dt)), dt, damping)[:2]
 
 
 def small_module(tmp_path, **kw) -> PendulumDataModule:
@@ -505,3 +505,37 @@ def test_driven_datamodule_serves_torques_and_continues_them(tmp_path):
     stored = np.load(dm.split_file("train", "y_clean"))[[1]]
     frames = dm.true_measurements("train", [1], 100)
     np.testing.assert_array_equal((frames.numpy() * 255).round().astype(np.uint8), stored)
+
+
+def test_energy_bound_stops_only_the_torques_that_pump_above_it(tmp_path):
+    """``max_energy``: a frame's torque is the excitation's unless the chain is above the bound and the torque
+    would do positive work, then 0; the energy still changes by the work, and exceeds the bound by at most one
+    frame's work; the module's energy is the reference's shifted to hanging at rest (``g (1 + .. + n)``);
+    true_measurements continues the gated torques (the stored frames again)."""
+    bound = 22.0
+    dm = PendulumDataModule(n_train=8, n_test=2, torque_limit=3.0, max_energy=bound, data_dir=str(tmp_path), workers=1)
+    arrays = dm.generate("train")
+    q, v = arrays["state"][..., :1].astype(np.float64), arrays["state"][..., 1:].astype(np.float64)
+    energy = chain_energy(q, v) + G  # above hanging at rest
+    np.testing.assert_allclose(P.chain_energy(q, v), energy, atol=1e-9)
+    params = dm.generator_params()
+    rngs, _, _ = P.initial_states(params, 0, range(8))
+    raw = P.excitation(rngs, 100, 1, 3.0, 0.5, 0.1)
+    u = arrays["u"].astype(np.float64)
+    pumping = (energy > bound) & (raw[..., 0] * v[..., 0] > 0)
+    # float32 states: a frame within 1e-4 J of the bound may be judged either way
+    clear = np.abs(energy - bound) > 1e-4
+    np.testing.assert_array_equal(u[..., 0][clear & pumping], 0.0)
+    np.testing.assert_allclose(u[..., 0][clear & ~pumping], raw[..., 0][clear & ~pumping], rtol=1e-6)
+    assert pumping.sum() > 20  # the bound acted
+    work = u[:, :-1, 0] * (q[:, 1:, 0] - q[:, :-1, 0])
+    np.testing.assert_allclose(np.diff(energy, axis=1), work, atol=1e-4)
+    assert energy.max() <= bound + np.abs(work).max() and energy.max() > 0.9 * bound
+    dm.prepare_data()
+    stored = np.load(dm.split_file("train", "y_clean"))[[3]]
+    frames = dm.true_measurements("train", [3], 100)
+    np.testing.assert_array_equal((frames.numpy() * 255).round().astype(np.uint8), stored)
+    free = PendulumDataModule(n_train=8, n_test=2, torque_limit=3.0, data_dir=str(tmp_path), workers=1)
+    assert "max_energy" not in free.generator_params()  # the unbounded data's cache is unchanged
+    with pytest.raises(ValueError, match="max_energy bounds the excitation"):
+        PendulumDataModule(max_energy=20.0, data_dir=str(tmp_path))
