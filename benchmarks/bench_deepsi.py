@@ -1,5 +1,5 @@
 """ssm-ms beside deepSI's SUBNET, its closest published peer, on the same data, time budget and test sequences;
-writes benchmarks/results/deepsi.md.
+writes benchmarks/results/deepsi_<system>.md (and .json) for each system run.
 
 Run from the repository root, with deepSI installed (``make peers``)::
 
@@ -267,9 +267,11 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
     }
 
 
-def write(results: list[dict], args, watch_note: str, out: Path) -> None:
+def write(r: dict, args, watch_note: str, out: Path) -> None:
+    """One system's results file (and its .json beside it)."""
+    ref = r["rows"][0]["mse"]
     lines = [
-        "# ssm-ms beside deepSI's SUBNET: same data, same time budget, same test sequences (one run)",
+        f"# ssm-ms beside deepSI's SUBNET: {r['title']} (same data, same time budget, same test sequences)",
         "",
         f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
         f"- Machine: {describe()}",
@@ -278,31 +280,22 @@ def write(results: list[dict], args, watch_note: str, out: Path) -> None:
         f"- deepSI {args.deepsi_version}; set-up and protocol: the docstring of `benchmarks/bench_deepsi.py`.",
         "- Score: MSE of the forecast against the noiseless measurement, mean over test sequences and predicted "
         "steps (first / last: the first and last predicted step alone); `/ ssm-ms`: the ratio of the MSEs.",
+        f"- Training sequences {r['train_shape']}, test sequences {r['test_shape']}; forecast {r['n_predict']} "
+        f"steps after {r['n_filter']} given; variance of the true values forecast: {r['truth_var']:.4g} "
+        f"{r['units']}. ssm-ms: `{r['ssm_ms_config']}`; deepSI: {r['deepsi_settings']}.",
         "",
+        f"| Method | training wall (s) | training | MSE ({r['units']}) | / ssm-ms | first step | last step |",
+        "|---|---:|---|---:|---:|---:|---:|",
     ]
-    for r in results:
-        ref = r["rows"][0]["mse"]
-        lines += [
-            f"## {r['title']}",
-            "",
-            f"Training sequences {r['train_shape']}, test sequences {r['test_shape']}; forecast {r['n_predict']} "
-            f"steps after {r['n_filter']} given; variance of the true values forecast: {r['truth_var']:.4g} "
-            f"{r['units']}. ssm-ms: `{r['ssm_ms_config']}`; deepSI: {r['deepsi_settings']}.",
-            "",
-            f"| Method | training wall (s) | training | MSE ({r['units']}) | / ssm-ms | first step | last step |",
-            "|---|---:|---|---:|---:|---:|---:|",
-        ]
-        for row in r["rows"]:
-            lines.append(
-                f"| {row['method']} | {row['seconds']:.0f} | {row['steps']} | {row['mse']:.4g} | "
-                f"{row['mse'] / ref:.2f} | {row['first']:.4g} | {row['last']:.4g} |"
-            )
-        curve = ", ".join(
-            f"{it}: {nrms:.3f}" for it, _, nrms in r["deepsi_curve"][:: max(1, len(r["deepsi_curve"]) // 12)]
+    for row in r["rows"]:
+        lines.append(
+            f"| {row['method']} | {row['seconds']:.0f} | {row['steps']} | {row['mse']:.4g} | "
+            f"{row['mse'] / ref:.2f} | {row['first']:.4g} | {row['last']:.4g} |"
         )
-        lines += ["", f"deepSI's validation NRMS by iteration: {curve}.", ""]
+    curve = ", ".join(f"{it}: {nrms:.3f}" for it, _, nrms in r["deepsi_curve"][:: max(1, len(r["deepsi_curve"]) // 12)])
+    lines += ["", f"deepSI's validation NRMS by iteration: {curve}.", ""]
     out.write_text("\n".join(lines))
-    out.with_suffix(".json").write_text(json.dumps(results, indent=1) + "\n")
+    out.with_suffix(".json").write_text(json.dumps(r, indent=1) + "\n")
     print(f"wrote {out} and {out.with_suffix('.json')}")
 
 
@@ -314,7 +307,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--deepsi-seconds", type=float, default=None, help="deepSI's budget (default: ssm-ms's time)")
     parser.add_argument("--work", default="runs/bench_deepsi", help="logs, checkpoints, deepSI's own files")
     parser.add_argument(
-        "--out", default=None, help="results file (default benchmarks/results/deepsi.md; --tiny: in --work)"
+        "--out-dir", default=None, help="where deepsi_<system>.md go (default benchmarks/results; --tiny: --work)"
     )
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
@@ -327,14 +320,12 @@ def main(argv: list[str] | None = None) -> None:
     work.mkdir(parents=True, exist_ok=True)
     os.environ["HOME"] = str(work / "home")  # deepSI writes its checkpoints under ~/.deepSI-checkpoints
     torch.set_num_threads(2)
-    out = (
-        Path(args.out)
-        if args.out
-        else (work / "deepsi_tiny.md" if args.tiny else ROOT / "benchmarks/results/deepsi.md")
-    )
-    watch = CpuWatch()
-    results = [run_system(name, args, deepSI, work) for name in args.systems]
-    write(results, args, quiet_note(watch.others()), out)
+    out_dir = Path(args.out_dir) if args.out_dir else (work if args.tiny else ROOT / "benchmarks/results")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name in args.systems:  # each system's file as soon as it is done, with the CPU use of its own run
+        watch = CpuWatch()
+        result = run_system(name, args, deepSI, work)
+        write(result, args, quiet_note(watch.others()), out_dir / f"deepsi_{name}{'_tiny' * args.tiny}.md")
 
 
 if __name__ == "__main__":
