@@ -1,0 +1,166 @@
+"""Where a learned pendulum SSM fails a swing-up: its state estimate and its predictions along successful episodes.
+
+Run from the repository root::
+
+    python benchmarks/control_diagnosis.py --ssm-checkpoint runs/pendulum_torque/<version>/checkpoints/last.ckpt \\
+        [--config configs/pendulum_torque_control.yaml] [--out benchmarks/results/control_diagnosis.md]
+
+The controller of ``--config`` plans on the true model with the true state (the upper bound) from the config's
+episode starts; its episodes' frames and torques are recorded. Along them, the learned model's UKF (the config's
+estimator settings) filters the frames under the torques, and from each filtered state ``f`` predicts ``k`` steps
+ahead under the torques that were applied. Each is read as an angle the way the planner reads it (the distilled angle
+of the ink the decoder draws) and compared with the simulator's true angle, binned by how far the pendulum is from
+upright. A model fit for control reads the angle well (the estimate) and keeps it over the planner's horizon (the
+predictions), above all near upright, where it must catch the pendulum.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib
+import shlex
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from ssm_ms.control.cost import upright_error  # noqa: E402
+from ssm_ms.control.goals import ink_angle_features  # noqa: E402
+from ssm_ms.control.module import ClosedLoop  # noqa: E402
+from ssm_ms.reproduce import load_config  # noqa: E402
+from ssm_ms.runtime.machine import describe  # noqa: E402
+
+BANDS = ((0.0, 0.5), (0.5, 1.5), (1.5, 2.5), (2.5, np.pi + 1e-9))  # rad from upright
+STEPS = (1, 5, 10)
+
+
+def wrap(a: np.ndarray) -> np.ndarray:
+    return np.abs(np.arctan2(np.sin(a), np.cos(a)))
+
+
+def closed_loop(config: dict, **changes) -> tuple[ClosedLoop, object]:
+    """The config's data module (test split) and ClosedLoop with ``changes`` to its arguments, set up."""
+    module, name = config["data"]["class_path"].rsplit(".", 1)
+    dm = getattr(importlib.import_module(module), name)(**config["data"].get("init_args", {}))
+    dm.prepare_data()
+    dm.setup("test")
+    args = {k: v for k, v in config["model"]["init_args"].items() if k != "ssm_checkpoint"}
+    loop = ClosedLoop(**{**args, **changes})
+    loop._trainer = SimpleNamespace(datamodule=dm)  # setup() reads the trainer's data module only
+    loop.setup("test")
+    return loop, dm
+
+
+@torch.no_grad()
+def true_episodes(loop: ClosedLoop, dm, count: int) -> tuple[list, torch.Tensor, np.ndarray]:
+    """The true-model controller's episodes: frames ``[T+1]`` of ``[B, ...]``, torques ``[B, T, 1]``, angles."""
+    start = next(iter(dm.test_dataloader()))["state"][:count, 0].double().numpy()
+    periods = int(round(loop.seconds / loop.frame_dt))
+    frames = [torch.from_numpy(loop.env.reset(start[:, :1], start[:, 1:]))]
+    controller, inputs, angles = loop._controller(len(start)), [], [loop.env.state[:, 0].copy()]
+    for _ in range(periods):
+        u = controller(torch.from_numpy(loop.env.state).float())
+        frames.append(torch.from_numpy(loop.env.step(u.double().numpy())))
+        inputs.append(u.float())
+        angles.append(loop.env.state[:, 0].copy())
+    return frames, torch.stack(inputs, 1), np.stack(angles, 1)
+
+
+@torch.no_grad()
+def diagnose(loop: ClosedLoop, frames: list, inputs: torch.Tensor) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """Angles read from the UKF's estimates ``[B, T+1]`` and from the ``k``-step predictions (NaN past the end)."""
+    b, periods = inputs.shape[0], inputs.shape[1]
+    mean = loop.prior.expand(b, -1).clone()
+    cov = loop.ukf.initial_covariance(b, loop.ssm.state_dim, mean.dtype, mean.device)
+    mean, cov = loop.ukf.update(mean, cov, loop.to_frames(frames[0]))
+    means = [mean]
+    for t in range(periods):
+        mean, cov = loop.ukf.predict(mean, cov, inputs[:, t])
+        mean, cov = loop.ukf.update(mean, cov, loop.to_frames(frames[t + 1]))
+        means.append(mean)
+
+    def angle(x: torch.Tensor) -> np.ndarray:
+        sc = loop.features(x)
+        return torch.atan2(sc[:, 0], sc[:, 1]).double().numpy()  # (sin, cos) of the angle from hanging
+
+    read = np.stack([angle(m) for m in means], 1)
+    ahead = {}
+    for k in STEPS:
+        out = np.full_like(read, np.nan)
+        for t in range(periods + 1 - k):
+            x = means[t]
+            for j in range(k):
+                x = loop.f(x, inputs[:, t + j])
+            out[:, t + k] = angle(x)
+        ahead[k] = out
+    return read, ahead
+
+
+def table(truth: np.ndarray, columns: dict[str, np.ndarray]) -> list[str]:
+    """Mean absolute angle error of each column (angles ``[B, T+1]``, NaN: none) against ``truth``, by band."""
+    from_up = upright_error(torch.from_numpy(truth)).numpy()
+    rows = [
+        "| true angle from upright (rad) | share of frames | " + " | ".join(columns) + " |",
+        "|---|---:|" + "---:|" * len(columns),
+    ]
+    for lo, hi in BANDS:
+        band = (from_up >= lo) & (from_up < hi)
+        cells = [f"{np.nanmean(wrap(angles - truth)[band]):.3f}" for angles in columns.values()]
+        name = f"{lo:g} to {hi:.1f}" if hi < np.pi else f"{lo:g} and above"
+        rows.append(f"| {name} | {band.mean():.2f} | " + " | ".join(cells) + " |")
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--ssm-checkpoint", required=True)
+    parser.add_argument("--config", default="configs/pendulum_torque_control.yaml")
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--out", default="benchmarks/results/control_diagnosis.md")
+    opts = parser.parse_args(argv)
+    config = load_config(opts.config)
+    torch.manual_seed(0)
+    true_loop, dm = closed_loop(config, true_model=True)
+    frames, inputs, truth = true_episodes(true_loop, dm, opts.episodes)
+    up = upright_error(torch.from_numpy(truth[:, -20:])).numpy()
+    learned, _ = closed_loop(config, ssm_checkpoint=opts.ssm_checkpoint)
+    read, ahead = diagnose(learned, frames, inputs)
+    pivot = learned.distill_settings["pivot"]
+    images = torch.stack([learned._image(y) for y in frames], 1)  # [B, T+1, 1, H, W]
+    pivot = tuple(pivot) if pivot is not None else (images.shape[-1] / 2, images.shape[-2] / 2)
+    sc = ink_angle_features(images.flatten(0, 1), pivot).view(*images.shape[:2], 2)
+    columns = {
+        "the frame's own ink": torch.atan2(sc[..., 0], sc[..., 1]).double().numpy(),
+        "estimate": read,
+        **{f"{k} step{'s' * (k > 1)} ahead": ahead[k] for k in STEPS},
+    }
+    lines = [
+        "# A learned pendulum SSM along the true-model controller's swing-ups",
+        "",
+        f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
+        f"- Machine: {describe()}",
+        f"- Command: `{shlex.join(['python', 'benchmarks/control_diagnosis.py', *(argv or sys.argv[1:])])}`",
+        f"- Episodes: {len(truth)} from `{opts.config}`'s starts, planned on the true model with the true state "
+        f"({np.mean((up < learned.tolerance).all(1)):.0%} upright over the last 2 s); along them the learned model's "
+        "UKF filters the frames under the applied torques, and f predicts k steps ahead from each estimate under "
+        "the same torques. Mean absolute angle error (rad) of what the planner reads (the distilled angle of the "
+        "decoder's ink) against the true angle, by the true angle's distance from upright; beside it, the angle of "
+        "the ink of the noisy frame seen, read alone (no model).",
+        f"- Distilled angle readout's own error on the model's states (RMS of sin/cos): {learned.distill_error:.3f}",
+        "",
+        *table(truth, columns),
+        "",
+    ]
+    Path(opts.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(opts.out).write_text("\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
