@@ -31,7 +31,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ssm_ms.control.cost import upright_error  # noqa: E402
-from ssm_ms.control.goals import ink_angle_features  # noqa: E402
 from ssm_ms.control.module import ClosedLoop  # noqa: E402
 from ssm_ms.reproduce import load_config  # noqa: E402
 from ssm_ms.runtime.machine import describe  # noqa: E402
@@ -124,6 +123,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--out", default="benchmarks/results/control_diagnosis.md")
     opts = parser.parse_args(argv)
+    if not Path(opts.ssm_checkpoint).is_file():
+        sys.exit(
+            f"no SSM checkpoint at {opts.ssm_checkpoint}: train one first "
+            "(python cli.py fit --config configs/pendulum_torque.yaml)"
+        )
     config = load_config(opts.config)
     torch.manual_seed(0)
     true_loop, dm = closed_loop(config, true_model=True)
@@ -131,10 +135,8 @@ def main(argv: list[str] | None = None) -> None:
     up = upright_error(torch.from_numpy(truth[:, -20:])).numpy()
     learned, _ = closed_loop(config, ssm_checkpoint=opts.ssm_checkpoint)
     read, ahead = diagnose(learned, frames, inputs)
-    pivot = learned.distill_settings["pivot"]
     images = torch.stack([learned._image(y) for y in frames], 1)  # [B, T+1, 1, H, W]
-    pivot = tuple(pivot) if pivot is not None else (images.shape[-1] / 2, images.shape[-2] / 2)
-    sc = ink_angle_features(images.flatten(0, 1), pivot).view(*images.shape[:2], 2)
+    sc = learned.ink_angle(images.flatten(0, 1)).view(*images.shape[:2], 2)
     columns = {
         "the frame's own ink": torch.atan2(sc[..., 0], sc[..., 1]).double().numpy(),
         "estimate": read,

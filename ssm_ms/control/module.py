@@ -221,13 +221,18 @@ class ClosedLoop(pl.LightningModule):
         def target(x: torch.Tensor) -> torch.Tensor:
             parts = self.streams(self.from_frames(decode(self.ssm.g, x, 4096)))
             if "image" in parts:  # the angle of the ink the model draws
-                image = parts["image"]
-                pivot = tuple(s["pivot"]) if s["pivot"] is not None else (image.shape[-1] / 2, image.shape[-2] / 2)
-                return ink_angle_features(image, pivot)
+                return self.ink_angle(parts["image"])
             reading = parts["angle"][:, :: parts["angle"].shape[1] // 2]  # the (sin, cos) of the joint's angle
             return reading / reading.norm(dim=1, keepdim=True).clamp_min(1e-6)
 
         return DistilledFeatures.fit(states, target, steps=int(s["steps"]), seed=self.seed)
+
+    def ink_angle(self, frames: torch.Tensor) -> torch.Tensor:
+        """``(sin, cos)`` ``[N, 2]`` of the angle of the ink of frames ``[N, 1, H, W]`` about the pivot (``distill``'s
+        ``pivot``, else the frame's centre): what the planner's angle readout is distilled from."""
+        pivot = self.distill_settings["pivot"]
+        pivot = tuple(pivot) if pivot is not None else (frames.shape[-1] / 2, frames.shape[-2] / 2)
+        return ink_angle_features(frames, pivot)
 
     # ------------------------------------------------------------------ episodes
     def _controller(self, batch: int) -> RecedingHorizon:
