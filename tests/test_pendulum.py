@@ -539,3 +539,47 @@ def test_energy_bound_stops_only_the_torques_that_pump_above_it(tmp_path):
     assert "max_energy" not in free.generator_params()  # the unbounded data's cache is unchanged
     with pytest.raises(ValueError, match="max_energy bounds the excitation"):
         PendulumDataModule(max_energy=20.0, data_dir=str(tmp_path))
+
+
+def test_closed_loop_identification_drives_its_share_by_the_swing_up_controller(tmp_path):
+    """``closed_loop_share``: the trajectories picked by index get the swing-up-and-balance torque plus a share of
+    their excitation, frame by frame in feedback (a naive loop: the controller in closed form, one frame simulated
+    at a time), and end up held upright; the others keep their excitation; true_measurements re-runs the loop."""
+    share, noise, limit = 0.5, 0.5, 3.0
+    dm = PendulumDataModule(
+        n_train=6, n_test=2, torque_limit=limit, closed_loop_share=share, closed_loop_noise=noise,
+        data_dir=str(tmp_path), workers=1,
+    )  # fmt: skip
+    picked = P.closed_loop(range(1000), 0.3)
+    assert picked.sum() == 300 and picked[:10].sum() == 3
+    arrays = dm.generate("train")
+    params = dm.generator_params()
+    rngs, q0, v0 = P.initial_states(params, 0, range(6))
+    raw = P.excitation(rngs, 100, 1, limit, 0.5, 0.1)
+    closed = P.closed_loop(range(6), share)
+    assert closed.sum() == 3
+    model = P.pendulum_model(1)
+    for i in range(6):
+        if not closed[i]:
+            np.testing.assert_array_equal(arrays["u"][i], raw[i].astype(np.float32))
+            continue
+        q, v, upright = float(q0[i, 0]), float(v0[i, 0]), []
+        for t in range(100):
+            np.testing.assert_allclose(arrays["state"][i, t], [q, v], rtol=1e-5, atol=1e-5)
+            d = math.remainder(q - math.pi, 2 * math.pi)
+            energy = 0.5 * v * v + G * (1 - math.cos(q))
+            ctrl = -(9 + G) * d - 6 * v if abs(d) < 0.5 else 1.0 * (2 * G - energy) * v
+            u = min(max(min(max(ctrl, -limit), limit) + noise * raw[i, t, 0], -limit), limit)
+            np.testing.assert_allclose(arrays["u"][i, t, 0], u, rtol=1e-5, atol=1e-6)
+            upright.append(abs(d) < 0.3)
+            qs, vs, _ = P.simulate(model, model.createData(), [[q]], [[v]], 2, 20, 5e-3, 0.0, np.full((1, 1, 1), u))
+            q, v = float(qs[0, 1, 0]), float(vs[0, 1, 0])
+        assert all(upright[80:])  # swung up and held: upright over the last 2 s (the control task's success)
+    dm.prepare_data()
+    index = int(np.flatnonzero(closed)[0])
+    stored = np.load(dm.split_file("train", "y_clean"))[[index]]
+    frames = dm.true_measurements("train", [index], 100)
+    np.testing.assert_array_equal((frames.numpy() * 255).round().astype(np.uint8), stored)
+    assert "closed_loop_share" not in PendulumDataModule(torque_limit=3.0, data_dir=str(tmp_path)).generator_params()
+    with pytest.raises(ValueError, match="closed_loop_share drives the simple pendulum"):
+        PendulumDataModule(n_links=2, torque_limit=3.0, closed_loop_share=0.3, data_dir=str(tmp_path))
