@@ -3,11 +3,13 @@
 Run from the repository root::
 
     python benchmarks/control_diagnosis.py --ssm-checkpoint runs/pendulum_torque/<version>/checkpoints/last.ckpt \\
+        [--encoder-checkpoint runs/pendulum_torque_encoder/<version>/checkpoints/last.ckpt] \
         [--config configs/pendulum_torque_control.yaml] [--out benchmarks/results/control_diagnosis.md]
 
 The controller of ``--config`` plans on the true model with the true state (the upper bound) from the config's
-episode starts; its episodes' frames and torques are recorded. Along them, the learned model's UKF (the config's
-estimator settings) filters the frames under the torques, and from each filtered state ``f`` predicts ``k`` steps
+episode starts; its episodes' frames and torques are recorded. Along them, the learned model's estimator (the UKF
+with the config's settings, or the encoder of ``--encoder-checkpoint``) reads the frames and torques, and from each
+estimated state ``f`` predicts ``k`` steps
 ahead under the torques that were applied. Each is read as an angle the way the planner reads it (the distilled angle
 of the ink the decoder draws) and compared with the simulator's true angle, binned by how far the pendulum is from
 upright. A model fit for control reads the angle well (the estimate) and keeps it over the planner's horizon (the
@@ -73,16 +75,12 @@ def true_episodes(loop: ClosedLoop, dm, count: int) -> tuple[list, torch.Tensor,
 
 @torch.no_grad()
 def diagnose(loop: ClosedLoop, frames: list, inputs: torch.Tensor) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-    """Angles read from the UKF's estimates ``[B, T+1]`` and from the ``k``-step predictions (NaN past the end)."""
-    b, periods = inputs.shape[0], inputs.shape[1]
-    mean = loop.prior.expand(b, -1).clone()
-    cov = loop.ukf.initial_covariance(b, loop.ssm.state_dim, mean.dtype, mean.device)
-    mean, cov = loop.ukf.update(mean, cov, loop.to_frames(frames[0]))
-    means = [mean]
+    """Angles read from the estimates ``[B, T+1]`` and from the ``k``-step predictions (NaN past the end)."""
+    periods = inputs.shape[1]
+    estimator = loop.estimator()
+    means = [estimator.start(frames[0])]
     for t in range(periods):
-        mean, cov = loop.ukf.predict(mean, cov, inputs[:, t])
-        mean, cov = loop.ukf.update(mean, cov, loop.to_frames(frames[t + 1]))
-        means.append(mean)
+        means.append(estimator.next(inputs[:, t], frames[t + 1]))
 
     def angle(x: torch.Tensor) -> np.ndarray:
         sc = loop.features(x)
@@ -119,6 +117,7 @@ def table(truth: np.ndarray, columns: dict[str, np.ndarray]) -> list[str]:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--ssm-checkpoint", required=True)
+    parser.add_argument("--encoder-checkpoint", help="estimate with this encoder instead of the UKF")
     parser.add_argument("--config", default="configs/pendulum_torque_control.yaml")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--out", default="benchmarks/results/control_diagnosis.md")
@@ -133,7 +132,10 @@ def main(argv: list[str] | None = None) -> None:
     true_loop, dm = closed_loop(config, true_model=True)
     frames, inputs, truth = true_episodes(true_loop, dm, opts.episodes)
     up = upright_error(torch.from_numpy(truth[:, -20:])).numpy()
-    learned, _ = closed_loop(config, ssm_checkpoint=opts.ssm_checkpoint)
+    try:
+        learned, _ = closed_loop(config, ssm_checkpoint=opts.ssm_checkpoint, encoder_checkpoint=opts.encoder_checkpoint)
+    except ValueError as e:  # e.g. an encoder of another SSM, or none at the path
+        sys.exit(str(e))
     read, ahead = diagnose(learned, frames, inputs)
     images = torch.stack([learned._image(y) for y in frames], 1)  # [B, T+1, 1, H, W]
     sc = learned.ink_angle(images.flatten(0, 1)).view(*images.shape[:2], 2)
@@ -150,7 +152,7 @@ def main(argv: list[str] | None = None) -> None:
         f"- Command: `{shlex.join(['python', 'benchmarks/control_diagnosis.py', *(argv or sys.argv[1:])])}`",
         f"- Episodes: {len(truth)} from `{opts.config}`'s starts, planned on the true model with the true state "
         f"({np.mean((up < learned.tolerance).all(1)):.0%} upright over the last 2 s); along them the learned model's "
-        "UKF filters the frames under the applied torques, and f predicts k steps ahead from each estimate under "
+        f"{learned.estimator_name} reads the frames and the applied torques, and f predicts k steps ahead from each estimate under "
         "the same torques. Mean absolute angle error (rad) of what the planner reads (the distilled angle of the "
         "decoder's ink) against the true angle, by the true angle's distance from upright; beside it, the angle of "
         "the ink of the noisy frame seen, read alone (no model).",

@@ -1,5 +1,6 @@
-"""One command per experiment: SSM fit -> encoder fit -> test (-> UKF test where a config exists), then
-every baseline of the experiment (fit -> test); or one baseline alone.
+"""One command per experiment: SSM fit -> encoder fit -> test (-> UKF test, control test where a config exists: the
+control once with the UKF and, with an encoder, once more with the encoder estimating the state), then every baseline
+of the experiment (fit -> test); or one baseline alone.
 
     python -m ssm_ms.reproduce pendulum            # configs/pendulum*.yaml + configs/baselines/pendulum_*.yaml
     python -m ssm_ms.reproduce pendulum --size cpu # the CPU-sized twins under configs/cpu/
@@ -501,6 +502,10 @@ def main(argv: list[str] | None = None) -> None:
                     again=ssm_ran,
                 )
                 configs.append(stage_cfg)
+        if control_cfg.exists() and enc_cfg.exists():  # the control again, the encoder estimating the state
+            with_encoder = ["--model.init_args.encoder_checkpoint", str(enc_ckpt)]
+            test = ["test", "--config", str(control_cfg.relative_to(ROOT)), *with_ssm, *with_encoder]
+            pipeline.stage([*test, *named(control_cfg), *v], again=ssm_ran or enc_ran)
     elif control_cfg.exists() and not baselines:
         pipeline.stage(["test", "--config", str(control_cfg.relative_to(ROOT)), *named(control_cfg), *v])
         configs.append(control_cfg)

@@ -288,6 +288,7 @@ def test_control_diagnosis_reads_the_filter_and_its_k_step_predictions_as_a_naiv
     from types import SimpleNamespace
 
     from benchmarks import control_diagnosis as D
+    from ssm_ms.control.estimators import UKFEstimator
     from ssm_ms.inference.ukf import UnscentedKalmanFilter
 
     torch.manual_seed(0)
@@ -303,9 +304,7 @@ def test_control_diagnosis_reads_the_filter_and_its_k_step_predictions_as_a_naiv
         return torch.stack([torch.sin(x[:, 0]), torch.cos(x[:, 0])], 1)
 
     ukf = UnscentedKalmanFilter(f, g, process_var=1e-2, measurement_var=0.1, init_var=1.0, state_dim=2)
-    loop = SimpleNamespace(
-        prior=torch.zeros(2), ukf=ukf, ssm=SimpleNamespace(state_dim=2), to_frames=lambda y: y, features=features, f=f
-    )
+    loop = SimpleNamespace(estimator=lambda: UKFEstimator(ukf, torch.zeros(2), lambda y: y), features=features, f=f)
     frames, inputs = [torch.randn(3, 3) for _ in range(7)], torch.randn(3, 6, 1)
     read, ahead = D.diagnose(loop, frames, inputs)
     assert np.isnan(ahead[5][:, :5]).all()  # no prediction before k frames

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -131,3 +132,49 @@ def test_the_closed_loop_swings_the_true_pendulum_up(tmp_path):
     assert result["summary"]["true model, true state/episodes/upright_error_final"]["mean"] < 0.3
     assert (tmp_path / "figures" / "pendulum_control_true_model_true_state.gif").is_file()
     assert "Closed-loop control results" in (tmp_path / "pendulum_control.md").read_text()
+
+
+def test_the_encoder_estimates_step_by_step_what_it_infers_from_the_whole_sequence(tmp_path):
+    """The closed loop's encoder estimator (one frame and the torque before it at a time) gives at every step the
+    state the encoder infers from the whole sequence so far; an encoder trained on another SSM is refused."""
+    import lightning.pytorch as pl
+
+    from ssm_ms.control.estimators import EncoderEstimator, load_encoder
+    from ssm_ms.inference import StateEncoderModule
+
+    root = Path(__file__).resolve().parents[1]
+    ssm_file = root / "pretrained" / "pendulum.ckpt"
+    torch.manual_seed(0)
+    module = StateEncoderModule(str(ssm_file), n_filter=5, encoder={"preset": "pendulum", "hidden": 16})
+    with torch.no_grad():
+        module.latent_mean.normal_()
+        module.latent_std.uniform_(0.5, 2.0)
+        module.latent_stats_ready.fill_(True)
+    path = tmp_path / "encoder.ckpt"
+    torch.save(
+        {
+            "state_dict": module.state_dict(),
+            "hyper_parameters": dict(module.hparams),
+            "pytorch-lightning_version": pl.__version__,
+        },
+        path,
+    )
+    loaded = load_encoder(str(path), str(ssm_file), module.ssm)
+    y = torch.rand(3, 6, 1, 24, 24)
+    want = module.infer(y)
+    estimator = EncoderEstimator(loaded, lambda v: v, lambda u: u)
+    got = [estimator.start(y[:, 0])] + [estimator.next(torch.zeros(3, 0), y[:, t]) for t in range(1, 6)]
+    torch.testing.assert_close(torch.stack(got, 1), want, rtol=1e-5, atol=1e-5)
+    other = StateEncoderModule(str(root / "pretrained" / "pendulum_fc.ckpt"), n_filter=5)
+    with pytest.raises(ValueError, match="was trained on another SSM than ssm_checkpoint"):
+        load_encoder(str(path), str(root / "pretrained" / "pendulum_fc.ckpt"), other.ssm)
+    with pytest.raises(ValueError, match="no encoder checkpoint at"):
+        load_encoder(str(tmp_path / "none.ckpt"), str(ssm_file), module.ssm)
+    ssm_file_other = tmp_path / "other.ckpt"  # the same networks, one weight moved: refused too
+    saved = torch.load(ssm_file, weights_only=True)
+    key = next(k for k, v in saved["state_dict"].items() if k.startswith("f.") and v.is_floating_point())
+    saved["state_dict"][key] = saved["state_dict"][key] + 1.0
+    torch.save(saved, ssm_file_other)
+    moved = StateEncoderModule(str(ssm_file_other), n_filter=5, encoder={"preset": "pendulum", "hidden": 16})
+    with pytest.raises(ValueError, match=f"differ in {key}"):
+        load_encoder(str(path), str(ssm_file), moved.ssm)

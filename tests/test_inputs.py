@@ -271,6 +271,11 @@ def test_the_encoder_reads_the_input_that_led_to_each_frame():
     assert (a[:, 6:] - b[:, 6:]).abs().min() > 0
     with pytest.raises(ValueError, match=r"needs the inputs u \[2, >= 9, 1\]"):
         enc(y)
+    memory, steps = None, []
+    for t in range(10):  # one frame at a time, with the input that led to it: the same states
+        state, memory = enc.step(y[:, t], u[:, t - 1] if t else None, memory)
+        steps.append(state)
+    torch.testing.assert_close(torch.stack(steps, 1), a, rtol=1e-5, atol=1e-6)
 
 
 def test_predict_takes_the_future_inputs_and_refuses_a_horizon_without_them(exact_driven, tmp_path, capsys):

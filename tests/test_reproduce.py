@@ -518,7 +518,8 @@ def test_a_fit_extended_on_resume_ends_as_a_fit_given_that_budget_from_the_start
 
 
 def test_control_stages_and_a_suite_of_experiments(recorded):
-    """An SSM's control test runs after its encoder stages, with the SSM's checkpoint; a controller without an SSM
+    """An SSM's control test runs after its encoder stages, with the SSM's checkpoint, then again with the encoder
+    estimating the state (the SSM has one); a controller without an SSM
     (the true model) is one test stage; a suite (configs/suites/) runs its experiments one after the other."""
     calls, written = recorded
     reproduce.main(["pendulum_control"])
@@ -528,18 +529,25 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         ("fit", "configs/pendulum_torque_encoder.yaml"),
         ("test", "configs/pendulum_torque_encoder.yaml"),
         ("test", "configs/pendulum_torque_control.yaml"),
+        ("test", "configs/pendulum_torque_control.yaml"),  # again, the encoder estimating the state
         ("fit", "configs/pendulum_torque_single.yaml"),
         ("test", "configs/pendulum_torque_single_control.yaml"),
         ("test", "configs/pendulum_true_control.yaml"),
         ("fit", "configs/pendulum_sensors.yaml"),
         ("test", "configs/pendulum_sensors_control.yaml"),
     ]
-    single = option(calls[4], "--trainer.logger.init_args.version")
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    assert "--model.init_args.encoder_checkpoint" not in calls[3]
     assert (
-        option(calls[5], "--model.init_args.ssm_checkpoint")
+        option(calls[4], "--model.init_args.encoder_checkpoint")
+        == f"runs/pendulum_torque_encoder/{version}/checkpoints/last.ckpt"
+    )
+    single = option(calls[5], "--trainer.logger.init_args.version")
+    assert (
+        option(calls[6], "--model.init_args.ssm_checkpoint")
         == f"runs/pendulum_torque_single/{single}/checkpoints/last.ckpt"
     )
-    assert "--model.init_args.ssm_checkpoint" not in calls[6]
+    assert "--model.init_args.ssm_checkpoint" not in calls[7]
     assert written["experiment"] == "pendulum_control"  # the last results file the suite's last experiment wrote
     with pytest.raises(SystemExit):
         reproduce.main(["pendulum_control", "--resume", "reproduce-1"])

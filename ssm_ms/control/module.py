@@ -3,8 +3,9 @@
 Each test batch is a batch of episodes: the DataModule's test trajectories give their initial states, its
 :meth:`environment` the system (the simulator that renders a new noisy frame every period). Every period:
 
-1. the estimate: the UKF over the learned ``f(x, u)`` and ``g`` moves its belief under the torque just applied and
-   corrects it with the new frame (the true model instead reads the simulator's state: the upper bound);
+1. the estimate (:mod:`ssm_ms.control.estimators`): the UKF over the learned ``f(x, u)`` and ``g`` moves its belief
+   under the torque just applied and corrects it with the new frame, or the trained CNN-LSTM encoder reads the new
+   frame and torque (``encoder_checkpoint``); the true model instead reads the simulator's state: the upper bound;
 2. the plan: MPPI (:mod:`ssm_ms.control.mppi`) rolls sampled torque sequences out through ``f`` from the estimate
    and scores them with the swing-up cost (:mod:`ssm_ms.control.cost`) on the angle each predicted state shows:
    for a learned model, the angle of the ink of the frame its decoder draws (:mod:`ssm_ms.control.goals`, distilled
@@ -32,6 +33,7 @@ import torch
 from torch import nn
 
 from ssm_ms.control.cost import SwingUpCost, upright_error
+from ssm_ms.control.estimators import EncoderEstimator, UKFEstimator, load_encoder
 from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
 from ssm_ms.control.mppi import MPPISettings, RecedingHorizon
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
@@ -98,11 +100,15 @@ class ClosedLoop(pl.LightningModule):
             temperature, u_min, u_max in N m, smoothing).
         cost: the :class:`~ssm_ms.control.cost.SwingUpCost` weights ``w_velocity``, ``w_input``.
         estimator: the UKF's ``process_var``, ``measurement_var`` (``None``: the data's sensor noise, per stream with
-            several sensors) and ``init_var`` (``None``: the spread of the SSM's shooting nodes).
+            several sensors) and ``init_var`` (``None``: the spread of the SSM's shooting nodes); not used with
+            ``encoder_checkpoint``.
+        encoder_checkpoint: estimate the state with this CNN-LSTM encoder (the forecasting stage's, trained on
+            ``ssm_checkpoint``'s latent trajectories) instead of the UKF.
         distill: settings of the distilled angle readout: ``rollout_steps`` (states per node under random torques),
             ``steps`` (fitting steps), ``pivot`` (``[x, y]`` in pixels; default: the frame's centre).
         timing_steps: control steps of one episode alone whose planning time is reported.
-        experiment, results_dir, figures_dir, method_name: where the results go and the row's name.
+        experiment, results_dir, figures_dir, method_name: where the results go and the row's name
+            (``{estimator}`` in it names the estimator: ``UKF`` or ``CNN-LSTM encoder``).
         seed: the episodes' camera noise and the planner's sampling.
     """
 
@@ -111,6 +117,7 @@ class ClosedLoop(pl.LightningModule):
         ssm_checkpoint: str | None = None,
         *,
         true_model: bool = False,
+        encoder_checkpoint: str | None = None,
         seconds: float = 10.0,
         success_seconds: float = 2.0,
         tolerance: float = 0.3,
@@ -152,7 +159,15 @@ class ClosedLoop(pl.LightningModule):
                     f"{ssm_checkpoint} is an autonomous SSM (f takes no inputs): control needs a model of the driven "
                     "system, trained on data with inputs (e.g. configs/pendulum_torque.yaml)"
                 )
-        self.method_name = method_name or ("true model, true state" if self.ssm is None else "SSM + UKF")
+        if encoder_checkpoint is not None and self.ssm is None:
+            raise ValueError("encoder_checkpoint estimates a learned SSM's state: give ssm_checkpoint too")
+        self.encoder_checkpoint = encoder_checkpoint
+        self.encoder = (
+            None if encoder_checkpoint is None else load_encoder(encoder_checkpoint, ssm_checkpoint, self.ssm)
+        )
+        self.estimator_name = "CNN-LSTM encoder" if self.encoder is not None else "UKF"
+        name = method_name or ("true model, true state" if self.ssm is None else "SSM + {estimator}")
+        self.method_name = name.replace("{estimator}", self.estimator_name)
         self._episodes: list[dict[str, torch.Tensor]] = []
 
     # ------------------------------------------------------------------ set-up
@@ -180,7 +195,7 @@ class ClosedLoop(pl.LightningModule):
         frames_norm, inputs_norm = dm.normalizer, dm.input_normalizer
         self.to_frames = (lambda y: y) if frames_norm is None else frames_norm.normalize
         self.from_frames = (lambda y: y) if frames_norm is None else frames_norm.denormalize
-        to_inputs = (lambda u: u) if inputs_norm is None else inputs_norm.normalize
+        self.to_inputs = to_inputs = (lambda u: u) if inputs_norm is None else inputs_norm.normalize
         ssm_f = self.ssm.f
         self.f = lambda x, u: ssm_f(x, to_inputs(u))  # the planner and the filter think in N m
         nodes = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim)
@@ -201,6 +216,12 @@ class ClosedLoop(pl.LightningModule):
             state_dim=self.ssm.state_dim,
         )
         self.features, self.distill_error = self._distill(nodes)
+
+    def estimator(self) -> UKFEstimator | EncoderEstimator:
+        """A fresh estimator of the learned SSM's state (:mod:`ssm_ms.control.estimators`) for a batch of episodes."""
+        if self.encoder is not None:
+            return EncoderEstimator(self.encoder, self.to_frames, self.to_inputs)
+        return UKFEstimator(self.ukf, self.prior, self.to_frames)
 
     def _distill(self, nodes: torch.Tensor) -> tuple[DistilledFeatures, float]:
         """The angle the decoder draws, learned as a function of the state from the model's own states: every shooting
@@ -246,11 +267,10 @@ class ClosedLoop(pl.LightningModule):
         b, periods = len(start), int(round(self.seconds / self.frame_dt))
         frames = torch.from_numpy(self.env.reset(start[:, :n], start[:, n:]))
         controller = self._controller(b)
-        mean = cov = None
+        mean = estimator = None
         if self.ssm is not None:
-            mean = self.prior.expand(b, -1).clone()
-            cov = self.ukf.initial_covariance(b, self.ssm.state_dim, mean.dtype, mean.device)
-            mean, cov = self.ukf.update(mean, cov, self.to_frames(frames))
+            estimator = self.estimator()
+            mean = estimator.start(frames)
         truth, states, inputs = [torch.from_numpy(self.env.clean_frames())], [], []
         seen, believed = [self._image(frames)], []
         states.append(torch.from_numpy(self.env.state).float())
@@ -264,8 +284,7 @@ class ClosedLoop(pl.LightningModule):
             plan_seconds += time.perf_counter() - tick
             frames = torch.from_numpy(self.env.step(u.double().numpy()))
             if self.ssm is not None:
-                mean, cov = self.ukf.predict(mean, cov, u)
-                mean, cov = self.ukf.update(mean, cov, self.to_frames(frames))
+                mean = estimator.next(u, frames)
             seen.append(self._image(frames))
             truth.append(torch.from_numpy(self.env.clean_frames()))
             states.append(torch.from_numpy(self.env.state).float())
@@ -323,7 +342,7 @@ class ClosedLoop(pl.LightningModule):
             "experiment": self.experiment,
             "method": self.method_name,
             "model": "true model" if self.ssm is None else type(self.ssm.f).__name__,
-            "inference": None if self.ssm is None else "ukf",
+            "inference": None if self.ssm is None else "encoder" if self.encoder is not None else "ukf",
             "label": self.method_name,
             "ssm_checkpoint": self.ssm_checkpoint,
             "command": " ".join(sys.argv),
@@ -349,10 +368,11 @@ class ClosedLoop(pl.LightningModule):
             f"success: within {self.tolerance} rad of upright over the last {self.success_seconds} s"
         )
         if self.ssm is not None:
-            line += (
-                f"; UKF {self.estimator_settings}; angle readout distilled from g (held-out MSE "
-                f"{self.distill_error:.2g})"
+            estimator = (
+                f"UKF {self.estimator_settings}" if self.encoder is None else f"encoder {self.encoder_checkpoint}"
             )
+            line += f"; {estimator}; angle readout distilled from g (held-out MSE {self.distill_error:.2g})"
+
         return line
 
     def _figures(self, run: dict[str, torch.Tensor], error: torch.Tensor) -> None:

@@ -139,3 +139,20 @@ class StateEncoder(nn.Module):
             features = torch.cat([features, previous.to(features)], dim=-1)
         out, _ = self.lstm(features)
         return self.head(out)
+
+    def step(
+        self, y: torch.Tensor, u: torch.Tensor | None = None, memory: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """One measurement at a time, as a recursive filter: ``y [B, *obs_shape]``, the input ``u [B, input_dim]``
+        that moved the system to it (driven; ``None`` at the first measurement: zeros, as :meth:`forward`) and the
+        LSTM's ``memory`` (``None`` at the first) -> the latent state ``[B, state_dim]`` and the memory to pass on.
+        Step by step equals :meth:`forward` over the whole sequence."""
+        features = self.frames(y)
+        if self.input_dim:
+            if u is None:
+                u = features.new_zeros(len(y), self.input_dim)
+            if u.shape != (len(y), self.input_dim):
+                raise ValueError(f"the encoder's step needs u [{len(y)}, {self.input_dim}], got {list(u.shape)}")
+            features = torch.cat([features, u.to(features)], dim=-1)
+        out, memory = self.lstm(features[:, None], memory)
+        return self.head(out[:, 0]), memory
