@@ -7,7 +7,8 @@ Run from the repository root::
         [--config configs/pendulum_torque_control.yaml] [--out benchmarks/results/control_diagnosis.md]
 
 The controller of ``--config`` plans on the true model with the true state (the upper bound) from the config's
-episode starts; its episodes' frames and torques are recorded. Along them, the learned model's estimator (the UKF
+episode starts (``--episodes-of learned``: on the learned model itself, from its estimator's state, as in the closed
+loop); its episodes' frames and torques are recorded. Along them, the learned model's estimator (the UKF
 with the config's settings, or the encoder of ``--encoder-checkpoint``) reads the frames and torques, and from each
 estimated state ``f`` predicts ``k`` steps
 ahead under the torques that were applied. Each is read as an angle the way the planner reads it (the distilled angle
@@ -59,15 +60,20 @@ def closed_loop(config: dict, **changes) -> tuple[ClosedLoop, object]:
 
 
 @torch.no_grad()
-def true_episodes(loop: ClosedLoop, dm, count: int) -> tuple[list, torch.Tensor, np.ndarray]:
-    """The true-model controller's episodes: frames ``[T+1]`` of ``[B, ...]``, torques ``[B, T, 1]``, angles."""
+def episodes(loop: ClosedLoop, dm, count: int) -> tuple[list, torch.Tensor, np.ndarray]:
+    """``loop``'s controller's episodes (the true model planning on the true state, or a learned model on its
+    estimator's state): frames ``[T+1]`` of ``[B, ...]``, torques ``[B, T, 1]``, true angles ``[B, T+1]``."""
     start = next(iter(dm.test_dataloader()))["state"][:count, 0].double().numpy()
     periods = int(round(loop.seconds / loop.frame_dt))
     frames = [torch.from_numpy(loop.env.reset(start[:, :1], start[:, 1:]))]
     controller, inputs, angles = loop._controller(len(start)), [], [loop.env.state[:, 0].copy()]
+    estimator = loop.estimator() if loop.ssm is not None else None
+    x = estimator.start(frames[0]) if estimator is not None else None
     for _ in range(periods):
-        u = controller(torch.from_numpy(loop.env.state).float())
+        u = controller(torch.from_numpy(loop.env.state).float() if estimator is None else x)
         frames.append(torch.from_numpy(loop.env.step(u.double().numpy())))
+        if estimator is not None:
+            x = estimator.next(u, frames[-1])
         inputs.append(u.float())
         angles.append(loop.env.state[:, 0].copy())
     return frames, torch.stack(inputs, 1), np.stack(angles, 1)
@@ -120,6 +126,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--encoder-checkpoint", help="estimate with this encoder instead of the UKF")
     parser.add_argument("--config", default="configs/pendulum_torque_control.yaml")
     parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument(
+        "--episodes-of",
+        choices=["true", "learned"],
+        default="true",
+        help="whose controller drives the episodes: the true model's (default) or the learned model's own",
+    )
     parser.add_argument("--out", default="benchmarks/results/control_diagnosis.md")
     opts = parser.parse_args(argv)
     if not Path(opts.ssm_checkpoint).is_file():
@@ -129,13 +141,15 @@ def main(argv: list[str] | None = None) -> None:
         )
     config = load_config(opts.config)
     torch.manual_seed(0)
-    true_loop, dm = closed_loop(config, true_model=True)
-    frames, inputs, truth = true_episodes(true_loop, dm, opts.episodes)
-    up = upright_error(torch.from_numpy(truth[:, -20:])).numpy()
     try:
-        learned, _ = closed_loop(config, ssm_checkpoint=opts.ssm_checkpoint, encoder_checkpoint=opts.encoder_checkpoint)
+        learned, dm = closed_loop(
+            config, ssm_checkpoint=opts.ssm_checkpoint, encoder_checkpoint=opts.encoder_checkpoint
+        )
     except ValueError as e:  # e.g. an encoder of another SSM, or none at the path
         sys.exit(str(e))
+    driver = learned if opts.episodes_of == "learned" else closed_loop(config, true_model=True)[0]
+    frames, inputs, truth = episodes(driver, dm, opts.episodes)
+    up = upright_error(torch.from_numpy(truth[:, -20:])).numpy()
     read, ahead = diagnose(learned, frames, inputs)
     images = torch.stack([learned._image(y) for y in frames], 1)  # [B, T+1, 1, H, W]
     sc = learned.ink_angle(images.flatten(0, 1)).view(*images.shape[:2], 2)
@@ -145,17 +159,21 @@ def main(argv: list[str] | None = None) -> None:
         **{f"{k} step{'s' * (k > 1)} ahead": ahead[k] for k in STEPS},
     }
     lines = [
-        "# A learned pendulum SSM along the true-model controller's swing-ups",
+        "# A learned pendulum SSM along "
+        + ("the true-model controller's swing-ups" if opts.episodes_of == "true" else "its own controller's episodes"),
         "",
         f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
         f"- Machine: {describe()}",
         f"- Command: `{shlex.join(['python', 'benchmarks/control_diagnosis.py', *(argv or sys.argv[1:])])}`",
-        f"- Episodes: {len(truth)} from `{opts.config}`'s starts, planned on the true model with the true state "
-        f"({np.mean((up < learned.tolerance).all(1)):.0%} upright over the last 2 s); along them the learned model's "
-        f"{learned.estimator_name} reads the frames and the applied torques, and f predicts k steps ahead from each estimate under "
-        "the same torques. Mean absolute angle error (rad) of what the planner reads (the distilled angle of the "
-        "decoder's ink) against the true angle, by the true angle's distance from upright; beside it, the angle of "
-        "the ink of the noisy frame seen, read alone (no model).",
+        f"- Episodes: {len(truth)} from `{opts.config}`'s starts, planned "
+        + ("on the true model with the true state " if opts.episodes_of == "true" else "on the learned model itself ")
+        + (
+            f"({np.mean((up < learned.tolerance).all(1)):.0%} upright over the last 2 s); along them the learned "
+            f"model's {learned.estimator_name} reads the frames and the applied torques, and f predicts k steps ahead "
+            "from each estimate under the same torques. Mean absolute angle error (rad) of what the planner reads (the "
+            "distilled angle of the decoder's ink) against the true angle, by the true angle's distance from upright; "
+            "beside it, the angle of the ink of the noisy frame seen, read alone (no model)."
+        ),
         f"- Distilled angle readout's own error on the model's states (RMS of sin/cos): {learned.distill_error:.3f}",
         "",
         *table(truth, columns),

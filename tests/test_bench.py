@@ -334,3 +334,59 @@ def test_control_diagnosis_reads_the_filter_and_its_k_step_predictions_as_a_naiv
     assert rows[0] == "| true angle from upright (rad) | share of frames | a | b | c |"
     assert rows[2] == "| 0 to 0.5 | 0.50 | 0.100 | 0.200 | 0.300 |"
     assert rows[3].startswith("| 0.5 to 1.5 | 0.25 |") and rows[5].startswith("| 2.5 and above | 0.25 |")
+
+
+def test_control_diagnosis_episodes_plan_on_the_true_state_or_on_the_estimate():
+    """benchmarks/control_diagnosis.py's episodes: the true model's controller sees the simulator's state; a learned
+    model's sees its estimator's output after each measurement (as in the closed loop); frames, torques and true
+    angles are recorded per period (a scalar system stepped by hand)."""
+    from types import SimpleNamespace
+
+    from benchmarks import control_diagnosis as D
+
+    class Env:  # x+ = x + u, measured as y = 10 x
+        def reset(self, q, v):
+            self.q = q.copy()
+            return 10 * self.q
+
+        @property
+        def state(self):
+            return np.concatenate([self.q, np.zeros_like(self.q)], 1)
+
+        def step(self, u):
+            self.q = self.q + u
+            return 10 * self.q
+
+    class Estimator:  # reads y / 10, biased by +1
+        def start(self, y):
+            return y.float() / 10 + 1
+
+        def next(self, u, y):
+            return y.float() / 10 + 1
+
+    dm = SimpleNamespace(test_dataloader=lambda: [{"state": torch.tensor([[[2.0, 0.0]], [[-1.0, 0.0]]])}])
+    for learned in (False, True):
+        seen = []
+
+        def controller(x, seen=seen):
+            seen.append(x[:, :1].clone())
+            return -0.5 * x[:, :1]
+
+        loop = SimpleNamespace(
+            seconds=0.3,
+            frame_dt=0.1,
+            env=Env(),
+            _controller=lambda b: controller,
+            ssm=object() if learned else None,
+            estimator=Estimator,
+        )
+        frames, inputs, angles = D.episodes(loop, dm, 2)
+        q, bias = np.array([[2.0], [-1.0]]), 1.0 if learned else 0.0
+        for t in range(3):
+            np.testing.assert_allclose(seen[t].numpy(), q + bias, rtol=1e-6)
+            np.testing.assert_allclose(angles[:, t], q[:, 0])
+            np.testing.assert_allclose(frames[t].numpy(), 10 * q, rtol=1e-6)
+            u = -0.5 * (q + bias)
+            np.testing.assert_allclose(inputs[:, t].numpy(), u, rtol=1e-6)
+            q = q + u
+        np.testing.assert_allclose(angles[:, 3], q[:, 0], rtol=1e-6)
