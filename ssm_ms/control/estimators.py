@@ -15,6 +15,7 @@ Both are recursive (one update per control period) and run on a batch of episode
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import torch
 
@@ -66,8 +67,6 @@ def load_encoder(path: str, ssm_checkpoint: str, ssm: torch.nn.Module):
     """The :class:`~ssm_ms.inference.StateEncoderModule` of ``path`` (a file stripped without its SSM takes it from
     ``ssm_checkpoint``), refused unless it was trained on ``ssm`` (the same weights, within 1% of each tensor's
     largest value)."""
-    from pathlib import Path
-
     from ssm_ms.inference import StateEncoderModule
 
     if not Path(path).is_file():

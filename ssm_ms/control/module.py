@@ -199,22 +199,23 @@ class ClosedLoop(pl.LightningModule):
         ssm_f = self.ssm.f
         self.f = lambda x, u: ssm_f(x, to_inputs(u))  # the planner and the filter think in N m
         nodes = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim)
-        est = self.estimator_settings
-        init_var = est["init_var"] if est["init_var"] is not None else nodes.var(0).clamp_min(1e-6).tolist()
-        measurement_var = est["measurement_var"]
-        if measurement_var is None:  # the sensors' own noise (several sensors: each stream's)
-            measurement_var = layout.variances().tolist() if layout is not None else float(dm.noise_std) ** 2
-            if sensors == ["angle"]:
-                measurement_var = float(dm.angle_noise_std) ** 2
         self.prior = nodes.mean(0)
-        self.ukf = UnscentedKalmanFilter(
-            self.f,
-            self.ssm.g,
-            process_var=est["process_var"],
-            measurement_var=measurement_var,
-            init_var=init_var,
-            state_dim=self.ssm.state_dim,
-        )
+        if self.encoder is None:  # the UKF's settings: only where it estimates
+            est = self.estimator_settings
+            init_var = est["init_var"] if est["init_var"] is not None else nodes.var(0).clamp_min(1e-6).tolist()
+            measurement_var = est["measurement_var"]
+            if measurement_var is None:  # the sensors' own noise (several sensors: each stream's)
+                measurement_var = layout.variances().tolist() if layout is not None else float(dm.noise_std) ** 2
+                if sensors == ["angle"]:
+                    measurement_var = float(dm.angle_noise_std) ** 2
+            self.ukf = UnscentedKalmanFilter(
+                self.f,
+                self.ssm.g,
+                process_var=est["process_var"],
+                measurement_var=measurement_var,
+                init_var=init_var,
+                state_dim=self.ssm.state_dim,
+            )
         self.features, self.distill_error = self._distill(nodes)
 
     def estimator(self) -> UKFEstimator | EncoderEstimator:
