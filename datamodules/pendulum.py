@@ -677,6 +677,75 @@ class PendulumEnvironment:
         return self.measure()
 
 
+# ---------------------------------------------------------------------------------- recorded episodes
+# What a recorded episode's system must share with the data's (the excitation, the starts and the seed may differ)
+RECORDED_SYSTEM = (
+    "n_links",
+    "image_size",
+    "rendering",
+    "line_width",
+    "noise_std",
+    "frame_dt",
+    "dt",
+    "damping",
+    "gravity",
+)
+RECORDED_KEYS = ("y", "y_clean", "state", "u")
+
+
+def read_recorded(path: str, params: dict[str, Any], n_frames: int) -> dict[str, np.ndarray]:
+    """The arrays of a file of recorded episodes (``ClosedLoop(record=...)``), checked against the data's system
+    ``params`` and length ``n_frames``: ``ValueError`` with one line naming what differs."""
+    import json
+
+    if not os.path.isfile(path):
+        raise ValueError(f"recorded: no file {path} (write one with the closed loop's record option, docs/control.md)")
+    try:
+        with np.load(path) as z:
+            missing = [k for k in (*RECORDED_KEYS, "params") if k not in z.files]
+            if missing:
+                raise ValueError(f"recorded: {path} lacks {missing}: not a file written by the closed loop's record")
+            arrays = {k: z[k] for k in RECORDED_KEYS}
+            system = json.loads(str(z["params"]))
+    except (OSError, EOFError) as exc:
+        raise ValueError(f"recorded: {path} is not a readable .npz file ({exc})") from None
+    differ = [k for k in RECORDED_SYSTEM if system.get(k) != params.get(k)]
+    if system.get("torque_limit", 0) > params.get("torque_limit", 0):
+        differ.append("torque_limit")
+    if differ:
+        shown = ", ".join(f"{k} {system.get(k)} (data: {params.get(k)})" for k in differ)
+        raise ValueError(f"recorded: {path} was recorded on another system: {shown}")
+    count, size = len(arrays["u"]), params["image_size"]
+    expected = {
+        "y": (count, n_frames, 1, size, size),
+        "y_clean": (count, n_frames, 1, size, size),
+        "state": (count, n_frames, 2 * params["n_links"]),
+        "u": (count, n_frames, params["n_links"]),
+    }
+    for key, shape in expected.items():
+        if arrays[key].shape != shape:
+            raise ValueError(
+                f"recorded: {path}'s {key} has shape {list(arrays[key].shape)}, the data need {list(shape)} "
+                f"(episodes of duration / frame_dt = {n_frames} frames)"
+            )
+        if not np.isfinite(arrays[key]).all():
+            raise ValueError(f"recorded: {path}'s {key} holds NaN or inf")
+    if arrays["y"].dtype != np.uint8 or arrays["y_clean"].dtype != np.uint8:
+        raise ValueError(f"recorded: {path}'s frames must be uint8, as the data's")
+    return arrays
+
+
+def file_digest(path: str) -> str:
+    """A short hash of a file's bytes (what the cache key records of a recorded file)."""
+    import hashlib
+
+    h = hashlib.sha1()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:10]
+
+
 # ---------------------------------------------------------------------------------- DataModule
 class PendulumDataModule(TrajectoryDataModule):
     """Noisy images of an n-link pendulum (defaults: the paper's simple pendulum).
@@ -727,13 +796,17 @@ class PendulumDataModule(TrajectoryDataModule):
             noised angles, ``[sin q, cos q]`` (``2 n_links`` values per step).
         angle_noise_std: std of the encoders' Gaussian noise on each angle (rad), before the sine and cosine.
         angle_every: the encoders sample every ``angle_every`` frames (NaN between).
+        recorded: ``.npz`` files of episodes recorded on this system (the closed loop's ``record``: a learned
+            controller's episodes, for identification in closed loop, docs/control.md), appended to the training
+            split after the ``n_train`` generated trajectories, in order. Camera data only; each file's system
+            (:data:`RECORDED_SYSTEM`) and length must be the data's. The cache key holds each file's hash.
         **kwargs: the :class:`~datamodules.base.TrajectoryDataModule` arguments (``data_dir``,
             ``batch_size``, ``eval_batch_size``, ``num_workers``, ``val_trajectories``, ``normalize``,
             ``shuffle``).
     """
 
     name = "pendulum"
-    split_params = {"train": ("n_train",), "test": ("n_test",)}
+    split_params = {"train": ("n_train", "recorded"), "test": ("n_test",)}
 
     def __init__(
         self,
@@ -760,9 +833,12 @@ class PendulumDataModule(TrajectoryDataModule):
         sensors: list[str] | None = None,
         angle_noise_std: float = 0.05,
         angle_every: int = 1,
+        recorded: list[str] | None = None,
         **kwargs: Any,
     ):
         super().__init__(seed=seed, **kwargs)
+        self.recorded = [str(r) for r in recorded or []]
+        self._recorded_info: list[dict[str, Any]] | None = None
         self.torque_limit, self.torque_correlation = float(torque_limit), float(torque_correlation)
         self.max_energy = None if max_energy is None else float(max_energy)
         self.closed_loop_share, self.closed_loop_noise = float(closed_loop_share), float(closed_loop_noise)
@@ -864,18 +940,37 @@ class PendulumDataModule(TrajectoryDataModule):
             f"the trajectory has duration / frame_dt frames",
         )
         need(self.workers >= 1, f"workers must be >= 1 (or null for all available cores), got {self.workers}")
+        need(
+            not self.recorded or self.sensors == ["image"],
+            f"recorded episodes are camera data: they need sensors [image], got {self.sensors}",
+        )
         need(self.seed >= 0, f"seed must be >= 0 (it seeds numpy's SeedSequence), got {self.seed}")
 
     # ------------------------------------------------------------------ TrajectoryDataModule
     @property
     def num_train_trajectories(self) -> int:
-        return self.n_train
+        return self.n_train + sum(r["episodes"] for r in self.recorded_info())
+
+    def recorded_info(self) -> list[dict[str, Any]]:
+        """Per ``recorded`` file (checked once, on first use): its name, hash and number of episodes."""
+        if self._recorded_info is None:
+            params = self.system_params()
+            self._recorded_info = [
+                {"file": os.path.basename(path), "sha1": file_digest(path), "episodes": len(arrays["u"])}
+                for path in self.recorded
+                for arrays in [read_recorded(path, params, self.n_frames)]
+            ]
+        return self._recorded_info
+
+    def system_params(self) -> dict[str, Any]:
+        """The generator parameters without the recorded files (what a recorded file is checked against)."""
+        return self.generator_params(with_recorded=False)
 
     @property
     def n_frames(self) -> int:
         return int(round(self.duration / self.frame_dt))
 
-    def generator_params(self) -> dict[str, Any]:
+    def generator_params(self, with_recorded: bool = True) -> dict[str, Any]:
         return {
             "version": GENERATOR_VERSION,
             "n_links": self.n_links,
@@ -920,6 +1015,7 @@ class PendulumDataModule(TrajectoryDataModule):
                 if self.sensors != ["image"]
                 else {}
             ),
+            **({"recorded": self.recorded_info()} if self.recorded and with_recorded else {}),
         }
 
     @property
@@ -940,6 +1036,11 @@ class PendulumDataModule(TrajectoryDataModule):
         if split not in SPLIT_IDS:
             raise ValueError(f"unknown split {split!r}: the pendulum data set has splits {sorted(SPLIT_IDS)}")
         params = self.generator_params()
+        if split == "train" and max(index, default=-1) >= self.n_train:
+            raise ValueError(
+                f"training trajectories from {self.n_train} on are recorded episodes: their continuation cannot be "
+                "simulated"
+            )
         rngs, q0, v0 = initial_states(params, SPLIT_IDS[split], index)
         u = torques_of(params, rngs, int(n_frames))  # the same torques as the data's (and feedback), continued
         model = pendulum_model(self.n_links)
@@ -996,4 +1097,8 @@ class PendulumDataModule(TrajectoryDataModule):
             _run_tasks(tasks, workers, store)  # a failure: one DataGenerationError, the pool ended
         finally:
             bar.close()
+        if split == "train" and self.recorded:  # the recorded episodes after the generated trajectories
+            params = self.system_params()
+            files = [read_recorded(path, params, frames) for path in self.recorded]
+            out = {key: np.concatenate([a, *(f[key] for f in files)]) for key, a in out.items()}
         return out

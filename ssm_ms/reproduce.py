@@ -431,6 +431,7 @@ def main(argv: list[str] | None = None) -> None:
     enc_cfg = folder / f"{opts.experiment}_encoder.yaml"
     ukf_cfg = folder / f"{opts.experiment}_ukf.yaml"
     control_cfg = folder / f"{opts.experiment}_control.yaml"
+    record_cfg = folder / f"{opts.experiment}_record.yaml"
     alone = folder / "baselines" / f"{opts.experiment}.yaml"
     if alone.exists():
         baselines, ssm_stages = [alone], False
@@ -506,6 +507,9 @@ def main(argv: list[str] | None = None) -> None:
             with_encoder = ["--model.init_args.encoder_checkpoint", str(enc_ckpt)]
             test = ["test", "--config", str(control_cfg.relative_to(ROOT)), *with_ssm, *with_encoder]
             pipeline.stage([*test, *named(control_cfg), *v], again=ssm_ran or enc_ran)
+            if record_cfg.exists():  # the learned controller's own episodes: training data of a later experiment
+                record = ["test", "--config", str(record_cfg.relative_to(ROOT)), *with_ssm, *with_encoder]
+                pipeline.stage([*record, *v], again=ssm_ran or enc_ran)
     elif control_cfg.exists() and not baselines:
         pipeline.stage(["test", "--config", str(control_cfg.relative_to(ROOT)), *named(control_cfg), *v])
         configs.append(control_cfg)

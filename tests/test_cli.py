@@ -350,6 +350,8 @@ PAPER_CONFIGS = sorted((ROOT / "configs").glob("*.yaml")) + sorted((ROOT / "conf
 def test_paper_configs_parse_and_instantiate(tmp_path, config):
     if config.stem.endswith(("_encoder", "_ukf")) or (config.stem.endswith("_control") and "true" not in config.stem):
         pytest.skip("stage configs need a trained SSM checkpoint (covered above on CPU twins, and in test_control)")
+    if config.stem.endswith("_record") or "_dagger" in config.stem:
+        pytest.skip("recording needs a trained SSM, training on recordings needs them (both in test_control)")
     extra = ["--data.init_args.train_path", str(oscillator_file(tmp_path))] if config.stem == "oscillator" else []
     cli = main(["--config", str(config), "--trainer.logger.init_args.save_dir", str(tmp_path), *extra], run=False)
     kind = BaselineForecaster if config.parent.name == "baselines" else MultipleShootingModule

@@ -61,6 +61,18 @@ def test_swing_up_cost_is_its_formula():
             motion = ((1 - torch.cos(p[1:])) / 2 * turn**2).mean()
             expected[i, j] = height + 0.05 * motion + 1e-3 * inputs[i, j].pow(2).mean()
     torch.testing.assert_close(cost, expected, rtol=1e-5, atol=1e-6)
+    bounded = SwingUpCost(lambda x: x, dt=0.1, w_velocity=0.05, w_input=1e-3, max_energy=5.0, w_energy=0.2)
+    over = torch.zeros(b, k)
+    for i in range(b):
+        for j in range(k):
+            p = phi[i, j, 1:]
+            turn = torch.atan2(torch.sin(p[1:] - p[:-1]), torch.cos(p[1:] - p[:-1])) / 0.1
+            energy = 0.5 * turn**2 + 9.81 * (1 - torch.cos(p[1:]))  # unit mass on a unit link, 0 hanging at rest
+            over[i, j] = 0.2 * (energy - 5.0).clamp_min(0).pow(2).mean()
+    assert over.min() > 0
+    torch.testing.assert_close(bounded(states, inputs), expected + over, rtol=1e-5, atol=1e-3)
+    still = torch.stack([torch.zeros(1, 1, h + 1), torch.ones(1, 1, h + 1)], -1)  # hanging at rest: within it
+    torch.testing.assert_close(bounded(still, inputs[:1, :1]), SwingUpCost(lambda x: x, 0.1)(still, inputs[:1, :1]))
     assert upright_error(torch.tensor([math.pi, 0.0, -math.pi + 0.1, 3 * math.pi])).tolist() == pytest.approx(
         [0.0, math.pi, 0.1, 0.0], abs=1e-6
     )
@@ -178,3 +190,64 @@ def test_the_encoder_estimates_step_by_step_what_it_infers_from_the_whole_sequen
     moved = StateEncoderModule(str(ssm_file_other), n_filter=5, encoder={"preset": "pendulum", "hidden": 16})
     with pytest.raises(ValueError, match=f"differ in {key}"):
         load_encoder(str(path), str(ssm_file), moved.ssm)
+
+
+def test_recorded_episodes_become_training_data(tmp_path):
+    """The closed loop's record (true model, with exploration) read back by the pendulum data module: appended after
+    the generated trajectories, each recorded trajectory what the simulator does under its recorded torques from its
+    first state, its clean frames the rendering of its angles; a file of another system refused in one line."""
+    from ssm_ms.cli import main
+
+    record = tmp_path / "episodes.npz"
+    short = ["--data.init_args.duration", "1.0", "--data.init_args.data_dir", str(tmp_path / "data")]
+    main(
+        [
+            "test",
+            "--config",
+            "configs/pendulum_true_control.yaml",
+            "--data.init_args.n_test",
+            "3",
+            *short,
+            "--model.init_args.seconds",
+            "1.0",
+            "--model.init_args.success_seconds",
+            "0.5",
+            "--model.init_args.exploration",
+            "0.5",
+            "--model.init_args.record",
+            str(record),
+            "--model.init_args.planner",
+            "{horizon: 5, samples: 32, iterations: 1, noise_std: 1.5, u_min: -3.0, u_max: 3.0}",
+            "--model.init_args.results_dir",
+            str(tmp_path),
+            "--model.init_args.figures_dir",
+            "null",
+            "--model.init_args.timing_steps",
+            "1",
+            "--trainer.logger",
+            "false",
+            "--trainer.default_root_dir",
+            str(tmp_path),
+            "--trainer.enable_progress_bar",
+            "false",
+        ]
+    )
+    args = dict(n_train=2, n_test=1, duration=1.0, max_energy=22.0, torque_limit=3.0, data_dir=str(tmp_path / "data"))
+    dm = P.PendulumDataModule(**args, recorded=[str(record)])
+    assert dm.num_train_trajectories == 5
+    dm.setup("fit")
+    train = dm.datasets["train"].arrays
+    plain = P.PendulumDataModule(**args)
+    plain.setup("fit")
+    np.testing.assert_array_equal(train["y"][:2], plain.datasets["train"].arrays["y"])  # generated ones unchanged
+    state, u = np.asarray(train["state"][2:], np.float64), np.asarray(train["u"][2:], np.float64)
+    assert np.abs(u).max() <= 3.0 and len(np.unique(u.round(6))) > 10
+    model = P.pendulum_model(1)
+    q, v, _ = P.simulate(model, model.createData(), state[:, 0, :1], state[:, 0, 1:], 10, 20, 5e-3, 0.0, u)
+    np.testing.assert_allclose(np.concatenate([q, v], -1), state, atol=2e-4)  # recorded as float32
+    clean = np.stack([P.quantize(P.render_paper(np.asarray(a, np.float32), 24)) for a in state[..., :1]])
+    assert np.abs(clean.astype(int) - np.asarray(train["y_clean"][2:]).astype(int)).max() <= 1
+    with pytest.raises(ValueError, match=r"recorded on another system: image_size 24 \(data: 32\)"):
+        P.PendulumDataModule(**{**args, "image_size": 32}, recorded=[str(record)]).recorded_info()
+    with pytest.raises(ValueError, match="the data need"):
+        P.PendulumDataModule(**{**args, "duration": 2.0}, recorded=[str(record)]).recorded_info()

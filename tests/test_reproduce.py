@@ -530,6 +530,12 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         ("test", "configs/pendulum_torque_encoder.yaml"),
         ("test", "configs/pendulum_torque_control.yaml"),
         ("test", "configs/pendulum_torque_control.yaml"),  # again, the encoder estimating the state
+        ("test", "configs/pendulum_torque_record.yaml"),  # its own episodes recorded, with the encoder
+        ("fit", "configs/pendulum_torque_dagger.yaml"),  # trained again with them
+        ("fit", "configs/pendulum_torque_dagger_encoder.yaml"),
+        ("test", "configs/pendulum_torque_dagger_encoder.yaml"),
+        ("test", "configs/pendulum_torque_dagger_control.yaml"),
+        ("test", "configs/pendulum_torque_dagger_control.yaml"),
         ("fit", "configs/pendulum_torque_single.yaml"),
         ("test", "configs/pendulum_torque_single_control.yaml"),
         ("test", "configs/pendulum_true_control.yaml"),
@@ -542,12 +548,18 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         option(calls[4], "--model.init_args.encoder_checkpoint")
         == f"runs/pendulum_torque_encoder/{version}/checkpoints/last.ckpt"
     )
-    single = option(calls[5], "--trainer.logger.init_args.version")
+    assert option(calls[5], "--model.init_args.encoder_checkpoint") == option(
+        calls[4], "--model.init_args.encoder_checkpoint"
+    )
+    assert option(calls[10], "--model.init_args.ssm_checkpoint") == (
+        f"runs/pendulum_torque_dagger/{option(calls[6], '--trainer.logger.init_args.version')}/checkpoints/last.ckpt"
+    )
+    single = option(calls[11], "--trainer.logger.init_args.version")
     assert (
-        option(calls[6], "--model.init_args.ssm_checkpoint")
+        option(calls[12], "--model.init_args.ssm_checkpoint")
         == f"runs/pendulum_torque_single/{single}/checkpoints/last.ckpt"
     )
-    assert "--model.init_args.ssm_checkpoint" not in calls[7]
+    assert "--model.init_args.ssm_checkpoint" not in calls[13]
     assert written["experiment"] == "pendulum_control"  # the last results file the suite's last experiment wrote
     with pytest.raises(SystemExit):
         reproduce.main(["pendulum_control", "--resume", "reproduce-1"])

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ssm_ms.control.cost import SwingUpCost, upright_error
+from ssm_ms.control.cost import GRAVITY, SwingUpCost, upright_error
 from ssm_ms.control.estimators import EncoderEstimator, UKFEstimator, load_encoder
 from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
 from ssm_ms.control.mppi import MPPISettings, RecedingHorizon
@@ -42,7 +42,6 @@ from ssm_ms.nets.sensors import SensorLayout
 from ssm_ms.runtime.machine import describe
 from ssm_ms.training.shooting import decode, rollout
 
-GRAVITY = 9.81
 CONTROL_HEADING = {
     "title": "Closed-loop control results",
     "intro": "Swing-up and balance of the simple pendulum from its camera frames (ssm_ms/control/module.py); mean ± "
@@ -98,7 +97,8 @@ class ClosedLoop(pl.LightningModule):
             over its last ``success_seconds``.
         planner: :class:`~ssm_ms.control.mppi.MPPISettings` (horizon, samples, iterations, noise_std,
             temperature, u_min, u_max in N m, smoothing).
-        cost: the :class:`~ssm_ms.control.cost.SwingUpCost` weights ``w_velocity``, ``w_input``.
+        cost: the :class:`~ssm_ms.control.cost.SwingUpCost` weights ``w_velocity``, ``w_input``, and its energy
+            bound ``max_energy`` (J; e.g. the data's) with its weight ``w_energy``.
         estimator: the UKF's ``process_var``, ``measurement_var`` (``None``: the data's sensor noise, per stream with
             several sensors) and ``init_var`` (``None``: the spread of the SSM's shooting nodes); not used with
             ``encoder_checkpoint``.
@@ -107,6 +107,11 @@ class ClosedLoop(pl.LightningModule):
         distill: settings of the distilled angle readout: ``rollout_steps`` (states per node under random torques),
             ``steps`` (fitting steps), ``pivot`` (``[x, y]`` in pixels; default: the frame's centre).
         timing_steps: control steps of one episode alone whose planning time is reported.
+        exploration: standard deviation (N m) of Gaussian noise added to every planned torque before it is applied
+            (clipped to the planner's bounds; default 0): exploration, for episodes recorded as training data.
+        record: write the episodes to this ``.npz`` file, as training data of the pendulum data module
+            (``recorded``, docs/control.md "Identification in closed loop"): the noisy frames seen, the clean ones,
+            the true states and the torques applied, one row per period, and the system's parameters.
         experiment, results_dir, figures_dir, method_name: where the results go and the row's name
             (``{estimator}`` in it names the estimator: ``UKF`` or ``CNN-LSTM encoder``).
         seed: the episodes' camera noise and the planner's sampling.
@@ -126,6 +131,8 @@ class ClosedLoop(pl.LightningModule):
         estimator: dict[str, Any] | None = None,
         distill: dict[str, Any] | None = None,
         timing_steps: int = 20,
+        exploration: float = 0.0,
+        record: str | None = None,
         experiment: str = "pendulum_control",
         results_dir: str = "results",
         figures_dir: str | None = "results/figures",
@@ -144,6 +151,9 @@ class ClosedLoop(pl.LightningModule):
             )
         self.seconds, self.success_seconds, self.tolerance = float(seconds), float(success_seconds), float(tolerance)
         self.timing_steps, self.seed = int(timing_steps), int(seed)
+        if not exploration >= 0:
+            raise ValueError(f"exploration is a standard deviation of torque noise (N m): >= 0, got {exploration}")
+        self.exploration, self.record = float(exploration), record
         self.experiment, self.results_dir, self.figures_dir = experiment, results_dir, figures_dir
         self.ssm_checkpoint = ssm_checkpoint
         self.ssm = None
@@ -186,6 +196,8 @@ class ClosedLoop(pl.LightningModule):
             raise ValueError(f"the swing-up task is the simple pendulum's: the data have {n_links} links")
         layout = SensorLayout.from_state_dict(dm.sensor_layout) if dm.sensor_layout else None
         sensors = list(getattr(dm, "sensors", ["image"]))
+        if self.record and sensors != ["image"]:
+            raise ValueError(f"record writes camera data: the data's sensors are {sensors}, record needs [image]")
         self.streams = layout.split if layout is not None else (lambda y: {sensors[0]: y})
         if self.ssm is None:
             self.f, self.features = TruePendulum(self.frame_dt, self.env.params["damping"]), angle_of_state
@@ -268,6 +280,7 @@ class ClosedLoop(pl.LightningModule):
         b, periods = len(start), int(round(self.seconds / self.frame_dt))
         frames = torch.from_numpy(self.env.reset(start[:, :n], start[:, n:]))
         controller = self._controller(b)
+        noise = torch.Generator().manual_seed(self.seed + 1 + batch_idx)
         mean = estimator = None
         if self.ssm is not None:
             estimator = self.estimator()
@@ -283,6 +296,9 @@ class ClosedLoop(pl.LightningModule):
             tick = time.perf_counter()
             u = controller(x)
             plan_seconds += time.perf_counter() - tick
+            if self.exploration:
+                u = u + self.exploration * torch.randn(u.shape, generator=noise, dtype=u.dtype)
+                u = u.clamp(self.settings.u_min, self.settings.u_max)
             frames = torch.from_numpy(self.env.step(u.double().numpy()))
             if self.ssm is not None:
                 mean = estimator.next(u, frames)
@@ -355,11 +371,38 @@ class ClosedLoop(pl.LightningModule):
         if self.trainer.is_global_zero:
             write_results(Path(self.results_dir), info, summary, heading=CONTROL_HEADING)
             self._figures(runs[0], error)
+            if self.record:
+                self._record(runs)
         self.log_dict(
             {"control/success_rate": success.mean().item(), "control/ms_per_step": times.mean().item()},
             rank_zero_only=True,
         )
         self._episodes = []
+
+    def _record(self, runs: list[dict[str, torch.Tensor]]) -> None:
+        """Write the episodes as training data (``record``): per period the frame seen, its clean twin, the true
+        state and the torque applied (the last frame, after the last torque, left out), uint8 frames as the data's."""
+        import json
+
+        def cat(key: str) -> np.ndarray:
+            return torch.cat([r[key] for r in runs]).numpy()
+
+        def pixels(frames: np.ndarray) -> np.ndarray:
+            return np.rint(frames[:, :-1] * 255.0).clip(0, 255).astype(np.uint8)
+
+        path = Path(self.record)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp.npz")
+        np.savez(
+            tmp,
+            y=pixels(cat("seen")),
+            y_clean=pixels(cat("truth")),
+            state=cat("states")[:, :-1].astype(np.float32),
+            u=cat("inputs").astype(np.float32),
+            params=np.array(json.dumps(self.env.params, sort_keys=True, default=str)),
+        )
+        tmp.replace(path)
+        print(f"recorded {len(cat('inputs'))} episodes to {path}", file=sys.stderr)
 
     def _settings_line(self) -> str:
         s = self.settings
@@ -368,6 +411,10 @@ class ClosedLoop(pl.LightningModule):
             f"temperature {s.temperature}, torque within [{s.u_min}, {s.u_max}] N m; episodes of {self.seconds} s, "
             f"success: within {self.tolerance} rad of upright over the last {self.success_seconds} s"
         )
+        if self.exploration:
+            line += f"; exploration: N(0, {self.exploration}^2) N m added to every planned torque"
+        if self.cost_weights.get("max_energy") is not None:
+            line += f"; cost {self.cost_weights}"
         if self.ssm is not None:
             estimator = (
                 f"UKF {self.estimator_settings}" if self.encoder is None else f"encoder {self.encoder_checkpoint}"
