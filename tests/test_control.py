@@ -111,34 +111,21 @@ def test_distilled_features_fit_a_known_map():
     torch.testing.assert_close(net(states[:5]), target(states[:5]), atol=0.15, rtol=0)
 
 
+def true_control(tmp_path: Path, *args: str) -> None:
+    """``cli.py test`` of configs/pendulum_true_control.yaml with its data, results and logs under ``tmp_path`` (3
+    timing steps, no progress bar), then ``args``."""
+    from ssm_ms.cli import main
+
+    where = ["--data.init_args.data_dir", str(tmp_path / "data"), "--model.init_args.results_dir", str(tmp_path)]
+    quiet = ["--trainer.logger", "false", "--trainer.default_root_dir", str(tmp_path)]
+    quiet += ["--trainer.enable_progress_bar", "false", "--model.init_args.timing_steps", "3"]
+    main(["test", "--config", "configs/pendulum_true_control.yaml", *where, *quiet, *args])
+
+
 def test_the_closed_loop_swings_the_true_pendulum_up(tmp_path):
     """The whole loop through the command line, planning on the true model: two episodes from hanging, both upright
     and still over their last 2 s, the results file and its figures written."""
-    from ssm_ms.cli import main
-
-    main(
-        [
-            "test",
-            "--config",
-            "configs/pendulum_true_control.yaml",
-            "--data.init_args.n_test",
-            "2",
-            "--data.init_args.data_dir",
-            str(tmp_path / "data"),
-            "--model.init_args.results_dir",
-            str(tmp_path),
-            "--model.init_args.figures_dir",
-            str(tmp_path / "figures"),
-            "--model.init_args.timing_steps",
-            "3",
-            "--trainer.logger",
-            "false",
-            "--trainer.default_root_dir",
-            str(tmp_path),
-            "--trainer.enable_progress_bar",
-            "false",
-        ]
-    )
+    true_control(tmp_path, "--data.init_args.n_test", "2", "--model.init_args.figures_dir", str(tmp_path / "figures"))
     result = json.loads((tmp_path / "pendulum_control.json").read_text())["runs"]["true model, true state"]
     assert result["summary"]["true model, true state/episodes/success"]["mean"] == 1.0
     assert result["summary"]["true model, true state/episodes/upright_error_final"]["mean"] < 0.3
@@ -196,41 +183,15 @@ def test_recorded_episodes_become_training_data(tmp_path):
     """The closed loop's record (true model, with exploration) read back by the pendulum data module: appended after
     the generated trajectories, each recorded trajectory what the simulator does under its recorded torques from its
     first state, its clean frames the rendering of its angles; a file of another system refused in one line."""
-    from ssm_ms.cli import main
-
     record = tmp_path / "episodes.npz"
-    short = ["--data.init_args.duration", "1.0", "--data.init_args.data_dir", str(tmp_path / "data")]
-    main(
-        [
-            "test",
-            "--config",
-            "configs/pendulum_true_control.yaml",
-            "--data.init_args.n_test",
-            "3",
-            *short,
-            "--model.init_args.seconds",
-            "1.0",
-            "--model.init_args.success_seconds",
-            "0.5",
-            "--model.init_args.exploration",
-            "0.5",
-            "--model.init_args.record",
-            str(record),
-            "--model.init_args.planner",
-            "{horizon: 5, samples: 32, iterations: 1, noise_std: 1.5, u_min: -3.0, u_max: 3.0}",
-            "--model.init_args.results_dir",
-            str(tmp_path),
-            "--model.init_args.figures_dir",
-            "null",
-            "--model.init_args.timing_steps",
-            "1",
-            "--trainer.logger",
-            "false",
-            "--trainer.default_root_dir",
-            str(tmp_path),
-            "--trainer.enable_progress_bar",
-            "false",
-        ]
+    true_control(
+        tmp_path,
+        *("--data.init_args.n_test", "3", "--data.init_args.duration", "1.0"),
+        *("--model.init_args.seconds", "1.0", "--model.init_args.success_seconds", "0.5"),
+        *("--model.init_args.exploration", "0.5", "--model.init_args.record", str(record)),
+        "--model.init_args.planner",
+        "{horizon: 5, samples: 32, iterations: 1, noise_std: 1.5, u_min: -3.0, u_max: 3.0}",
+        *("--model.init_args.figures_dir", "null", "--model.init_args.timing_steps", "1"),
     )
     args = dict(n_train=2, n_test=1, duration=1.0, max_energy=22.0, torque_limit=3.0, data_dir=str(tmp_path / "data"))
     dm = P.PendulumDataModule(**args, recorded=[str(record)])

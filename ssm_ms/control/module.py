@@ -393,16 +393,17 @@ class ClosedLoop(pl.LightningModule):
         path = Path(self.record)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.tmp.npz")
+        u = cat("inputs").astype(np.float32)
         np.savez(
             tmp,
             y=pixels(cat("seen")),
             y_clean=pixels(cat("truth")),
             state=cat("states")[:, :-1].astype(np.float32),
-            u=cat("inputs").astype(np.float32),
+            u=u,
             params=np.array(json.dumps(self.env.params, sort_keys=True, default=str)),
         )
         tmp.replace(path)
-        print(f"recorded {len(cat('inputs'))} episodes to {path}", file=sys.stderr)
+        print(f"recorded {len(u)} episodes to {path}", file=sys.stderr)
 
     def _settings_line(self) -> str:
         s = self.settings
