@@ -84,13 +84,21 @@ def ssim_per_sequence(pred: torch.Tensor, target: torch.Tensor, sampled: torch.T
             f"pixels, got {list(pred.shape)}: leave 'ssim' out of metrics for this data"
         )
     b, p, c, h, w = pred.shape
-    x = pred.detach().reshape(b * p * c, 1, h, w).double()
-    y = target.detach().reshape(b * p * c, 1, h, w).double()
+    x = pred.detach().reshape(b * p * c, h, w).double()
+    y = target.detach().reshape(b * p * c, h, w).double()
     r = torch.arange(SSIM_WINDOW, dtype=torch.float64, device=x.device) - SSIM_WINDOW // 2
     g = torch.exp(-(r**2) / (2 * SSIM_SIGMA**2))
-    g = g / g.sum()
-    window = (g[:, None] * g[None, :])[None, None]
-    mu_x, mu_y, xx, yy, xy = torch.nn.functional.conv2d(torch.cat([x, y, x * x, y * y, x * y]), window).split(len(x))
+    g = (g / g.sum()).tolist()
+
+    def local_mean(z: torch.Tensor) -> torch.Tensor:
+        # the Gaussian window is separable: filter the rows, then the columns (valid positions only), in shifted
+        # sums that hold no more than the frames (conv2d in float64 on a CPU unfolds every window: ~7 GB for 2000
+        # frames of 48 x 48)
+        k = SSIM_WINDOW
+        rows = sum(g[i] * z[:, i : i + h - k + 1] for i in range(k))
+        return sum(g[j] * rows[:, :, j : j + w - k + 1] for j in range(k))
+
+    mu_x, mu_y, xx, yy, xy = (local_mean(z) for z in (x, y, x * x, y * y, x * y))
     var_x, var_y, cov = xx - mu_x**2, yy - mu_y**2, xy - mu_x * mu_y
     c1, c2 = SSIM_K1**2, SSIM_K2**2
     ssim = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
