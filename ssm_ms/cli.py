@@ -16,7 +16,10 @@ What the command line adds to Lightning's:
   checkpoint was trained with (Lightning's rule: a resumed run continues the saved model), replacing the
   config's and command line's ``model`` values; where a value given differs from the checkpoint's, one
   line on stderr says so (``note: --ckpt_path ...: model.init_args.lr = 0.01 from the checkpoint, not
-  0.5 as given ...``). A checkpoint whose model does not fit this command's data (another experiment's)
+  0.5 as given ...``). ``test``, ``validate`` and ``predict`` keep this command's reporting settings
+  (:data:`REPORTING`: which metrics, where results and figures go, the analysis, the experiment and method names):
+  they change what is written about the model, not what it computes, so a trained model can be scored again with
+  another metric into another folder. A checkpoint whose model does not fit this command's data (another experiment's)
   is refused naming that first (``the checkpoint ... was trained for another model or data ...``), then
   the detail (g's output shape against the data's, the trajectory length, the trajectory count).
 - **Trainer settings.** An invalid ``trainer`` value that Lightning refuses when it builds the Trainer
@@ -60,6 +63,9 @@ ROOT = Path(__file__).resolve().parents[1]
 OWN_CODE = (ROOT / "ssm_ms", ROOT / "datamodules")
 USER_ERROR_TYPES = (ValueError, OSError, FloatingPointError)
 LIGHTNING_CKPT_ALIASES = ("last", "best", "hpc", "registry")
+# model settings that say what is reported about a model and where, not what it computes: outside fit, the command's
+# own win over a --ckpt_path checkpoint's
+REPORTING = ("metrics", "results_dir", "figures_dir", "analysis", "experiment", "method_name")
 
 
 class CommandLineError(ArgumentError):
@@ -122,10 +128,17 @@ class SSMCLI(LightningCLI):
 
     def before_instantiate_classes(self) -> None:
         """With ``--ckpt_path`` Lightning has replaced the model's settings by the checkpoint's (between
-        :meth:`parse_arguments` and this hook): one line naming each value given that the checkpoint's replaced."""
+        :meth:`parse_arguments` and this hook): outside ``fit`` the reporting settings given come back (see the
+        module doc), and one line names each other value given that the checkpoint's replaced."""
         subcommand = self.config.get("subcommand")
         after = self.config[subcommand].get("model") if subcommand else None
         after = after.as_dict() if after is not None else {}
+        given_args, saved_args = self._model_as_given.get("init_args") or {}, after.get("init_args") or {}
+        if subcommand != "fit" and self._checkpoint_source is not None:
+            for key in REPORTING:
+                if given_args.get(key) is not None and key in saved_args and saved_args[key] != given_args[key]:
+                    self.config[subcommand][f"model.init_args.{key}"] = given_args[key]
+                    saved_args[key] = given_args[key]
         old, new = _flatten(self._model_as_given, "model"), _flatten(after, "model")
         replaced, other_class = [], []
         for key, value in old.items():

@@ -167,6 +167,15 @@ def test_encoder_stage_and_test_protocol_from_the_cli(pendulum_ssm):
     assert "| SSM-LL | 0.2895 ± 0.0064 | 0.0152 ± 0.0022 |" in report
     assert (tmp / "figures" / "pendulum_cpu_encoder_mosaic.png").is_file()
     assert (tmp / "figures" / "pendulum_cpu_encoder.gif").is_file()
+    # scored again with another metric into another folder: the command's reporting settings win over the
+    # checkpoint's, the model is the same (the same MSE), the first results stay as they were
+    again = ["--model.init_args.results_dir", str(tmp / "rescored"), "--model.init_args.metrics", "[mse, bce, ssim]"]
+    run(tmp, "test", config, "--ckpt_path", str(enc_ckpt), *stage[2:], *again)
+    first = json.loads((tmp / "results" / "pendulum_cpu.json").read_text())["runs"]["encoder"]["summary"]
+    second = json.loads((tmp / "rescored" / "pendulum_cpu.json").read_text())["runs"]["encoder"]["summary"]
+    assert "encoder/noisy/ssim" in second and "encoder/noisy/ssim" not in first
+    assert second["encoder/noisy/mse"] == first["encoder/noisy/mse"]
+    assert (tmp / "results" / "pendulum_cpu.md").read_text() == report
 
 
 def test_ukf_stage_from_the_cli(tmp_path):
