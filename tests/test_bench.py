@@ -282,6 +282,26 @@ def test_fit_by_speed_scores_each_frame_of_each_piece_as_a_naive_loop():
     np.testing.assert_allclose(speed, state[..., 1].abs().numpy())
 
 
+def test_torque_authority_turns_match_a_linear_systems_closed_form():
+    """benchmarks/torque_authority.py: k steps of +tau against -tau through x+ = A x + B u, read as x[0], end
+    2 tau (sum_{j<k} A^j B)[0] apart; a transition that ignores u turns nothing; the pendulum's equations about
+    tau t^2 (the torque's push on a unit mass, gravity aside)."""
+    from benchmarks.torque_authority import turns
+    from ssm_ms.control.module import TruePendulum
+
+    a = torch.tensor([[0.95, 0.1], [-0.2, 0.9]], dtype=torch.float64)
+    b = torch.tensor([[0.03], [0.1]], dtype=torch.float64)
+    x0 = torch.randn(5, 2, dtype=torch.float64) * 0.1
+    got = turns(lambda x, u: x @ a.T + u @ b.T, lambda x: x[:, 0].numpy(), x0, 3, 2.0)
+    want = 2 * 2.0 * (b + a @ b + a @ a @ b)[0, 0].item()
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert np.all(turns(lambda x, u: x @ a.T, lambda x: x[:, 0].numpy(), x0, 3, 2.0) == 0)
+    pendulum = TruePendulum(0.1).double()
+    states = torch.tensor([[np.pi - 0.1, 0.5], [0.3, -1.0]], dtype=torch.float64)
+    true_turn = turns(pendulum, lambda z: z[:, 0].numpy(), states, 3, 3.0)
+    np.testing.assert_allclose(true_turn, 3.0 * 0.3**2, rtol=0.1)  # gravity's pull is the same both ways, nearly
+
+
 def test_control_diagnosis_reads_the_filter_and_its_k_step_predictions_as_a_naive_loop():
     """benchmarks/control_diagnosis.py: the angle of each filtered state, and of f applied k times to it under the
     torques that followed, at the frame it predicts; the table's bands by the true angle's distance from upright."""
