@@ -456,18 +456,22 @@ def data_policy(params: dict[str, Any], indices) -> Callable[[np.ndarray, np.nda
     """The data's torques in feedback (:func:`simulate`'s ``policy``) for trajectories ``indices`` of a split, or
     ``None`` where they are the excitation's as drawn. Two parts, in this order: with ``closed_loop_share``, the
     trajectories :func:`closed_loop` picks get :func:`swing_up_balance` plus ``closed_loop_noise`` times their
-    excitation (exploration), clipped to ``+-torque_limit``; with ``max_energy``, a chain above the bound gets no
-    torque that would do positive work (``u . v > 0``: that frame's torque is 0)."""
+    excitation (exploration), clipped to ``+-torque_limit``, except, with ``closed_loop_override``, the frames whose
+    excitation exceeds that share of the limit: those get the excitation alone; with ``max_energy``, a chain above the
+    bound gets no torque that would do positive work (``u . v > 0``: that frame's torque is 0)."""
     share, bound = params.get("closed_loop_share", 0.0), params.get("max_energy")
     if not share and bound is None:
         return None
     closed = closed_loop(indices, share)
     limit, noise = params["torque_limit"], params.get("closed_loop_noise", 0.0)
+    override = params.get("closed_loop_override")
 
     def policy(q: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
         if closed.any():
             u = u.copy()
-            u[closed] = np.clip(swing_up_balance(q[closed], v[closed], limit) + noise * u[closed], -limit, limit)
+            given = u[closed]
+            held = np.clip(swing_up_balance(q[closed], v[closed], limit) + noise * given, -limit, limit)
+            u[closed] = held if override is None else np.where(np.abs(given) > override * limit, given, held)
         if bound is not None:
             pumping = (chain_energy(q, v) > bound) & (np.sum(u * v, axis=1) > 0)
             u = np.where(pumping[:, None], 0.0, u)
@@ -791,6 +795,10 @@ class PendulumDataModule(TrajectoryDataModule):
             :func:`closed_loop`, by index.
         closed_loop_noise: the share of the excitation added to the controller's torque (default 0.5: a standard
             deviation of ``torque_limit / 4``).
+        closed_loop_override: in the closed-loop share, the frames whose excitation exceeds this share of the
+            torque limit get the excitation alone, the controller off (default ``None``: never): open-loop pushes at
+            the states the controller holds, where its own torque is tied to the state and cannot show what a
+            torque does (docs/datasets.md).
         sensors: what measures the chain, packed per step in this order: ``["image"]`` (the default, the camera),
             ``["angle"]`` (the joint encoders alone) or both. The encoders report :func:`angle_reading` of the
             noised angles, ``[sin q, cos q]`` (``2 n_links`` values per step).
@@ -830,6 +838,7 @@ class PendulumDataModule(TrajectoryDataModule):
         max_energy: float | None = None,
         closed_loop_share: float = 0.0,
         closed_loop_noise: float = 0.5,
+        closed_loop_override: float | None = None,
         sensors: list[str] | None = None,
         angle_noise_std: float = 0.05,
         angle_every: int = 1,
@@ -842,6 +851,7 @@ class PendulumDataModule(TrajectoryDataModule):
         self.torque_limit, self.torque_correlation = float(torque_limit), float(torque_correlation)
         self.max_energy = None if max_energy is None else float(max_energy)
         self.closed_loop_share, self.closed_loop_noise = float(closed_loop_share), float(closed_loop_noise)
+        self.closed_loop_override = None if closed_loop_override is None else float(closed_loop_override)
         self.sensors = list(sensors or ["image"])
         self.angle_noise_std, self.angle_every = float(angle_noise_std), int(angle_every)
         self.n_links = int(n_links)
@@ -911,6 +921,12 @@ class PendulumDataModule(TrajectoryDataModule):
             0.0 <= self.closed_loop_share <= 1.0 and self.closed_loop_noise >= 0,
             f"closed_loop_share must be in [0, 1] and closed_loop_noise >= 0, got {self.closed_loop_share}, "
             f"{self.closed_loop_noise}",
+        )
+        need(
+            self.closed_loop_override is None or (self.closed_loop_share and 0 <= self.closed_loop_override < 1),
+            f"closed_loop_override hands frames of the closed-loop share to the excitation: it needs "
+            f"closed_loop_share > 0 and a share of the torque limit in [0, 1), got {self.closed_loop_override} with "
+            f"closed_loop_share {self.closed_loop_share}",
         )
         need(
             not self.closed_loop_share or (self.n_links == 1 and self.torque_limit > 0),
@@ -1000,6 +1016,11 @@ class PendulumDataModule(TrajectoryDataModule):
                     "closed_loop_share": self.closed_loop_share,
                     "closed_loop_noise": self.closed_loop_noise,
                     "closed_loop_gains": dict(SWING_UP),
+                    **(
+                        {"closed_loop_override": self.closed_loop_override}
+                        if self.closed_loop_override is not None
+                        else {}
+                    ),
                 }
                 if self.closed_loop_share
                 else {}
