@@ -16,10 +16,11 @@ What the command line adds to Lightning's:
   checkpoint was trained with (Lightning's rule: a resumed run continues the saved model), replacing the
   config's and command line's ``model`` values; where a value given differs from the checkpoint's, one
   line on stderr says so (``note: --ckpt_path ...: model.init_args.lr = 0.01 from the checkpoint, not
-  0.5 as given ...``). ``test``, ``validate`` and ``predict`` keep this command's reporting settings
-  (:data:`REPORTING`: which metrics, where results and figures go, the analysis, the experiment and method names):
-  they change what is written about the model, not what it computes, so a trained model can be scored again with
-  another metric into another folder. A checkpoint whose model does not fit this command's data (another experiment's)
+  0.5 as given ...``). ``test``, ``validate`` and ``predict`` keep the reporting settings given on the command
+  line (:data:`REPORTING`: which metrics, where results and figures go, the analysis, the experiment and method
+  names; a config file's values do not count, so a pretrained model tested with its config writes where its
+  checkpoint says): they change what is written about the model, not what it computes, so a trained model can be
+  scored again with another metric into another folder. A checkpoint whose model does not fit this command's data (another experiment's)
   is refused naming that first (``the checkpoint ... was trained for another model or data ...``), then
   the detail (g's output shape against the data's, the trajectory length, the trajectory count).
 - **Trainer settings.** An invalid ``trainer`` value that Lightning refuses when it builds the Trainer
@@ -136,7 +137,9 @@ class SSMCLI(LightningCLI):
         given_args, saved_args = self._model_as_given.get("init_args") or {}, after.get("init_args") or {}
         if subcommand != "fit" and self._checkpoint_source is not None:
             for key in REPORTING:
-                if given_args.get(key) is not None and key in saved_args and saved_args[key] != given_args[key]:
+                flag = f"--model.init_args.{key}"
+                on_command_line = any(arg == flag or arg.startswith(flag + "=") for arg in self._argv)
+                if on_command_line and key in saved_args and saved_args[key] != given_args.get(key):
                     self.config[subcommand][f"model.init_args.{key}"] = given_args[key]
                     saved_args[key] = given_args[key]
         old, new = _flatten(self._model_as_given, "model"), _flatten(after, "model")

@@ -176,6 +176,14 @@ def test_encoder_stage_and_test_protocol_from_the_cli(pendulum_ssm):
     assert "encoder/noisy/ssim" in second and "encoder/noisy/ssim" not in first
     assert second["encoder/noisy/mse"] == first["encoder/noisy/mse"]
     assert (tmp / "results" / "pendulum_cpu.md").read_text() == report
+    # a config file's reporting values do not count (they are the repository's results/): the checkpoint's folder
+    # stays, the metric given on the command line applies
+    committed = ROOT / "results" / "pendulum_cpu.json"
+    before = committed.read_bytes() if committed.exists() else None
+    run(tmp, "test", config, "--ckpt_path", str(enc_ckpt), *TINY["pendulum"], again[2], "[mse, ssim]")
+    third = json.loads((tmp / "results" / "pendulum_cpu.json").read_text())["runs"]["encoder"]["summary"]
+    assert "encoder/noisy/ssim" in third and "encoder/noisy/bce" not in third
+    assert (committed.read_bytes() if committed.exists() else None) == before
 
 
 def test_ukf_stage_from_the_cli(tmp_path):
