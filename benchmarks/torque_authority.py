@@ -32,14 +32,13 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.control_diagnosis import BANDS  # noqa: E402  (the same bands of distance from upright)
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.goals import ink_angle_features  # noqa: E402
 from ssm_ms.control.module import TruePendulum  # noqa: E402
 from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
 from ssm_ms.runtime.machine import describe  # noqa: E402
 from ssm_ms.training.shooting import decode  # noqa: E402
-
-BANDS = ((0.0, 0.5), (0.5, 1.5), (1.5, 2.5), (2.5, np.pi + 1e-9))  # rad from upright
 
 
 def wrapped(a: np.ndarray) -> np.ndarray:
@@ -78,10 +77,18 @@ def main(argv: list[str] | None = None) -> None:
         key, _, value = item.partition("=")
         args[key] = yaml.safe_load(value)
     module, name = spec["class_path"].rsplit(".", 1)
-    dm = getattr(importlib.import_module(module), name)(**args)
+    try:
+        dm = getattr(importlib.import_module(module), name)(**args)
+    except (TypeError, ValueError) as e:  # an unknown or invalid --set
+        sys.exit(f"the data of {opts.data_config} with {opts.set}: {e}")
+    saved = datamodule_state(raw)
+    if saved is not None and saved[1]["generator_params"] != dm.generator_params():
+        sys.exit(
+            f"the SSM was trained on other data than {opts.data_config} with {opts.set}: give the data config and "
+            "--set KEY=VALUE of its training run (e.g. --set closed_loop_noise=1.0 for a probe trained with it)"
+        )
     dm.prepare_data()
     dm.setup("fit")
-    saved = datamodule_state(raw)
     if saved is not None:
         dm.load_state_dict(saved[1])  # the SSM's normalisations of frames and inputs
     data = dm.datasets["train"]
