@@ -457,21 +457,25 @@ def data_policy(params: dict[str, Any], indices) -> Callable[[np.ndarray, np.nda
     ``None`` where they are the excitation's as drawn. Two parts, in this order: with ``closed_loop_share``, the
     trajectories :func:`closed_loop` picks get :func:`swing_up_balance` plus ``closed_loop_noise`` times their
     excitation (exploration), clipped to ``+-torque_limit``, except, with ``closed_loop_override``, the frames whose
-    excitation exceeds that share of the limit: those get the excitation alone; with ``max_energy``, a chain above the
+    excitation exceeds that share of the limit, and, with ``closed_loop_balance`` false, those within the controller's
+    catch of upright: those get the excitation alone; with ``max_energy``, a chain above the
     bound gets no torque that would do positive work (``u . v > 0``: that frame's torque is 0)."""
     share, bound = params.get("closed_loop_share", 0.0), params.get("max_energy")
     if not share and bound is None:
         return None
     closed = closed_loop(indices, share)
     limit, noise = params["torque_limit"], params.get("closed_loop_noise", 0.0)
-    override = params.get("closed_loop_override")
+    override, balance = params.get("closed_loop_override"), params.get("closed_loop_balance", True)
 
     def policy(q: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
         if closed.any():
             u = u.copy()
             given = u[closed]
             held = np.clip(swing_up_balance(q[closed], v[closed], limit) + noise * given, -limit, limit)
-            u[closed] = held if override is None else np.where(np.abs(given) > override * limit, given, held)
+            free = np.zeros(len(given), dtype=bool) if override is None else np.abs(given[:, 0]) > override * limit
+            if not balance:  # near upright the excitation alone: pumped up, let fall, pumped up again
+                free |= np.abs(np.mod(q[closed, 0], 2.0 * math.pi) - math.pi) < SWING_UP["catch"]
+            u[closed] = np.where(free[:, None], given, held)
         if bound is not None:
             pumping = (chain_energy(q, v) > bound) & (np.sum(u * v, axis=1) > 0)
             u = np.where(pumping[:, None], 0.0, u)
@@ -799,6 +803,9 @@ class PendulumDataModule(TrajectoryDataModule):
             torque limit get the excitation alone, the controller off (default ``None``: never): open-loop pushes at
             the states the controller holds, where its own torque is tied to the state and cannot show what a
             torque does (docs/datasets.md).
+        closed_loop_balance: whether the closed-loop share's controller holds the pendulum upright (default true);
+            false: it only pumps energy, and within its catch of upright the excitation alone drives the pendulum,
+            which falls and is swung up again (no torque near upright depends on the state).
         sensors: what measures the chain, packed per step in this order: ``["image"]`` (the default, the camera),
             ``["angle"]`` (the joint encoders alone) or both. The encoders report :func:`angle_reading` of the
             noised angles, ``[sin q, cos q]`` (``2 n_links`` values per step).
@@ -839,6 +846,7 @@ class PendulumDataModule(TrajectoryDataModule):
         closed_loop_share: float = 0.0,
         closed_loop_noise: float = 0.5,
         closed_loop_override: float | None = None,
+        closed_loop_balance: bool = True,
         sensors: list[str] | None = None,
         angle_noise_std: float = 0.05,
         angle_every: int = 1,
@@ -852,6 +860,7 @@ class PendulumDataModule(TrajectoryDataModule):
         self.max_energy = None if max_energy is None else float(max_energy)
         self.closed_loop_share, self.closed_loop_noise = float(closed_loop_share), float(closed_loop_noise)
         self.closed_loop_override = None if closed_loop_override is None else float(closed_loop_override)
+        self.closed_loop_balance = bool(closed_loop_balance)
         self.sensors = list(sensors or ["image"])
         self.angle_noise_std, self.angle_every = float(angle_noise_std), int(angle_every)
         self.n_links = int(n_links)
@@ -927,6 +936,11 @@ class PendulumDataModule(TrajectoryDataModule):
             f"closed_loop_override hands frames of the closed-loop share to the excitation: it needs "
             f"closed_loop_share > 0 and a share of the torque limit in [0, 1), got {self.closed_loop_override} with "
             f"closed_loop_share {self.closed_loop_share}",
+        )
+        need(
+            self.closed_loop_balance or self.closed_loop_share,
+            "closed_loop_balance: false lets the closed-loop share's pendulum fall near upright: it needs "
+            "closed_loop_share > 0",
         )
         need(
             not self.closed_loop_share or (self.n_links == 1 and self.torque_limit > 0),
@@ -1021,6 +1035,7 @@ class PendulumDataModule(TrajectoryDataModule):
                         if self.closed_loop_override is not None
                         else {}
                     ),
+                    **({} if self.closed_loop_balance else {"closed_loop_balance": False}),
                 }
                 if self.closed_loop_share
                 else {}

@@ -541,16 +541,17 @@ def test_energy_bound_stops_only_the_torques_that_pump_above_it(tmp_path):
         PendulumDataModule(max_energy=20.0, data_dir=str(tmp_path))
 
 
-@pytest.mark.parametrize("override", [None, 0.5])
-def test_closed_loop_identification_drives_its_share_by_the_swing_up_controller(tmp_path, override):
+@pytest.mark.parametrize(("override", "balance"), [(None, True), (0.5, True), (None, False)])
+def test_closed_loop_identification_drives_its_share_by_the_swing_up_controller(tmp_path, override, balance):
     """``closed_loop_share``: the trajectories picked by index get the swing-up-and-balance torque plus a share of
     their excitation, frame by frame in feedback (a naive loop: the controller in closed form, one frame simulated
     at a time), and end up held upright; the others keep their excitation; true_measurements re-runs the loop.
-    ``closed_loop_override``: frames whose excitation exceeds that share of the limit get the excitation alone."""
+    ``closed_loop_override``: frames whose excitation exceeds that share of the limit get the excitation alone;
+    ``closed_loop_balance: false``: so do the frames within the catch (0.5 rad) of upright."""
     share, noise, limit = 0.5, 0.5, 3.0
     dm = PendulumDataModule(
         n_train=6, n_test=2, torque_limit=limit, closed_loop_share=share, closed_loop_noise=noise,
-        closed_loop_override=override, data_dir=str(tmp_path), workers=1,
+        closed_loop_override=override, closed_loop_balance=balance, data_dir=str(tmp_path), workers=1,
     )  # fmt: skip
     picked = P.closed_loop(range(1000), 0.3)
     assert picked.sum() == 300 and picked[:10].sum() == 3
@@ -572,13 +573,13 @@ def test_closed_loop_identification_drives_its_share_by_the_swing_up_controller(
             energy = 0.5 * v * v + G * (1 - math.cos(q))
             ctrl = -(9 + G) * d - 6 * v if abs(d) < 0.5 else 1.0 * (2 * G - energy) * v
             u = min(max(min(max(ctrl, -limit), limit) + noise * raw[i, t, 0], -limit), limit)
-            if override is not None and abs(raw[i, t, 0]) > override * limit:
+            if (override is not None and abs(raw[i, t, 0]) > override * limit) or (not balance and abs(d) < 0.5):
                 u, overridden = float(raw[i, t, 0]), overridden + 1
             np.testing.assert_allclose(arrays["u"][i, t, 0], u, rtol=1e-5, atol=1e-6)
             upright.append(abs(d) < 0.3)
             qs, vs, _ = P.simulate(model, model.createData(), [[q]], [[v]], 2, 20, 5e-3, 0.0, np.full((1, 1, 1), u))
             q, v = float(qs[0, 1, 0]), float(vs[0, 1, 0])
-        if override is None:
+        if override is None and balance:
             assert all(upright[80:])  # swung up and held: upright over the last 2 s (the control task's success)
         else:
             assert 0 < overridden < 100  # some frames, not all, handed to the excitation
@@ -596,3 +597,9 @@ def test_closed_loop_identification_drives_its_share_by_the_swing_up_controller(
     )  # the shipped data's cache is unchanged
     with pytest.raises(ValueError, match="closed_loop_override hands frames"):
         PendulumDataModule(torque_limit=3.0, closed_loop_override=0.5, data_dir=str(tmp_path))
+    assert (
+        "closed_loop_balance"
+        not in PendulumDataModule(torque_limit=3.0, closed_loop_share=0.3, data_dir=str(tmp_path)).generator_params()
+    )
+    with pytest.raises(ValueError, match="closed_loop_balance: false lets"):
+        PendulumDataModule(torque_limit=3.0, closed_loop_balance=False, data_dir=str(tmp_path))
