@@ -37,6 +37,7 @@ from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.goals import ink_angle_features  # noqa: E402
 from ssm_ms.control.module import TruePendulum  # noqa: E402
 from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
+from ssm_ms.nets.sensors import SensorLayout  # noqa: E402
 from ssm_ms.runtime.machine import describe  # noqa: E402
 from ssm_ms.training.shooting import decode  # noqa: E402
 
@@ -105,9 +106,13 @@ def main(argv: list[str] | None = None) -> None:
     to_inputs = dm.input_normalizer.normalize if dm.input_normalizer is not None else (lambda u: u)
     to_frames = dm.normalizer.denormalize if dm.normalizer is not None else (lambda y: y)
 
+    # several sensors: the camera's stream of the packed measurement (the angle is read from the frame either way)
+    camera = (lambda y: SensorLayout.from_state_dict(dm.sensor_layout).split(y)["image"]) if dm.sensor_layout else None
+
     @torch.no_grad()
     def drawn_angle(x: torch.Tensor) -> np.ndarray:
         frames = to_frames(decode(ssm.g, x, 4096))
+        frames = camera(frames) if camera is not None else frames
         sc = ink_angle_features(frames, (frames.shape[-1] / 2, frames.shape[-2] / 2))
         return torch.atan2(sc[:, 0], sc[:, 1]).double().numpy()
 
