@@ -8,12 +8,13 @@ Run from the repository root::
 Every shooting node ``s_i`` of the SSM's training data is the model's state of a frame whose true state (angle,
 velocity) the data set knows. From each node ``f`` runs ``--steps`` steps of the largest torque one way and, again,
 the other; the angles ``g`` draws at the two ends (the angle of the ink about the pivot, as the controller reads a
-frame) are compared, and the same is done from the true state by the pendulum's equations. Their ratio is the
-model's authority of the input against the system's: 1 where the model knows what the torque does, 0 where it
-believes the torque does nothing. Trajectories driven by a feedback controller hold the torque tied to the state
-(closed-loop identification), so there the effect of the input can hide in the state's: this measures it, by the
-true angle's distance from upright. ``--set KEY=VALUE`` changes an argument of the data config (e.g. the
-exploration of a probe run's data); the SSM must have been trained on that data (its node count is checked).
+frame; with several sensors, from the camera's stream) are compared, and the same is done from the true state by the
+pendulum's equations. Their ratio is the model's authority of the input against the system's: 1 where the model
+knows what the torque does, 0 where it believes the torque does nothing. Trajectories driven by a feedback
+controller hold the torque tied to the state (closed-loop identification), so there the effect of the input can hide
+in the state's: this measures it, by the true angle's distance from upright. ``--set KEY=VALUE`` changes an argument
+of the data config (e.g. the exploration of a probe run's data); the SSM must have been trained on that data (the
+generator's parameters saved in its checkpoint are checked).
 """
 
 from __future__ import annotations
