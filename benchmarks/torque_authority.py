@@ -60,6 +60,17 @@ def turns(f, read, x0: torch.Tensor, steps: int, torque: float) -> np.ndarray:
     return wrapped(ends[0] - ends[1])
 
 
+@torch.no_grad()
+def falls(f, read, x0: torch.Tensor, steps: int) -> np.ndarray:
+    """``[N]``: how much farther from upright the angle ``read`` from the state is after ``steps`` steps of ``f``
+    without torque than at ``x0`` (rad; positive: it falls away from upright, as gravity makes it there)."""
+    x = x0
+    for _ in range(steps):
+        x = f(x, torch.zeros((len(x), 1), dtype=x.dtype))
+    start, end = (upright_error(torch.as_tensor(read(z))).numpy() for z in (x0, x))
+    return end - start
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--ssm-checkpoint", required=True)
@@ -120,6 +131,8 @@ def main(argv: list[str] | None = None) -> None:
     true_f = TruePendulum(dm.environment(0).frame_dt, float(args.get("damping", 0.0))).double()
     model_turn = turns(lambda x, u: ssm.f(x, to_inputs(u)), drawn_angle, nodes, opts.steps, opts.torque)
     true_turn = turns(true_f, lambda z: z[:, 0].numpy(), truth0, opts.steps, opts.torque)
+    model_fall = falls(lambda x, u: ssm.f(x, to_inputs(u)), drawn_angle, nodes, opts.steps)
+    true_fall = falls(true_f, lambda z: z[:, 0].numpy(), truth0, opts.steps)
     readout = np.abs(wrapped(drawn_angle(nodes) - truth0[:, 0].numpy()))
     from_up = upright_error(truth0[:, 0]).numpy()
     generated = (index < int(args.get("n_train", len(index)))).numpy()  # the rest: recorded episodes
@@ -133,8 +146,8 @@ def main(argv: list[str] | None = None) -> None:
     rows = [
         "| true angle from upright (rad) | nodes | of them in closed loop | node's drawn angle error (rad) | model turn "
         "(rad) | true turn (rad) | median ratio | median ratio, closed-loop trajectories | median ratio, open-loop "
-        "(generated) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "(generated) | model fall, no torque (rad) | true fall, no torque (rad) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     ratio = model_turn / true_turn
 
@@ -147,7 +160,7 @@ def main(argv: list[str] | None = None) -> None:
         rows.append(
             f"| {label} | {band.sum()} | {closed[band].mean():.2f} | {readout[band].mean():.3f} | "
             f"{model_turn[band].mean():.3f} | {true_turn[band].mean():.3f} | {med(band)} | {med(band & closed)} | "
-            f"{med(band & opened)} |"
+            f"{med(band & opened)} | {model_fall[band].mean():.3f} | {true_fall[band].mean():.3f} |"
         )
     lines = [
         "# What a learned pendulum SSM believes the torque does, at its shooting nodes",
@@ -160,7 +173,9 @@ def main(argv: list[str] | None = None) -> None:
         "the node's true state by the true equations (true turn); ratio: model / truth (1: the model knows what the "
         "torque does; 0: it believes it does nothing). Binned by the node's true angle from upright. Closed loop: the "
         "data's trajectories driven by its swing-up-and-balance controller plus exploration (closed_loop_share); open "
-        "loop: those driven by the random excitation alone; recorded episodes (recorded) count in neither.",
+        "loop: those driven by the random excitation alone; recorded episodes (recorded) count in neither. Fall: "
+        f"how much farther from upright the angle is after {opts.steps} steps without torque than at the node "
+        "(gravity's pull away from upright), drawn by the model and by the true equations.",
         "",
         *rows,
         "",

@@ -302,6 +302,19 @@ def test_torque_authority_turns_match_a_linear_systems_closed_form():
     np.testing.assert_allclose(true_turn, 3.0 * 0.3**2, rtol=0.1)  # gravity's pull is the same both ways, nearly
 
 
+def test_torque_authority_falls_match_the_linearised_upright_pendulum():
+    """Without torque, from d0 rad off upright at rest, the pendulum's distance from upright grows as d0 cosh(sqrt(g)
+    t) (d'' = g d, linearised); a transition that keeps the state draws no fall."""
+    from benchmarks.torque_authority import falls
+    from ssm_ms.control.module import TruePendulum
+
+    d0 = np.array([0.02, -0.05])
+    states = torch.tensor(np.stack([np.pi + d0, np.zeros(2)], 1), dtype=torch.float64)
+    got = falls(TruePendulum(0.1).double(), lambda z: z[:, 0].numpy(), states, 3)
+    np.testing.assert_allclose(got, np.abs(d0) * (np.cosh(np.sqrt(9.81) * 0.3) - 1), rtol=0.02)
+    assert np.all(falls(lambda x, u: x, lambda z: z[:, 0].numpy(), states, 3) == 0)
+
+
 def test_control_diagnosis_reads_the_filter_and_its_k_step_predictions_as_a_naive_loop():
     """benchmarks/control_diagnosis.py: the angle of each filtered state, and of f applied k times to it under the
     torques that followed, at the frame it predicts; the table's bands by the true angle's distance from upright."""
