@@ -315,6 +315,21 @@ def test_torque_authority_falls_match_the_linearised_upright_pendulum():
     assert np.all(falls(lambda x, u: x, lambda z: z[:, 0].numpy(), states, 3) == 0)
 
 
+def test_authority_needed_scales_the_torque_near_upright_and_elsewhere():
+    """benchmarks/authority_needed.py: the true pendulum with its torque scaled by 0.5 within 0.5 rad of upright and by
+    2 elsewhere turns as the linearised pendulum under the scaled torque does, 2 s tau (cosh(w t) - 1) / w^2 at upright
+    and 2 s tau (1 - cos(w t)) / w^2 hanging (w = sqrt(g), from rest, one frame of 0.1 s)."""
+    from benchmarks.authority_needed import ScaledTorque
+    from benchmarks.torque_authority import turns
+    from ssm_ms.control.module import TruePendulum
+
+    w, t, tau = np.sqrt(9.81), 0.1, 0.1
+    states = torch.tensor([[np.pi + 0.01, 0.0], [0.01, 0.0]], dtype=torch.float64)  # upright, hanging
+    got = turns(ScaledTorque(TruePendulum(t).double(), 0.5, 2.0), lambda z: z[:, 0].numpy(), states, 1, tau)
+    want = [2 * 0.5 * tau * (np.cosh(w * t) - 1) / w**2, 2 * 2.0 * tau * (1 - np.cos(w * t)) / w**2]
+    np.testing.assert_allclose(got, want, rtol=1e-3)
+
+
 def test_control_diagnosis_reads_the_filter_and_its_k_step_predictions_as_a_naive_loop():
     """benchmarks/control_diagnosis.py: the angle of each filtered state, and of f applied k times to it under the
     torques that followed, at the frame it predicts; the table's bands by the true angle's distance from upright."""

@@ -1,0 +1,105 @@
+"""How much of the torque's authority a swing-up planner needs: the true model with its torque scaled.
+
+Run from the repository root::
+
+    python benchmarks/authority_needed.py [--scales 1,1 0.3,0.6 0,0.6 ...] [--config configs/pendulum_true_control.yaml]
+        [--episodes 20] [--out benchmarks/results/authority_needed.md]
+
+The controller of ``--config`` (MPPI on the true model, the true state read; the plant is the Pinocchio simulator)
+plans on the pendulum's own equations with the torque multiplied by ``s_up`` within ``--within`` rad of upright and
+by ``s_else`` elsewhere (``--scales s_up,s_else``): a model that knows gravity exactly and the torque's effect to the
+ratio that ``benchmarks/torque_authority.py`` measures of a learned model (1: right; 0: no effect; below 0: the
+wrong way). Each pair runs the config's episodes; the table gives the success rate and the final error. It says
+which authority profile a learned model must reach before its closed loop can succeed, apart from its estimator.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.control_diagnosis import closed_loop, episodes  # noqa: E402
+from ssm_ms.control.cost import upright_error  # noqa: E402
+from ssm_ms.reproduce import load_config  # noqa: E402
+from ssm_ms.runtime.machine import describe  # noqa: E402
+
+DEFAULT_SCALES = ("1,1", "0.3,0.6", "0.1,0.6", "0,0.6", "-0.27,0.9", "1,0.3")
+
+
+class ScaledTorque(torch.nn.Module):
+    """``f(x, u * s(x))`` with ``s = s_up`` where the angle ``x[:, 0]`` is within ``within`` rad of upright, else
+    ``s_else``: a transition that believes the torque does ``s`` times what ``f`` says."""
+
+    def __init__(self, f: torch.nn.Module, s_up: float, s_else: float, within: float = 0.5):
+        super().__init__()
+        self.f, self.s_up, self.s_else, self.within = f, float(s_up), float(s_else), float(within)
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        near = upright_error(x[:, 0]) < self.within
+        scale = torch.where(near, self.s_up, self.s_else).to(u.dtype)
+        return self.f(x, u * scale[:, None])
+
+
+def pair(text: str) -> tuple[float, float]:
+    try:
+        up, other = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a scale pair is s_up,s_else (e.g. 0.3,0.6), got {text!r}") from None
+    return up, other
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scales", nargs="+", type=pair, default=[pair(s) for s in DEFAULT_SCALES])
+    parser.add_argument("--within", type=float, default=0.5, help="rad from upright where s_up applies")
+    parser.add_argument("--config", default="configs/pendulum_true_control.yaml")
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--out", default="benchmarks/results/authority_needed.md")
+    opts = parser.parse_args(argv)
+    config = load_config(opts.config)
+    rows = [
+        f"| torque scale within {opts.within:g} rad of upright | elsewhere | success | final error (rad) |",
+        "|---:|---:|---:|---:|",
+    ]
+    for s_up, s_else in opts.scales:
+        torch.manual_seed(0)
+        loop, dm = closed_loop(config, true_model=True)
+        loop.f = ScaledTorque(loop.f, s_up, s_else, opts.within)
+        truth = episodes(loop, dm, opts.episodes)[2]  # true angles [B, T+1]
+        error = upright_error(torch.from_numpy(truth)).numpy()
+        window = int(round(loop.success_seconds / loop.frame_dt))
+        final = error[:, -window:]
+        success = (final < loop.tolerance).all(1)
+        rows.append(f"| {s_up:g} | {s_else:g} | {success.sum()}/{len(success)} | {np.mean(final):.3f} |")
+        print(rows[-1], flush=True)
+    lines = [
+        "# How much torque authority the swing-up planner needs",
+        "",
+        f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
+        f"- Machine: {describe()}",
+        f"- Command: `{shlex.join(['python', 'benchmarks/authority_needed.py', *(argv or sys.argv[1:])])}`",
+        f"- The controller of `{opts.config}` plans on the pendulum's true equations and reads the true state, with "
+        "the torque's effect scaled as in each row (the ratio benchmarks/torque_authority.py measures of a learned "
+        "model); the plant is the true simulator. Success: within "
+        f"{loop.tolerance:g} rad of upright over the last {loop.success_seconds:g} s of {loop.seconds:g} s; final "
+        "error: the mean distance from upright over that window.",
+        "",
+        *rows,
+        "",
+    ]
+    Path(opts.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(opts.out).write_text("\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
