@@ -128,3 +128,13 @@ def test_an_include_loop_is_named(tmp_path):
     (tmp_path / "b.yaml").write_text("config: a.yaml\n")
     with pytest.raises(ValueError, match="includes itself"):
         load_config(tmp_path / "a.yaml")
+
+
+def test_the_two_sensor_pendulum_sees_the_camera_pendulums_data():
+    """configs/data/pendulum_sensors.yaml is configs/data/pendulum_torque.yaml's system and excitation with a joint
+    encoder beside the camera: every setting of the torque pendulum's data is the same there (the control rows
+    compare the two on the same data), only the sensors' own settings are added."""
+    torque = yaml.safe_load((ROOT / "configs/data/pendulum_torque.yaml").read_text())["init_args"]
+    sensors = yaml.safe_load((ROOT / "configs/data/pendulum_sensors.yaml").read_text())["init_args"]
+    added = {"sensors", "angle_noise_std", "angle_every"}
+    assert {k: v for k, v in sensors.items() if k not in added} == torque
