@@ -25,7 +25,6 @@ import importlib
 import shlex
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -54,8 +53,7 @@ def closed_loop(config: dict, **changes) -> tuple[ClosedLoop, object]:
     dm.setup("test")
     args = {k: v for k, v in config["model"]["init_args"].items() if k != "ssm_checkpoint"}
     loop = ClosedLoop(**{**args, **changes})
-    loop._trainer = SimpleNamespace(datamodule=dm)  # setup() reads the trainer's data module only
-    loop.setup("test")
+    loop.attach(dm)
     return loop, dm
 
 
@@ -66,7 +64,7 @@ def episodes(loop: ClosedLoop, dm, count: int) -> tuple[list, torch.Tensor, np.n
     start = next(iter(dm.test_dataloader()))["state"][:count, 0].double().numpy()
     periods = int(round(loop.seconds / loop.frame_dt))
     frames = [torch.from_numpy(loop.env.reset(start[:, :1], start[:, 1:]))]
-    controller, inputs, angles = loop._controller(len(start)), [], [loop.env.state[:, 0].copy()]
+    controller, inputs, angles = loop.controller(len(start)), [], [loop.env.state[:, 0].copy()]
     estimator = loop.estimator() if loop.ssm is not None else None
     x = estimator.start(frames[0]) if estimator is not None else None
     for _ in range(periods):
@@ -151,7 +149,7 @@ def main(argv: list[str] | None = None) -> None:
     frames, inputs, truth = episodes(driver, dm, opts.episodes)
     up = upright_error(torch.from_numpy(truth[:, -20:])).numpy()
     read, ahead = diagnose(learned, frames, inputs)
-    images = torch.stack([learned._image(y) for y in frames], 1)  # [B, T+1, 1, H, W]
+    images = torch.stack([learned.camera(y) for y in frames], 1)  # [B, T+1, 1, H, W]
     sc = learned.ink_angle(images.flatten(0, 1)).view(*images.shape[:2], 2)
     columns = {
         "the frame's own ink": torch.atan2(sc[..., 0], sc[..., 1]).double().numpy(),

@@ -424,7 +424,7 @@ def test_control_diagnosis_episodes_plan_on_the_true_state_or_on_the_estimate():
             seconds=0.3,
             frame_dt=0.1,
             env=Env(),
-            _controller=lambda b: controller,
+            controller=lambda b: controller,
             ssm=object() if learned else None,
             estimator=Estimator,
         )

@@ -182,7 +182,12 @@ class ClosedLoop(pl.LightningModule):
 
     # ------------------------------------------------------------------ set-up
     def setup(self, stage: str) -> None:
-        dm = self.trainer.datamodule
+        self.attach(self.trainer.datamodule)
+
+    def attach(self, dm) -> None:
+        """Set up on the data module ``dm`` (its simulator, normalisations and sensors; the learned model's estimator
+        and angle readout): what ``setup`` does under a Trainer, callable without one (e.g. a benchmark running
+        :meth:`controller` on episodes of its own)."""
         if not hasattr(dm, "environment"):
             raise ValueError(f"{type(dm).__name__} has no environment(): closed-loop control needs a simulated system")
         if self.ssm is not None:
@@ -269,7 +274,9 @@ class ClosedLoop(pl.LightningModule):
         return ink_angle_features(frames, pivot)
 
     # ------------------------------------------------------------------ episodes
-    def _controller(self, batch: int) -> RecedingHorizon:
+    def controller(self, batch: int) -> RecedingHorizon:
+        """A fresh receding-horizon controller for ``batch`` episodes at once: ``controller(x) -> u`` plans on this
+        loop's model (the learned ``f`` and its angle readout, or the true pendulum) from states ``x [batch, d]``."""
         cost = SwingUpCost(self.features, self.frame_dt, **self.cost_weights)
         return RecedingHorizon(self.f, cost, self.settings, batch, 1, seed=self.seed)
 
@@ -279,19 +286,19 @@ class ClosedLoop(pl.LightningModule):
         start = batch["state"][:, 0].double().cpu().numpy()
         b, periods = len(start), int(round(self.seconds / self.frame_dt))
         frames = torch.from_numpy(self.env.reset(start[:, :n], start[:, n:]))
-        controller = self._controller(b)
+        controller = self.controller(b)
         noise = torch.Generator().manual_seed(self.seed + 1 + batch_idx)
         mean = estimator = None
         if self.ssm is not None:
             estimator = self.estimator()
             mean = estimator.start(frames)
         truth, states, inputs = [torch.from_numpy(self.env.clean_frames())], [], []
-        seen, believed = [self._image(frames)], []
+        seen, believed = [self.camera(frames)], []
         states.append(torch.from_numpy(self.env.state).float())
         plan_seconds = 0.0
         for _ in range(periods):
             if self.ssm is not None:
-                believed.append(self._image(self.from_frames(decode(self.ssm.g, mean))))
+                believed.append(self.camera(self.from_frames(decode(self.ssm.g, mean))))
             x = mean if self.ssm is not None else torch.from_numpy(self.env.state).float()
             tick = time.perf_counter()
             u = controller(x)
@@ -302,12 +309,12 @@ class ClosedLoop(pl.LightningModule):
             frames = torch.from_numpy(self.env.step(u.double().numpy()))
             if self.ssm is not None:
                 mean = estimator.next(u, frames)
-            seen.append(self._image(frames))
+            seen.append(self.camera(frames))
             truth.append(torch.from_numpy(self.env.clean_frames()))
             states.append(torch.from_numpy(self.env.state).float())
             inputs.append(u.float())
         if self.ssm is not None:
-            believed.append(self._image(self.from_frames(decode(self.ssm.g, mean))))
+            believed.append(self.camera(self.from_frames(decode(self.ssm.g, mean))))
         self._episodes.append(
             {
                 "states": torch.stack(states, 1),
@@ -319,14 +326,14 @@ class ClosedLoop(pl.LightningModule):
             }
         )
 
-    def _image(self, measurement: torch.Tensor) -> torch.Tensor | None:
+    def camera(self, measurement: torch.Tensor) -> torch.Tensor | None:
         """The camera's part of a measurement (``None`` without a camera), for the pictures."""
         return self.streams(measurement).get("image")
 
     @torch.no_grad()
     def planning_seconds(self) -> list[float]:
         """Seconds of planning per control step of one episode alone (hanging at rest), ``timing_steps`` steps."""
-        controller = self._controller(1)
+        controller = self.controller(1)
         x = self.prior[None].clone() if self.ssm is not None else torch.zeros(1, 2)
         times = []
         for _ in range(self.timing_steps):
