@@ -65,7 +65,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--out", default="benchmarks/results/authority_needed.md")
     opts = parser.parse_args(argv)
+    if not Path(opts.config).is_file():
+        sys.exit(f"no config at {opts.config}: give a closed-loop config (e.g. configs/pendulum_true_control.yaml)")
     config = load_config(opts.config)
+    starts = config["data"].get("init_args", {}).get("n_test")
+    if opts.episodes < 1 or (starts is not None and opts.episodes > starts):
+        sys.exit(f"--episodes must be 1 to {starts} (the starts of {opts.config}'s test split), got {opts.episodes}")
     rows = [
         f"| torque scale within {opts.within:g} rad of upright | elsewhere | success | final error (rad) |",
         "|---:|---:|---:|---:|",

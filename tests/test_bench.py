@@ -330,6 +330,15 @@ def test_authority_needed_scales_the_torque_near_upright_and_elsewhere():
     np.testing.assert_allclose(got, want, rtol=1e-3)
 
 
+def test_authority_needed_refuses_more_episodes_than_starts_and_a_missing_config():
+    from benchmarks.authority_needed import main
+
+    with pytest.raises(SystemExit, match=r"--episodes must be 1 to 20 .* got 21"):
+        main(["--episodes", "21", "--out", "unused.md"])
+    with pytest.raises(SystemExit, match="no config at nope.yaml"):
+        main(["--config", "nope.yaml"])
+
+
 def test_control_diagnosis_reads_the_filter_and_its_k_step_predictions_as_a_naive_loop():
     """benchmarks/control_diagnosis.py: the angle of each filtered state, and of f applied k times to it under the
     torques that followed, at the frame it predicts; the table's bands by the true angle's distance from upright."""
