@@ -16,8 +16,6 @@ which authority profile a learned model must reach before its closed loop can su
 from __future__ import annotations
 
 import argparse
-import datetime
-import shlex
 import sys
 from pathlib import Path
 
@@ -28,9 +26,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.control_diagnosis import closed_loop, episodes  # noqa: E402
+from benchmarks.report import provenance, write  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.reproduce import load_config  # noqa: E402
-from ssm_ms.runtime.machine import describe  # noqa: E402
 
 DEFAULT_SCALES = ("1,1", "0.3,0.6", "0.1,0.6", "0,0.6", "-0.27,0.9", "1,0.3")
 
@@ -89,9 +87,7 @@ def main(argv: list[str] | None = None) -> None:
     lines = [
         "# How much torque authority the swing-up planner needs",
         "",
-        f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
-        f"- Machine: {describe()}",
-        f"- Command: `{shlex.join(['python', 'benchmarks/authority_needed.py', *(argv or sys.argv[1:])])}`",
+        *provenance("benchmarks/authority_needed.py", argv),
         f"- The controller of `{opts.config}` plans on the pendulum's true equations and reads the true state, with "
         "the torque's effect scaled as in each row (the ratio benchmarks/torque_authority.py measures of a learned "
         "model); the plant is the true simulator. Success: within "
@@ -101,9 +97,7 @@ def main(argv: list[str] | None = None) -> None:
         *rows,
         "",
     ]
-    Path(opts.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(opts.out).write_text("\n".join(lines))
-    print("\n".join(lines))
+    write(opts.out, lines)
 
 
 if __name__ == "__main__":

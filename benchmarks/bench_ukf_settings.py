@@ -16,7 +16,6 @@ the ratio to the default.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import shlex
 import subprocess
@@ -28,8 +27,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.report import provenance  # noqa: E402
 from ssm_ms.reproduce import load_config  # noqa: E402
-from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
+from ssm_ms.runtime.machine import CpuWatch, quiet_note  # noqa: E402
 
 VARIANTS = [  # (label, method name, unscented, init_mean)
     ("beta = 2 (2d + 1 points), mean node start: ours, the default", "ukf", {"beta": 2.0}, "nodes"),
@@ -82,10 +82,8 @@ def main(argv: list[str] | None = None) -> None:
     lines = [
         "# The UKF's sigma points and prior mean against the paper's filter, on Lorenz (one run)",
         "",
-        f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
-        f"- Machine: {describe()}",
+        *provenance("benchmarks/bench_ukf_settings.py", argv),
         f"- Others' CPU use: {quiet_note(watch.others())}",
-        f"- Command: `{shlex.join(['python', 'benchmarks/bench_ukf_settings.py', *(argv or sys.argv[1:])])}`",
         f"- SSM: `{ckpt.relative_to(ROOT) if ckpt.is_relative_to(ROOT) else ckpt}`; protocol and noise settings: "
         f"`{args.config}` (process_var {stage['process_var']}, measurement_var {stage['measurement_var']}, "
         f"init_var {stage['init_var']}, filter {stage['n_filter']} steps, then forecast).",

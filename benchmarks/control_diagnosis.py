@@ -20,9 +20,7 @@ predictions), above all near upright, where it must catch the pendulum.
 from __future__ import annotations
 
 import argparse
-import datetime
 import importlib
-import shlex
 import sys
 from pathlib import Path
 
@@ -32,10 +30,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.report import provenance, write  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.module import ClosedLoop  # noqa: E402
 from ssm_ms.reproduce import load_config  # noqa: E402
-from ssm_ms.runtime.machine import describe  # noqa: E402
 
 BANDS = ((0.0, 0.5), (0.5, 1.5), (1.5, 2.5), (2.5, np.pi + 1e-9))  # rad from upright
 STEPS = (1, 5, 10)
@@ -160,9 +158,7 @@ def main(argv: list[str] | None = None) -> None:
         "# A learned pendulum SSM along "
         + ("the true-model controller's swing-ups" if opts.episodes_of == "true" else "its own controller's episodes"),
         "",
-        f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
-        f"- Machine: {describe()}",
-        f"- Command: `{shlex.join(['python', 'benchmarks/control_diagnosis.py', *(argv or sys.argv[1:])])}`",
+        *provenance("benchmarks/control_diagnosis.py", argv),
         f"- Episodes: {len(truth)} from `{opts.config}`'s starts, planned "
         + ("on the true model with the true state " if opts.episodes_of == "true" else "on the learned model itself ")
         + (
@@ -177,9 +173,7 @@ def main(argv: list[str] | None = None) -> None:
         *table(truth, columns),
         "",
     ]
-    Path(opts.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(opts.out).write_text("\n".join(lines))
-    print("\n".join(lines))
+    write(opts.out, lines)
 
 
 if __name__ == "__main__":

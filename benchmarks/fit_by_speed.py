@@ -15,8 +15,6 @@ the config the SSM was trained with (its data section is read; the normalisation
 from __future__ import annotations
 
 import argparse
-import datetime
-import shlex
 import sys
 from pathlib import Path
 
@@ -26,10 +24,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.report import provenance  # noqa: E402
 from datamodules.pendulum import PendulumDataModule  # noqa: E402
 from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
 from ssm_ms.reproduce import load_config  # noqa: E402
-from ssm_ms.runtime.machine import describe  # noqa: E402
 from ssm_ms.training.shooting import rollout  # noqa: E402
 
 BANDS = ((0.0, 2.0), (2.0, 4.0), (4.0, 6.0), (6.0, float("inf")))  # rad/s
@@ -85,9 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     lines = [
         "# A pendulum SSM's fit of its training trajectories, by angular speed (one run)",
         "",
-        f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
-        f"- Machine: {describe()}",
-        f"- Command: `{shlex.join(['python', 'benchmarks/fit_by_speed.py', *(argv if argv is not None else sys.argv[1:])])}`",
+        *provenance("benchmarks/fit_by_speed.py", argv),
         f"- Data: those of `{args.config}`, the first {count} training trajectories; each piece rolled out from its own "
         "node under its own inputs, decoded by g; mean squared error per frame against the noiseless frame.",
         "",

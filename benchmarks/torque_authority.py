@@ -20,9 +20,7 @@ generator's parameters saved in its checkpoint are checked).
 from __future__ import annotations
 
 import argparse
-import datetime
 import importlib
-import shlex
 import sys
 from pathlib import Path
 
@@ -34,12 +32,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.control_diagnosis import BANDS  # noqa: E402  (the same bands of distance from upright)
+from benchmarks.report import provenance, write  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.goals import ink_angle_features  # noqa: E402
 from ssm_ms.control.module import TruePendulum  # noqa: E402
 from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
 from ssm_ms.nets.sensors import SensorLayout  # noqa: E402
-from ssm_ms.runtime.machine import describe  # noqa: E402
 from ssm_ms.training.shooting import decode  # noqa: E402
 
 
@@ -165,9 +163,7 @@ def main(argv: list[str] | None = None) -> None:
     lines = [
         "# What a learned pendulum SSM believes the torque does, at its shooting nodes",
         "",
-        f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
-        f"- Machine: {describe()}",
-        f"- Command: `{shlex.join(['python', 'benchmarks/torque_authority.py', *(argv or sys.argv[1:])])}`",
+        *provenance("benchmarks/torque_authority.py", argv),
         f"- From each of the {len(nodes)} shooting nodes, {opts.steps} steps of {opts.torque:g} N m one way against "
         "the other: how far apart the angles the decoder draws at the two ends are (model turn), beside the same from "
         "the node's true state by the true equations (true turn); ratio: model / truth (1: the model knows what the "
@@ -180,9 +176,7 @@ def main(argv: list[str] | None = None) -> None:
         *rows,
         "",
     ]
-    Path(opts.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(opts.out).write_text("\n".join(lines))
-    print("\n".join(lines))
+    write(opts.out, lines)
 
 
 if __name__ == "__main__":

@@ -447,3 +447,22 @@ def test_control_diagnosis_episodes_plan_on_the_true_state_or_on_the_estimate():
             np.testing.assert_allclose(inputs[:, t].numpy(), u, rtol=1e-6)
             q = q + u
         np.testing.assert_allclose(angles[:, 3], q[:, 0], rtol=1e-6)
+
+
+def test_benchmark_provenance_names_the_date_machine_and_the_command_given(tmp_path, monkeypatch):
+    """benchmarks/report.py: the command is the arguments given (none given: none, not the test runner's), and the
+    file written is what is printed."""
+    import datetime
+
+    from benchmarks.report import provenance, write
+
+    monkeypatch.setattr("sys.argv", ["pytest", "-k", "x"])
+    date, machine, command = provenance("benchmarks/x.py", [])
+    assert command == "- Command: `python benchmarks/x.py`"
+    assert provenance("benchmarks/x.py", None)[2] == "- Command: `python benchmarks/x.py -k x`"
+    assert provenance("benchmarks/x.py", ["--out", "a b.md"])[2] == "- Command: `python benchmarks/x.py --out 'a b.md'`"
+    assert date.startswith(f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d}") and machine.startswith(
+        "- Machine: "
+    )
+    write(tmp_path / "sub" / "r.md", ["# r", "", command])
+    assert (tmp_path / "sub" / "r.md").read_text() == "# r\n\n- Command: `python benchmarks/x.py`\n"
