@@ -19,7 +19,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -73,16 +72,13 @@ def main(argv: list[str] | None = None) -> None:
         f"| torque scale within {opts.within:g} rad of upright | elsewhere | success | final error (rad) |",
         "|---:|---:|---:|---:|",
     ]
+    loop, dm = closed_loop(config, true_model=True)
+    true_f = loop.f
     for s_up, s_else in opts.scales:
         torch.manual_seed(0)
-        loop, dm = closed_loop(config, true_model=True)
-        loop.f = ScaledTorque(loop.f, s_up, s_else, opts.within)
-        truth = episodes(loop, dm, opts.episodes)[2]  # true angles [B, T+1]
-        error = upright_error(torch.from_numpy(truth)).numpy()
-        window = int(round(loop.success_seconds / loop.frame_dt))
-        final = error[:, -window:]
-        success = (final < loop.tolerance).all(1)
-        rows.append(f"| {s_up:g} | {s_else:g} | {success.sum()}/{len(success)} | {np.mean(final):.3f} |")
+        loop.f = ScaledTorque(true_f, s_up, s_else, opts.within)  # each episode batch resets the simulator
+        _, _, final, success = loop.judge(torch.from_numpy(episodes(loop, dm, opts.episodes)[2]))
+        rows.append(f"| {s_up:g} | {s_else:g} | {int(success.sum())}/{len(success)} | {final.mean():.3f} |")
         print(rows[-1], flush=True)
     lines = [
         "# How much torque authority the swing-up planner needs",

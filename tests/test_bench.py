@@ -330,11 +330,11 @@ def test_authority_needed_scales_the_torque_near_upright_and_elsewhere():
     np.testing.assert_allclose(got, want, rtol=1e-3)
 
 
-def test_authority_needed_refuses_more_episodes_than_starts_and_a_missing_config():
+def test_authority_needed_refuses_more_episodes_than_starts_and_a_missing_config(tmp_path):
     from benchmarks.authority_needed import main
 
     with pytest.raises(SystemExit, match=r"--episodes must be 1 to 20 .* got 21"):
-        main(["--episodes", "21", "--out", "unused.md"])
+        main(["--episodes", "21", "--out", str(tmp_path / "unused.md")])
     with pytest.raises(SystemExit, match="no config at nope.yaml"):
         main(["--config", "nope.yaml"])
 

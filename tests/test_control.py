@@ -212,3 +212,21 @@ def test_recorded_episodes_become_training_data(tmp_path):
         P.PendulumDataModule(**{**args, "image_size": 32}, recorded=[str(record)]).recorded_info()
     with pytest.raises(ValueError, match="the data need"):
         P.PendulumDataModule(**{**args, "duration": 2.0}, recorded=[str(record)]).recorded_info()
+
+
+def test_an_episode_succeeds_when_every_angle_of_its_final_window_is_within_tolerance():
+    """ClosedLoop.judge against a naive loop: 1 s episodes of 0.1 s periods, success over the last 0.3 s (3 angles)
+    within 0.3 rad of upright; one angle of the window outside fails the episode, earlier ones do not count."""
+    from ssm_ms.control.module import ClosedLoop
+
+    loop = ClosedLoop(true_model=True, seconds=1.0, success_seconds=0.3, tolerance=0.3, figures_dir=None)
+    loop.frame_dt = 0.1
+    rng = np.random.default_rng(0)
+    angles = np.pi + rng.uniform(-0.25, 0.25, size=(4, 11))
+    angles[1, -2] = np.pi + 0.4  # in the window: fails
+    angles[2, -4] = np.pi - 1.0  # before the window: still succeeds
+    angles[3, -1] = -np.pi + 0.2  # upright from the other side (wrapped): succeeds
+    error, window, final, success = loop.judge(torch.from_numpy(angles))
+    naive = [all(abs((a - np.pi + np.pi) % (2 * np.pi) - np.pi) < 0.3 for a in row[-3:]) for row in angles]
+    assert window == 3 and final.shape == (4, 3)
+    assert success.tolist() == naive == [True, False, True, True]

@@ -326,6 +326,15 @@ class ClosedLoop(pl.LightningModule):
             }
         )
 
+    def judge(self, angles: torch.Tensor) -> tuple[torch.Tensor, int, torch.Tensor, torch.Tensor]:
+        """Episodes' true angles ``[E, T+1]`` (0 hanging) judged by the task: the distance from upright ``[E, T+1]``,
+        the final window's length in periods, that window's distances ``[E, window]`` and success ``[E]`` (within
+        ``tolerance`` of upright over the whole window)."""
+        error = upright_error(angles.double())
+        window = int(round(self.success_seconds / self.frame_dt))
+        final = error[:, -window:]
+        return error, window, final, (final < self.tolerance).all(dim=1)
+
     def camera(self, measurement: torch.Tensor) -> torch.Tensor | None:
         """The camera's part of a measurement (``None`` without a camera), for the pictures."""
         return self.streams(measurement).get("image")
@@ -349,10 +358,8 @@ class ClosedLoop(pl.LightningModule):
 
         runs = self._episodes
         states = torch.cat([r["states"] for r in runs])  # [E, T+1, 2]
-        error = upright_error(states[..., 0].double())  # [E, T+1]
-        window = int(round(self.success_seconds / self.frame_dt))
-        final = error[:, -window:]
-        success = (final < self.tolerance).all(dim=1).double()
+        error, window, final, success = self.judge(states[..., 0])
+        success = success.double()
         times = torch.tensor(self.planning_seconds(), dtype=torch.float64) * 1000
         summary = {
             f"{self.method_name}/episodes/success": _stats(success),
