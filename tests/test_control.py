@@ -99,6 +99,57 @@ def test_mppi_drives_a_point_to_its_target_within_the_bounds():
     assert plan.abs().max() < 0.5 and best.item() < 0.05  # at the target: stay
 
 
+def test_offset_free_planning_cancels_a_constant_model_error():
+    """The system x+ = x + 0.1 u + 0.1, planned on the model x+ = x + 0.1 u towards x = 1: plain receding-horizon
+    planning holds x about the model's error (0.1) off the target, offset-free planning (gain 1) at the target."""
+    settings = MPPISettings(horizon=10, samples=128, iterations=2, noise_std=1.0, temperature=0.1, u_min=-2, u_max=2)
+
+    def model(x, u):
+        return x + 0.1 * u
+
+    def cost(states, inputs):
+        return (states[..., 0] - 1.0).pow(2).sum(-1)
+
+    def settle(gain: float) -> float:
+        controller = RecedingHorizon(model, cost, settings, batch=3, input_dim=1, offset_gain=gain)
+        x, seen = torch.zeros(3, 1), []
+        for _ in range(40):
+            x = model(x, controller(x)) + 0.1
+            seen.append((x - 1).abs().mean().item())
+        return sum(seen[-10:]) / 10
+
+    assert settle(0.0) > 0.07
+    assert settle(1.0) < 0.03
+    with pytest.raises(ValueError, match="offset_gain"):
+        RecedingHorizon(model, cost, settings, batch=1, input_dim=1, offset_gain=1.5)
+
+
+def test_offset_estimate_is_the_filtered_one_step_error():
+    """The planner's offset against a naive running filter of x[t] - f(x[t-1], u[t-1]), with the inputs it returned
+    or, where given, the ones applied instead."""
+    settings = MPPISettings(horizon=4, samples=16, iterations=1, noise_std=0.5, u_min=-1, u_max=1)
+
+    def f(x, u):
+        return 0.9 * x + torch.sin(x) * u
+
+    def cost(states, inputs):
+        return states.pow(2).sum((-1, -2))
+
+    gain, generator = 0.3, torch.Generator().manual_seed(1)
+    states = [torch.randn(2, 3, generator=generator) for _ in range(4)]
+    controller = RecedingHorizon(f, cost, settings, batch=2, input_dim=1, offset_gain=gain)
+    u0 = controller(states[0])
+    assert controller.offset is None
+    u1 = controller(states[1])
+    expected = gain * (states[1] - f(states[0], u0))
+    torch.testing.assert_close(controller.offset, expected)
+    other = torch.full((2, 1), 0.7)
+    controller(states[2], applied=other)
+    expected = (1 - gain) * expected + gain * (states[2] - f(states[1], other))
+    torch.testing.assert_close(controller.offset, expected)
+    assert not torch.allclose(u1, other)
+
+
 def test_distilled_features_fit_a_known_map():
     torch.manual_seed(0)
     states = torch.rand(5000, 3) * 6 - 3

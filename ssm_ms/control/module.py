@@ -9,7 +9,8 @@ Each test batch is a batch of episodes: the DataModule's test trajectories give 
 2. the plan: MPPI (:mod:`ssm_ms.control.mppi`) rolls sampled torque sequences out through ``f`` from the estimate
    and scores them with the swing-up cost (:mod:`ssm_ms.control.cost`) on the angle each predicted state shows:
    for a learned model, the angle of the ink of the frame its decoder draws (:mod:`ssm_ms.control.goals`, distilled
-   into a small network once, at setup); for the true model, its angle;
+   into a small network once, at setup); for the true model, its angle; with ``offset_gain``, on ``f`` corrected
+   by its one-step error along the episode so far (offset-free planning);
 3. the first torque of the plan is applied for one period.
 
 Scored on the simulator's true angle: an episode succeeds when the pendulum stays within ``tolerance`` of upright
@@ -97,6 +98,9 @@ class ClosedLoop(pl.LightningModule):
             over its last ``success_seconds``.
         planner: :class:`~ssm_ms.control.mppi.MPPISettings` (horizon, samples, iterations, noise_std,
             temperature, u_min, u_max in N m, smoothing).
+        offset_gain: offset-free planning (:class:`~ssm_ms.control.mppi.RecedingHorizon`): plan on ``f`` plus a
+            running estimate of its one-step error along the episode, the newest error weighed by this gain (0: off;
+            1: the last step's error alone).
         cost: the :class:`~ssm_ms.control.cost.SwingUpCost` weights ``w_velocity``, ``w_input``, and its energy
             bound ``max_energy`` (J; e.g. the data's) with its weight ``w_energy``.
         estimator: the UKF's ``process_var``, ``measurement_var`` (``None``: the data's sensor noise, per stream with
@@ -127,6 +131,7 @@ class ClosedLoop(pl.LightningModule):
         success_seconds: float = 2.0,
         tolerance: float = 0.3,
         planner: dict[str, Any] | None = None,
+        offset_gain: float = 0.0,
         cost: dict[str, Any] | None = None,
         estimator: dict[str, Any] | None = None,
         distill: dict[str, Any] | None = None,
@@ -154,6 +159,12 @@ class ClosedLoop(pl.LightningModule):
         if not exploration >= 0:
             raise ValueError(f"exploration is a standard deviation of torque noise (N m): >= 0, got {exploration}")
         self.exploration, self.record = float(exploration), record
+        if not 0.0 <= offset_gain <= 1.0:
+            raise ValueError(
+                f"offset_gain weighs the newest model error in the planner's running estimate: 0 (off) to 1, got "
+                f"{offset_gain}"
+            )
+        self.offset_gain = float(offset_gain)
         self.experiment, self.results_dir, self.figures_dir = experiment, results_dir, figures_dir
         self.ssm_checkpoint = ssm_checkpoint
         self.ssm = None
@@ -278,7 +289,7 @@ class ClosedLoop(pl.LightningModule):
         """A fresh receding-horizon controller for ``batch`` episodes at once: ``controller(x) -> u`` plans on this
         loop's model (the learned ``f`` and its angle readout, or the true pendulum) from states ``x [batch, d]``."""
         cost = SwingUpCost(self.features, self.frame_dt, **self.cost_weights)
-        return RecedingHorizon(self.f, cost, self.settings, batch, 1, seed=self.seed)
+        return RecedingHorizon(self.f, cost, self.settings, batch, 1, seed=self.seed, offset_gain=self.offset_gain)
 
     @torch.no_grad()
     def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
@@ -301,7 +312,7 @@ class ClosedLoop(pl.LightningModule):
                 believed.append(self.camera(self.from_frames(decode(self.ssm.g, mean))))
             x = mean if self.ssm is not None else torch.from_numpy(self.env.state).float()
             tick = time.perf_counter()
-            u = controller(x)
+            u = controller(x, applied=inputs[-1] if inputs else None)
             plan_seconds += time.perf_counter() - tick
             if self.exploration:
                 u = u + self.exploration * torch.randn(u.shape, generator=noise, dtype=u.dtype)
@@ -426,6 +437,8 @@ class ClosedLoop(pl.LightningModule):
             f"temperature {s.temperature}, torque within [{s.u_min}, {s.u_max}] N m; episodes of {self.seconds} s, "
             f"success: within {self.tolerance} rad of upright over the last {self.success_seconds} s"
         )
+        if self.offset_gain:
+            line += f"; offset-free planning, gain {self.offset_gain}"
         if self.exploration:
             line += f"; exploration: N(0, {self.exploration}^2) N m added to every planned torque"
         if self.cost_weights.get("max_energy") is not None:

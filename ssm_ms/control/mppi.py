@@ -7,6 +7,14 @@ them with ``cost(states, inputs)``, and moves the nominal plan to the exponentia
 one setting fits costs of any scale). Inputs stay within ``[u_min, u_max]`` (clipped), the nominal plan is sample 0
 of every iteration (a plan never gets worse by resampling), and :class:`RecedingHorizon` applies the first input
 and shifts the plan by one step for the next control step.
+
+Offset-free planning (``offset_gain`` > 0, the disturbance estimate of offset-free MPC): a learned ``f`` that is
+slightly wrong where the system is held (near an unstable equilibrium, say) makes a planner hold it a little off
+its goal, where the error grows until the actuator's limits cannot catch it. :class:`RecedingHorizon` therefore
+compares each new state with what ``f`` predicted for it from the previous state and input, keeps a filtered
+estimate of the difference, ``d <- (1 - gain) d + gain (x[t] - f(x[t-1], u[t-1]))``, and plans on
+``f(x, u) + d``: a constant error of ``f`` is then cancelled after one step (``gain`` 1) and the hold has no
+steady offset, like a controller's integral action.
 """
 
 from __future__ import annotations
@@ -95,7 +103,11 @@ def mppi(
 
 class RecedingHorizon:
     """The control loop's planner: keeps a nominal plan per problem, refines it every step with :func:`mppi`,
-    applies its first input and shifts it by one step (the last input repeated)."""
+    applies its first input and shifts it by one step (the last input repeated).
+
+    With ``offset_gain`` in (0, 1], it plans on ``f(x, u) + offset``, ``offset [B, d]`` the filtered difference
+    between each state it is given and ``f``'s prediction of it from the previous call's state and input (see the
+    module doc; 0: plain ``f``)."""
 
     def __init__(
         self,
@@ -106,17 +118,39 @@ class RecedingHorizon:
         input_dim: int,
         seed: int = 0,
         dtype: torch.dtype = torch.float32,
+        offset_gain: float = 0.0,
     ):
-        self.f, self.cost, self.settings = f, cost, settings
+        if not 0.0 <= offset_gain <= 1.0:
+            raise ValueError(
+                f"offset_gain weighs the newest model error in its running estimate: 0 to 1, got {offset_gain}"
+            )
+        self.f, self.cost, self.settings, self.offset_gain = f, cost, settings, float(offset_gain)
         self.plan = torch.zeros(batch, settings.horizon, input_dim, dtype=dtype)
         self.generator = torch.Generator().manual_seed(seed)
+        self.offset: torch.Tensor | None = None
+        self._last: tuple[torch.Tensor, torch.Tensor] | None = None  # the previous call's state and input
 
     @torch.no_grad()
-    def __call__(self, x: torch.Tensor) -> torch.Tensor:
-        """The inputs ``[B, m]`` to apply now, from the current state estimates ``x [B, d]``."""
-        self.plan, self.last_cost = mppi(
-            self.f, self.cost, x.to(self.plan.dtype), self.plan, self.settings, self.generator
-        )
+    def __call__(self, x: torch.Tensor, applied: torch.Tensor | None = None) -> torch.Tensor:
+        """The inputs ``[B, m]`` to apply now, from the current state estimates ``x [B, d]``; ``applied``: the inputs
+        applied since the previous call where they differ from the ones it returned (e.g. with exploration noise)."""
+        x = x.to(self.plan.dtype)
+        f = self.f
+        if self.offset_gain > 0:
+            if self._last is not None:
+                previous, u = self._last
+                u = u if applied is None else applied.to(u.dtype)
+                error = x - self.f(previous, u)
+                gain = self.offset_gain
+                self.offset = gain * error if self.offset is None else (1 - gain) * self.offset + gain * error
+            if self.offset is not None:
+                samples = self.offset.repeat_interleave(self.settings.samples, dim=0)
+
+                def f(z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+                    return self.f(z, u) + samples
+
+        self.plan, self.last_cost = mppi(f, self.cost, x, self.plan, self.settings, self.generator)
         u = self.plan[:, 0].clone()
         self.plan = torch.cat([self.plan[:, 1:], self.plan[:, -1:]], dim=1)
+        self._last = (x, u)
         return u
