@@ -55,24 +55,13 @@ def closed_loop(config: dict, **changes) -> tuple[ClosedLoop, object]:
     return loop, dm
 
 
-@torch.no_grad()
 def episodes(loop: ClosedLoop, dm, count: int) -> tuple[list, torch.Tensor, np.ndarray]:
-    """``loop``'s controller's episodes (the true model planning on the true state, or a learned model on its
-    estimator's state): frames ``[T+1]`` of ``[B, ...]``, torques ``[B, T, 1]``, true angles ``[B, T+1]``."""
+    """``loop``'s episodes (:meth:`ClosedLoop.episodes`: the true model planning on the true state, or a learned
+    model on its estimator's state) from the first ``count`` starts of ``dm``'s test split: measurements ``[T+1]``
+    of ``[B, ...]``, torques ``[B, T, 1]``, true angles ``[B, T+1]``."""
     start = next(iter(dm.test_dataloader()))["state"][:count, 0].double().numpy()
-    periods = int(round(loop.seconds / loop.frame_dt))
-    frames = [torch.from_numpy(loop.env.reset(start[:, :1], start[:, 1:]))]
-    controller, inputs, angles = loop.controller(len(start)), [], [loop.env.state[:, 0].copy()]
-    estimator = loop.estimator() if loop.ssm is not None else None
-    x = estimator.start(frames[0]) if estimator is not None else None
-    for _ in range(periods):
-        u = controller(torch.from_numpy(loop.env.state).float() if estimator is None else x)
-        frames.append(torch.from_numpy(loop.env.step(u.double().numpy())))
-        if estimator is not None:
-            x = estimator.next(u, frames[-1])
-        inputs.append(u.float())
-        angles.append(loop.env.state[:, 0].copy())
-    return frames, torch.stack(inputs, 1), np.stack(angles, 1)
+    run = loop.episodes(start)
+    return run["measurements"], run["inputs"], run["states"][..., 0].double().numpy()
 
 
 @torch.no_grad()

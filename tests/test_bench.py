@@ -393,15 +393,19 @@ def test_control_diagnosis_reads_the_filter_and_its_k_step_predictions_as_a_naiv
     assert rows[3].startswith("| 0.5 to 1.5 | 0.25 |") and rows[5].startswith("| 2.5 and above | 0.25 |")
 
 
-def test_control_diagnosis_episodes_plan_on_the_true_state_or_on_the_estimate():
-    """benchmarks/control_diagnosis.py's episodes: the true model's controller sees the simulator's state; a learned
-    model's sees its estimator's output after each measurement (as in the closed loop); frames, torques and true
-    angles are recorded per period (a scalar system stepped by hand)."""
+def test_closed_loop_episodes_plan_on_the_true_state_or_on_the_estimate():
+    """ClosedLoop.episodes (through benchmarks/control_diagnosis.py's episodes): the true model's controller sees the
+    simulator's state; a learned model's sees its estimator's output after each measurement; measurements, torques
+    (exploration noise included) and true angles are recorded per period, and the planner is told the torque
+    applied (a scalar system stepped by hand)."""
     from types import SimpleNamespace
 
     from benchmarks import control_diagnosis as D
+    from ssm_ms.control.module import ClosedLoop
 
     class Env:  # x+ = x + u, measured as y = 10 x
+        params = {"n_links": 1}
+
         def reset(self, q, v):
             self.q = q.copy()
             return 10 * self.q
@@ -422,29 +426,38 @@ def test_control_diagnosis_episodes_plan_on_the_true_state_or_on_the_estimate():
             return y.float() / 10 + 1
 
     dm = SimpleNamespace(test_dataloader=lambda: [{"state": torch.tensor([[[2.0, 0.0]], [[-1.0, 0.0]]])}])
-    for learned in (False, True):
-        seen = []
+    for learned, exploration in ((False, 0.0), (True, 0.0), (True, 0.3)):
+        seen, told = [], []
 
-        def controller(x, seen=seen):
+        def controller(x, applied=None, seen=seen, told=told):
             seen.append(x[:, :1].clone())
+            told.append(applied)
             return -0.5 * x[:, :1]
 
         loop = SimpleNamespace(
             seconds=0.3,
             frame_dt=0.1,
             env=Env(),
-            controller=lambda b: controller,
+            controller=lambda b, c=controller: c,
             ssm=object() if learned else None,
             estimator=Estimator,
+            seed=0,
+            exploration=exploration,
+            settings=SimpleNamespace(u_min=-10.0, u_max=10.0),
         )
+        loop.episodes = lambda start, loop=loop, **k: ClosedLoop.episodes(loop, start, **k)
         frames, inputs, angles = D.episodes(loop, dm, 2)
         q, bias = np.array([[2.0], [-1.0]]), 1.0 if learned else 0.0
+        assert told[0] is None
         for t in range(3):
             np.testing.assert_allclose(seen[t].numpy(), q + bias, rtol=1e-6)
-            np.testing.assert_allclose(angles[:, t], q[:, 0])
+            np.testing.assert_allclose(angles[:, t], q[:, 0], rtol=1e-6)
             np.testing.assert_allclose(frames[t].numpy(), 10 * q, rtol=1e-6)
-            u = -0.5 * (q + bias)
-            np.testing.assert_allclose(inputs[:, t].numpy(), u, rtol=1e-6)
+            u = inputs[:, t].numpy()
+            planned = -0.5 * (q + bias)
+            assert np.allclose(u, planned, rtol=1e-6) == (exploration == 0)
+            if t:
+                np.testing.assert_allclose(told[t].numpy(), inputs[:, t - 1].numpy())
             q = q + u
         np.testing.assert_allclose(angles[:, 3], q[:, 0], rtol=1e-6)
 

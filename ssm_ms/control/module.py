@@ -292,50 +292,55 @@ class ClosedLoop(pl.LightningModule):
         return RecedingHorizon(self.f, cost, self.settings, batch, 1, seed=self.seed, offset_gain=self.offset_gain)
 
     @torch.no_grad()
-    def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+    def episodes(self, start: np.ndarray, batch_idx: int = 0, pictures: bool = False) -> dict[str, Any]:
+        """Episodes from the true initial states ``start [B, 2 n]`` (angles, then velocities), each period estimate,
+        plan and act (the module doc): the loop of :meth:`test_step`, for scripts that run episodes of their own.
+
+        Returns ``states [B, T+1, 2 n]`` (the simulator's), ``inputs [B, T, m]`` (as applied, exploration included)
+        and ``measurements``, the ``T + 1`` measurements ``[B, ...]`` as the sensors gave them; with ``pictures``,
+        ``seen``, ``truth`` and ``believed`` ``[B, T+1, 1, H, W]``: the camera's frames, their clean twins and the
+        frames ``g`` draws from each estimate (``None`` without a camera, or for the true model).
+        """
         n = self.env.params["n_links"]
-        start = batch["state"][:, 0].double().cpu().numpy()
-        b, periods = len(start), int(round(self.seconds / self.frame_dt))
-        frames = torch.from_numpy(self.env.reset(start[:, :n], start[:, n:]))
-        controller = self.controller(b)
+        periods = int(round(self.seconds / self.frame_dt))
+        y = torch.from_numpy(self.env.reset(start[:, :n], start[:, n:]))
+        controller = self.controller(len(start))
         noise = torch.Generator().manual_seed(self.seed + 1 + batch_idx)
-        mean = estimator = None
-        if self.ssm is not None:
-            estimator = self.estimator()
-            mean = estimator.start(frames)
-        truth, states, inputs = [torch.from_numpy(self.env.clean_frames())], [], []
-        seen, believed = [self.camera(frames)], []
-        states.append(torch.from_numpy(self.env.state).float())
-        plan_seconds = 0.0
+        estimator = self.estimator() if self.ssm is not None else None
+        mean = estimator.start(y) if estimator is not None else None
+        measurements, states, inputs, truth, believed = [y], [torch.from_numpy(self.env.state).float()], [], [], []
+
+        def picture() -> None:
+            if pictures:
+                truth.append(torch.from_numpy(self.env.clean_frames()))
+                if mean is not None:
+                    believed.append(self.camera(self.from_frames(decode(self.ssm.g, mean))))
+
+        picture()
         for _ in range(periods):
-            if self.ssm is not None:
-                believed.append(self.camera(self.from_frames(decode(self.ssm.g, mean))))
-            x = mean if self.ssm is not None else torch.from_numpy(self.env.state).float()
-            tick = time.perf_counter()
-            u = controller(x, applied=inputs[-1] if inputs else None)
-            plan_seconds += time.perf_counter() - tick
+            u = controller(states[-1] if mean is None else mean, applied=inputs[-1] if inputs else None)
             if self.exploration:
                 u = u + self.exploration * torch.randn(u.shape, generator=noise, dtype=u.dtype)
                 u = u.clamp(self.settings.u_min, self.settings.u_max)
-            frames = torch.from_numpy(self.env.step(u.double().numpy()))
-            if self.ssm is not None:
-                mean = estimator.next(u, frames)
-            seen.append(self.camera(frames))
-            truth.append(torch.from_numpy(self.env.clean_frames()))
+            y = torch.from_numpy(self.env.step(u.double().numpy()))
+            if estimator is not None:
+                mean = estimator.next(u, y)
+            measurements.append(y)
             states.append(torch.from_numpy(self.env.state).float())
             inputs.append(u.float())
-        if self.ssm is not None:
-            believed.append(self.camera(self.from_frames(decode(self.ssm.g, mean))))
-        self._episodes.append(
-            {
-                "states": torch.stack(states, 1),
-                "inputs": torch.stack(inputs, 1),
-                "seen": torch.stack(seen, 1) if seen[0] is not None else None,
-                "truth": torch.stack(truth, 1),
-                "believed": torch.stack(believed, 1) if believed and believed[0] is not None else None,
-                "batch_plan_seconds": torch.tensor(plan_seconds / periods),
-            }
-        )
+            picture()
+        run = {"states": torch.stack(states, 1), "inputs": torch.stack(inputs, 1), "measurements": measurements}
+        if pictures:
+            seen = [self.camera(m) for m in measurements]
+            run["seen"] = torch.stack(seen, 1) if seen[0] is not None else None
+            run["truth"] = torch.stack(truth, 1)
+            run["believed"] = torch.stack(believed, 1) if believed and believed[0] is not None else None
+        return run
+
+    def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        run = self.episodes(batch["state"][:, 0].double().cpu().numpy(), batch_idx, pictures=True)
+        del run["measurements"]  # kept as the pictures
+        self._episodes.append(run)
 
     def judge(self, angles: torch.Tensor) -> tuple[torch.Tensor, int, torch.Tensor, torch.Tensor]:
         """Episodes' true angles ``[E, T+1]`` (0 hanging) judged by the task: the distance from upright ``[E, T+1]``,
