@@ -281,3 +281,47 @@ def test_reconstruction_logger_draws_each_sensor_in_its_own_shape():
     ReconstructionLogger().on_validation_batch_end(trainer, None, {"y": y, "y_hat": y}, None, 0)
     assert set(writer.images) == {"val/reconstruction/image"} and set(writer.figures) == {"val/reconstruction/angle"}
     assert writer.images["val/reconstruction/image"].shape[-1] > 24  # a grid of frames, not a strip of numbers
+
+
+def test_streams_encoder_reads_each_sensor_by_itself_and_flags_missing_samples():
+    """An image stream and a vector stream packed side by side, the vector missing at some steps: against a naive
+    loop over the steps (the image's CNN alone on the image, the vector as it is or zeros, a flag per stream)."""
+    from ssm_ms.nets.encoder import StreamsEncoder
+
+    torch.manual_seed(0)
+    enc = StreamsEncoder({"image": (1, 12, 12), "angle": (2,)}, conv_channels=[4], final_channels=3)
+    y = torch.rand(2, 5, 144 + 2)
+    y[0, 1, 144:] = float("nan")
+    y[1, 3, 145] = float("nan")  # one component missing: the sample is missing
+    out = enc(y)
+    cnn = enc.streams[0]
+    assert out.shape == (2, 5, cnn.out_features + 1 + 2 + 1) == (2, 5, enc.out_features)
+    for b in range(2):
+        for t in range(5):
+            image, angle = y[b, t, :144].view(1, 1, 12, 12), y[b, t, 144:]
+            sampled = bool(torch.isfinite(angle).all())
+            expected = torch.cat(
+                [cnn(image)[0], torch.ones(1), angle if sampled else torch.zeros(2), torch.tensor([float(sampled)])]
+            )
+            torch.testing.assert_close(out[b, t], expected)
+    with pytest.raises(ValueError, match="packed into 146 values"):
+        enc(torch.rand(3, 150))
+
+
+def test_encoder_of_two_sensors_trains_and_filters_through_missing_samples(tmp_path):
+    """The forecasting stage on an SSM of one head per sensor, one sensor missing one step in three: its encoder
+    reads the streams by themselves and its latent estimates stay finite where a sample is missing."""
+    from ssm_ms.inference import StateEncoderModule
+    from ssm_ms.nets.encoder import StreamsEncoder
+
+    pos, enc, dm, _ = two_sensor_ssm(tmp_path, seed=2, every=3)
+    module = StateEncoderModule(
+        str(tmp_path / "ssm.ckpt"), n_filter=10, encoder={"hidden": 16}, metrics=["mse"], results_dir=str(tmp_path)
+    )
+    assert isinstance(module.encoder.frames, StreamsEncoder) and module.encoder.frames.names == ["pos", "enc"]
+    fast_trainer(tmp_path, max_epochs=1).fit(module, dm)
+    y = torch.from_numpy(np.concatenate([pos, enc], -1))
+    assert torch.isnan(y).any()
+    with torch.no_grad():
+        z = module.encoder(y)
+    assert z.shape == (8, 30, 3) and torch.isfinite(z).all()

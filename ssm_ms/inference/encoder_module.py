@@ -27,7 +27,8 @@ class StateEncoderModule(SSMForecaster):
         ssm_checkpoint: the trained ``MultipleShootingModule`` (frozen here).
         n_filter: measurements the encoder reads at test time.
         encoder: keyword arguments of ``StateEncoder`` (``preset``, ``hidden``, ...), without
-            ``state_dim`` / ``obs_shape`` (taken from the SSM).
+            ``state_dim`` / ``obs_shape`` / ``input_dim`` / ``streams`` (taken from the SSM: an SSM whose ``g`` has one
+            head per sensor gets an encoder that reads each sensor by itself, the CNN settings for its images).
         lr: Adam learning rate.
         metrics: scores of the test protocol.
         **kwargs: the protocol's other arguments (``n_predict``, ``bce_reduction``, ``original_units``,
@@ -51,11 +52,15 @@ class StateEncoderModule(SSMForecaster):
         if not lr > 0:
             raise ValueError(f"the learning rate must be > 0, got {lr}: set model.init_args.lr (e.g. 1e-3)")
         super().__init__(ssm_checkpoint, n_filter=n_filter, metrics=metrics, **kwargs)
-        kwargs = dict(encoder or {"preset": "vector" if len(self.ssm.obs_shape()) == 1 else None})
-        for reserved in ("state_dim", "obs_shape", "input_dim"):
+        streams = getattr(self.ssm.g, "shapes", None)  # several sensors: g's heads name them (SensorHeads)
+        one_vector = len(self.ssm.obs_shape()) == 1 and not streams
+        kwargs = dict(encoder or {"preset": "vector" if one_vector else None})
+        for reserved in ("state_dim", "obs_shape", "input_dim", "streams"):
             if reserved in kwargs:
                 raise ValueError(f"encoder.{reserved} comes from the SSM checkpoint; remove it from the config")
-        self.encoder = StateEncoder(self.ssm.state_dim, self.ssm.obs_shape(), input_dim=self.ssm.input_dim, **kwargs)
+        self.encoder = StateEncoder(
+            self.ssm.state_dim, self.ssm.obs_shape(), input_dim=self.ssm.input_dim, streams=streams, **kwargs
+        )
         d = self.ssm.state_dim
         self.register_buffer("latent_mean", torch.zeros(d))
         self.register_buffer("latent_std", torch.ones(d))

@@ -5,12 +5,15 @@ more 3x3 convolution); the per-frame features feed an LSTM whose hidden state a 
 the latent state. The state at time ``t`` depends on measurements ``0..t`` only, so the encoder is
 a causal filter: its output at the last measured frame starts the forecast. Vector measurements
 (Lorenz) skip the CNN. The per-frame CNN is its own module, :class:`FrameEncoder`, shared with the
-baselines in :mod:`ssm_ms.baselines`.
+baselines in :mod:`ssm_ms.baselines`. Several sensors packed side by side (:mod:`ssm_ms.nets.sensors`)
+are read stream by stream, :class:`StreamsEncoder`: each image through its CNN, each vector as it is, a
+missing sample (NaN) as zeros beside a flag.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import nn
@@ -95,6 +98,60 @@ class FrameEncoder(nn.Module):
         return self.cnn(y.reshape(-1, *self.obs_shape)).reshape(*lead, self.out_features)
 
 
+class StreamsEncoder(nn.Module):
+    """The per-frame features of several sensors packed side by side: ``[N, P] -> [N, out_features]``.
+
+    The packed vector (the streams flattened and concatenated in the order of ``shapes``,
+    :class:`~ssm_ms.nets.sensors.SensorLayout`) is split back into streams; each goes through its own
+    :class:`FrameEncoder`, an image stream (``[C, H, W]``) through the CNN of ``preset`` / ``conv_channels`` /
+    ``final_channels`` / ``final_relu``, a vector stream unchanged. A stream sampled at a lower rate holds NaN where it
+    was not sampled: it is read as zeros, beside a flag per stream that is 1 where the stream was sampled (every
+    component finite) and 0 where not, so the LSTM after it tells a missing sample from a zero.
+
+    Args:
+        shapes: ``{stream name: shape of one sample}``, in the packed order (e.g. ``SensorHeads.shapes``).
+        preset, conv_channels, final_channels, final_relu: the CNN of the image streams (:class:`FrameEncoder`).
+    """
+
+    def __init__(
+        self,
+        shapes: Mapping[str, Sequence[int]],
+        preset: str | None = None,
+        conv_channels: Sequence[int] | None = None,
+        final_channels: int | None = None,
+        final_relu: bool = False,
+    ):
+        super().__init__()
+        if not shapes:
+            raise ValueError("StreamsEncoder needs at least one stream")
+        self.names = list(shapes)
+        self.shapes = [tuple(int(v) for v in shape) for shape in shapes.values()]
+        self.sizes = [math.prod(shape) for shape in self.shapes]
+        self.streams = nn.ModuleList(
+            FrameEncoder(shape, preset, conv_channels, final_channels, final_relu)
+            if len(shape) == 3
+            else FrameEncoder(shape, "vector")
+            for shape in self.shapes
+        )
+        self.obs_shape = (sum(self.sizes),)
+        self.out_features = sum(e.out_features for e in self.streams) + len(self.streams)
+
+    def forward(self, y: torch.Tensor) -> torch.Tensor:
+        """``y [..., P]`` -> ``[..., out_features]``: each stream's features, then its flag, in the packed order."""
+        if y.shape[-1] != self.obs_shape[0]:
+            raise ValueError(
+                f"the encoder was built for sensors {dict(zip(self.names, self.shapes))} packed into "
+                f"{self.obs_shape[0]} values per step, got {y.shape[-1]}"
+            )
+        lead = y.shape[:-1]
+        features = []
+        for part, shape, encoder in zip(y.reshape(-1, y.shape[-1]).split(self.sizes, dim=1), self.shapes, self.streams):
+            sampled = torch.isfinite(part).all(dim=1, keepdim=True)
+            part = torch.where(sampled, part, torch.zeros_like(part))
+            features += [encoder(part.reshape(-1, *shape)), sampled.to(part.dtype)]
+        return torch.cat(features, dim=1).reshape(*lead, self.out_features)
+
+
 class StateEncoder(nn.Module):
     """CNN-LSTM encoder of measurement sequences: :class:`FrameEncoder`, LSTM, linear head.
 
@@ -105,6 +162,8 @@ class StateEncoder(nn.Module):
         hidden: LSTM hidden size.
         input_dim: inputs per step of a driven system (0: none). The LSTM then reads, beside frame ``t``'s
             features, the input ``u[t - 1]`` that moved the system to it (zeros at ``t = 0``).
+        streams: several sensors packed into ``obs_shape = [P]``: ``{name: shape}`` in the packed order, read by a
+            :class:`StreamsEncoder` (the CNN settings for its image streams); ``None``: one sensor.
     """
 
     def __init__(
@@ -117,9 +176,16 @@ class StateEncoder(nn.Module):
         final_relu: bool = False,
         hidden: int = 1024,
         input_dim: int = 0,
+        streams: Mapping[str, Sequence[int]] | None = None,
     ):
         super().__init__()
-        self.frames = FrameEncoder(obs_shape, preset, conv_channels, final_channels, final_relu)
+        cnn = (preset, conv_channels, final_channels, final_relu)
+        self.frames = FrameEncoder(obs_shape, *cnn) if not streams else StreamsEncoder(streams, *cnn)
+        if tuple(int(v) for v in obs_shape) != self.frames.obs_shape:
+            raise ValueError(
+                f"the sensors {dict(streams)} pack into {list(self.frames.obs_shape)} values per step, "
+                f"obs_shape is {list(obs_shape)}"
+            )
         self.obs_shape, self.state_dim, self.input_dim = self.frames.obs_shape, state_dim, int(input_dim)
         self.lstm = nn.LSTM(self.frames.out_features + self.input_dim, hidden, batch_first=True)
         self.head = nn.Linear(hidden, state_dim)
