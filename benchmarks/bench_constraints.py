@@ -18,9 +18,7 @@ time), and seconds per epoch. Written to ``benchmarks/results/constraints.md`` (
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -29,6 +27,8 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from benchmarks.report import provenance  # noqa: E402
 
 EXPERIMENTS = {
     "pendulum": {
@@ -181,20 +181,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
         args.epochs = 2
     if args.threads:
         torch.set_num_threads(args.threads)
-    from ssm_ms.runtime.machine import describe
-
     rows = []
     for experiment in args.experiments:
         for name in args.variants:
             rows.append(run_variant(experiment, name, args, Path(args.workdir) / experiment / name.replace(" ", "_")))
             print(json.dumps(rows[-1]), flush=True)  # progress, and what a cut-off run leaves
-    command = "python benchmarks/bench_constraints.py " + " ".join(
-        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
-    )
     lines = [
         "# Penalty against augmented Lagrangian, dense against sparse nodes (CPU-sized configs)",
         "",
-        f"Machine: {describe()}. Date: {datetime.date.today()}. Command: `{command}`.",
+        *provenance("benchmarks/bench_constraints.py", argv),
     ]
     if args.tiny:
         lines += ["", "**TINY sizes** (a smoke test of the script: the figures say nothing about the methods)."]

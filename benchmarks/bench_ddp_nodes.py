@@ -10,7 +10,6 @@ sparse (node_optimizer: sparse): the ranks all-gather only the batch's (index, r
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
 import queue as queue_module
 import statistics
@@ -23,6 +22,8 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.report import provenance  # noqa: E402
 from ssm_ms.training.distributed import all_gather_rows  # noqa: E402
 
 # (name, trajectories N, m * d, global batch B): the paper-size tables
@@ -100,13 +101,11 @@ def main() -> None:
     for p in procs:
         p.start()
     results = gather_results(procs, queue)
-    from ssm_ms.runtime.machine import describe
-
     lines = [
         "# Node-table communication per step under DDP (2 CPU processes, gloo)",
         "",
-        f"Machine: {describe()}. Date: {datetime.date.today()}. Command: `python benchmarks/bench_ddp_nodes.py "
-        f"--reps {args.reps}` (median of {args.reps}).",
+        *provenance("benchmarks/bench_ddp_nodes.py", None),
+        f"- Each figure: the median of {args.reps} repetitions.",
         "",
         "dense: all-reduce of the table's gradient (what DDP does with `node_optimizer: dense`); sparse: all-gather "
         "of the batch's indices and row gradients (`node_optimizer: sparse`). float32.",

@@ -51,10 +51,11 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from benchmarks.report import provenance  # noqa: E402
 from ssm_ms.inference.filter_module import FilterForecaster  # noqa: E402
 from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
 from ssm_ms.reproduce import load_config  # noqa: E402
-from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
+from ssm_ms.runtime.machine import CpuWatch, quiet_note  # noqa: E402
 
 # Per system: ssm-ms's config, the test protocol, the UKF's noise (ssm-ms's training units; or the UKF stage config
 # that holds it) and deepSI's windows.
@@ -273,10 +274,8 @@ def write(r: dict, args, watch_note: str, out: Path) -> None:
     lines = [
         f"# ssm-ms beside deepSI's SUBNET: {r['title']} (same data, same time budget, same test sequences)",
         "",
-        f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
-        f"- Machine: {describe()}",
+        *provenance("benchmarks/bench_deepsi.py", args.argv),
         f"- Others' CPU use: {watch_note}",
-        f"- Command: `{shlex.join(['python', 'benchmarks/bench_deepsi.py', *args.argv])}`",
         f"- deepSI {args.deepsi_version}; set-up and protocol: the docstring of `benchmarks/bench_deepsi.py`.",
         "- Score: MSE of the forecast against the noiseless measurement, mean over test sequences and predicted "
         "steps (first / last: the first and last predicted step alone); `/ ssm-ms`: the ratio of the MSEs.",

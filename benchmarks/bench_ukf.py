@@ -21,11 +21,8 @@ the step), and every ratio "reference / this" is taken within a round.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
 import platform
-import shlex
 import statistics
 import subprocess
 import sys
@@ -38,11 +35,12 @@ sys.path.insert(0, str(ROOT))
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
+from benchmarks.report import provenance  # noqa: E402
 from ssm_ms.inference.shared import call_model  # noqa: E402
 from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402
 from ssm_ms.nets.readout import Projection  # noqa: E402
 from ssm_ms.nets.transition import LocallyLinearTransition  # noqa: E402
-from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
+from ssm_ms.runtime.machine import CpuWatch, quiet_note  # noqa: E402
 from ssm_ms.runtime.perf import configure_allocator  # noqa: E402
 
 TINY = {"trajectories": 4, "steps": 20, "ref_steps": 5, "repeats": 1, "k": 4, "hidden": 16}
@@ -241,16 +239,14 @@ def main(argv: list[str] | None = None) -> None:
         del times[ref_name]
 
     med = {name: statistics.median(v) for name, v in times.items()}
-    cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *(argv or sys.argv[1:])])
     dev_name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {args.threads} torch threads"
     lines = [
         "# Batched UKF: Lorenz, SSM-LL transition, beside the reference UKF's structure (one run, interleaved)",
         "",
-        f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
-        f"- Machine: {describe()}, Python {platform.python_version()}; device: {dev_name}; "
-        f"glibc malloc {'tuned as cli.py does' if tuned else 'not tunable here'} (the reference's worker: default)",
+        *provenance("benchmarks/bench_ukf.py", argv),
+        f"- Python {platform.python_version()}; device: {dev_name}; glibc malloc "
+        f"{'tuned as cli.py does' if tuned else 'not tunable here'} (the reference's worker: default)",
         f"- Others' CPU use: {quiet_note(others)} (one worker runs at a time)",
-        f"- Command: `{cmd}`",
         f"- Set-up: {'TINY sizes (smoke test): ' if args.tiny else ''}{b} trajectories x {steps} steps, state dim 3, "
         f"measurement = x component, SSM-LL with K = {k}, hidden {hidden} (random weights), "
         "float32 measurements, `torch.inference_mode()`, the paper's noise settings (P0 = 0.1 I, R = 0.5, "
