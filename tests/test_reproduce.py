@@ -537,9 +537,15 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         ("test", "configs/pendulum_torque_dagger_control.yaml"),
         ("test", "configs/pendulum_torque_dagger_control.yaml"),
         ("fit", "configs/pendulum_torque_single.yaml"),
+        ("fit", "configs/pendulum_torque_single_encoder.yaml"),
+        ("test", "configs/pendulum_torque_single_encoder.yaml"),
+        ("test", "configs/pendulum_torque_single_control.yaml"),
         ("test", "configs/pendulum_torque_single_control.yaml"),
         ("test", "configs/pendulum_true_control.yaml"),
         ("fit", "configs/pendulum_sensors.yaml"),
+        ("fit", "configs/pendulum_sensors_encoder.yaml"),
+        ("test", "configs/pendulum_sensors_encoder.yaml"),
+        ("test", "configs/pendulum_sensors_control.yaml"),
         ("test", "configs/pendulum_sensors_control.yaml"),
     ]
     version = option(calls[0], "--trainer.logger.init_args.version")
@@ -559,7 +565,11 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         option(calls[12], "--model.init_args.ssm_checkpoint")
         == f"runs/pendulum_torque_single/{single}/checkpoints/last.ckpt"
     )
-    assert "--model.init_args.ssm_checkpoint" not in calls[13]
+    assert (
+        option(calls[15], "--model.init_args.encoder_checkpoint")
+        == f"runs/pendulum_torque_single_encoder/{single}/checkpoints/last.ckpt"
+    )
+    assert "--model.init_args.ssm_checkpoint" not in calls[16]
     assert written["experiment"] == "pendulum_control"  # the last results file the suite's last experiment wrote
     with pytest.raises(SystemExit):
         reproduce.main(["pendulum_control", "--resume", "reproduce-1"])
