@@ -115,3 +115,47 @@ def test_the_valid_time_split_falls_back_to_the_protocols():
     assert valid_time_split(ValidTimeSettings(), 50, None, 100) == (50, 50)  # the protocol's split: the rest
     assert valid_time_split(ValidTimeSettings(), 50, 20, 100) == (50, 20)
     assert valid_time_split(ValidTimeSettings(n_filter=30), 50, None, 100) == (30, 70)
+
+
+def test_several_sensors_are_normalised_stream_by_stream_and_weigh_the_same():
+    """A packed camera-and-angle measurement (an image of 3x3 pixels, one of them always dark, and a 2-vector):
+    each stream normalised on its own (the image pooled above its floor, the vector per component), the step's
+    error the root mean square of the two; a missing angle sample leaves the image alone to judge that step. The
+    packed vector read as one vector instead divides by the dark pixel's zero variance."""
+    from ssm_ms.nets.sensors import SensorLayout, Stream
+
+    torch.manual_seed(4)
+    layout = SensorLayout([Stream("image", (1, 3, 3), 0.2), Stream("angle", (2,), 0.05)])
+    n, k, h = 4, 10, 6
+    image = torch.rand(n, k + h, 9, dtype=torch.float64)
+    image[..., 0] = 0.0  # a pixel that never lights
+    angle = torch.randn(n, k + h, 2, dtype=torch.float64)
+    truth = torch.cat([image, angle], -1)
+    estimate = truth + 0.05 * torch.randn_like(truth)
+    grow = torch.linspace(0.1, 1.5, h, dtype=torch.float64).view(1, h, 1)
+    predicted = truth[:, k:] + grow * torch.randn(n, h, 11, dtype=torch.float64)
+    truth[1, k + 2, 9:] = math.nan  # the angle not sampled at that step
+    acc = ValidTimeAccumulator(layout)
+    acc.add_forecast(estimate[:, :k], predicted, truth, clean=True)
+
+    pixel_var = image[:, k:].reshape(-1, 9).var(0, unbiased=False).mean()
+    seen = truth[:, k:, 9:].reshape(-1, 2)
+    seen = seen[~seen.isnan().any(1)]
+    angle_var = seen.var(0, unbiased=False)
+    expected = torch.empty(n, h, dtype=torch.float64)
+    for i in range(n):
+        floor = ((estimate[i, :k, :9] - truth[i, :k, :9]) ** 2)[-10:].mean()
+        for t in range(h):
+            e_image = (((predicted[i, t, :9] - truth[i, k + t, :9]) ** 2).mean() - floor).clamp_min(0) / pixel_var
+            e_angle = ((predicted[i, t, 9:] - truth[i, k + t, 9:]) ** 2 / angle_var).mean()
+            expected[i, t] = e_image.sqrt() if e_angle.isnan() else ((e_image + e_angle) / 2).sqrt()
+    torch.testing.assert_close(acc.normalised_errors(), expected)
+    steps, horizon = acc.steps(0.5)
+    by_hand = [next((t for t in range(h) if row[t] > 0.5), math.inf) for row in expected]
+    assert horizon == h and steps.tolist() == by_hand and acc.count == n * h
+    assert any(0 < s < h for s in by_hand)  # the case is not trivial
+    floors = [((estimate[i, :k, :9] - truth[i, :k, :9]) ** 2)[-10:].mean() for i in range(n)]
+    assert acc.floor() == pytest.approx(float(sum((f / pixel_var).sqrt() for f in floors) / n))
+    packed = ValidTimeAccumulator()
+    packed.add_forecast(estimate[:, :k], predicted, truth, clean=True)
+    assert packed.normalised_errors()[0, 0] > 1e6  # the dark pixel's variance, clamped to 1e-30

@@ -222,7 +222,9 @@ class ForecastModule(pl.LightningModule):
         self._start_time = time.time()
         self._metrics = torch.nn.ModuleDict()
         self._first_batch = None
-        self._valid_time = ValidTimeAccumulator() if self.analysis_section("valid_time") is not None else None
+        self._valid_time = (
+            ValidTimeAccumulator(self.sensor_layout) if self.analysis_section("valid_time") is not None else None
+        )
 
     @torch.no_grad()
     def test_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> None:

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from ssm_ms.forecasting.analysis_settings import TrueSystemSettings, ValidTimeSettings
+from ssm_ms.nets.sensors import SensorLayout
 
 FLOOR_FRAMES = 10  # images: the valid time counts errors above the reconstruction error on the last 10 given frames
 
@@ -48,15 +49,22 @@ class ValidTimeAccumulator:
     :meth:`update`): ``sqrt(max(mse_t - mse_given, 0) / mean pixel variance)``. Valid while the forecast
     has lost no more than that to its reconstruction; a forecast that drifts off the object's phase soon
     exceeds it. Vectors keep the convention's plain error (no floor).
+
+    Several sensors (``layout``, a :class:`~ssm_ms.nets.sensors.SensorLayout`): each stream is normalised as above on
+    its own (an image pooled over its pixels, a vector per component), and a step's error is the root mean square of
+    the streams' errors, each stream weighing the same whatever its size. Missing samples (NaN in the truth: a stream
+    sampled at a lower rate) are left out; a step where a stream has none is judged on the others.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, layout: SensorLayout | None = None) -> None:
         self.errors: list[torch.Tensor] = []
         self.floors: list[torch.Tensor] = []
-        self.total = self.total_sq = None
-        self.count = 0
+        self.total = self.total_sq = self.seen = None  # sums of the truth, and its samples, per component
+        self.count = 0  # truth rows added (sequences x steps)
         self.clean = True
         self.pooled = False
+        self.layout = layout
+        self.streams = {} if layout is None else {s.name: ValidTimeAccumulator() for s in layout.streams}
 
     def add_forecast(
         self,
@@ -70,6 +78,15 @@ class ValidTimeAccumulator:
         the forecaster's estimate ``filtered [B, k, *obs_shape]`` of the given steps (the last :data:`FLOOR_FRAMES`
         of them are the floor) and its prediction ``predicted [B, h, *obs_shape]`` of the next ``h``; ``to_units``:
         applied to both and to the truth before the errors are taken (original units)."""
+        if self.streams:
+            if to_units is not None:
+                filtered, predicted, truth = to_units(filtered), to_units(predicted), to_units(truth)
+            self.clean = self.clean and clean
+            parts = [self.layout.split(t) for t in (filtered, predicted, truth)]
+            for name, acc in self.streams.items():
+                acc.add_forecast(*(part[name] for part in parts), clean=clean)
+            self.count += predicted.shape[0] * predicted.shape[1]
+            return
         k, h = filtered.shape[1], predicted.shape[1]
         m = min(FLOOR_FRAMES, k)
         pred, given, future, truth_given = predicted, filtered[:, -m:], truth[:, k : k + h], truth[:, k - m : k]
@@ -92,33 +109,47 @@ class ValidTimeAccumulator:
         pred, truth = pred.double(), truth.double()
         self.pooled = truth.dim() > 3
         sq = (pred - truth).pow(2)
+        # a missing sample (NaN truth) is left out; a forecast that is not finite where the truth is, invalid
+        sq = torch.where(truth.isnan(), torch.nan, sq.nan_to_num(nan=torch.inf))
         if self.pooled:  # images
-            sq = sq.flatten(2).mean(2, keepdim=True)
+            sq = sq.flatten(2).nanmean(2, keepdim=True)
             floor = torch.zeros(len(sq), dtype=torch.float64)
             if given is not None:
-                floor = (given[0].double() - given[1].double()).pow(2).flatten(1).mean(1).cpu()
+                floor = (given[0].double() - given[1].double()).pow(2).flatten(1).nanmean(1).nan_to_num().cpu()
             self.floors.append(floor)
         self.errors.append(sq.cpu())
         values = truth.flatten(2).reshape(-1, truth[0, 0].numel())
-        total, total_sq = values.sum(0).cpu(), values.pow(2).sum(0).cpu()
+        seen = ~values.isnan()
+        values = values.nan_to_num()
+        total, total_sq, seen = values.sum(0).cpu(), values.pow(2).sum(0).cpu(), seen.sum(0).cpu()
         self.total = total if self.total is None else self.total + total
         self.total_sq = total_sq if self.total_sq is None else self.total_sq + total_sq
+        self.seen = seen if self.seen is None else self.seen + seen
         self.count += len(values)
 
     def _variance(self) -> torch.Tensor:
-        mean = self.total / self.count
-        var = (self.total_sq / self.count - mean.pow(2)).clamp_min(0)
+        count = self.seen.clamp_min(1)
+        mean = self.total / count
+        var = (self.total_sq / count - mean.pow(2)).clamp_min(0)
         return (var.mean(0, keepdim=True) if self.pooled else var).clamp_min(1e-30)
 
     def normalised_errors(self) -> torch.Tensor:
-        """``[N, h]``: each test sequence's normalised error at each forecast step (images: above its floor)."""
+        """``[N, h]``: each test sequence's normalised error at each forecast step (images: above its floor; several
+        sensors: the root mean square over the streams). NaN where a step has no sample to judge it by."""
+        if self.streams:
+            per_stream = torch.stack([acc.normalised_errors() for acc in self.streams.values()])  # [S, N, h]
+            return per_stream.pow(2).nanmean(0).sqrt()
         errors = torch.cat(self.errors)  # [N, h, D or 1]
         if self.pooled:
             errors = (errors - torch.cat(self.floors)[:, None, None]).clamp_min(0)
-        return (errors / self._variance()).mean(-1).sqrt()
+        return (errors / self._variance()).nanmean(-1).sqrt()
 
     def floor(self) -> float | None:
-        """Images: the mean normalised reconstruction error on the given frames, ``sqrt(mse_given / var)``."""
+        """Images: the mean normalised reconstruction error on the given frames, ``sqrt(mse_given / var)`` (several
+        sensors: the image streams' mean)."""
+        if self.streams:
+            floors = [f for f in (acc.floor() for acc in self.streams.values()) if f is not None]
+            return sum(floors) / len(floors) if floors else None
         if not self.pooled:
             return None
         return float((torch.cat(self.floors) / self._variance()).sqrt().mean())
