@@ -36,7 +36,7 @@ from torch import nn
 from ssm_ms.control.cost import GRAVITY, SwingUpCost, upright_error
 from ssm_ms.control.estimators import EncoderEstimator, UKFEstimator, load_encoder
 from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
-from ssm_ms.control.mppi import MPPISettings, RecedingHorizon
+from ssm_ms.control.mppi import MPPISettings, RecedingHorizon, checked_offset_gain
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.module import datamodule_state, load_ssm
 from ssm_ms.nets.sensors import SensorLayout
@@ -159,12 +159,7 @@ class ClosedLoop(pl.LightningModule):
         if not exploration >= 0:
             raise ValueError(f"exploration is a standard deviation of torque noise (N m): >= 0, got {exploration}")
         self.exploration, self.record = float(exploration), record
-        if not 0.0 <= offset_gain <= 1.0:
-            raise ValueError(
-                f"offset_gain weighs the newest model error in the planner's running estimate: 0 (off) to 1, got "
-                f"{offset_gain}"
-            )
-        self.offset_gain = float(offset_gain)
+        self.offset_gain = checked_offset_gain(offset_gain)
         self.experiment, self.results_dir, self.figures_dir = experiment, results_dir, figures_dir
         self.ssm_checkpoint = ssm_checkpoint
         self.ssm = None

@@ -101,6 +101,15 @@ def mppi(
     return plan, best
 
 
+def checked_offset_gain(gain: float) -> float:
+    """``gain`` as a float where it is a valid offset gain (0: off, up to 1); otherwise one :class:`ValueError`."""
+    if not 0.0 <= gain <= 1.0:
+        raise ValueError(
+            f"offset_gain weighs the newest model error in the planner's running estimate: 0 (off) to 1, got {gain}"
+        )
+    return float(gain)
+
+
 class RecedingHorizon:
     """The control loop's planner: keeps a nominal plan per problem, refines it every step with :func:`mppi`,
     applies its first input and shifts it by one step (the last input repeated).
@@ -120,11 +129,7 @@ class RecedingHorizon:
         dtype: torch.dtype = torch.float32,
         offset_gain: float = 0.0,
     ):
-        if not 0.0 <= offset_gain <= 1.0:
-            raise ValueError(
-                f"offset_gain weighs the newest model error in its running estimate: 0 to 1, got {offset_gain}"
-            )
-        self.f, self.cost, self.settings, self.offset_gain = f, cost, settings, float(offset_gain)
+        self.f, self.cost, self.settings, self.offset_gain = f, cost, settings, checked_offset_gain(offset_gain)
         self.plan = torch.zeros(batch, settings.horizon, input_dim, dtype=dtype)
         self.generator = torch.Generator().manual_seed(seed)
         self.offset: torch.Tensor | None = None
