@@ -99,6 +99,20 @@ def test_drawing_is_apart_from_the_callbacks():
     assert {"ReconstructionLogger", "ShootingPictureLogger"} <= set(vars(importlib.import_module("ssm_ms.viz")))
 
 
+def test_the_pipeline_and_the_results_files_start_without_lightning_or_torch():
+    """``python -m ssm_ms.reproduce`` only runs stages, and the results and README tools only read JSON: none of them
+    pays Lightning's and torch's imports (~10 s on a slow 2-core CPU) before its first line of work."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, ssm_ms.reproduce, ssm_ms.forecasting.results, ssm_ms.forecasting.readme\n"
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'lightning', 'torch', 'torchmetrics'}))"
+    )
+    out = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
 # The layers of ssm_ms, lowest first: a module imports only modules of its own layer or lower ones (and never the
 # data sets: the CLI builds data and model from the config's class paths).
 LAYERS = {

@@ -5,7 +5,16 @@ files beside the paper's tables (:mod:`~ssm_ms.forecasting.results`) and over se
 (:mod:`~ssm_ms.forecasting.seeds`), the ``predict`` writer
 (:mod:`~ssm_ms.forecasting.writer`) and the forecast figures (:mod:`~ssm_ms.forecasting.figures`)."""
 
-from ssm_ms.forecasting.protocol import Forecast, ForecastModule
-from ssm_ms.forecasting.writer import ForecastWriter
+import importlib
 
 __all__ = ["Forecast", "ForecastModule", "ForecastWriter"]
+
+# Imported when first asked for (``ssm_ms.forecasting.ForecastWriter`` in a config): the results files and
+# ``ssm_ms.reproduce`` use this package without Lightning (~10 s of imports on a slow 2-core CPU).
+_HOMES = {"Forecast": "protocol", "ForecastModule": "protocol", "ForecastWriter": "writer"}
+
+
+def __getattr__(name: str):
+    if name in _HOMES:
+        return getattr(importlib.import_module(f"{__name__}.{_HOMES[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
