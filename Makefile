@@ -26,11 +26,12 @@ demo: $(STAMP)
 	$(PY) cli.py fit --config configs/cpu/pendulum.yaml
 
 ## Lint and format checks (ruff, configured in pyproject.toml), then the unit and integration tests (< 10 minutes on
-## 2 CPU cores).
+## 2 CPU cores): two pytest workers of one torch thread each, since most tests keep one core busy (imports, small
+## steps, subprocesses) and the suite ran single-core before.
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
-	$(PY) -m pytest -q
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n 2
 
 ## Format the code and fix what ruff can (make test checks both).
 format: $(STAMP)

@@ -64,9 +64,16 @@ def test_reference_ukf_agrees_with_ours_on_a_linear_system():
     torch.testing.assert_close(ours.means, ref)
 
 
-# two_jobs starts seven worker processes one after the other (~40 s): a slow test
+# slow tests: two_jobs starts seven worker processes one after the other (~40 s); train_step a reference worker
+# process and both structures' steps (~40 s on a 2-core Zen 3)
 @pytest.mark.parametrize(
-    "script", ["train_step", "ukf", "profile_decoder", pytest.param("two_jobs", marks=pytest.mark.slow)]
+    "script",
+    [
+        pytest.param("train_step", marks=pytest.mark.slow),
+        "ukf",
+        "profile_decoder",
+        pytest.param("two_jobs", marks=pytest.mark.slow),
+    ],
 )
 def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
     out = tmp_path / f"{script}.md"

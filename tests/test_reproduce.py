@@ -152,7 +152,8 @@ def _stage_in_own_group(tmp_path, args):
     )
 
 
-@pytest.mark.parametrize("how", ["ctrl-c", "sigterm", "sigint-alone"])
+# SIGINT to reproduce alone takes sigterm's path (forwarded to the stage): a slow test
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm", pytest.param("sigint-alone", marks=pytest.mark.slow)])
 def test_ctrl_c_or_sigterm_during_a_stage_names_it_and_the_command_that_resumes_it(tmp_path, how):
     """Ctrl-C reaches the stage and reproduce together (SIGINT to the process group); SIGTERM or SIGINT to reproduce
     alone (``kill <pid>``, ``kill -INT <pid>``) is forwarded to the stage. Either way: no traceback, status 130, the
