@@ -124,11 +124,17 @@ def markov(a, b, c, steps: int = 12) -> np.ndarray:
 def test_a_linear_system_is_recovered_to_its_markov_parameters():
     """SSM-LL with one matrix pair is linear: trained by multiple shooting (4 pieces of 10 steps, the gap weight
     raised after a third) on 32 noisy trajectories (noise std 0.05), its ``C A^k B``, which do not depend on the
-    state's coordinates, match the true system's to 2% of their largest value for k = 0..11."""
+    state's coordinates, match the true system's to 2% of their largest value for k = 0..11.
+
+    ``f`` starts near the identity (its matrix drawn a tenth of the default bound): with the default, ``x + A x`` of a
+    2-d state can start with an eigenvalue of 1.6, a 10-step piece grows 100-fold, and 2 of 8 seeds had not fitted
+    in 600 steps (16 of 16 fit from near the identity, Markov error 0.14-0.21%)."""
     torch.manual_seed(0)
     data = linear_data(32, 40, 0.05)
     y, u = torch.from_numpy(data["y"]), torch.from_numpy(data["u"])
     f = LocallyLinearTransition(2, n_matrices=1, hidden=4, input_dim=1)
+    with torch.no_grad():
+        f.matrices.mul_(0.1)
     g = torch.nn.Linear(2, 1, bias=False)
     nodes = torch.zeros(32, 4, 2, requires_grad=True)
     optimizer = torch.optim.Adam([*f.parameters(), *g.parameters(), nodes], lr=0.03)
