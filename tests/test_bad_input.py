@@ -299,6 +299,24 @@ def test_unknown_subcommand(setup, capsys):
     fails(capsys, ["fitt"], 2, "fitt")
 
 
+@pytest.mark.parametrize("form", [["--config", "configs/nope.yaml"], ["--config=configs/nope.yaml"]])
+def test_missing_config_is_refused_before_lightning_is_imported(form):
+    """``python cli.py`` checks its ``--config`` files before the ~10 s import of Lightning: one line, status 2, and
+    Lightning never loaded (read from ``sys.modules`` of the script's own process)."""
+    code = (
+        "import runpy, sys\n"
+        f"sys.argv = ['cli.py', 'fit', *{form!r}]\n"
+        "try:\n    runpy.run_path('cli.py', run_name='__main__')\n"
+        "except SystemExit as exc:\n    print(exc.code, 'lightning' in sys.modules, 'torch' in sys.modules)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert done.stdout.split() == ["2", "False", "False"], done.stdout + done.stderr
+    assert (
+        done.stderr.strip()
+        == "error: --config configs/nope.yaml: no such file (the shipped configs are under configs/)"
+    )
+
+
 # ---------------------------------------------------------------------------- checkpoints
 def test_missing_checkpoint(setup, capsys):
     root, _ = setup
