@@ -14,7 +14,8 @@ On the paper's pendulum step sizes (4000 frames of 24x24 = batch 40 x m 4 x n 25
 * the quadruple-pendulum (1000 frames of 48x48) and Moving MNIST (100 frames of 64x64) decoders, forward +
   backward, with and without the native kernels;
 * the check of ``ConvDecoder(backend="auto")``'s rule (:func:`ssm_ms.nets.decoder.auto_path`: the native kernels on a
-  CPU with AVX-512, the torch path on one with AVX2 only): this CPU's instruction set, the path the rule picks here
+  CPU with AVX-512 or full-width AVX2, the torch path on an AMD Zen 1 or Zen+): this CPU's vector unit, the path the
+  rule picks here
   and the path an ``auto`` decoder actually ran for each preset, beside the native / torch time ratio measured in
   this run, so that each machine's results file says whether the rule picks the faster path there.
 
@@ -168,17 +169,10 @@ def main(argv: list[str] | None = None) -> None:
     print(f"wrote {args.out}")
 
 
-SIMD_NAMES = {
-    "avx512": "AVX-512 (avx512f)",
-    "avx2": "AVX2 with FMA, no AVX-512",
-    None: "neither AVX-512 nor AVX2 with FMA",
-}
-
-
 def auto_check(size: dict, measured: dict[str, dict[str, float]], built: bool, cflags: str | None) -> list[str]:
     """The results file's section on backend ``"auto"``: the rule's pick on this CPU beside the measured times."""
     from ssm_ms.nets import ConvDecoder, native
-    from ssm_ms.nets.decoder import auto_path
+    from ssm_ms.nets.decoder import SIMD_NAMES, auto_path
 
     simd = native.build.cpu_simd()
     rule = auto_path("cpu", simd)
@@ -186,15 +180,16 @@ def auto_check(size: dict, measured: dict[str, dict[str, float]], built: bool, c
         "",
         "## Backend `auto` on this machine",
         "",
-        f"- this CPU: {cpu_family_model()}; its instruction set (`ssm_ms.nets.native.build.cpu_simd()`, "
+        f"- this CPU: {cpu_family_model()}; its vector unit (`ssm_ms.nets.native.build.cpu_simd()`, "
         f"/proc/cpuinfo): {SIMD_NAMES[simd]}",
         f"- the rule (`ssm_ms.nets.decoder.auto_path('cpu', {simd!r})`): **{rule}** (native kernels on a CPU with "
-        "AVX-512, the torch path on AVX2 only or neither, and on any other device)",
+        "AVX-512 or full-width AVX2, the torch path on AVX2 as two 128-bit halves or neither, and on any other "
+        "device)",
     ]
     if cflags:
         lines.append(
             f"- the kernels timed here (and run by `auto` below) were built with `{cflags}`, not "
-            "`-march=native` as elsewhere: the rule reads the CPU's instruction set, not the build's"
+            "`-march=native` as elsewhere: the rule reads the CPU's vector unit, not the build's"
         )
     lines += [
         "",

@@ -46,15 +46,62 @@ def test_every_backend_draws_the_same_images(decoder_path):
         torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5, msg=lambda m, n=name: f"{n}: {m}")
 
 
-def test_auto_is_a_rule_of_the_device_and_the_instruction_set():
-    """The native kernels on a CPU with AVX-512 (faster there: Xeon, Zen 4, Zen 5), the torch path on an AVX2-only CPU
-    (the kernels lost on Zen 1), on a CPU with neither, and on any other device whatever the CPU."""
+def test_auto_is_a_rule_of_the_device_and_the_vector_unit():
+    """The native kernels on a CPU with AVX-512 (faster there: Xeon, Zen 4, Zen 5) or full-width AVX2 (Zen 3), the
+    torch path where AVX2 runs as two 128-bit halves (the kernels lost on Zen 1), on a CPU with neither, and on any
+    other device whatever the CPU."""
     assert decoder.auto_path("cpu", "avx512") == "native"
-    assert decoder.auto_path("cpu", "avx2") == "torch"
+    assert decoder.auto_path("cpu", "avx2") == "native"
+    assert decoder.auto_path("cpu", "avx2-128") == "torch"
     assert decoder.auto_path("cpu", None) == "torch"
     for device in ("cuda", "mps", "xpu", "meta"):
-        for simd in ("avx512", "avx2", None):
+        for simd in ("avx512", "avx2", "avx2-128", None):
             assert decoder.auto_path(device, simd) == "torch"
+
+
+CPUINFO = """processor\t: 0
+vendor_id\t: {vendor}
+cpu family\t: {family}
+model\t\t: {model}
+model name\t: some CPU
+flags\t\t: fpu sse2 {flags}
+
+processor\t: 1
+vendor_id\t: {vendor}
+flags\t\t: fpu
+"""
+
+
+@pytest.mark.parametrize(
+    "vendor, family, model, flags, want",
+    [
+        ("AuthenticAMD", 23, 1, "avx2 fma", "avx2-128"),  # Zen 1 (the EPYC measured)
+        ("AuthenticAMD", 23, 8, "avx2 fma", "avx2-128"),  # Zen+
+        ("AuthenticAMD", 21, 101, "avx2 fma", "avx2-128"),  # Excavator, before Zen
+        ("AuthenticAMD", 23, 49, "avx2 fma", "avx2"),  # Zen 2 (Rome): full-width units
+        ("AuthenticAMD", 25, 1, "avx2 fma", "avx2"),  # Zen 3 (Milan, measured)
+        ("AuthenticAMD", 25, 17, "avx2 fma avx512f", "avx512"),  # Zen 4
+        ("GenuineIntel", 6, 85, "avx2 fma avx512f", "avx512"),
+        ("GenuineIntel", 6, 60, "avx2 fma", "avx2"),  # Haswell
+        ("GenuineIntel", 6, 42, "avx", None),
+        ("AuthenticAMD", 23, 1, "avx2", None),  # no FMA: the kernels need it
+    ],
+)
+def test_cpu_simd_reads_the_first_processors_flags_vendor_and_model(
+    tmp_path, monkeypatch, vendor, family, model, flags, want
+):
+    """``cpu_simd`` from a written /proc/cpuinfo: only the first processor's lines count (the second's flags would
+    say none)."""
+    path = tmp_path / "cpuinfo"
+    path.write_text(CPUINFO.format(vendor=vendor, family=family, model=model, flags=flags))
+    real_open = open
+    monkeypatch.setattr("builtins.open", lambda f, *a, **k: real_open(path if f == "/proc/cpuinfo" else f, *a, **k))
+    build.cpu_simd.cache_clear()
+    try:
+        assert build.cpu_simd() == want
+    finally:
+        monkeypatch.undo()
+        build.cpu_simd.cache_clear()
 
 
 def test_auto_follows_the_cpus_instruction_set(needs_native, monkeypatch):
@@ -64,12 +111,18 @@ def test_auto_follows_the_cpus_instruction_set(needs_native, monkeypatch):
     monkeypatch.setattr(build, "cpu_simd", lambda: "avx512")
     assert ran_native(ConvDecoder(5, **SPEC), x.clone())
     monkeypatch.setattr(build, "cpu_simd", lambda: "avx2")
+    assert ran_native(ConvDecoder(5, **SPEC), x.clone())
+    monkeypatch.setattr(build, "cpu_simd", lambda: "avx2-128")
     assert not ran_native(ConvDecoder(5, **SPEC), x.clone())
-    assert ran_native(ConvDecoder(5, **SPEC, backend="native"), x.clone())  # asked for by name: runs on AVX2 too
+    assert ran_native(ConvDecoder(5, **SPEC, backend="native"), x.clone())  # asked for by name: runs there too
     monkeypatch.setattr(build, "cpu_simd", lambda: None)
     assert not ran_native(ConvDecoder(5, **SPEC), x.clone())
     monkeypatch.undo()
-    assert build.cpu_simd() in ("avx512", "avx2")  # the kernels build here: the real probe names one of them
+    assert build.cpu_simd() in (
+        "avx512",
+        "avx2",
+        "avx2-128",
+    )  # the kernels build here: the real probe names one of them
 
 
 def test_auto_does_not_probe_the_cpu_for_another_devices_tensors(monkeypatch):

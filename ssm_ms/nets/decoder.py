@@ -44,25 +44,26 @@ class ConvDecoder(nn.Module):
             ``image_size``, not both.
         backend: how the layers after the stem run; one switch, same parameters and same values up to float rounding:
 
-            * ``"auto"`` (default): the native kernels on a CPU with AVX-512, the ``"torch"`` path everywhere else (a
-              CPU with AVX2 but not AVX-512, a CPU with neither, CUDA or any other device). Decided from the device and
-              the CPU's instruction set alone (:func:`auto_path`, a pure function of the two; the instruction set is
-              :func:`ssm_ms.nets.native.build.cpu_simd`, /proc/cpuinfo read once per process, and not read at all
-              for a tensor on another device): nothing is timed and nothing is written. Where the native path cannot
-              run it is the ``"torch"`` path anyway, as for ``"native"`` (below), and also where the kernels are not
-              built, where one sample does not fit them (:attr:`native_fits`: Moving MNIST's decoder), and under
-              ``torch.compile`` and ``torch.export`` tracing. The figures behind the rule (decoder forward +
-              backward, native kernels against the torch path, same run, 2 threads; ``make bench`` writes the table
-              for the machine it runs on): AVX-512 Intel Xeon, pendulum 91 against 195 ms and quadruple pendulum
-              94 against 199 ms (``benchmarks/results/decoder_profile.md``); AVX-512 AMD Zen 4, 313 against 850 ms and
-              344 against 920 ms, the kernels 0.37x the torch path's time on a machine shared with a training job
+            * ``"auto"`` (default): the native kernels on a CPU with AVX-512 or with full-width AVX2, the ``"torch"``
+              path everywhere else (an AMD Zen 1 or Zen+, whose AVX2 runs as two 128-bit halves; a CPU with neither;
+              CUDA or any other device). Decided from the device and the CPU's vector unit alone (:func:`auto_path`,
+              a pure function of the two; the vector unit is :func:`ssm_ms.nets.native.build.cpu_simd`, /proc/cpuinfo
+              read once per process, and not read at all for a tensor on another device): nothing is timed and
+              nothing is written. Where the native path cannot run it is the ``"torch"`` path anyway, as for
+              ``"native"`` (below), and also where the kernels are not built, where one sample does not fit them
+              (:attr:`native_fits`: Moving MNIST's decoder), and under ``torch.compile`` and ``torch.export``
+              tracing. The figures behind the rule (decoder forward + backward, native kernels against the torch
+              path, same run, 2 threads; ``make bench`` writes the table for the machine it runs on): AVX-512 Intel
+              Xeon, pendulum 91 against 195 ms and quadruple pendulum 94 against 199 ms
+              (``benchmarks/results/decoder_profile.md``); AVX-512 AMD Zen 4, 313 against 850 ms and 344 against
+              920 ms, the kernels 0.37x the torch path's time on a machine shared with a training job
               (``benchmarks/results/decoder_profile_zen4.md``); AVX-512 AMD Zen 5, 7.3 against 17.5 ms per 455
-              pendulum frames (``benchmarks/results/pendulum_epoch_profile_zen5.md``); AVX2-only AMD Zen 1 (whose
-              AVX2 runs as two 128-bit halves), 873 against 508 ms and 799 against 468 ms: the kernels lose there
-              (``benchmarks/results/decoder_profile_zen1.md``). Zen 1 is the only AVX2-only CPU measured; the AVX2
-              build of the kernels on the AVX-512 Xeon beat its torch path (137 against 205 ms,
-              ``decoder_profile_avx2.md``), so on AVX2 CPUs with full-width vector units (AMD Zen 2/3, desktop Intel)
-              the kernels may win: there give ``"native"`` if ``python benchmarks/profile_decoder.py`` says so.
+              pendulum frames (``benchmarks/results/pendulum_epoch_profile_zen5.md``); AVX2-only AMD Zen 3, 381
+              against 475 ms and 340 against 441 ms (``benchmarks/results/decoder_profile_zen3.md``); AVX2-only AMD
+              Zen 1 (AVX2 as two 128-bit halves), 873 against 508 ms and 799 against 468 ms: the kernels lose there
+              (``benchmarks/results/decoder_profile_zen1.md``). Zen 2 (full-width AVX2, like Zen 3) and Intel CPUs
+              with AVX2 only are not measured: the rule takes the kernels there, as on Zen 3; give ``"torch"`` if
+              ``python benchmarks/profile_decoder.py`` says it is faster.
             * ``"native"``: the native kernels of :mod:`ssm_ms.nets.native` wherever they can run (AVX2 CPUs included):
               the whole stack after the stem (every transposed convolution, LayerNorm and ReLU) one sample at a time
               in cache, float32 on a CPU with AVX-512 or AVX2 + FMA, where one sample's scratch fits in
@@ -143,7 +144,7 @@ class ConvDecoder(nn.Module):
             if reason is not None:
                 raise ValueError(
                     f"ConvDecoder backend 'native' cannot run here: {reason}; use backend 'auto' (the "
-                    "default: the kernels where they run on a CPU with AVX-512) or 'torch'"
+                    "default: the kernels where they run and are the faster) or 'torch'"
                 )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -250,23 +251,27 @@ _log = logging.getLogger("ssm_ms")
 
 def auto_path(device_type: str, simd: str | None) -> str:
     """The path backend ``"auto"`` takes, ``"native"`` or ``"torch"``, for a tensor on a ``device_type`` device
-    (``"cpu"``, ``"cuda"``, ...) on a CPU with the instruction set ``simd`` (what
-    :func:`ssm_ms.nets.native.build.cpu_simd` says: ``"avx512"``, ``"avx2"`` or ``None``): the native kernels on a
-    CPU with AVX-512, the torch path otherwise. Why, with the measurements: :class:`ConvDecoder`'s ``backend``.
-    (``"native"`` here is a preference: the decoder still takes the torch path where the kernels cannot run.)"""
-    return "native" if device_type == "cpu" and simd == "avx512" else "torch"
+    (``"cpu"``, ``"cuda"``, ...) on a CPU with the vector unit ``simd`` (what
+    :func:`ssm_ms.nets.native.build.cpu_simd` says: ``"avx512"``, ``"avx2"``, ``"avx2-128"`` or ``None``): the native
+    kernels on a CPU with AVX-512 or full-width AVX2, the torch path otherwise. Why, with the measurements:
+    :class:`ConvDecoder`'s ``backend``. (``"native"`` here is a preference: the decoder still takes the torch path
+    where the kernels cannot run.)"""
+    return "native" if device_type == "cpu" and simd in ("avx512", "avx2") else "torch"
+
+
+SIMD_NAMES = {
+    "avx512": "AVX-512",
+    "avx2": "AVX2 with FMA, no AVX-512",
+    "avx2-128": "AVX2 run as two 128-bit halves (AMD Zen 1 or Zen+), no AVX-512",
+    None: "neither AVX-512 nor AVX2 with FMA",
+}
 
 
 @functools.cache
 def _say_choice(simd: str | None) -> None:
     """Log once per process what backend ``"auto"`` runs on this CPU (logger ``ssm_ms``, shown by ``cli.py``)."""
-    if auto_path("cpu", simd) == "native":
-        _log.info("ConvDecoder backend 'auto': the native kernels on this CPU (AVX-512), where they can run")
-    else:
-        _log.info(
-            "ConvDecoder backend 'auto': the torch path on this CPU (%s)",
-            "AVX2, no AVX-512" if simd == "avx2" else "neither AVX-512 nor AVX2 with FMA",
-        )
+    path = "the native kernels" if auto_path("cpu", simd) == "native" else "the torch path"
+    _log.info("ConvDecoder backend 'auto': %s on this CPU (%s)", path, SIMD_NAMES[simd])
 
 
 def drawn_size(stem_size: int, layers: Sequence[Sequence[int]]) -> int:

@@ -64,18 +64,39 @@ def _compiler() -> str | None:
 
 @functools.cache
 def cpu_simd() -> str | None:
-    """The widest vector instruction set of this CPU that the kernels are written for: ``"avx512"`` where
-    /proc/cpuinfo lists ``avx512f``, ``"avx2"`` where it lists ``avx2`` and ``fma`` (and no ``avx512f``), else
-    ``None`` (also where there is no /proc/cpuinfo: macOS, Windows). Read once per process."""
+    """The vector unit of this CPU that the kernels are written for: ``"avx512"`` where /proc/cpuinfo lists
+    ``avx512f``; where it lists ``avx2`` and ``fma`` (and no ``avx512f``), ``"avx2"``, or ``"avx2-128"`` on an AMD
+    CPU that runs each 256-bit AVX2 instruction as two 128-bit halves (family 0x17 below model 0x30: Zen 1 and
+    Zen+; the families before Zen); else ``None`` (also where there is no /proc/cpuinfo: macOS, Windows). Read once
+    per process, from the first processor's lines."""
+    fields: dict[str, str] = {}
     try:
         with open("/proc/cpuinfo") as fh:
             for line in fh:
-                if line.startswith("flags"):
-                    flags = set(line.split())
-                    return "avx512" if "avx512f" in flags else "avx2" if {"avx2", "fma"} <= flags else None
+                key, _, value = line.partition(":")
+                fields.setdefault(key.strip(), value.strip())
+                if line.strip() == "" and fields.get("flags") is not None:
+                    break
     except OSError:
-        pass
-    return None
+        return None
+    flags = set(fields.get("flags", "").split())
+    if "avx512f" in flags:
+        return "avx512"
+    if not {"avx2", "fma"} <= flags:
+        return None
+    return "avx2-128" if _half_width_avx2(fields) else "avx2"
+
+
+def _half_width_avx2(fields: dict[str, str]) -> bool:
+    """Whether /proc/cpuinfo's ``vendor_id``, ``cpu family`` and ``model`` name an AMD CPU whose AVX2 runs as two
+    128-bit halves (family 0x17 models below 0x30, Zen 1 and Zen+; Zen 2, model 0x30 on, has full-width units)."""
+    if fields.get("vendor_id") != "AuthenticAMD":
+        return False
+    try:
+        family, model = int(fields["cpu family"]), int(fields["model"])
+    except (KeyError, ValueError):
+        return False
+    return family < 0x17 or (family == 0x17 and model < 0x30)
 
 
 def _has_simd() -> bool:
