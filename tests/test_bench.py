@@ -1,6 +1,7 @@
 """The benchmark scripts run (tiny sizes), and the reference structure they time is the same model as ours."""
 
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,8 @@ from benchmarks.reference_structure import RefDecoder, RefLocallyLinear, RefTrai
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, native
 from ssm_ms.training.shooting import compile_unavailable_reason, multiple_shooting_loss
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def reference_copy_of(f: LocallyLinearTransition, g: ConvDecoder) -> tuple[RefLocallyLinear, RefDecoder]:
@@ -486,3 +489,29 @@ def test_benchmark_provenance_names_the_date_machine_and_the_command_given(tmp_p
     )
     write(tmp_path / "sub" / "r.md", ["# r", "", command])
     assert (tmp_path / "sub" / "r.md").read_text() == "# r\n\n- Command: `python benchmarks/x.py`\n"
+
+
+def test_decoder_reach_writes_its_table_and_figure(tmp_path, monkeypatch):
+    """benchmarks/decoder_reach.py on the pretrained simple pendulum, 2 sequences: three rows, each with the model's,
+    the free codes' and the mean frame's error; codes fitted to each frame draw it closer than the mean frame does;
+    the figure holds three strips of frames."""
+    from PIL import Image
+
+    from benchmarks import decoder_reach
+
+    monkeypatch.chdir(ROOT)  # the pretrained encoder names its SSM file from the repository root
+    out = tmp_path / "reach.md"
+    decoder_reach.main(
+        [
+            "--encoder", str(ROOT / "pretrained/pendulum_encoder.ckpt"),
+            "--data-config", str(ROOT / "configs/data/pendulum.yaml"),
+            "--sequences", "2", "--steps", "150", "--out", str(out),
+        ]
+    )  # fmt: skip
+    rows = [line for line in out.read_text().splitlines() if line.startswith("| the ") or line.startswith("| all ")]
+    assert len(rows) == 3
+    for row in rows:
+        model, free, mean = (float(v) for v in row.strip("|").split("|")[1:])
+        assert free < mean, row
+    image = Image.open(out.with_suffix(".png"))
+    assert image.height == 3 * 24 * 2

@@ -1,0 +1,120 @@
+"""What an SSM's decoder ``g`` can draw, against what the pipeline's states make it draw.
+
+Run from the repository root::
+
+    python benchmarks/decoder_reach.py --encoder pretrained/quad_encoder.ckpt --data-config configs/data/quad.yaml \\
+        [--sequences 8] [--steps 600] [--out benchmarks/results/decoder_reach_quad.md]
+
+On the first ``--sequences`` test sequences of the data config (generated in a temporary folder, with 40 training
+sequences for the mean frame), the encoder's forecast (its estimate of the given frames, then ``f``'s prediction,
+decoded by ``g``) is compared with the clean frames, beside the same frozen ``g`` drawing from codes fitted freely
+to each noisy frame (one state per frame, Adam, lr 0.05, ``--steps`` steps from zero) and the mean training frame.
+Where the free codes draw the frames far better than the model's own states, ``g`` is not what loses the picture:
+the states are (the encoder's estimate, or ``f``'s rollout). Writes a table and a figure (rows: the clean frames,
+the model's first predicted frames, ``g`` from the free codes) beside ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+from PIL import Image
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.report import provenance, write  # noqa: E402
+from ssm_ms.inference.encoder_module import StateEncoderModule  # noqa: E402
+
+
+def fitted_codes(g: torch.nn.Module, frames: torch.Tensor, state_dim: int, steps: int) -> torch.Tensor:
+    """``g(z)`` for codes ``z [N, d]`` fitted to ``frames [N, *obs]`` by Adam on the squared error (``g`` frozen)."""
+    z = torch.zeros(len(frames), state_dim, requires_grad=True)
+    opt = torch.optim.Adam([z], lr=0.05)
+    for _ in range(steps):
+        loss = torch.nn.functional.mse_loss(g(z), frames)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        return g(z)
+
+
+def strip(frames: torch.Tensor, pick: list[int]) -> np.ndarray:
+    """The first channel of ``frames[pick]`` side by side."""
+    return np.concatenate([frames[i, 0].numpy() for i in pick], axis=1)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--encoder", default="pretrained/quad_encoder.ckpt", help="an encoder stage's checkpoint")
+    parser.add_argument("--data-config", default="configs/data/quad.yaml")
+    parser.add_argument("--sequences", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=600, help="Adam steps of the free codes")
+    parser.add_argument("--out", default="benchmarks/results/decoder_reach_quad.md")
+    opts = parser.parse_args(argv)
+    torch.manual_seed(0)
+
+    enc = StateEncoderModule.load_from_checkpoint(opts.encoder, map_location="cpu").eval()
+    g, d = enc.ssm.g.requires_grad_(False), enc.ssm.hparams.state_dim
+    k = enc.hparams.n_filter
+    spec = yaml.safe_load(Path(opts.data_config).read_text())
+    module, name = spec["class_path"].rsplit(".", 1)
+    with tempfile.TemporaryDirectory() as tmp:
+        args = {**spec["init_args"], "n_train": 40, "n_test": opts.sequences, "data_dir": tmp}
+        dm = getattr(importlib.import_module(module), name)(**args)
+        dm.prepare_data()
+        item = dm.load("test").__getitems__(list(range(opts.sequences)))
+        mean = dm.load("train").__getitems__(list(range(40)))["y_clean"].mean(dim=(0, 1))
+    y, clean = item["y"], item["y_clean"]
+    with torch.no_grad():
+        forecast = enc.forecast(y[:, :k], y.shape[1] - k)
+    obs = tuple(y.shape[2:])
+    parts = {
+        f"the last 10 given frames ({k - 9}-{k})": (forecast.filtered[:, k - 10 :], slice(k - 10, k)),
+        f"the first 5 predicted ({k + 1}-{k + 5})": (forecast.predicted[:, :5], slice(k, k + 5)),
+        f"all {y.shape[1] - k} predicted": (forecast.predicted, slice(k, None)),
+    }
+    lines = [
+        "# What g can draw, against what the pipeline's states make it draw",
+        "",
+        *provenance("benchmarks/decoder_reach.py", argv),
+        f"- Model: the encoder `{opts.encoder}` over its SSM; data: `{opts.data_config}`, the first "
+        f"{opts.sequences} test sequences, {k} frames given",
+        f"- Free codes: one {d}-d state per frame fitted to the noisy frame, the frozen g, Adam lr 0.05, "
+        f"{opts.steps} steps from zero",
+        "",
+        "MSE against the clean frames (lower is better):",
+        "",
+        "| frames | the model (encoder, then f) | g from free codes | the mean training frame |",
+        "|---|---:|---:|---:|",
+    ]
+    picture = None
+    for label, (model_frames, span) in parts.items():
+        target, truth = y[:, span].reshape(-1, *obs), clean[:, span].reshape(-1, *obs)
+        free = fitted_codes(g, target, d, opts.steps)
+        own = model_frames.reshape(-1, *obs)
+        mse = [torch.nn.functional.mse_loss(a, truth).item() for a in (own, free, mean.expand_as(truth))]
+        lines.append(f"| {label} | {mse[0]:.5f} | {mse[1]:.5f} | {mse[2]:.5f} |")
+        if picture is None and "first 5 predicted" in label:
+            pick = list(range(0, len(truth), max(1, len(truth) // 8)))
+            picture = np.concatenate([strip(t, pick) for t in (truth, own, free)], 0)
+    figure = Path(opts.out).with_suffix(".png")
+    lines += [
+        "",
+        f"Figure `{figure.name}`: the clean frames, the model's first predicted frames, g from the free codes.",
+    ]
+    write(opts.out, lines)
+    image = Image.fromarray((np.clip(picture, 0, 1) * 255).astype(np.uint8))
+    image.resize((image.width * 2, image.height * 2), Image.NEAREST).save(figure)
+
+
+if __name__ == "__main__":
+    main()
