@@ -493,8 +493,9 @@ def test_benchmark_provenance_names_the_date_machine_and_the_command_given(tmp_p
 
 def test_decoder_reach_writes_its_table_and_figure(tmp_path, monkeypatch):
     """benchmarks/decoder_reach.py on the pretrained simple pendulum, 2 sequences: three rows, each with the model's,
-    the free codes' and the mean frame's error; codes fitted to each frame draw it closer than the mean frame does;
-    the figure holds three strips of frames."""
+    the free codes' and the mean frame's error; codes fitted to each clean frame from the pipeline's own states draw
+    it at least as close as those states do, and closer than the mean frame; the figure holds three strips of
+    frames."""
     from PIL import Image
 
     from benchmarks import decoder_reach
@@ -512,6 +513,6 @@ def test_decoder_reach_writes_its_table_and_figure(tmp_path, monkeypatch):
     assert len(rows) == 3
     for row in rows:
         model, free, mean = (float(v) for v in row.strip("|").split("|")[1:])
-        assert free < mean, row
+        assert free <= model * 1.001 and free < mean, row
     image = Image.open(out.with_suffix(".png"))
     assert image.height == 3 * 24 * 2
