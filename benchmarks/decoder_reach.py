@@ -70,6 +70,12 @@ def main(argv: list[str] | None = None) -> None:
     opts = parser.parse_args(argv)
     torch.manual_seed(0)
 
+    for path in (opts.encoder, opts.data_config):
+        if not Path(path).is_file():
+            sys.exit(
+                f"error: {path} does not exist (run from the repository root; --encoder takes an encoder stage's "
+                "checkpoint, --data-config a file of configs/data/)"
+            )
     enc = StateEncoderModule.load_from_checkpoint(opts.encoder, map_location="cpu").eval()
     g, d = enc.ssm.g.requires_grad_(False), enc.ssm.hparams.state_dim
     k = enc.hparams.n_filter
@@ -80,8 +86,11 @@ def main(argv: list[str] | None = None) -> None:
         dm = getattr(importlib.import_module(module), name)(**args)
         dm.prepare_data()
         item = dm.load("test").__getitems__(list(range(opts.sequences)))
-        mean = dm.load("train").__getitems__(list(range(40)))["y_clean"].mean(dim=(0, 1))
+        train = dm.load("train").__getitems__(list(range(40)))
+    if "y_clean" not in item:
+        sys.exit(f"error: the data of {opts.data_config} hold no clean frames ('y_clean'): this measure needs them")
     y, clean = item["y"], item["y_clean"]
+    mean = train["y_clean"].mean(dim=(0, 1))
     with torch.no_grad():
         forecast = enc.forecast(y[:, :k], y.shape[1] - k)
     obs = tuple(y.shape[2:])

@@ -213,20 +213,12 @@ def auto_check(size: dict, measured: dict[str, dict[str, float]], built: bool, c
 
 
 def cpu_family_model() -> str:
-    """``family F model M`` from /proc/cpuinfo (what tells AMD's Zen generations apart: 23/1 Zen 1, 25/17 Zen 4,
-    26/2 Zen 5), or ``family and model unknown``."""
-    fields = {}
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                key, _, value = line.partition(":")
-                if key.strip() in ("cpu family", "model") and key.strip() not in fields:
-                    fields[key.strip()] = value.strip()
-                if line.strip() == "":
-                    break
-    except OSError:
-        pass
-    if len(fields) < 2:
+    """``family F model M`` from /proc/cpuinfo (what tells AMD's Zen generations apart: 23/1 Zen 1, 25/1 Zen 3,
+    25/17 Zen 4, 26/2 Zen 5), or ``family and model unknown``."""
+    from ssm_ms.nets.native.build import cpu_fields
+
+    fields = cpu_fields()
+    if "cpu family" not in fields or "model" not in fields:
         return "family and model unknown"
     return f"family {fields['cpu family']} model {fields['model']}"
 

@@ -62,23 +62,31 @@ def _compiler() -> str | None:
     return None
 
 
+def cpu_fields() -> dict[str, str]:
+    """The first processor's lines of /proc/cpuinfo as ``{key: value}`` (``flags``, ``vendor_id``, ``cpu family``,
+    ``model``, ``model name``; ``Features`` and ``CPU part`` on ARM): the first processor describes them all. Empty
+    where there is no /proc/cpuinfo (macOS, Windows)."""
+    fields: dict[str, str] = {}
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.strip() == "" and fields:
+                    break
+                key, _, value = line.partition(":")
+                fields.setdefault(key.strip(), value.strip())
+    except OSError:
+        pass
+    return fields
+
+
 @functools.cache
 def cpu_simd() -> str | None:
     """The vector unit of this CPU that the kernels are written for: ``"avx512"`` where /proc/cpuinfo lists
     ``avx512f``; where it lists ``avx2`` and ``fma`` (and no ``avx512f``), ``"avx2"``, or ``"avx2-128"`` on an AMD
     CPU that runs each 256-bit AVX2 instruction as two 128-bit halves (family 0x17 below model 0x30: Zen 1 and
     Zen+; the families before Zen); else ``None`` (also where there is no /proc/cpuinfo: macOS, Windows). Read once
-    per process, from the first processor's lines."""
-    fields: dict[str, str] = {}
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                key, _, value = line.partition(":")
-                fields.setdefault(key.strip(), value.strip())
-                if line.strip() == "" and fields.get("flags") is not None:
-                    break
-    except OSError:
-        return None
+    per process (:func:`cpu_fields`)."""
+    fields = cpu_fields()
     flags = set(fields.get("flags", "").split())
     if "avx512f" in flags:
         return "avx512"
@@ -106,16 +114,10 @@ def _has_simd() -> bool:
 
 def _cpu_signature() -> str:
     """The CPU's model and instruction-set flags (what ``-march=native`` compiles for)."""
-    text = ""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith(("flags", "model name", "Features", "CPU part")):
-                    text += line
-                if line.strip() == "":
-                    break  # the first processor describes them all
-    except OSError:
-        pass
+    fields = cpu_fields()
+    text = "".join(
+        f"{key}: {fields[key]}\n" for key in ("flags", "model name", "Features", "CPU part") if key in fields
+    )
     return platform.machine() + platform.processor() + text
 
 
