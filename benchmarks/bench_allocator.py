@@ -25,12 +25,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shlex
 import statistics
 import subprocess
 import sys
 import tempfile
-from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -120,7 +118,8 @@ def main(argv: list[str] | None = None) -> None:
         parser.error("--warm, --steps and --rounds must be at least 1")
     if BASE not in args.settings:
         args.settings = [BASE] + args.settings
-    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
+    from benchmarks.report import provenance, write
+    from ssm_ms.runtime.machine import CpuWatch, quiet_note
 
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "step_usage.py").write_text(CALLBACK)
@@ -133,15 +132,10 @@ def main(argv: list[str] | None = None) -> None:
                 print(f"round {r + 1}/{args.rounds} {label}: {results[label][-1]}", flush=True)
         others = watch.others()
 
-    command = "python benchmarks/bench_allocator.py " + " ".join(
-        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
-    )
     lines = [
         f"# Allocator settings on the quadruple pendulum encoder's training step (`{args.config}`)",
         "",
-        f"- machine: {describe()}, Python {sys.version.split()[0]}; {quiet_note(others)}",
-        f"- command: `{command.strip()}`",
-        f"- date: {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
+        *provenance("benchmarks/bench_allocator.py", argv, f"Python {sys.version.split()[0]}; {quiet_note(others)}"),
         f"- {args.rounds} rounds; in each, every setting runs in its own process (order alternating between rounds): "
         f"{args.warm} untimed then {args.steps} timed training steps (batch of the config, forward, backward, Adam, "
         "the batch's loading included)",
@@ -159,9 +153,7 @@ def main(argv: list[str] | None = None) -> None:
             f"| {label} | {med['wall']:.2f} | {med['user']:.2f} | {med['sys']:.2f} | {med['faults']:,.0f} | "
             f"{statistics.median(ratios):.2f} | {', '.join(f'{q:.2f}' for q in ratios)} |"
         )
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write(args.out, lines)
 
 
 if __name__ == "__main__":

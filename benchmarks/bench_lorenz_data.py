@@ -9,10 +9,7 @@ and the test set (1000 x 2000), then one full ``prepare_data`` (generation + wri
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
 import platform
-import shlex
 import statistics
 import sys
 import tempfile
@@ -24,8 +21,8 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
+from benchmarks.report import provenance, write  # noqa: E402
 from datamodules.lorenz import LorenzDataModule  # noqa: E402
-from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 
 
 def timed(fn) -> tuple[float, object]:
@@ -63,10 +60,9 @@ def main() -> None:
     lines = [
         "# Lorenz data generation",
         "",
-        f"- Date: {datetime.datetime.now().astimezone().strftime('%Y-%m-%d %H:%M %Z')}",
-        f"- Machine: {cpu_model()}, {os.cpu_count()} logical cores (`os.cpu_count()`), "
-        f"Python {platform.python_version()}, numpy {np.__version__}",
-        f"- Command: `python {shlex.join(['benchmarks/bench_lorenz_data.py', *sys.argv[1:]])}`",
+        *provenance(
+            "benchmarks/bench_lorenz_data.py", None, f"Python {platform.python_version()}, numpy {np.__version__}"
+        ),
         "- Set-up: paper defaults (RK4, dt = 0.005, float64 integration, float32 storage of y, y_clean, state).",
         "",
         "| What | median (s) | runs (s) | arrays (MB) |",
@@ -79,13 +75,8 @@ def main() -> None:
         f"| `prepare_data()`: generate both splits + write the cache (one run) | {t_prepare:.2f} | {t_prepare:.2f} | {disk / 1e6:.0f} on disk |",
         f"| `setup()`: memory-map, NaN check, normalisation statistics, piece_length 10000 (one run) | {t_setup:.2f} | {t_setup:.2f} | |",
         f"| `setup()` of the same cache cut into 10^6 pieces, piece_length 10 (one run) | {t_setup_cut:.2f} | {t_setup_cut:.2f} | |",
-        "",
     ]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines))
-    print("\n".join(lines))
-    print(f"written to {out}")
+    write(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -13,12 +13,10 @@ ru_maxrss after the imports, after setup() and after iterating training batches.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import platform
 import resource
-import shlex
 import statistics
 import subprocess
 import sys
@@ -32,8 +30,8 @@ from tqdm import tqdm
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from benchmarks.report import provenance, write  # noqa: E402
 from datamodules.moving_mnist import MovingMNISTDataModule, render, trajectory  # noqa: E402
-from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 
 DEFAULT_ROOT = REPO.parent / "shared" / "data"
 
@@ -154,8 +152,6 @@ def main() -> None:
         probe_memory(args)
         return
 
-    command = "python " + " ".join(shlex.quote(a) for a in sys.argv)
-
     # ---------------------------------------------------------------- memory (fresh processes)
     probes = {w: run_probes(args, w) for w in sorted({0, args.workers})}
 
@@ -234,12 +230,12 @@ def main() -> None:
     lines = [
         "# Moving MNIST on the fly: memory and loader throughput",
         "",
-        f"- Date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}",
-        f"- Command: `{command}` (from the repository root)",
-        f"- Machine: {cpu_model()}, {n_cores} usable cores ({os.cpu_count()} logical), "
-        f"load average at the end {', '.join(f'{x:.2f}' for x in os.getloadavg())}",
-        f"- Software: Python {platform.python_version()}, torch {torch.__version__} "
-        f"({torch.get_num_threads()} intra-op threads), numpy {np.__version__}",
+        *provenance(
+            "benchmarks/bench_moving_mnist.py",
+            None,
+            f"{n_cores} usable cores, load average at the end {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
+            f"Python {platform.python_version()}, {torch.get_num_threads()} intra-op threads, numpy {np.__version__}",
+        ),
         f"- Data: n_train={args.n_train}, n_test=10000, seq_len=20, 64x64, 2 digits, step 3.6 px, batch "
         f"{args.batch_size}; MNIST from `{args.mnist_root}`",
         f"- Memory: ru_maxrss in {args.mem_runs} fresh processes each (median, then all runs), relative to the "
@@ -252,13 +248,8 @@ def main() -> None:
         "| quantity | value |",
         "|---|---|",
         *[f"| {k} | {v} |" for k, v in rows],
-        "",
     ]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines))
-    print("\n".join(lines))
-    print(f"written to {out}")
+    write(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ process, and the energy drift of undamped trajectories at the default RK4 step. 
 from __future__ import annotations
 
 import argparse
-import datetime as dt_
 import math
 import os
 import platform
@@ -29,9 +28,9 @@ import pinocchio as pin
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.report import provenance, write  # noqa: E402
 from datamodules import pendulum as P  # noqa: E402
 from datamodules.pendulum import PendulumDataModule  # noqa: E402
-from ssm_ms.runtime.machine import cpu_model  # noqa: E402
 
 CONFIGS = {
     "simple (1 link, 24x24)": dict(n_links=1, image_size=24, n_train=1000, n_test=1000),
@@ -117,10 +116,12 @@ def main() -> None:
     lines = [
         "# Pendulum data generation",
         "",
-        f"- date: {dt_.datetime.now().isoformat(timespec='seconds')}",
-        f"- command: `python {' '.join(sys.argv)}`",
-        f"- machine: {cpu_model()}, {P.available_cores()} available cores (os.cpu_count = {os.cpu_count()})",
-        f"- python {platform.python_version()}, numpy {np.__version__}, pinocchio {pin.__version__}",
+        *provenance(
+            "benchmarks/bench_pendulum_data.py",
+            None,
+            f"{P.available_cores()} available cores; Python {platform.python_version()}, numpy {np.__version__}, "
+            f"pinocchio {pin.__version__}",
+        ),
         f"- integrator: RK4, dt = {step} s, frames every 0.1 s, 100 frames; trajectories simulated in chunks of "
         f"{P.CHUNK_SIZE} per worker task",
         "",
@@ -170,15 +171,11 @@ def main() -> None:
 
     load = [" / ".join(f"{x:.1f}" for x in la) for la in (load_before, os.getloadavg())]
     lines.insert(
-        6,
+        5,  # after the title, its blank line and the three provenance lines
         f"- load average (1 / 5 / 15 min) at start: {load[0]}, at end: {load[1]} "
         "(other processes on the machine slow the figures down)",
     )
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    print(f"wrote {out}")
+    write(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -37,12 +37,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shlex
 import statistics
 import subprocess
 import sys
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -250,7 +248,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     import torch
 
-    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
+    from benchmarks.report import provenance, write
+    from ssm_ms.runtime.machine import CpuWatch, quiet_note
     from ssm_ms.training.shooting import compile_unavailable_reason
 
     if args.device == "cuda" and not torch.cuda.is_available():  # before any worker starts (and dies)
@@ -271,7 +270,6 @@ def main(argv: list[str] | None = None) -> None:
         impls.append("ours-compiled")
     if args.inputs:
         impls.append("ours-inputs")
-    start = datetime.now(timezone.utc)
     watch = CpuWatch()
     discard = 0 if args.tiny else args.discard
     results = {
@@ -280,15 +278,15 @@ def main(argv: list[str] | None = None) -> None:
     }
     others = watch.others()  # the workers have exited
     size = TINY if args.tiny else FULL
-    cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *(argv or sys.argv[1:])])
     lines = [
         "# Training step: ssm-ms beside the reference implementation's structure, one run, interleaved",
         "",
-        f"- machine: {describe()}, Python {sys.version.split()[0]}, "
-        f"{args.threads} torch threads per worker, device {args.device}",
-        f"- command: `{cmd}`",
-        f"- date: {start.isoformat(timespec='seconds')}",
-        f"- others' CPU use: {quiet_note(others)} (one benchmark worker runs at a time)",
+        *provenance(
+            "benchmarks/bench_train_step.py",
+            argv,
+            f"Python {sys.version.split()[0]}, {args.threads} torch threads per worker, device {args.device}; "
+            f"{quiet_note(others)} (one benchmark worker runs at a time)",
+        ),
         f"- set-up: {'TINY sizes (smoke test) ' if args.tiny else ''}batch {size['batch']}, m {size['m']}, "
         f"n {size['n']}, state {size['d']}, SSM-LL K {size['k']} hidden {size['hidden']}, SSM-FC 3 x {size['fc']}, "
         "24x24 images, Adam, loss fit + 1000 gap",
@@ -322,11 +320,7 @@ def main(argv: list[str] | None = None) -> None:
                 f"- {model}, the driven model's step over the same model without inputs (per-round medians): "
                 f"median {statistics.median(rel):.3f} ({', '.join(f'{r:.3f}' for r in rel)})"
             )
-    text = "\n".join(lines) + "\n"
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(text)
-    print(text)
-    print(f"wrote {args.out}")
+    write(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -21,12 +21,9 @@ Results go to benchmarks/results/two_jobs.md with the machine, command and date.
 from __future__ import annotations
 
 import argparse
-import os
-import shlex
 import statistics
 import sys
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,23 +88,19 @@ def main(argv: list[str] | None = None) -> None:
             "(and 0 or more untimed rounds)"
         )
 
-    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
+    from benchmarks.report import provenance, write
+    from ssm_ms.runtime.machine import CpuWatch, quiet_note
 
-    start = datetime.now(timezone.utc)
     watch = CpuWatch()
     discard = 0 if args.tiny else args.discard
     res = measure(args.rounds, args.steps, discard, args.tiny)
     others = watch.others()
     size = TINY if args.tiny else FULL
-    cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *(argv or sys.argv[1:])])
     alone = res[VARIANTS[0][0]]["throughput"]
     lines = [
         "# Two torch jobs on the same cores",
         "",
-        f"- machine: {describe()} ({os.cpu_count()} cores seen), Python {sys.version.split()[0]}",
-        f"- command: `{cmd}`",
-        f"- date: {start.isoformat(timespec='seconds')}",
-        f"- others' CPU use: {quiet_note(others)}",
+        *provenance("benchmarks/bench_two_jobs.py", argv, f"Python {sys.version.split()[0]}; {quiet_note(others)}"),
         f"- job: {'TINY sizes (smoke test) ' if args.tiny else ''}the SSM-LL training step of "
         f"benchmarks/bench_train_step.py (batch {size['batch']}, m {size['m']}, n {size['n']}, state {size['d']}, "
         f"K {size['k']}, hidden {size['hidden']}), {WARMUP} warm-up steps per job",
@@ -124,11 +117,7 @@ def main(argv: list[str] | None = None) -> None:
             f"| {label} | {statistics.median(res[label]['times']):.3f} | "
             f"{statistics.median(res[label]['throughput']):.2f} | {statistics.median(ratios):.2f} |"
         )
-    text = "\n".join(lines) + "\n"
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(text)
-    print(text)
-    print(f"wrote {args.out}")
+    write(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -25,12 +25,9 @@ Writes benchmarks/results/decoder_profile.md with the machine, command and date.
 from __future__ import annotations
 
 import argparse
-import os
-import shlex
 import statistics
 import sys
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,8 +58,9 @@ def main(argv: list[str] | None = None) -> None:
     import torch
     import torch.nn.functional as F
 
+    from benchmarks.report import provenance, write
     from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, native
-    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
+    from ssm_ms.runtime.machine import CpuWatch, quiet_note
     from ssm_ms.training.shooting import rollout
 
     if args.cflags:
@@ -125,14 +123,12 @@ def main(argv: list[str] | None = None) -> None:
 
     ms = {name: 1000 * statistics.median(ts) for name, ts in times.items()}
     others = {preset: other_decoders(preset, size[preset], size["d"], args.repeats) for preset in ("quad", "mnist")}
-    cmd = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(sys.argv[0], ROOT), *(argv or sys.argv[1:])])
     lines = [
         "# Pendulum step on CPU: decoder with and without the native kernels, and f",
         "",
-        f"- machine: {describe()}, {args.threads} torch threads",
-        f"- command: `{cmd}`",
-        f"- date: {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
-        f"- others' CPU use: {quiet_note(watch.others())}",
+        *provenance(
+            "benchmarks/profile_decoder.py", argv, f"{args.threads} torch threads; {quiet_note(watch.others())}"
+        ),
         f"- set-up: {'TINY sizes (smoke test) ' if args.tiny else ''}{size['frames']} frames 24x24 (pendulum decoder, "
         f"MSE), SSM-LL K {size['k']} hidden {size['hidden']} on {size['states']} states x {size['steps']} steps; "
         f"median of {args.repeats} alternated runs, forward + backward",
@@ -162,11 +158,7 @@ def main(argv: list[str] | None = None) -> None:
         lines.append(f"| {preset} | {size[preset]} | {res['native']:.1f} | {res['torch']:.1f} |")
     measured = {"pendulum": {"native": ms["decoder, native kernels"], "torch": ms["decoder, torch-only"]}, **others}
     lines += auto_check(size, measured, lib is not None, args.cflags)
-    text = "\n".join(lines) + "\n"
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(text)
-    print(text)
-    print(f"wrote {args.out}")
+    write(args.out, lines)
 
 
 def auto_check(size: dict, measured: dict[str, dict[str, float]], built: bool, cflags: str | None) -> list[str]:

@@ -16,12 +16,10 @@ from __future__ import annotations
 
 import argparse
 import re
-import shlex
 import subprocess
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -72,7 +70,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--epochs", type=int, default=20)
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "epoch_profile_pendulum.md"))
     args = parser.parse_args(argv)
-    from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note
+    from benchmarks.report import provenance, write
+    from ssm_ms.runtime.machine import CpuWatch, quiet_note
 
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [
@@ -104,15 +103,10 @@ def main(argv: list[str] | None = None) -> None:
         text = next(Path(tmp).glob("*profile*.txt")).read_text()
     rows = parse_profile(text)
     total, groups = shares(rows)
-    command = "python benchmarks/profile_epoch.py " + " ".join(
-        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:])
-    )
     lines = [
         f"# Where a training epoch goes: `{args.config}`, {args.epochs} epochs",
         "",
-        f"- machine: {describe()}; {quiet_note(others)}",
-        f"- command: `{command.strip()}`",
-        f"- date: {datetime.now(timezone.utc).isoformat(timespec='seconds')}",
+        *provenance("benchmarks/profile_epoch.py", argv, quiet_note(others)),
         f"- the fit took {seconds:.1f} s wall-clock ({seconds / args.epochs:.2f} s per epoch, start-up included); "
         f"the profiler's total: {total:.1f} s",
         "",
@@ -133,9 +127,7 @@ def main(argv: list[str] | None = None) -> None:
         "|---|---|---|",
     ]
     lines += [f"| `{a.split('{')[0]}` | {c} | {t:.2f} |" for a, c, t in top]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -13,13 +13,14 @@ sys.path.insert(0, str(ROOT))
 from ssm_ms.runtime.machine import describe  # noqa: E402
 
 
-def provenance(script: str, argv: list[str] | None) -> list[str]:
+def provenance(script: str, argv: list[str] | None, machine: str = "") -> list[str]:
     """The ``- Date``, ``- Machine`` and ``- Command`` lines of a run of ``script`` (``benchmarks/<name>.py``) with
-    the arguments ``argv`` (``None``: the command line's)."""
+    the arguments ``argv`` (``None``: the command line's); ``machine``, if given, is appended to the machine line
+    (threads, software versions, other processes' CPU use)."""
     args = sys.argv[1:] if argv is None else argv
     return [
         f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC",
-        f"- Machine: {describe()}",
+        f"- Machine: {describe()}" + (f"; {machine}" if machine else ""),
         f"- Command: `{shlex.join(['python', script, *args])}`",
     ]
 

@@ -473,8 +473,8 @@ def test_closed_loop_episodes_plan_on_the_true_state_or_on_the_estimate():
 
 
 def test_benchmark_provenance_names_the_date_machine_and_the_command_given(tmp_path, monkeypatch):
-    """benchmarks/report.py: the command is the arguments given (none given: none, not the test runner's), and the
-    file written is what is printed."""
+    """benchmarks/report.py: the command is the arguments given (none given: none, not the test runner's), a note
+    extends the machine line, and the file written is what is printed."""
     import datetime
 
     from benchmarks.report import provenance, write
@@ -487,6 +487,8 @@ def test_benchmark_provenance_names_the_date_machine_and_the_command_given(tmp_p
     assert date.startswith(f"- Date: {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d}") and machine.startswith(
         "- Machine: "
     )
+    noted = provenance("benchmarks/x.py", [], "2 torch threads")[1]
+    assert noted.startswith(machine) and noted.endswith("; 2 torch threads"), (noted, machine)
     write(tmp_path / "sub" / "r.md", ["# r", "", command])
     assert (tmp_path / "sub" / "r.md").read_text() == "# r\n\n- Command: `python benchmarks/x.py`\n"
 
