@@ -316,3 +316,30 @@ def test_analysis_tables_leave_out_columns_no_method_fills():
     rows = _markdown_table(render_analysis([images, lorenz]), "SSM (via)")
     assert [r["W1 (x)"] for r in rows] == ["—", "0.42"] and [r["both wings"] for r in rows] == ["—", "1"]
     assert rows[1]["x: data mean ± std"] == "0 ± 7.8"
+
+
+def test_edited_notes_make_the_md_stale_until_re_rendered(tmp_path, capsys):
+    """`python -m ssm_ms.forecasting.results --check` names an experiment whose notes changed after its .md was
+    written (and only it), and exits 1; re-rendering it puts the new note in its .md and the check passes."""
+    from ssm_ms.forecasting.results import main, write_results
+
+    for name in ("toy_cpu", "other_cpu"):
+        info = {"experiment": name, "method": "encoder", "model": "SSM-LL", "inference": "encoder"}
+        write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}})
+    (tmp_path / "summary_seeds.json").write_text('{"rows": []}')  # not a results file: left alone
+    assert main(["--results-dir", str(tmp_path), "--check"]) == 0
+    (tmp_path / "toy_cpu.notes.md").write_text("Paused 70 minutes.\n")
+    assert main(["--results-dir", str(tmp_path), "--check"]) == 1
+    assert "toy_cpu" in capsys.readouterr().err
+    assert "Paused 70 minutes." not in (tmp_path / "toy_cpu.md").read_text()
+    assert main(["--results-dir", str(tmp_path)]) == 0
+    assert "Paused 70 minutes." in (tmp_path / "toy_cpu.md").read_text()
+    assert main(["--results-dir", str(tmp_path), "--check"]) == 0
+
+
+def test_committed_results_md_match_their_json_and_notes():
+    """Every results/<experiment>.md is what its .json and hand-written notes render (a notes edit left
+    un-rendered fails here: `python -m ssm_ms.forecasting.results` re-renders)."""
+    from ssm_ms.forecasting.results import stale
+
+    assert stale(Path(__file__).resolve().parents[1] / "results") == []

@@ -8,6 +8,11 @@ source): for each experiment, rows of ``{column: value}`` where a value is ``(me
 ``None`` where the paper gives none) or a string ("did not converge"). Columns are
 ``"<target>/<metric>"`` as the protocol produces them, so each of our rows shows the paper's row of the
 same method beside it (:func:`paper_row`).
+
+The ``.md`` is rendered from the ``.json`` and the hand-written ``<experiment>.notes.md``; after editing notes:
+
+    python -m ssm_ms.forecasting.results pendulum quad   # re-render those experiments' .md (none named: all)
+    python -m ssm_ms.forecasting.results --check         # exit status 1 (naming them) where an .md is stale
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import sys
 import warnings
 from pathlib import Path
 from typing import Any, Union
@@ -427,16 +433,46 @@ def _replace_text(path: Path, text: str) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def _save(results_dir: Path, experiment: str, data: dict[str, Any]) -> Path:
-    data["experiment"] = experiment
-    _replace_text(results_dir / f"{experiment}.json", json.dumps(data, indent=2, sort_keys=True))
-    md_path = results_dir / f"{experiment}.md"
+def _rendered(results_dir: Path, experiment: str, data: dict[str, Any]) -> str:
+    """The ``.md`` text of ``data`` with the experiment's notes appended."""
     text = render_markdown(experiment, data.get("runs", {}), data.get("pipelines"), data.get("heading"))
     notes = results_dir / f"{experiment}{NOTES_SUFFIX}"
     if notes.is_file():  # what a person wrote about the runs (pauses, measurements beside them): kept on every rewrite
         text += f"\n## Notes\n\n(from `{notes.name}`, written by hand)\n\n{notes.read_text().strip()}\n"
-    _replace_text(md_path, text)
+    return text
+
+
+def _save(results_dir: Path, experiment: str, data: dict[str, Any]) -> Path:
+    data["experiment"] = experiment
+    _replace_text(results_dir / f"{experiment}.json", json.dumps(data, indent=2, sort_keys=True))
+    md_path = results_dir / f"{experiment}.md"
+    _replace_text(md_path, _rendered(results_dir, experiment, data))
     return md_path
+
+
+def experiments(results_dir: Path) -> list[str]:
+    """The experiments with a results file in ``results_dir`` (``<name>.json`` holding ``runs``; not the seed
+    summaries of :mod:`ssm_ms.forecasting.seeds`)."""
+    names = []
+    for path in sorted(results_dir.glob("*.json")):
+        try:
+            data = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            continue
+        if isinstance(data, dict) and "runs" in data:
+            names.append(path.stem)
+    return names
+
+
+def stale(results_dir: Path, names: list[str] | None = None) -> list[str]:
+    """Those of ``names`` (all :func:`experiments`) whose ``.md`` differs from what their ``.json`` and notes render."""
+    out = []
+    for name in experiments(results_dir) if names is None else names:
+        md = results_dir / f"{name}.md"
+        text = _rendered(results_dir, name, _load(results_dir / f"{name}.json"))
+        if not md.is_file() or md.read_text() != text:
+            out.append(name)
+    return out
 
 
 def write_results(
@@ -473,3 +509,36 @@ def write_pipeline(
         data.get("pipelines", {}).pop(replaces, None)
     data.setdefault("pipelines", {})[command] = pipeline
     return _save(results_dir, experiment, data)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("experiments", nargs="*", help="names of results/<name>.json (default: every one)")
+    parser.add_argument("--results-dir", type=Path, default=Path(__file__).resolve().parents[2] / "results")
+    parser.add_argument("--check", action="store_true", help="change nothing; exit status 1 where an .md is stale")
+    opts = parser.parse_args(argv)
+    known = experiments(opts.results_dir)
+    unknown = [name for name in opts.experiments if name not in known]
+    if unknown:
+        parser.error(f"no results file {', '.join(unknown)} in {opts.results_dir} (there: {', '.join(known)})")
+    names = stale(opts.results_dir, opts.experiments or None)
+    if opts.check:
+        if names:
+            print(
+                f"{opts.results_dir}: stale .md beside its .json and notes: {', '.join(names)} "
+                "(python -m ssm_ms.forecasting.results re-renders them)",
+                file=sys.stderr,
+            )
+        return 1 if names else 0
+    for name in names:
+        md = opts.results_dir / f"{name}.md"
+        _replace_text(md, _rendered(opts.results_dir, name, _load(opts.results_dir / f"{name}.json")))
+        print(f"re-rendered {md}")
+    print(f"{len(names)} of {len(opts.experiments or known)} .md files re-rendered")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
