@@ -330,7 +330,8 @@ def test_edited_notes_make_the_md_stale_until_re_rendered(tmp_path, capsys):
     assert main(["--results-dir", str(tmp_path), "--check"]) == 0
     (tmp_path / "toy_cpu.notes.md").write_text("Paused 70 minutes.\n")
     assert main(["--results-dir", str(tmp_path), "--check"]) == 1
-    assert "toy_cpu" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "toy_cpu" in err and "other_cpu" not in err
     assert "Paused 70 minutes." not in (tmp_path / "toy_cpu.md").read_text()
     assert main(["--results-dir", str(tmp_path)]) == 0
     assert "Paused 70 minutes." in (tmp_path / "toy_cpu.md").read_text()

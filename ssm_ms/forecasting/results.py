@@ -464,15 +464,21 @@ def experiments(results_dir: Path) -> list[str]:
     return names
 
 
-def stale(results_dir: Path, names: list[str] | None = None) -> list[str]:
-    """Those of ``names`` (all :func:`experiments`) whose ``.md`` differs from what their ``.json`` and notes render."""
-    out = []
+def _stale_renders(results_dir: Path, names: list[str] | None = None) -> dict[str, str]:
+    """``{name: text}`` for those of ``names`` (all :func:`experiments`) whose ``.md`` differs from ``text``, what
+    their ``.json`` and notes render."""
+    out = {}
     for name in experiments(results_dir) if names is None else names:
         md = results_dir / f"{name}.md"
         text = _rendered(results_dir, name, _load(results_dir / f"{name}.json"))
         if not md.is_file() or md.read_text() != text:
-            out.append(name)
+            out[name] = text
     return out
+
+
+def stale(results_dir: Path, names: list[str] | None = None) -> list[str]:
+    """Those of ``names`` (all :func:`experiments`) whose ``.md`` differs from what their ``.json`` and notes render."""
+    return list(_stale_renders(results_dir, names))
 
 
 def write_results(
@@ -519,11 +525,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--results-dir", type=Path, default=Path(__file__).resolve().parents[2] / "results")
     parser.add_argument("--check", action="store_true", help="change nothing; exit status 1 where an .md is stale")
     opts = parser.parse_args(argv)
+    if not opts.results_dir.is_dir():
+        parser.error(f"no folder {opts.results_dir}: give the results folder with --results-dir")
     known = experiments(opts.results_dir)
     unknown = [name for name in opts.experiments if name not in known]
     if unknown:
         parser.error(f"no results file {', '.join(unknown)} in {opts.results_dir} (there: {', '.join(known)})")
-    names = stale(opts.results_dir, opts.experiments or None)
+    renders = _stale_renders(opts.results_dir, opts.experiments or None)
+    names = list(renders)
     if opts.check:
         if names:
             print(
@@ -532,9 +541,9 @@ def main(argv: list[str] | None = None) -> int:
                 file=sys.stderr,
             )
         return 1 if names else 0
-    for name in names:
+    for name, text in renders.items():
         md = opts.results_dir / f"{name}.md"
-        _replace_text(md, _rendered(opts.results_dir, name, _load(opts.results_dir / f"{name}.json")))
+        _replace_text(md, text)
         print(f"re-rendered {md}")
     print(f"{len(names)} of {len(opts.experiments or known)} .md files re-rendered")
     return 0
