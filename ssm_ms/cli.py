@@ -55,6 +55,7 @@ from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.trainer.states import TrainerStatus
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
+from omegaconf.errors import InterpolationResolutionError
 
 from ssm_ms.checkpointing import EpochCheckpoint, read_checkpoint
 from ssm_ms.runtime.perf import configure_allocator
@@ -282,6 +283,8 @@ def user_error(exc: BaseException) -> tuple[str, int] | None:
         seen.add(id(current))
         if isinstance(current, USER_ERROR_TYPES) and _raised_by_own_code(current):
             return str(current), 1
+        if isinstance(current, InterpolationResolutionError):
+            return _interpolation_message(current), 1
         if isinstance(current, CommandLineError):
             cause = current.__cause__
             while cause is not None:  # a wrapped error of our own code says it best
@@ -291,6 +294,16 @@ def user_error(exc: BaseException) -> tuple[str, int] | None:
             return _parse_error_message(current.message), 2
         current = current.__cause__
     return None
+
+
+def _interpolation_message(exc: InterpolationResolutionError) -> str:
+    where = getattr(exc, "full_key", None)
+    where = f" (at {re.sub(r'^(fit|validate|test|predict)[.]', '', where)})" if where else ""
+    return (
+        f"a config interpolation cannot be resolved{where}: {str(exc).splitlines()[0]}; an interpolation works in a "
+        'nested section, not under a dotted key (docs/cli.md, "Configs as overlays"): write the value there, or '
+        "restate the section"
+    )
 
 
 def _help_command(args: list[str] | None) -> str:

@@ -138,3 +138,19 @@ def test_the_two_sensor_pendulum_sees_the_camera_pendulums_data():
     sensors = yaml.safe_load((ROOT / "configs/data/pendulum_sensors.yaml").read_text())["init_args"]
     added = {"sensors", "angle_noise_std", "angle_every"}
     assert {k: v for k, v in sensors.items() if k not in added} == torque
+
+
+def test_an_interpolation_under_a_dotted_key_is_one_line_naming_the_fix(tmp_path, capsys):
+    """jsonargparse rewrites an interpolation's path from the YAML nesting, which a dotted key hides (docs/cli.md):
+    the CLI says so in one line, with the key, instead of omegaconf's traceback."""
+    (tmp_path / "bad.yaml").write_text(
+        f"config: {ROOT / 'configs' / 'lorenz_T1000.yaml'}\n"
+        "model.init_args.f:\n  class_path: ssm_ms.nets.FullyConnectedTransition\n"
+        "  init_args:\n    state_dim: ${model.init_args.state_dim}\n"
+    )
+    with pytest.raises(SystemExit) as stop:
+        main(["fit", "--config", str(tmp_path / "bad.yaml"), "--trainer.max_epochs", "0"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 1 and "Traceback" not in err
+    assert err.startswith("error: a config interpolation cannot be resolved (at model.init_args.f.init_args.state_dim)")
+    assert "not under a dotted key" in err
