@@ -28,6 +28,8 @@ _log = logging.getLogger("ssm_ms")
 
 # Paper names of the transition models.
 MODEL_NAMES = {"LocallyLinearTransition": "SSM-LL", "FullyConnectedTransition": "SSM-FC"}
+# An observation model g the results tables name beside f's name (the paper's own g's are not named).
+G_NAMES = {"SpriteDecoder": "sprite decoder"}
 # How the results tables name the inference methods (a custom method_name is shown as it is).
 INFERENCE_LABELS = {"encoder": "CNN-LSTM encoder", "ukf": "UKF", "pf": "particle filter"}
 
@@ -175,6 +177,8 @@ class SSMForecaster(ForecastModule):
     def describe(self) -> dict[str, Any]:
         name = type(self.ssm.f).__name__
         model = MODEL_NAMES.get(name, f"SSM ({name})")
+        if (g_name := G_NAMES.get(type(self.ssm.g).__name__)) is not None:
+            model = f"{model} with a {g_name}"
         how = INFERENCE_LABELS.get(self.method_name, self.method_name)
         return {
             "model": model,

@@ -4,6 +4,7 @@ from ssm_ms.nets.decoder import ConvDecoder
 from ssm_ms.nets.encoder import FrameEncoder, StateEncoder
 from ssm_ms.nets.readout import LinearReadout, Projection
 from ssm_ms.nets.sensors import SensorHeads
+from ssm_ms.nets.sprites import SpriteDecoder
 from ssm_ms.nets.transition import FullyConnectedTransition, LocallyLinearTransition
 
 __all__ = [
@@ -14,5 +15,6 @@ __all__ = [
     "LocallyLinearTransition",
     "Projection",
     "SensorHeads",
+    "SpriteDecoder",
     "StateEncoder",
 ]
