@@ -251,7 +251,7 @@ def cpu_twins(results: Results) -> list[str]:
             Group(
                 "Moving MNIST (Table 3), BCE summed over a frame's 64x64 pixels",
                 ("noisy/bce",),
-                (("mnist_cpu", "encoder"), ("mnist_cpu", "lstm")),
+                (("mnist_cpu", "encoder"), ("mnist_cpu", "lstm"), ("mnist_sprites_cpu", "encoder")),
                 ("mean training frame", "mnist_cpu", "encoder", "mean"),
             ),
         ],
