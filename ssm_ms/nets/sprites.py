@@ -13,7 +13,7 @@ its position ``(row, column)`` then its content; the components after the sprite
 ``f`` and not drawn. A position ``w`` in ``[-1, 1]`` puts the sprite's top-left corner at ``(w + 1) (H - S) / 2``
 pixels from the canvas' (``H``: image size, ``S``: sprite size): ``-1`` at the top or left border, ``1`` at the bottom
 or right; outside that range the sprite leaves the canvas in part. Positions add to a fixed per-sprite offset
-(sprites spread on a circle of radius 0.5), so that states that start equal, as the shooting nodes do (zeros), do not
+(on a circle of radius ``offset_radius``, 0.5 by default), so that states that start equal, as the shooting nodes do (zeros), do not
 draw every sprite at one place, where no gradient would tell them apart.
 """
 
