@@ -64,6 +64,7 @@ TRACEBACK_ENV = "SSM_MS_TRACEBACK"
 ROOT = Path(__file__).resolve().parents[1]
 OWN_CODE = (ROOT / "ssm_ms", ROOT / "datamodules")
 USER_ERROR_TYPES = (ValueError, OSError, FloatingPointError)
+SUBCOMMANDS = ("fit", "validate", "test", "predict")
 LIGHTNING_CKPT_ALIASES = ("last", "best", "hpc", "registry")
 # model settings that say what is reported about a model and where, not what it computes: outside fit, the command's
 # own win over a --ckpt_path checkpoint's
@@ -297,8 +298,9 @@ def user_error(exc: BaseException) -> tuple[str, int] | None:
 
 
 def _interpolation_message(exc: InterpolationResolutionError) -> str:
-    where = getattr(exc, "full_key", None)
-    where = f" (at {re.sub(r'^(fit|validate|test|predict)[.]', '', where)})" if where else ""
+    key = getattr(exc, "full_key", None) or ""
+    head, _, rest = key.partition(".")
+    where = f" (at {rest if head in SUBCOMMANDS else key})" if key else ""
     return (
         f"a config interpolation cannot be resolved{where}: {str(exc).splitlines()[0]}; an interpolation works in a "
         'nested section, not under a dotted key (docs/cli.md, "Configs as overlays"): write the value there, or '
@@ -308,7 +310,7 @@ def _interpolation_message(exc: InterpolationResolutionError) -> str:
 
 def _help_command(args: list[str] | None) -> str:
     argv = sys.argv[1:] if args is None else args
-    subcommand = next((a for a in argv if a in ("fit", "validate", "test", "predict")), None)
+    subcommand = next((a for a in argv if a in SUBCOMMANDS), None)
     return f"python cli.py {subcommand} --help" if subcommand else "python cli.py --help"
 
 

@@ -12,9 +12,9 @@ State layout (``state_dim >= n_sprites * (2 + what_dim)``): sprite ``s`` reads `
 its position ``(row, column)`` then its content; the components after the sprites' (e.g. velocities) are free for
 ``f`` and not drawn. A position ``w`` in ``[-1, 1]`` puts the sprite's top-left corner at ``(w + 1) (H - S) / 2``
 pixels from the canvas' (``H``: image size, ``S``: sprite size): ``-1`` at the top or left border, ``1`` at the bottom
-or right; outside that range the sprite leaves the canvas in part. Positions add to a fixed per-sprite offset
-(on a circle of radius ``offset_radius``, 0.5 by default), so that states that start equal, as the shooting nodes do (zeros), do not
-draw every sprite at one place, where no gradient would tell them apart.
+or right; outside that range the sprite leaves the canvas in part. Positions add to a fixed per-sprite offset (on a
+circle of radius ``offset_radius``, 0.5 by default; none for a single sprite), so that states that start equal, as
+the shooting nodes do (zeros), do not draw every sprite at one place, where no gradient would tell them apart.
 """
 
 from __future__ import annotations
@@ -97,12 +97,6 @@ class SpriteDecoder(nn.Module):
             )
         self.image_size = image_size
 
-    @property
-    def out_shape(self) -> tuple[int, int, int] | None:
-        if self.image_size is None:
-            return None
-        return (self.sprite.out_shape[0], self.image_size, self.image_size)
-
     def adopt_measurement_shape(self, obs_shape: Sequence[int]) -> dict[str, int]:
         """Draw the data's frame size (called by the model's ``setup``); returns what it fixed, for the config."""
         if len(obs_shape) != 3 or obs_shape[-1] != obs_shape[-2] or obs_shape[0] != self.sprite.out_shape[0]:
@@ -137,7 +131,6 @@ class SpriteDecoder(nn.Module):
         n = slots.shape[0]
         where = (slots[..., :2] + self.offsets.to(slots.dtype)).reshape(n * self.n_sprites, 2)
         sprites = self.sprite(slots[..., 2:].reshape(n * self.n_sprites, self.what_dim))  # [n S, C, s, s]
-        sprites = sprites.contiguous(memory_format=torch.contiguous_format)
         c = sprites.shape[1]
         grid = F.affine_grid(self.placement(where), [n * self.n_sprites, c, self.image_size, self.image_size], False)
         placed = F.grid_sample(sprites, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
