@@ -212,7 +212,8 @@ class TrajectoryDataModule(pl.LightningDataModule):
         eval_batch_size: trajectories per validation / test batch (default: ``batch_size``).
         num_workers: DataLoader worker processes.
         val_trajectories: size of the fixed, evenly spaced subset of *training* trajectories on
-            which validation measures the full-length rollout error (0 disables validation).
+            which validation measures the full-length rollout error (0 disables validation). A model whose
+            attribute ``validate_held_out`` is true (the encoder stage's option) is not trained on them.
         normalize: normalise measurements to zero mean and unit std per channel, with statistics
             of the training set (they are saved in checkpoints with the DataModule's state).
         shuffle: shuffle the training set every epoch (order fixed by ``seed`` and the epoch).
@@ -673,6 +674,19 @@ class TrajectoryDataModule(pl.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         ds = self._train()
         trainer = self.trainer
+        if getattr(trainer.lightning_module if trainer is not None else None, "validate_held_out", False):
+            held_out = self.val_indices()
+            if len(held_out) == 0:
+                raise ValueError(
+                    "validate_held_out holds the validation trajectories out of training, but there are none: set "
+                    "data.init_args.val_trajectories > 0"
+                )
+            if len(held_out) >= len(ds):
+                raise ValueError(
+                    f"validate_held_out holds out all {len(ds)} training trajectories (val_trajectories="
+                    f"{self.val_trajectories}): set data.init_args.val_trajectories below {len(ds)}"
+                )
+            ds = self.subset(ds, np.setdiff1d(np.arange(len(ds)), held_out))
         world = trainer.world_size if trainer is not None else 1
         if world > 1:  # batch_size stays the global batch: the same training on any number of devices
             sampler = GlobalBatchShardSampler(

@@ -20,7 +20,8 @@ section's own ``seed``). Its results go to ``results/<experiment>_seed<N>.md``; 
 <experiment>`` gathers the seeds' scores as mean and std.
 
 Each stage is ``python cli.py ...`` in its own process, logged under ``runs/<name>/reproduce-<stamp>/``, so the checkpoints each stage hands to the next are
-known. Every method lands in the same ``results/<experiment>.md``, which ends with the commands and
+known: an SSM's ``last.ckpt``; an encoder's ``best.ckpt`` where its config keeps its best epoch (docs/cli.md, "The
+encoder's best epoch"), else its ``last.ckpt``. Every method lands in the same ``results/<experiment>.md``, which ends with the commands and
 their durations.
 
 Ctrl-C (or ``kill <pid>``, SIGTERM or SIGINT) during a stage stops the stage as ``fit`` stops (its last completed epoch
@@ -487,12 +488,15 @@ def main(argv: list[str] | None = None) -> None:
         ssm_ran = pipeline.stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v])
         with_ssm = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt)]
         if enc_cfg.exists():
-            enc_ckpt = logger_dir(enc_cfg) / version / "checkpoints" / "last.ckpt"
+            enc_dir = logger_dir(enc_cfg) / version / "checkpoints"
             budget = [] if opts.encoder_epochs is None else ["--trainer.max_epochs", str(opts.encoder_epochs)]
             enc_ran = pipeline.stage(
                 ["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget, *named(enc_cfg), *v],
                 again=ssm_ran,
             )
+            # a config that keeps its best epoch (a ModelCheckpoint writing best.ckpt) is tested from it
+            best = enc_dir / "best.ckpt"
+            enc_ckpt = best if _absolute(best).is_file() else enc_dir / "last.ckpt"
             enc_test = ["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt)]
             pipeline.stage([*enc_test, *named(enc_cfg), *v], again=ssm_ran or enc_ran)
             configs.append(enc_cfg)

@@ -295,6 +295,39 @@ def test_checkpoint_of_another_data_set_is_refused(exact_ssm):
         trainer.fit(StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8}), other)
 
 
+def test_an_encoder_validated_on_held_out_trajectories_never_trains_on_them(exact_ssm):
+    """validate_held_out: the training batches hold every training trajectory but the evenly spaced validation ones
+    (first and last of 8 for val_trajectories 2), validation holds exactly those; without trajectories to hold out
+    (val_trajectories 0) the fit is refused before any step, naming the setting."""
+    from lightning.pytorch.callbacks import Callback
+
+    tmp, ckpt = exact_ssm
+
+    class Seen(Callback):
+        def __init__(self):
+            self.train, self.val = set(), set()
+
+        def on_train_batch_start(self, trainer, module, batch, batch_idx):
+            self.train.update(batch["index"].tolist())
+
+        def on_validation_batch_start(self, trainer, module, batch, batch_idx, dataloader_idx=0):
+            self.val.update(batch["index"].tolist())
+
+    def encoder():
+        return StateEncoderModule(
+            str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8}, metrics=["mse"], validate_held_out=True
+        )
+
+    seen = Seen()
+    fast_trainer(tmp, max_epochs=2, callbacks=[seen]).fit(encoder(), rotation_dm(tmp))
+    assert seen.val == {0, 7} and seen.train == {1, 2, 3, 4, 5, 6}
+    none = RotationDataModule(data_dir=str(tmp / "data"), seq_len=12, batch_size=4, val_trajectories=0)
+    steps = Seen()
+    with pytest.raises(ValueError, match=r"validate_held_out .* set data.init_args.val_trajectories > 0"):
+        fast_trainer(tmp, max_epochs=1, callbacks=[steps]).fit(encoder(), none)
+    assert not steps.train
+
+
 def test_fewer_test_sequences_are_tested_and_said(exact_ssm):
     """The test split's size does not determine the training data: an encoder trains and tests with n_test 2 (the
     SSM's data had 4), reads only the test split when it tests, and the results file says how many it scored and

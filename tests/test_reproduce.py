@@ -574,3 +574,28 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
     assert written["experiment"] == "pendulum_control"  # the last results file the suite's last experiment wrote
     with pytest.raises(SystemExit):
         reproduce.main(["pendulum_control", "--resume", "reproduce-1"])
+
+
+def test_an_encoder_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeypatch, tmp_path):
+    """An encoder fit that wrote best.ckpt (a config with a ModelCheckpoint on its validation) hands that file to its
+    test and to the control's; one that did not hands its last.ckpt on (the test above)."""
+    calls, _ = recorded
+
+    def fit_writes_best(args, number, resume_pipeline=None):
+        calls.append(args)
+        if args[0] == "fit" and option(args, "--config").endswith("_encoder.yaml"):
+            version = option(args, "--trainer.logger.init_args.version")
+            best = tmp_path / "runs" / "pendulum_torque_encoder" / version / "checkpoints" / "best.ckpt"
+            best.parent.mkdir(parents=True)
+            best.touch()
+        return 0.0
+
+    monkeypatch.setattr(reproduce, "run_stage", fit_writes_best)
+    reproduce.main(["pendulum_torque", "--no-baselines"])
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    best = f"runs/pendulum_torque_encoder/{version}/checkpoints/best.ckpt"
+    handed = [option(a, "--ckpt_path") for a in calls if a[0] == "test" and "--ckpt_path" in a]
+    handed += [
+        option(a, "--model.init_args.encoder_checkpoint") for a in calls if "--model.init_args.encoder_checkpoint" in a
+    ]
+    assert handed and set(handed) == {best}

@@ -30,6 +30,12 @@ class StateEncoderModule(SSMForecaster):
             ``state_dim`` / ``obs_shape`` / ``input_dim`` / ``streams`` (taken from the SSM: an SSM whose ``g`` has one
             head per sensor gets an encoder that reads each sensor by itself, the CNN settings for its images).
         lr: Adam learning rate.
+        validate_held_out: train on the training trajectories less the validation subset (the data's
+            ``val_trajectories``), so that ``encoder/val_mse`` measures sequences the encoder has not seen (their
+            targets are still the SSM's rollouts: the SSM trained on all of them). Without it (the default, as the
+            paper's stages) the encoder trains on every trajectory and its validation cannot show it overfitting.
+            A config that keeps its best epoch adds a ``ModelCheckpoint`` on ``encoder/val_mse`` (``best.ckpt``:
+            docs/cli.md, "The encoder's best epoch").
         metrics: scores of the test protocol.
         **kwargs: the protocol's other arguments (``n_predict``, ``bce_reduction``, ``original_units``,
             ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``, ``analysis``), see
@@ -46,12 +52,14 @@ class StateEncoderModule(SSMForecaster):
         n_filter: int,
         encoder: dict[str, Any] | None = None,
         lr: float = 1e-3,
+        validate_held_out: bool = False,
         metrics: list[str] = ["mse", "bce"],  # noqa: B006 (read, never mutated; a list for the CLI)
         **kwargs: Any,
     ):
         if not lr > 0:
             raise ValueError(f"the learning rate must be > 0, got {lr}: set model.init_args.lr (e.g. 1e-3)")
         super().__init__(ssm_checkpoint, n_filter=n_filter, metrics=metrics, **kwargs)
+        self.validate_held_out = validate_held_out  # read by the DataModule's training loader
         streams = getattr(self.ssm.g, "shapes", None)  # several sensors: g's heads name them (SensorHeads)
         one_vector = len(self.ssm.obs_shape()) == 1 and not streams
         kwargs = dict(encoder or {"preset": "vector" if one_vector else None})
