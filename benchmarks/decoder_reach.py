@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> None:
         mse = [F.mse_loss(a, truth_frames).item() for a in candidates]
         lines.append(f"| {label} | " + " | ".join(f"{v:.5f}" for v in mse) + " |")
         if picture is None and "first 5 predicted" in label:
-            pick = list(range(0, len(truth), max(1, len(truth) // 8)))
+            pick = list(range(0, len(truth_frames), max(1, len(truth_frames) // 8)))
             picture = np.concatenate([strip(t, pick) for t in (truth_frames, own, free)], 0)
     figure = Path(opts.out).with_suffix(".png")
     lines += [

@@ -521,4 +521,4 @@ def test_decoder_reach_writes_its_table_and_figure(tmp_path, monkeypatch):
     predicted = rows[2].strip("|").split("|")[1:]
     assert float(predicted[3]) <= float(predicted[2])  # fitted to those frames too: at least as close to them
     image = Image.open(out.with_suffix(".png"))
-    assert image.height == 3 * 24 * 2
+    assert image.height == 3 * 24 * 2 and image.width == 10 * 24 * 2  # the 2 x 5 first predicted frames, each
