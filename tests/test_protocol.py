@@ -298,7 +298,7 @@ def test_checkpoint_of_another_data_set_is_refused(exact_ssm):
 def test_an_encoder_validated_on_held_out_trajectories_never_trains_on_them(exact_ssm):
     """validate_held_out: the training batches hold every training trajectory but the evenly spaced validation ones
     (first and last of 8 for val_trajectories 2), validation holds exactly those; without trajectories to hold out
-    (val_trajectories 0) the fit is refused before any step, naming the setting."""
+    (val_trajectories 0), or holding out all 8, the fit is refused before any step, naming the setting."""
     from lightning.pytorch.callbacks import Callback
 
     tmp, ckpt = exact_ssm
@@ -325,6 +325,10 @@ def test_an_encoder_validated_on_held_out_trajectories_never_trains_on_them(exac
     steps = Seen()
     with pytest.raises(ValueError, match=r"validate_held_out .* set data.init_args.val_trajectories > 0"):
         fast_trainer(tmp, max_epochs=1, callbacks=[steps]).fit(encoder(), none)
+    assert not steps.train
+    every = RotationDataModule(data_dir=str(tmp / "data"), seq_len=12, batch_size=4, val_trajectories=8)
+    with pytest.raises(ValueError, match=r"holds out all 8 training trajectories .* below 8"):
+        fast_trainer(tmp, max_epochs=1, callbacks=[steps]).fit(encoder(), every)
     assert not steps.train
 
 
