@@ -522,3 +522,26 @@ def test_decoder_reach_writes_its_table_and_figure(tmp_path, monkeypatch):
     assert float(predicted[3]) <= float(predicted[2])  # fitted to those frames too: at least as close to them
     image = Image.open(out.with_suffix(".png"))
     assert image.height == 3 * 24 * 2 and image.width == 10 * 24 * 2  # the 2 x 5 first predicted frames, each
+
+
+def test_lorenz_oracle_forecasts_the_truth_from_near_noiseless_measurements(tmp_path):
+    """benchmarks/lorenz_oracle.py: with measurement noise std 0.01 the true model's UKF finds the state, so its
+    10-step forecast of x matches the generator's noiseless x (closed form: the data itself) to well under the
+    noise's variance scaled back; with the paper's noise (std 2.5) the error is larger; one row per config and
+    process variance."""
+    from benchmarks import lorenz_oracle
+
+    configs = []
+    for noise in (0.01, 2.5):
+        path = tmp_path / f"lorenz_{noise}.yaml"
+        init_args = {"n_train": 1, "train_steps": 10, "n_test": 3, "test_steps": 300, "noise_std": noise}
+        path.write_text(f"class_path: datamodules.lorenz.LorenzDataModule\ninit_args: {init_args}\n")
+        configs.append(str(path))
+    out = tmp_path / "oracle.md"
+    lorenz_oracle.main(["--data-config", *configs, "--n-filter", "290", "--out", str(out)])
+    rows = [line.strip("|").split("|") for line in out.read_text().splitlines() if line.startswith("| `")]
+    assert len(rows) == 2 * len(lorenz_oracle.PROCESS_VARS)
+    quiet = [float(r[3]) for r in rows[: len(lorenz_oracle.PROCESS_VARS)]]
+    noisy = [float(r[3]) for r in rows[len(lorenz_oracle.PROCESS_VARS) :]]
+    assert max(quiet) < 1e-3, quiet
+    assert min(noisy) > 10 * max(quiet), (quiet, noisy)
