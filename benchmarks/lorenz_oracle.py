@@ -1,4 +1,4 @@
-"""The floor of Table 4's score: the UKF on the Lorenz system's own equations, under the test protocol.
+"""The UKF's floor of Table 4's score: the UKF on the Lorenz system's own equations, under the test protocol.
 
 Run from the repository root::
 
@@ -11,10 +11,11 @@ own transition (``true_transition``: the generator's RK4 step) and observation (
 variance), started from the generator's own prior (mean 0, the variance of its uniform initial states); the last
 filtered mean is then run forward ``--n-predict`` steps by the same transition and scored like the protocol's
 ``clean/mse`` (the squared error against the noiseless x in original units, averaged over the predicted steps, then
-mean and std over the sequences). No learned model comes near it by being better at the dynamics or the
-measurements: what it leaves is the part of the forecast error that the measurements themselves leave, since the
-noise hides where on the attractor a sequence is and chaos grows that doubt over the predicted steps. Where a
-learned SSM + UKF scores at this floor, a longer training sequence T has nothing left to gain on this score.
+mean and std over the sequences). With a perfect model, what it leaves is the error the measurements leave to a UKF:
+the noise hides where on the attractor a sequence is, and chaos grows that doubt over the predicted steps. A learned
+SSM + UKF well above it is losing to its model (or its filter settings), not to the data. It is a floor for the
+UKF, not for every filter: the UKF approximates the optimal filter of a nonlinear system (a particle filter on the
+same equations could score lower).
 """
 
 from __future__ import annotations
@@ -92,7 +93,7 @@ def main(argv: list[str] | None = None) -> None:
             rows.append((config, dm.n_test, q, score.mean().item(), score.std().item(), time.perf_counter() - start))
             print(f"{config} process_var {q:g}: MSE {rows[-1][3]:.4f} ± {rows[-1][4]:.3f}", flush=True)
     lines = [
-        "# Lorenz, Table 4's protocol on the true equations: the floor of its forecast score",
+        "# Lorenz, Table 4's protocol with the UKF on the true equations: the UKF's floor of its forecast score",
         "",
         *provenance("benchmarks/lorenz_oracle.py", argv),
         f"- Protocol: filter {args.n_filter} noisy measurements of x, forecast {args.n_predict} steps; the score is "
