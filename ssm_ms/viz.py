@@ -35,7 +35,10 @@ class ReconstructionLogger(Callback):
     picture per stream, ``val/reconstruction/<stream>``.
 
     Args:
-        every_n_epochs: log when ``epoch % every_n_epochs == 0`` (and at the last epoch).
+        every_n_epochs: log at the first validation, then at the first validation after each further
+            ``every_n_epochs`` epochs of training (and at the last epoch). Validation runs only every
+            ``check_val_every_n_epoch`` epochs (after epochs 9, 19, ... for 10), so the picture follows the
+            validations rather than asking for epochs that have none.
         max_trajectories: trajectories drawn.
         max_frames: frames per row for images.
     """
@@ -46,11 +49,16 @@ class ReconstructionLogger(Callback):
         self.every_n_epochs = every_n_epochs
         self.max_trajectories = max_trajectories
         self.max_frames = max_frames
+        self._drawn_window = -1  # the last window of every_n_epochs trained epochs drawn (after a resume: none)
 
     def _due(self, trainer: pl.Trainer) -> bool:
         epoch = trainer.current_epoch
         last = trainer.max_epochs is not None and epoch == trainer.max_epochs - 1
-        return epoch % self.every_n_epochs == 0 or last
+        window = (epoch + 1) // self.every_n_epochs  # whole windows trained by the end of this epoch
+        if window > self._drawn_window or last:
+            self._drawn_window = window
+            return True
+        return False
 
     def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0) -> None:
         if batch_idx != 0 or trainer.sanity_checking or not isinstance(outputs, dict) or not self._due(trainer):

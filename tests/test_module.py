@@ -223,3 +223,26 @@ def test_a_float64_run_resumes_bit_for_bit_though_f_and_g_are_built_in_float32(t
     for key in a:
         assert b[key].dtype == a[key].dtype and torch.equal(b[key], a[key]), key
     assert a["f.matrices"].dtype == torch.float64
+
+
+def test_reconstructions_are_drawn_at_validations_every_n_epochs_apart(tmp_path, rotation_dm, monkeypatch):
+    """ReconstructionLogger(every_n_epochs=6) with validation every 3 epochs of 12 (after epochs 2, 5, 8, 11):
+    drawn at the first validation (2), after the first 6 epochs (5) and after 12 (11, also the last), not after 9
+    (8): a picture follows the validations even though none falls on an epoch divisible by 6."""
+    from ssm_ms import viz
+
+    drawn = []
+
+    class Recorder:
+        def __init__(self, trainer):
+            self.trainer = trainer
+
+        def add_figure(self, tag, figure, step):
+            drawn.append(self.trainer.current_epoch)
+
+    monkeypatch.setattr(viz, "tensorboard_writer", Recorder)
+    trainer = fast_trainer(
+        tmp_path, max_epochs=12, callbacks=[viz.ReconstructionLogger(every_n_epochs=6)], check_val_every_n_epoch=3
+    )
+    trainer.fit(rotation_model(), rotation_dm)
+    assert drawn == [2, 5, 11]
