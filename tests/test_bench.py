@@ -549,3 +549,40 @@ def test_lorenz_oracle_forecasts_the_truth_from_near_noiseless_measurements(tmp_
     assert max(quiet_ukf) < 1e-3, quiet_ukf
     assert all(0 < float(r[4]) < 1.0 for r in noisy[n_ukf:]), noisy  # the particles track the noisy sequences
     assert min(float(r[4]) for r in noisy[:n_ukf]) > 10 * max(quiet_ukf), (quiet, noisy)
+
+
+def test_ssm_rollouts_score_the_first_node_rolled_out_as_a_naive_loop(tmp_path):
+    """benchmarks/ssm_rollouts.py on the pretrained pendulum SSM and 8 generated training trajectories (4 picked,
+    evenly: 0, 2, 5, 7): its MSE over all frames equals g(f^k(first node)) against the clean frames, computed here
+    step by step; one figure per SSM, rows measured / clean / model per trajectory."""
+    import yaml
+    from PIL import Image
+
+    from benchmarks import ssm_rollouts
+    from datamodules.pendulum import PendulumDataModule
+    from ssm_ms.module import load_ssm
+
+    spec = yaml.safe_load((ROOT / "configs/data/pendulum.yaml").read_text())
+    args = {**spec["init_args"], "n_train": 8, "n_test": 1, "data_dir": str(tmp_path / "data")}
+    config = tmp_path / "pendulum.yaml"
+    config.write_text(yaml.safe_dump({"class_path": spec["class_path"], "init_args": args}))
+    out = tmp_path / "rollouts.md"
+    ckpt = str(ROOT / "pretrained/pendulum.ckpt")
+    ssm_rollouts.main(["--ssm", ckpt, "--data-config", str(config), "--out", str(out)])
+    row = next(line for line in out.read_text().splitlines() if line.startswith("| `"))
+    reported = float(row.split("|")[5])
+
+    model, _ = load_ssm(ckpt)
+    dm = PendulumDataModule(**args)
+    dm.prepare_data()
+    item = dm.load("train").__getitems__([0, 2, 5, 7])
+    with torch.no_grad():
+        x = model.node_states(torch.tensor([0, 2, 5, 7]))[:, 0]
+        frames = []
+        for _ in range(item["y"].shape[1]):
+            frames.append(model.g(x))
+            x = model.f(x)
+    naive = (torch.stack(frames, 1) - item["y_clean"]).pow(2).mean().item()
+    assert reported == pytest.approx(naive, abs=6e-5)  # the table's 4 decimals
+    image = Image.open(out.with_name("rollouts_0.png"))
+    assert image.size == (2 * (10 * 25 + 1), 2 * (4 * 3 * 25 + 1))  # 10 frames of 24 px + 1 px borders, 12 rows, x2
