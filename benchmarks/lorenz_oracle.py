@@ -39,7 +39,7 @@ from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402
 
 DATA_CONFIGS = ["configs/cpu/data/lorenz_T1000.yaml", "configs/data/lorenz_T1000.yaml"]
 PROCESS_VARS = [0.0, 1e-5, 1e-4, 1e-3]  # UKF, original units squared per step: a deterministic f, then some slack
-PF_PROCESS_STDS = [0.02, 0.05]  # particle filter, original units per step (none: the cloud collapses)
+PF_PROCESS_STDS = [0.02, 0.05]  # particle filter, original units per step (with too little the cloud collapses)
 
 
 def data_module(config: str, n_test: int | None) -> LorenzDataModule:

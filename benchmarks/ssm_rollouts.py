@@ -11,7 +11,7 @@ set (its cache, generated there if missing: the nodes belong to those trajectori
 rolled out by ``f`` over the whole trajectory and drawn by ``g`` (the SSM's ``validation_step``), and compared with
 the clean frames. This is the fit of what the SSM trained on, not a forecast of unseen sequences: it shows what f and
 g have learned to draw (e.g. the bends of the quadruple pendulum's chain), apart from any encoder. Writes a table
-(MSE against the clean frames, over the first and second half of the frames and all of them) and, per SSM, a figure
+(MSE against the clean frames, over the first and second half of the frames and all of them; SSIM over all) and, per SSM, a figure
 (rows: measured, clean, the SSM's rollout) beside ``--out``.
 """
 
@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
 from ssm_ms.drawing import reconstruction_grid  # noqa: E402
+from ssm_ms.forecasting.metrics import ssim_per_sequence  # noqa: E402
 from ssm_ms.module import load_ssm  # noqa: E402
 
 
@@ -73,6 +74,7 @@ def main(argv: list[str] | None = None) -> None:
     for i, path in enumerate(opts.ssm):
         y_hat, epochs = rollouts(path, item)
         err = {k: (y_hat[:, s] - clean[:, s]).pow(2).mean().item() for k, s in halves.items()}
+        err["SSIM, all"] = ssim_per_sequence(y_hat.clamp(0, 1), clean).mean().item()
         grid = reconstruction_grid(item["y"], y_hat, clean, len(index), 10)
         pixels = (grid.clamp(0, 1)[0].numpy() * 255).astype(np.uint8)
         figure = out.with_name(f"{out.stem}_{i}.png")
@@ -88,11 +90,12 @@ def main(argv: list[str] | None = None) -> None:
         *provenance("benchmarks/ssm_rollouts.py", argv),
         f"- Data: `{opts.data_config}`, training trajectories {index} (of {len(train)}), {t} frames each; each SSM's "
         "first node of each, rolled out by f over all the frames and drawn by g (its validation rollout)",
-        "- Score: MSE against the clean frames (lower is better); figures: per trajectory the measured frames, the "
-        "clean ones and the SSM's, every tenth of the sequence",
+        "- Scores: MSE against the clean frames (lower is better), and SSIM (the test protocol's; higher is better: "
+        "it sees shapes where per-pixel errors barely do); figures: per trajectory the measured frames, the clean "
+        "ones and the SSM's, every tenth of the sequence",
         "",
-        "| SSM | epochs trained | " + " | ".join(halves) + " | figure |",
-        "|---|---:|" + "---:|" * len(halves) + "---|",
+        "| SSM | epochs trained | " + " | ".join(f"MSE, {k}" for k in halves) + " | SSIM, all | figure |",
+        "|---|---:|" + "---:|" * (len(halves) + 1) + "---|",
         *rows,
     ]
     write(out, lines)

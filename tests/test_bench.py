@@ -560,6 +560,7 @@ def test_ssm_rollouts_score_the_first_node_rolled_out_as_a_naive_loop(tmp_path):
 
     from benchmarks import ssm_rollouts
     from datamodules.pendulum import PendulumDataModule
+    from ssm_ms.forecasting.metrics import ssim_per_sequence
     from ssm_ms.module import load_ssm
 
     spec = yaml.safe_load((ROOT / "configs/data/pendulum.yaml").read_text())
@@ -570,7 +571,7 @@ def test_ssm_rollouts_score_the_first_node_rolled_out_as_a_naive_loop(tmp_path):
     ckpt = str(ROOT / "pretrained/pendulum.ckpt")
     ssm_rollouts.main(["--ssm", ckpt, "--data-config", str(config), "--out", str(out)])
     row = next(line for line in out.read_text().splitlines() if line.startswith("| `"))
-    reported = float(row.split("|")[5])
+    reported, ssim = float(row.split("|")[5]), float(row.split("|")[6])
 
     model, _ = load_ssm(ckpt)
     dm = PendulumDataModule(**args)
@@ -584,5 +585,6 @@ def test_ssm_rollouts_score_the_first_node_rolled_out_as_a_naive_loop(tmp_path):
             x = model.f(x)
     naive = (torch.stack(frames, 1) - item["y_clean"]).pow(2).mean().item()
     assert reported == pytest.approx(naive, abs=6e-5)  # the table's 4 decimals
+    assert ssim == pytest.approx(ssim_per_sequence(torch.stack(frames, 1), item["y_clean"]).mean().item(), abs=6e-5)
     image = Image.open(out.with_name("rollouts_0.png"))
     assert image.size == (2 * (10 * 25 + 1), 2 * (4 * 3 * 25 + 1))  # 10 frames of 24 px + 1 px borders, 12 rows, x2
