@@ -44,7 +44,10 @@ PF_PROCESS_STDS = [0.02, 0.05]  # particle filter, original units per step (with
 
 def data_module(config: str, n_test: int | None) -> LorenzDataModule:
     """The config's Lorenz data module (its generator settings only; ``n_test`` overrides the number of sequences)."""
-    spec = yaml.safe_load((ROOT / config).read_text())
+    path = ROOT / config
+    spec = yaml.safe_load(path.read_text()) if path.is_file() else None
+    if not isinstance(spec, dict) or not str(spec.get("class_path", "")).endswith("LorenzDataModule"):
+        sys.exit(f"error: {config} is not a Lorenz data config (configs/data/lorenz_*.yaml, configs/cpu/data/lorenz_*)")
     args = dict(spec.get("init_args", {}))
     if n_test is not None:
         args["n_test"] = n_test

@@ -549,6 +549,9 @@ def test_lorenz_oracle_forecasts_the_truth_from_near_noiseless_measurements(tmp_
     assert max(quiet_ukf) < 1e-3, quiet_ukf
     assert all(0 < float(r[4]) < 1.0 for r in noisy[n_ukf:]), noisy  # the particles track the noisy sequences
     assert min(float(r[4]) for r in noisy[:n_ukf]) > 10 * max(quiet_ukf), (quiet, noisy)
+    for wrong in (str(tmp_path / "missing.yaml"), str(ROOT / "configs/data/pendulum.yaml")):
+        with pytest.raises(SystemExit, match="is not a Lorenz data config"):
+            lorenz_oracle.main(["--data-config", wrong, "--out", str(out)])
 
 
 def test_ssm_rollouts_score_the_first_node_rolled_out_as_a_naive_loop(tmp_path):
