@@ -35,7 +35,6 @@ import argparse
 import contextlib
 import copy
 import datetime
-import importlib
 import importlib.metadata
 import json
 import os
@@ -54,7 +53,7 @@ import torch  # noqa: E402
 from benchmarks.report import provenance  # noqa: E402
 from ssm_ms.inference.filter_module import FilterForecaster  # noqa: E402
 from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
-from ssm_ms.reproduce import load_config  # noqa: E402
+from ssm_ms.reproduce import build_datamodule, load_config  # noqa: E402
 from ssm_ms.runtime.machine import CpuWatch, quiet_note  # noqa: E402
 
 # Per system: ssm-ms's config, the test protocol, the UKF's noise (ssm-ms's training units; or the UKF stage config
@@ -82,13 +81,6 @@ SYSTEMS = {
     },
 }
 VAL_SEQUENCES = 16  # deepSI's validation: simulations of as many training sequences over the test's horizon
-
-
-def build_datamodule(config: dict, overrides: dict):
-    """The config's data module, with ``overrides`` on its ``init_args``."""
-    module, name = config["data"]["class_path"].rsplit(".", 1)
-    cls = getattr(importlib.import_module(module), name)
-    return cls(**{**config["data"].get("init_args", {}), **overrides})
 
 
 def cli_overrides(overrides: dict) -> list[str]:
@@ -203,7 +195,7 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
     system = SYSTEMS[name]
     config = load_config(ROOT / system["config"])
     data_overrides = dict(system["tiny"]["data"]) if args.tiny else {}
-    dm = build_datamodule(config, data_overrides)
+    dm = build_datamodule(config, **data_overrides)
     dm.prepare_data()  # generated once, before any clock starts
     train, test = dm.load_arrays("train"), dm.load_arrays("test")
     k, p = system["n_filter"], system["n_predict"]

@@ -20,7 +20,6 @@ predictions), above all near upright, where it must catch the pendulum.
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from pathlib import Path
 
@@ -33,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.report import provenance, write  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.module import ClosedLoop  # noqa: E402
-from ssm_ms.reproduce import load_config  # noqa: E402
+from ssm_ms.reproduce import build_datamodule, load_config  # noqa: E402
 
 BANDS = ((0.0, 0.5), (0.5, 1.5), (1.5, 2.5), (2.5, np.pi + 1e-9))  # rad from upright
 STEPS = (1, 5, 10)
@@ -45,8 +44,7 @@ def wrap(a: np.ndarray) -> np.ndarray:
 
 def closed_loop(config: dict, **changes) -> tuple[ClosedLoop, object]:
     """The config's data module (test split) and ClosedLoop with ``changes`` to its arguments, set up."""
-    module, name = config["data"]["class_path"].rsplit(".", 1)
-    dm = getattr(importlib.import_module(module), name)(**config["data"].get("init_args", {}))
+    dm = build_datamodule(config)
     dm.prepare_data()
     dm.setup("test")
     args = {k: v for k, v in config["model"]["init_args"].items() if k != "ssm_checkpoint"}

@@ -25,7 +25,6 @@ the model's first predicted frames, ``g`` from the free codes) beside ``--out``.
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 import tempfile
 from pathlib import Path
@@ -33,7 +32,6 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-import yaml
 from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,6 +39,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
 from ssm_ms.inference.encoder_module import StateEncoderModule  # noqa: E402
+from ssm_ms.reproduce import build_datamodule  # noqa: E402
 from ssm_ms.training.shooting import decode, loss_function, rollout  # noqa: E402
 
 
@@ -89,11 +88,11 @@ def main(argv: list[str] | None = None) -> None:
     enc.requires_grad_(False)
     f, g, d = enc.ssm.f, enc.ssm.g, enc.ssm.hparams.state_dim
     k = enc.hparams.n_filter
-    spec = yaml.safe_load(Path(opts.data_config).read_text())
-    module, name = spec["class_path"].rsplit(".", 1)
     with tempfile.TemporaryDirectory() as tmp:
-        args = {**spec["init_args"], "n_train": 40, "n_test": opts.sequences, "data_dir": tmp}
-        dm = getattr(importlib.import_module(module), name)(**args)
+        try:
+            dm = build_datamodule(opts.data_config, n_train=40, n_test=opts.sequences, data_dir=tmp)
+        except ValueError as e:
+            sys.exit(f"error: {e}")
         dm.prepare_data()
         item = dm.load("test").__getitems__(list(range(opts.sequences)))
         train = dm.load("train").__getitems__(list(range(40)))

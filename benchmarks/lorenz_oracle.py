@@ -26,7 +26,6 @@ import time
 from pathlib import Path
 
 import torch
-import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -36,6 +35,7 @@ from datamodules.lorenz import LorenzDataModule  # noqa: E402
 from ssm_ms.forecasting.metrics import mse_per_sequence  # noqa: E402
 from ssm_ms.inference.particle import ParticleFilter  # noqa: E402
 from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402
+from ssm_ms.reproduce import build_datamodule  # noqa: E402
 
 DATA_CONFIGS = ["configs/cpu/data/lorenz_T1000.yaml", "configs/data/lorenz_T1000.yaml"]
 PROCESS_VARS = [0.0, 1e-5, 1e-4, 1e-3]  # UKF, original units squared per step: a deterministic f, then some slack
@@ -44,14 +44,16 @@ PF_PROCESS_STDS = [0.02, 0.05]  # particle filter, original units per step (with
 
 def data_module(config: str, n_test: int | None) -> LorenzDataModule:
     """The config's Lorenz data module (its generator settings only; ``n_test`` overrides the number of sequences)."""
-    path = ROOT / config
-    spec = yaml.safe_load(path.read_text()) if path.is_file() else None
-    if not isinstance(spec, dict) or not str(spec.get("class_path", "")).endswith("LorenzDataModule"):
+    changes = {"data_dir": "unused"} if n_test is None else {"data_dir": "unused", "n_test": n_test}
+    try:
+        dm = build_datamodule(ROOT / config, **changes)
+    except OSError:  # no such file
+        dm = None
+    except ValueError as e:  # no data module, or arguments it refuses
+        sys.exit(f"error: {e}")
+    if not isinstance(dm, LorenzDataModule):
         sys.exit(f"error: {config} is not a Lorenz data config (configs/data/lorenz_*.yaml, configs/cpu/data/lorenz_*)")
-    args = dict(spec.get("init_args", {}))
-    if n_test is not None:
-        args["n_test"] = n_test
-    return LorenzDataModule(**{k: v for k, v in args.items() if k not in ("data_dir",)}, data_dir="unused")
+    return dm
 
 
 def oracle_forecast(

@@ -18,14 +18,12 @@ g have learned to draw (e.g. the bends of the quadruple pendulum's chain), apart
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,6 +33,7 @@ from benchmarks.report import provenance, write  # noqa: E402
 from ssm_ms.drawing import reconstruction_grid  # noqa: E402
 from ssm_ms.forecasting.metrics import ssim_per_sequence  # noqa: E402
 from ssm_ms.module import load_ssm  # noqa: E402
+from ssm_ms.reproduce import build_datamodule  # noqa: E402
 
 
 def rollouts(ssm_path: str, item: dict[str, torch.Tensor]) -> tuple[torch.Tensor, int]:
@@ -57,9 +56,10 @@ def main(argv: list[str] | None = None) -> None:
     for path in (*opts.ssm, opts.data_config):
         if not Path(path).is_file():
             sys.exit(f"error: {path} does not exist (run from the repository root)")
-    spec = yaml.safe_load(Path(opts.data_config).read_text())
-    module, name = spec["class_path"].rsplit(".", 1)
-    dm = getattr(importlib.import_module(module), name)(**spec["init_args"])
+    try:
+        dm = build_datamodule(opts.data_config)
+    except ValueError as e:
+        sys.exit(f"error: {e}")
     dm.prepare_data()
     train = dm.load("train")
     index = np.unique(np.linspace(0, len(train) - 1, opts.trajectories).round().astype(np.int64)).tolist()

@@ -20,7 +20,6 @@ generator's parameters saved in its checkpoint are checked).
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from pathlib import Path
 
@@ -38,6 +37,7 @@ from ssm_ms.control.goals import ink_angle_features  # noqa: E402
 from ssm_ms.control.module import TruePendulum  # noqa: E402
 from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
 from ssm_ms.nets.sensors import SensorLayout  # noqa: E402
+from ssm_ms.reproduce import build_datamodule  # noqa: E402
 from ssm_ms.training.shooting import decode  # noqa: E402
 
 
@@ -82,15 +82,13 @@ def main(argv: list[str] | None = None) -> None:
         ssm, raw = load_ssm(opts.ssm_checkpoint)
     except (OSError, ValueError) as e:
         sys.exit(str(e))
-    spec = yaml.safe_load(Path(opts.data_config).read_text())
-    args = dict(spec.get("init_args", {}))
+    changes = {}
     for item in opts.set:
         key, _, value = item.partition("=")
-        args[key] = yaml.safe_load(value)
-    module, name = spec["class_path"].rsplit(".", 1)
+        changes[key] = yaml.safe_load(value)
     try:
-        dm = getattr(importlib.import_module(module), name)(**args)
-    except (TypeError, ValueError) as e:  # an unknown or invalid --set
+        dm = build_datamodule(opts.data_config, **changes)
+    except (OSError, ValueError) as e:  # no such file, an unknown or invalid --set
         sys.exit(f"the data of {opts.data_config} with {opts.set}: {e}")
     saved = datamodule_state(raw)
     if saved is not None and saved[1]["generator_params"] != dm.generator_params():
@@ -126,19 +124,19 @@ def main(argv: list[str] | None = None) -> None:
         sc = ink_angle_features(frames, (frames.shape[-1] / 2, frames.shape[-2] / 2))
         return torch.atan2(sc[:, 0], sc[:, 1]).double().numpy()
 
-    true_f = TruePendulum(dm.environment(0).frame_dt, float(args.get("damping", 0.0))).double()
+    true_f = TruePendulum(dm.environment(0).frame_dt, dm.damping).double()
     model_turn = turns(lambda x, u: ssm.f(x, to_inputs(u)), drawn_angle, nodes, opts.steps, opts.torque)
     true_turn = turns(true_f, lambda z: z[:, 0].numpy(), truth0, opts.steps, opts.torque)
     model_fall = falls(lambda x, u: ssm.f(x, to_inputs(u)), drawn_angle, nodes, opts.steps)
     true_fall = falls(true_f, lambda z: z[:, 0].numpy(), truth0, opts.steps)
     readout = np.abs(wrapped(drawn_angle(nodes) - truth0[:, 0].numpy()))
     from_up = upright_error(truth0[:, 0]).numpy()
-    generated = (index < int(args.get("n_train", len(index)))).numpy()  # the rest: recorded episodes
+    generated = (index < dm.n_train).numpy()  # the rest: recorded episodes
     closed = np.zeros(len(index), dtype=bool)
-    if args.get("closed_loop_share"):
+    if dm.closed_loop_share:
         from datamodules.pendulum import closed_loop
 
-        closed = closed_loop(index.tolist(), float(args["closed_loop_share"])) & generated
+        closed = closed_loop(index.tolist(), dm.closed_loop_share) & generated
     closed, opened = np.repeat(closed, m), np.repeat(generated & ~closed, m)
 
     rows = [

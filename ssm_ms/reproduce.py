@@ -43,6 +43,7 @@ again.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import shlex
 import signal
@@ -107,6 +108,29 @@ def _merged(under: dict, over: dict) -> dict:
     for key, value in over.items():
         out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
     return out
+
+
+def build_datamodule(config: dict | Path | str, **overrides):
+    """The data module a config describes, as ``cli.py`` would build it, with ``overrides`` on its ``init_args``.
+
+    ``config``: a config file or its :func:`load_config` dict; a whole config (its ``data`` section) or a data config
+    (``configs/data/*.yaml``: ``class_path`` and ``init_args``). A file that describes no data module, or arguments
+    its class refuses, raise ValueError with one line naming the file."""
+    name = config if isinstance(config, (str, Path)) else "the config"
+    spec = load_config(config) if isinstance(config, (str, Path)) else config
+    spec = spec.get("data", spec)
+    path = spec.get("class_path") if isinstance(spec, dict) else None
+    if not isinstance(path, str) or "." not in path:
+        raise ValueError(f"{name} describes no data module (a class_path and init_args, or a data section of them)")
+    module, attr = path.rsplit(".", 1)
+    try:
+        cls = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as e:
+        raise ValueError(f"{name}: no data module {path} ({e})") from e
+    try:
+        return cls(**{**(spec.get("init_args") or {}), **overrides})
+    except TypeError as e:  # an argument the class does not take
+        raise ValueError(f"{name}: {path} refuses its arguments ({e})") from e
 
 
 def config_value(config: Path | str, key: str, default=None):

@@ -154,3 +154,35 @@ def test_an_interpolation_under_a_dotted_key_is_one_line_naming_the_fix(tmp_path
     assert stop.value.code == 1 and "Traceback" not in err
     assert err.startswith("error: a config interpolation cannot be resolved (at model.init_args.f.init_args.state_dim)")
     assert "not under a dotted key" in err
+
+
+@pytest.mark.parametrize("config", ["configs/cpu/lorenz_T1000.yaml", "configs/cpu/data/lorenz_T1000.yaml"])
+def test_build_datamodule_takes_a_whole_config_or_a_data_config_with_overrides(config):
+    """build_datamodule (the benchmarks' data from a config): a whole config's data section (given as a file there) or
+    a data config, each argument as the data config's YAML states it, overrides replacing theirs."""
+    from datamodules.lorenz import LorenzDataModule
+    from ssm_ms.reproduce import build_datamodule
+
+    stated = yaml.safe_load((ROOT / "configs/cpu/data/lorenz_T1000.yaml").read_text())["init_args"]
+    dm = build_datamodule(ROOT / config, n_test=3, data_dir="elsewhere")
+    assert type(dm) is LorenzDataModule
+    assert (dm.n_train, dm.train_steps, dm.piece_length) == (
+        stated["n_train"],
+        stated["train_steps"],
+        stated["piece_length"],
+    )
+    assert dm.noise_std == stated["noise_std"] and dm.n_test == 3 and str(dm.data_dir) == "elsewhere"
+    assert build_datamodule(load_config(ROOT / config)).n_test == stated["n_test"]  # the composed dict, as given
+
+
+def test_build_datamodule_names_a_config_without_data_and_an_argument_refused(tmp_path):
+    from ssm_ms.reproduce import build_datamodule
+
+    (tmp_path / "trainer.yaml").write_text("trainer:\n  max_epochs: 3\n")
+    (tmp_path / "nowhere.yaml").write_text("class_path: datamodules.nowhere.Nothing\n")
+    with pytest.raises(ValueError, match="trainer.yaml describes no data module"):
+        build_datamodule(tmp_path / "trainer.yaml")
+    with pytest.raises(ValueError, match="no data module datamodules.nowhere.Nothing"):
+        build_datamodule(tmp_path / "nowhere.yaml")
+    with pytest.raises(ValueError, match="refuses its arguments .*colour"):
+        build_datamodule(ROOT / "configs/cpu/data/lorenz_T1000.yaml", colour="red")
