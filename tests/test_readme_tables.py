@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from ssm_ms.forecasting import readme
+from ssm_ms.forecasting.results import score_cell
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -95,8 +96,8 @@ def test_markers_that_name_no_table_or_are_not_closed_are_refused(results_copy):
 
 
 def test_cells_read_as_the_results_files_count_them():
-    assert readme.score({"mean": 663.3, "std": 190.2, "n": 64}) == "663.3 ± 190"
+    assert score_cell({"mean": 663.3, "std": 190.2, "n": 64}) == "663.3 ± 190"
     diverged = {"mean": 3.29e5, "std": 2.7e5, "n": 64, "non_finite": 1}
-    assert readme.score(diverged) == "3.29e+05 ± 2.7e+05, 1 of 64 non-finite"
-    assert readme.score({**diverged, "non_finite": 64}) == "non-finite on all 64"
+    assert score_cell(diverged) == "3.29e+05 ± 2.7e+05 (1 of 64 non-finite, left out)"
+    assert score_cell({**diverged, "non_finite": 64}) == "non-finite on all 64"
     assert readme.minutes(2290) == "38 min" and readme.minutes(9573.6) == "2.7 h" and readme.minutes(235) == "3.9 min"

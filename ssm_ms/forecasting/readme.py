@@ -27,7 +27,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from ssm_ms.forecasting.results import PAPER, _format, paper_key, paper_row
+from ssm_ms.forecasting.results import PAPER, _format, paper_key, paper_row, score_cell, sig
 
 ROOT = Path(__file__).resolve().parents[2]
 BEGIN = "<!-- results:begin {name} -->"
@@ -78,28 +78,9 @@ def _date(text: str | None) -> datetime:
 
 
 # ------------------------------------------------------------------------------------------------- formatting
-def _sig(value: float, digits: int) -> str:
-    """``digits`` significant figures; plain digits up to 10,000 (``190``, not ``1.9e+02``)."""
-    text = f"{value:.{digits}g}"
-    if "e+" in text and abs(value) < 1e4:
-        text = f"{float(text):.0f}"
-    return text
-
-
-def score(entry: dict[str, Any] | None) -> str:
-    """A score over the test sequences: ``mean ± std``, saying how many diverged (a NaN or inf score: left out)."""
-    if entry is None:
-        return "—"
-    bad, n = entry.get("non_finite", 0), entry.get("n")
-    if bad and bad == n:
-        return f"non-finite on all {n}"
-    cell = f"{_sig(entry['mean'], 4)} ± {_sig(entry['std'], 2)}"
-    return f"{cell}, {bad} of {n} non-finite" if bad else cell
-
-
 def reference(entry: dict[str, Any] | None) -> str:
     """A reference's score (the mean training frame, the last estimate repeated): its mean."""
-    return "—" if entry is None else _sig(entry["mean"], 4)
+    return "—" if entry is None else sig(entry["mean"], 4)
 
 
 def minutes(seconds: float) -> str:
@@ -154,7 +135,7 @@ def produced(pipeline: dict[str, Any] | None, run: dict[str, Any]) -> str:
 
 def valid(run: dict[str, Any]) -> str:
     vt = (run.get("analysis") or {}).get("valid_time")
-    return _sig(vt["mean_steps"], 3) if vt else "—"
+    return sig(vt["mean_steps"], 3) if vt else "—"
 
 
 def paper_cells(experiment: str, run: dict[str, Any], metrics: tuple[str, ...]) -> str:
@@ -191,7 +172,7 @@ def method_table(results: Results, groups: list[Group], with_valid: bool) -> lis
             cells = [
                 group.title if i == 0 else "",
                 run["info"].get("label", method),
-                " / ".join(score(summary.get(f"{method}/{m}")) for m in group.metrics),
+                " / ".join(score_cell(summary.get(f"{method}/{m}")) for m in group.metrics),
                 paper_cells(experiment, run, group.metrics),
                 *([valid(run)] if with_valid else []),
                 "the same command" if same else produced(pipeline, run),
@@ -269,7 +250,7 @@ def _f_alone(run: dict[str, Any]) -> str:
     dyn = (run.get("analysis") or {}).get("dynamics") or {}
     largest = (dyn.get("lyapunov") or {}).get("largest")
     free = dyn.get("free_run") or {}
-    exponent = "diverges" if largest is None or not math.isfinite(largest) else _sig(largest, 2)
+    exponent = "diverges" if largest is None or not math.isfinite(largest) else sig(largest, 2)
     wings = free.get("both_wings_share")
     return exponent + (f"; {round(wings * free['runs'])} of {free['runs']}" if wings is not None else "")
 
@@ -287,14 +268,14 @@ def lorenz_sweep(results: Results) -> list[str]:
     def versus(method: str) -> Callable[[int], str]:
         def cell(t: int) -> str:
             run = results.run(files[t], method)
-            return f"{score(run['summary'].get(f'{method}/{LORENZ}'))} / {paper_cells(files[t], run, (LORENZ,))}"
+            return f"{score_cell(run['summary'].get(f'{method}/{LORENZ}'))} / {paper_cells(files[t], run, (LORENZ,))}"
 
         return cell
 
     for method in ("ukf", "encoder"):
         row(results.run(files[1000], method)["info"]["label"], versus(method))
     row(
-        f"*the learned f alone: largest Lyapunov exponent (true {_sig(true, 2)}); free runs on both wings*",
+        f"*the learned f alone: largest Lyapunov exponent (true {sig(true, 2)}); free runs on both wings*",
         lambda t: _f_alone(results.run(files[t], "ukf")),
     )
     for method in ("lstm", "rkn"):
@@ -312,7 +293,7 @@ def lorenz_sweep(results: Results) -> list[str]:
     row(
         "SSM-LL + UKF, noise-free measurements",
         lambda t: (
-            f"{score(ukf['summary'].get(f'ukf/{LORENZ}'))}, valid {valid(ukf)} steps / {words} "
+            f"{score_cell(ukf['summary'].get(f'ukf/{LORENZ}'))}, valid {valid(ukf)} steps / {words} "
             f"({produced(results.pipeline(noise_free, 'ukf'), ukf)})"
             if t == 1000
             else "—"

@@ -134,15 +134,24 @@ def paper_row(key: str, info: dict[str, Any]) -> str | None:
     return name if name in rows else None
 
 
-def _cell(entry: dict[str, float] | None) -> str:
-    """``mean ± std`` over the test sequences, saying how many diverged (a NaN or inf score) and were left out."""
+def sig(value: float, digits: int) -> str:
+    """``digits`` significant figures; plain digits up to 10,000 (``190``, not ``1.9e+02``)."""
+    text = f"{value:.{digits}g}"
+    if "e+" in text and abs(value) < 1e4:
+        text = f"{float(text):.0f}"
+    return text
+
+
+def score_cell(entry: dict[str, float] | None) -> str:
+    """A score over the test sequences, as results files and the README print it: ``mean ± std``, saying how many
+    diverged (a NaN or inf score) and were left out."""
     if entry is None:
         return "—"
     bad, n = entry.get("non_finite", 0), entry.get("n")
     if bad and bad == n:
-        return f"non-finite on all {n} sequences"
-    cell = f"{entry['mean']:.4g} ± {entry['std']:.2g}"
-    return f"{cell} (non-finite on {bad} of {n} sequences, left out)" if bad else cell
+        return f"non-finite on all {n}"
+    cell = f"{sig(entry['mean'], 4)} ± {sig(entry['std'], 2)}"
+    return f"{cell} ({bad} of {n} non-finite, left out)" if bad else cell
 
 
 def render_markdown(
@@ -192,7 +201,7 @@ def render_markdown(
         for row in sorted(per_row, key=lambda r: (r in ("last", "mean"), r)):  # the method, then its references
             own = row == method
             cells = [label if own else f"{row} (reference, with {label})"]
-            cells += [_cell(per_row[row].get(c)) for c in columns]
+            cells += [score_cell(per_row[row].get(c)) for c in columns]
             if paper:
                 name = paper_row(key, info) if own else None
                 cells.append(name or "")
