@@ -190,8 +190,7 @@ def test_ukf_stage_from_the_cli(tmp_path):
     ssm = CPU / "lorenz_T1000.yaml"
     fit_tiny(tmp_path, ssm)
     ssm_ckpt = outputs(tmp_path, ssm) / "checkpoints" / "last.ckpt"
-    cli = run(
-        tmp_path,
+    test = [
         "test",
         CPU / "lorenz_T1000_ukf.yaml",
         "--model.init_args.ssm_checkpoint",
@@ -204,7 +203,8 @@ def test_ukf_stage_from_the_cli(tmp_path):
         "1",
         *TINY["lorenz"],
         *CHEAP_ANALYSIS,
-    )
+    ]
+    cli = run(tmp_path, *test)
     # the SSM loaded inside the CLI-built forecaster keeps its own hyperparameters, not the forecaster's
     assert cli.model.ssm.hparams["node_init_map"] == {0: 0} and "n_filter" not in cli.model.ssm.hparams
     saved = json.loads((tmp_path / "results" / "lorenz_T1000_cpu.json").read_text())["runs"]["ukf"]
@@ -216,6 +216,18 @@ def test_ukf_stage_from_the_cli(tmp_path):
     assert saved["analysis"]["true_system"]["largest"] > 0
     assert list((tmp_path / "data").glob("lorenz-*/true_exponents_*.json"))
     assert (tmp_path / "figures" / "lorenz_T1000_cpu_ukf_lorenz_prediction.png").is_file()
+    # the figures of f alone are the experiment's SSM's; a method with a name of its own (another SSM of the
+    # experiment, as quad's `encoder_ssm1000`) writes its own and leaves the experiment's as they were
+    shared = tmp_path / "figures" / "lorenz_T1000_cpu_attractor.png"
+    written = shared.stat().st_mtime_ns
+    run(tmp_path, *test, "--model.init_args.method_name", "ukf_other")
+    assert (tmp_path / "figures" / "lorenz_T1000_cpu_ukf_other_attractor.png").is_file()
+    assert shared.stat().st_mtime_ns == written
+    runs = json.loads((tmp_path / "results" / "lorenz_T1000_cpu.json").read_text())["runs"]
+    assert (runs["ukf"]["info"]["label"], runs["ukf_other"]["info"]["label"]) == (
+        "SSM-LL + UKF",
+        "SSM-LL + UKF (ukf_other)",
+    )
     # the study script of benchmarks/results/lorenz_cpu_study.md, on this checkpoint at a small size
     spec = importlib.util.spec_from_file_location("study", ROOT / "benchmarks" / "lorenz_cpu_study.py")
     study = importlib.util.module_from_spec(spec)

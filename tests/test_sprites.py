@@ -99,10 +99,12 @@ def test_results_tables_name_the_sprite_decoder_beside_f():
     from ssm_ms.inference.ssm_forecaster import SSMForecaster
     from ssm_ms.nets import ConvDecoder, LocallyLinearTransition
 
-    def label(g):
+    def label(g, name="encoder"):
         ssm = SimpleNamespace(f=LocallyLinearTransition(20, 2, 8), g=g)
-        forecaster = SimpleNamespace(ssm=ssm, method_name="encoder", method_kind="encoder", ssm_checkpoint="x.ckpt")
+        forecaster = SimpleNamespace(ssm=ssm, method_name=name, method_kind="encoder", ssm_checkpoint="x.ckpt")
         return SSMForecaster.describe(forecaster)["label"]
 
     assert label(_decoder()) == "SSM-LL with a sprite decoder + CNN-LSTM encoder"
     assert label(ConvDecoder(20)) == "SSM-LL + CNN-LSTM encoder"  # the paper's g is not named
+    # a row of its own beside the default one (another SSM of the experiment) is told apart by its name
+    assert label(ConvDecoder(20), "encoder_ssm1000") == "SSM-LL + CNN-LSTM encoder (encoder_ssm1000)"

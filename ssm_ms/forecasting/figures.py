@@ -60,8 +60,9 @@ def log_forecast_figures(module: Any, first: dict[str, torch.Tensor], n_sequence
     for key, fig in figures.items():
         if writer is not None:
             writer.add_figure(f"test/{module.method_name}/{key}", fig, 0, close=False)
-        if out_dir is not None:  # figures of the SSM alone do not depend on the inference method
-            stem = module.experiment_name() if key in shared else name
+        if out_dir is not None:  # figures of the SSM alone: one per SSM, not per inference method
+            default = module.method_name == module.method_kind  # the experiment's own SSM; else a row of its own
+            stem = module.experiment_name() if key in shared and default else name
             drawing.save_figure(fig, out_dir / f"{stem}_{key}.png")
 
 

@@ -109,7 +109,8 @@ class SSMForecaster(ForecastModule):
             see :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
     """
 
-    # figures of the SSM alone: written once per experiment, whatever the inference method
+    # figures of the SSM alone, shared by the inference methods tested on it: named after the experiment, or, for a
+    # method with a name of its own (another SSM of the experiment, e.g. `encoder_ssm1000`), after that method
     shared_figures = ("attractor", "ssm_training")
 
     def __init__(self, ssm_checkpoint: str | None = None, *, n_filter: int, **kwargs: Any):
@@ -179,7 +180,9 @@ class SSMForecaster(ForecastModule):
         model = MODEL_NAMES.get(name, f"SSM ({name})")
         if (g_name := G_NAMES.get(type(self.ssm.g).__name__)) is not None:
             model = f"{model} with a {g_name}"
-        how = INFERENCE_LABELS.get(self.method_name, self.method_name)
+        how = INFERENCE_LABELS.get(self.method_kind, self.method_kind)
+        if self.method_name != self.method_kind:  # a row of its own beside the default one (another SSM)
+            how = f"{how} ({self.method_name})"
         return {
             "model": model,
             "inference": self.method_kind,
