@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python benchmarks/ssm_rollouts.py --ssm pretrained/quad.ckpt runs/quad_1000/<version>/checkpoints/last.ckpt \\
+    python benchmarks/ssm_rollouts.py --ssm runs/quad/<version>/checkpoints/last.ckpt pretrained/quad.ckpt \\
         --data-config configs/data/quad.yaml [--trajectories 4] [--out benchmarks/results/ssm_rollouts_quad.md]
 
 The picture TensorBoard shows during training (``val/reconstruction``), for several checkpoints of the same data side

@@ -210,7 +210,13 @@ def full_size(results: Results) -> list[str]:
             Group(
                 "quadruple pendulum (Table 2), noisy per-pixel MSE / BCE",
                 IMAGES,
-                (("quad", "encoder"), ("quad_fc", "encoder"), ("quad", "lstm"), ("quad", "rkn")),
+                (
+                    ("quad", "encoder"),
+                    ("quad", "encoder_ssm1000"),
+                    ("quad_fc", "encoder"),
+                    ("quad", "lstm"),
+                    ("quad", "rkn"),
+                ),
                 ("mean training frame", "quad", "encoder", "mean"),
             ),
         ],
