@@ -27,7 +27,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from ssm_ms.forecasting.results import PAPER, _format, paper_key, paper_row, score_cell, sig
+from ssm_ms.forecasting.results import PAPER, paper_cell, paper_key, paper_row, score_cell, sig
 
 ROOT = Path(__file__).resolve().parents[2]
 BEGIN = "<!-- results:begin {name} -->"
@@ -143,7 +143,7 @@ def paper_cells(experiment: str, run: dict[str, Any], metrics: tuple[str, ...]) 
     name = paper_row(key, run["info"]) if key else None
     if name is None:
         return "not in the paper"
-    return " / ".join(_format(PAPER[key]["rows"][name].get(m)) for m in metrics)
+    return " / ".join(paper_cell(PAPER[key]["rows"][name].get(m)) for m in metrics)
 
 
 # ------------------------------------------------------------------------------------------------- the tables

@@ -28,7 +28,7 @@ from typing import Any, Union
 Cell = Union[tuple[float, float | None], str]  # noqa: UP007 (a run-time alias)
 
 
-def _format(cell: Cell | None) -> str:
+def paper_cell(cell: Cell | None) -> str:
     """A paper cell: ``mean ± std``, ``mean`` or its words."""
     if cell is None:
         return "—"
@@ -91,7 +91,7 @@ PAPER: dict[str, dict[str, Any]] = {
                 "|---|---|---|---|---|",
             ]
             + [
-                f"| {method} | " + " | ".join(_format(cells[tt]) for tt in (10, 100, 1000, 10000)) + " |"
+                f"| {method} | " + " | ".join(paper_cell(cells[tt]) for tt in (10, 100, 1000, 10000)) + " |"
                 for method, cells in _LORENZ_ROWS.items()
             ],
         }
@@ -205,7 +205,7 @@ def render_markdown(
             if paper:
                 name = paper_row(key, info) if own else None
                 cells.append(name or "")
-                cells += [_format(paper["rows"][name].get(c)) if name else "" for c in pcols]
+                cells += [paper_cell(paper["rows"][name].get(c)) if name else "" for c in pcols]
             lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
     if paper:
@@ -213,7 +213,7 @@ def render_markdown(
         lines.append("| method | " + " | ".join(pcols) + " |")
         lines.append("|---" * (len(pcols) + 1) + "|")
         for name, values in paper["rows"].items():
-            lines.append(f"| {name} | " + " | ".join(_format(values.get(c)) for c in pcols) + " |")
+            lines.append(f"| {name} | " + " | ".join(paper_cell(values.get(c)) for c in pcols) + " |")
         lines.append("")
         if paper.get("notes"):
             lines += [*paper["notes"], ""]
