@@ -213,7 +213,7 @@ class TrajectoryDataModule(pl.LightningDataModule):
         num_workers: DataLoader worker processes.
         val_trajectories: size of the fixed, evenly spaced subset of *training* trajectories on
             which validation measures the full-length rollout error (0 disables validation). A model whose
-            attribute ``validate_held_out`` is true (the encoder stage's option) is not trained on them.
+            attribute ``validate_held_out`` is true (an encoder's or a baseline's option) is not trained on them.
         normalize: normalise measurements to zero mean and unit std per channel, with statistics
             of the training set (they are saved in checkpoints with the DataModule's state).
         shuffle: shuffle the training set every epoch (order fixed by ``seed`` and the epoch).

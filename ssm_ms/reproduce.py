@@ -20,8 +20,8 @@ section's own ``seed``). Its results go to ``results/<experiment>_seed<N>.md``; 
 <experiment>`` gathers the seeds' scores as mean and std.
 
 Each stage is ``python cli.py ...`` in its own process, logged under ``runs/<name>/reproduce-<stamp>/``, so the checkpoints each stage hands to the next are
-known: an SSM's ``last.ckpt``; an encoder's ``best.ckpt`` where its config keeps its best epoch (docs/cli.md, "The
-encoder's best epoch"), else its ``last.ckpt``. Every method lands in the same ``results/<experiment>.md``, which ends with the commands and
+known: an SSM's ``last.ckpt``; an encoder's or a baseline's ``best.ckpt`` where its config keeps its best epoch
+(:func:`tested_checkpoint`), else its ``last.ckpt``. Every method lands in the same ``results/<experiment>.md``, which ends with the commands and
 their durations.
 
 Ctrl-C (or ``kill <pid>``, SIGTERM or SIGINT) during a stage stops the stage as ``fit`` stops (its last completed epoch
@@ -179,6 +179,13 @@ def _without_option(args: list[str], name: str) -> list[str]:
         elif not arg.startswith(name + "="):
             out.append(arg)
     return out
+
+
+def tested_checkpoint(checkpoints: Path) -> Path:
+    """The checkpoint a trained stage (an encoder, a baseline) is tested from: ``best.ckpt`` where its config keeps
+    its best epoch (a ``ModelCheckpoint`` writing it: docs/cli.md, "The best epoch"), else ``last.ckpt``."""
+    best = checkpoints / "best.ckpt"
+    return best if _absolute(best).is_file() else checkpoints / "last.ckpt"
 
 
 def _absolute(path: Path) -> Path:
@@ -518,9 +525,7 @@ def main(argv: list[str] | None = None) -> None:
                 ["fit", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, *budget, *named(enc_cfg), *v],
                 again=ssm_ran,
             )
-            # a config that keeps its best epoch (a ModelCheckpoint writing best.ckpt) is tested from it
-            best = enc_dir / "best.ckpt"
-            enc_ckpt = best if _absolute(best).is_file() else enc_dir / "last.ckpt"
+            enc_ckpt = tested_checkpoint(enc_dir)
             enc_test = ["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt)]
             pipeline.stage([*enc_test, *named(enc_cfg), *v], again=ssm_ran or enc_ran)
             configs.append(enc_cfg)
@@ -543,8 +548,8 @@ def main(argv: list[str] | None = None) -> None:
         configs.append(control_cfg)
     baseline_budget = [] if opts.baseline_epochs is None else ["--trainer.max_epochs", str(opts.baseline_epochs)]
     for cfg in baselines:
-        ckpt = logger_dir(cfg) / version / "checkpoints" / "last.ckpt"
         fit_ran = pipeline.stage(["fit", "--config", str(cfg.relative_to(ROOT)), *baseline_budget, *named(cfg), *v])
+        ckpt = tested_checkpoint(logger_dir(cfg) / version / "checkpoints")
         pipeline.stage(
             ["test", "--config", str(cfg.relative_to(ROOT)), "--ckpt_path", str(ckpt), *named(cfg), *v], again=fit_ran
         )

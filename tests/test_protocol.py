@@ -295,11 +295,15 @@ def test_checkpoint_of_another_data_set_is_refused(exact_ssm):
         trainer.fit(StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8}), other)
 
 
-def test_an_encoder_validated_on_held_out_trajectories_never_trains_on_them(exact_ssm):
-    """validate_held_out: the training batches hold every training trajectory but the evenly spaced validation ones
-    (first and last of 8 for val_trajectories 2), validation holds exactly those; without trajectories to hold out
-    (val_trajectories 0), or holding out all 8, the fit is refused before any step, naming the setting."""
+@pytest.mark.parametrize("kind", ["encoder", "lstm"])
+def test_a_forecaster_validated_on_held_out_trajectories_never_trains_on_them(exact_ssm, kind):
+    """validate_held_out (an encoder's, a baseline's): the training batches hold every training trajectory but the
+    evenly spaced validation ones (first and last of 8 for val_trajectories 2), validation holds exactly those;
+    without trajectories to hold out (val_trajectories 0), or holding out all 8, the fit is refused before any step,
+    naming the setting."""
     from lightning.pytorch.callbacks import Callback
+
+    from ssm_ms.baselines import LSTMBaseline
 
     tmp, ckpt = exact_ssm
 
@@ -314,6 +318,8 @@ def test_an_encoder_validated_on_held_out_trajectories_never_trains_on_them(exac
             self.val.update(batch["index"].tolist())
 
     def encoder():
+        if kind == "lstm":
+            return LSTMBaseline(n_filter=8, network={"hidden": 8}, metrics=["mse"], validate_held_out=True)
         return StateEncoderModule(
             str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 8}, metrics=["mse"], validate_held_out=True
         )

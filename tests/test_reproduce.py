@@ -599,3 +599,24 @@ def test_an_encoder_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeyp
         option(a, "--model.init_args.encoder_checkpoint") for a in calls if "--model.init_args.encoder_checkpoint" in a
     ]
     assert handed and set(handed) == {best}
+
+
+def test_a_baseline_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeypatch, tmp_path):
+    """The same for a baseline (validate_held_out and a ModelCheckpoint on val/loss): its test gets best.ckpt."""
+    calls, _ = recorded
+
+    def fit_writes_best(args, number, resume_pipeline=None):
+        calls.append(args)
+        if args[0] == "fit":
+            version = option(args, "--trainer.logger.init_args.version")
+            best = tmp_path / "runs" / "pendulum_lstm" / version / "checkpoints" / "best.ckpt"
+            best.parent.mkdir(parents=True)
+            best.touch()
+        return 0.0
+
+    monkeypatch.setattr(reproduce, "run_stage", fit_writes_best)
+    reproduce.main(["pendulum_lstm"])
+    fit, test = calls
+    version = option(fit, "--trainer.logger.init_args.version")
+    assert (fit[0], test[0]) == ("fit", "test")
+    assert option(test, "--ckpt_path") == f"runs/pendulum_lstm/{version}/checkpoints/best.ckpt"

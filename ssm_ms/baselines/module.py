@@ -48,6 +48,10 @@ class BaselineForecaster(ForecastModule):
             (validation: its last window) instead of the whole sequence: cheaper steps for long sequences
             (a CPU-sized Lorenz twin: 200 of 1000); ``None`` (default, the paper's setting): whole sequences.
         obs_shape: shape of one measurement; ``None``: taken from the DataModule (recorded in the checkpoint).
+        validate_held_out: train on the training trajectories less the validation subset (the data's
+            ``val_trajectories``), so that ``val/loss`` measures sequences the network has not seen and a
+            ``ModelCheckpoint`` on it can keep the best epoch. Without it (the default, as the paper's runs) the
+            network trains on every trajectory and validates on some of them.
         metrics, n_predict, **kwargs: the protocol's arguments (``analysis``: ``valid_time``, not ``dynamics``), see
             :class:`~ssm_ms.forecasting.protocol.ForecastModule`.
     """
@@ -63,6 +67,7 @@ class BaselineForecaster(ForecastModule):
         train_n_filter: int | None = None,
         train_window: int | None = None,
         obs_shape: list[int] | None = None,
+        validate_held_out: bool = False,
         n_predict: int | None = None,
         metrics: list[str] = ["mse", "bce"],  # noqa: B006 (read, never mutated; a list for the CLI)
         **kwargs: Any,
@@ -77,6 +82,7 @@ class BaselineForecaster(ForecastModule):
         if train_window is not None and train_window < 2:
             raise ValueError(f"train_window must be >= 2 steps (or unset: whole sequences), got {train_window}")
         self.train_window = train_window
+        self.validate_held_out = validate_held_out  # read by the DataModule's training loader
         if "obs_shape" in (network or {}):
             raise ValueError("network.obs_shape comes from the data: remove it from the config")
         if self.analysis_section("dynamics") is not None:

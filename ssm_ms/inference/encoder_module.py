@@ -35,7 +35,7 @@ class StateEncoderModule(SSMForecaster):
             targets are still the SSM's rollouts: the SSM trained on all of them). Without it (the default, as the
             paper's stages) the encoder trains on every trajectory and its validation cannot show it overfitting.
             A config that keeps its best epoch adds a ``ModelCheckpoint`` on ``encoder/val_mse`` (``best.ckpt``:
-            docs/cli.md, "The encoder's best epoch").
+            docs/cli.md, "The best epoch").
         metrics: scores of the test protocol.
         **kwargs: the protocol's other arguments (``n_predict``, ``bce_reduction``, ``original_units``,
             ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``, ``analysis``), see
