@@ -576,21 +576,27 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         reproduce.main(["pendulum_control", "--resume", "reproduce-1"])
 
 
-def test_an_encoder_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeypatch, tmp_path):
-    """An encoder fit that wrote best.ckpt (a config with a ModelCheckpoint on its validation) hands that file to its
-    test and to the control's; one that did not hands its last.ckpt on (the test above)."""
-    calls, _ = recorded
+def fit_writing_best(calls, root, run):
+    """A ``run_stage`` that records its calls and, for the fit of the run logged under ``runs/<run>/``, writes the
+    ``best.ckpt`` a config keeping its best epoch would."""
 
-    def fit_writes_best(args, number, resume_pipeline=None):
+    def stage(args, number, resume_pipeline=None):
         calls.append(args)
-        if args[0] == "fit" and option(args, "--config").endswith("_encoder.yaml"):
+        if args[0] == "fit" and Path(option(args, "--config")).stem == run:  # its config names the run
             version = option(args, "--trainer.logger.init_args.version")
-            best = tmp_path / "runs" / "pendulum_torque_encoder" / version / "checkpoints" / "best.ckpt"
+            best = root / "runs" / run / version / "checkpoints" / "best.ckpt"
             best.parent.mkdir(parents=True)
             best.touch()
         return 0.0
 
-    monkeypatch.setattr(reproduce, "run_stage", fit_writes_best)
+    return stage
+
+
+def test_an_encoder_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeypatch, tmp_path):
+    """An encoder fit that wrote best.ckpt (a config with a ModelCheckpoint on its validation) hands that file to its
+    test and to the control's; one that did not hands its last.ckpt on (the test above)."""
+    calls, _ = recorded
+    monkeypatch.setattr(reproduce, "run_stage", fit_writing_best(calls, tmp_path, "pendulum_torque_encoder"))
     reproduce.main(["pendulum_torque", "--no-baselines"])
     version = option(calls[0], "--trainer.logger.init_args.version")
     best = f"runs/pendulum_torque_encoder/{version}/checkpoints/best.ckpt"
@@ -604,17 +610,7 @@ def test_an_encoder_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeyp
 def test_a_baseline_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeypatch, tmp_path):
     """The same for a baseline (validate_held_out and a ModelCheckpoint on val/loss): its test gets best.ckpt."""
     calls, _ = recorded
-
-    def fit_writes_best(args, number, resume_pipeline=None):
-        calls.append(args)
-        if args[0] == "fit":
-            version = option(args, "--trainer.logger.init_args.version")
-            best = tmp_path / "runs" / "pendulum_lstm" / version / "checkpoints" / "best.ckpt"
-            best.parent.mkdir(parents=True)
-            best.touch()
-        return 0.0
-
-    monkeypatch.setattr(reproduce, "run_stage", fit_writes_best)
+    monkeypatch.setattr(reproduce, "run_stage", fit_writing_best(calls, tmp_path, "pendulum_lstm"))
     reproduce.main(["pendulum_lstm"])
     fit, test = calls
     version = option(fit, "--trainer.logger.init_args.version")
