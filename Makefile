@@ -63,6 +63,7 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_lorenz_data.py
 	$(PY) benchmarks/bench_moving_mnist.py
 	$(PY) benchmarks/bench_ukf.py
+	$(PY) benchmarks/bench_narrow_linear.py
 	$(PY) benchmarks/bench_ddp_nodes.py
 	$(PY) benchmarks/bench_allocator.py
 	$(PY) benchmarks/bench_two_jobs.py

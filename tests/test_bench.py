@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks import bench_allocator, bench_train_step, bench_two_jobs, bench_ukf, profile_decoder
+from benchmarks import (
+    bench_allocator,
+    bench_narrow_linear,
+    bench_train_step,
+    bench_two_jobs,
+    bench_ukf,
+    profile_decoder,
+)
 from benchmarks.reference_structure import RefDecoder, RefLocallyLinear, RefTrainer, ref_ukf
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, native
@@ -74,6 +81,7 @@ def test_reference_ukf_agrees_with_ours_on_a_linear_system():
     [
         pytest.param("train_step", marks=pytest.mark.slow),
         "ukf",
+        "narrow_linear",
         "profile_decoder",
         pytest.param("two_jobs", marks=pytest.mark.slow),
     ],
@@ -90,6 +98,9 @@ def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
         assert "| decoder, native kernels |" in text and "| decoder, torch-only |" in text
         assert ("| native kernels, all calls |" in text) == (native.library() is not None)
         assert "native.build.FLAG_SETS (-march=native)" in text
+    elif script == "narrow_linear":
+        bench_narrow_linear.main(["--tiny", "--rounds", "1", "--threads", "1", "--out", str(out)])
+        assert "| tiny | 3 | 8 | 3 |" in out.read_text() and "NarrowLinear |" in out.read_text()
     elif script == "two_jobs":
         bench_two_jobs.main(["--tiny", "--rounds", "1", "--steps", "1", "--out", str(out)])
         rows = [line.split(" | ") for line in out.read_text().splitlines() if line.startswith(("| one", "| two"))]

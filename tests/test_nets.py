@@ -1,10 +1,14 @@
 """Networks against independent computations: the LL and FC transitions, decoder shapes and layouts."""
 
+import copy
+
 import pytest
 import torch
 
 from ssm_ms.nets import ConvDecoder, FullyConnectedTransition, LocallyLinearTransition, Projection
 from ssm_ms.nets.encoder import StateEncoder
+from ssm_ms.nets.linear import NarrowLinear
+from ssm_ms.nets.transition import NARROW_MAX
 
 
 def test_locally_linear_is_x_plus_weighted_matrices():
@@ -169,3 +173,52 @@ def test_channels_last_decoder_never_converts_a_feature_map_to_nchw():
     assert produced  # feature maps were seen
     nchw = [p for p in produced if not torch.empty_strided(p[1], p[2]).is_contiguous(memory_format=torch.channels_last)]
     assert not nchw, nchw
+
+
+@pytest.mark.parametrize("shape, bias", [((7, 3), True), ((2, 5, 3), True), ((7, 3), False)])
+def test_narrow_linear_computes_linear_with_its_gradients(shape, bias):
+    """``NarrowLinear``: ``y = x W^T + b``, ``dW = dy^T x``, ``db = sum dy``, ``dx = dy W`` (written out here), after an
+    in-place ReLU as in SSM-LL's beta; its state dict is ``nn.Linear``'s."""
+    torch.manual_seed(0)
+    layer = NarrowLinear(3, 4, bias=bias).double()
+    plain = torch.nn.Linear(3, 4, bias=bias).double()
+    plain.load_state_dict(layer.state_dict())  # the same keys and shapes
+    x = torch.randn(*shape, dtype=torch.float64, requires_grad=True)
+    y = torch.relu_(layer(x))
+    w, b = layer.weight.detach(), (layer.bias.detach() if bias else torch.zeros(4, dtype=torch.float64))
+    pre = x.detach() @ w.T + b
+    torch.testing.assert_close(y, pre.clamp(min=0))
+    dy = torch.randn_like(y)
+    y.backward(dy)
+    dpre = (dy * (pre > 0)).reshape(-1, 4)
+    torch.testing.assert_close(layer.weight.grad, dpre.T @ x.detach().reshape(-1, 3))
+    torch.testing.assert_close(x.grad, (dpre @ w).reshape(shape))
+    if bias:
+        torch.testing.assert_close(layer.bias.grad, dpre.sum(0))
+    # torch.func (analysis.py's Jacobians): the Jacobian of a linear map is W
+    jac = torch.func.vmap(torch.func.jacrev(layer))(x.detach().reshape(-1, 3))
+    torch.testing.assert_close(jac, w.expand(jac.shape[0], 4, 3))
+
+
+@pytest.mark.parametrize("state_dim, input_dim", [(3, 0), (8, 2), (24, 0)])
+def test_locally_linear_gradients_equal_those_of_a_plain_linear_beta(state_dim, input_dim):
+    """Whichever first beta layer SSM-LL picks by its input width, its values and gradients are those of
+    ``nn.Linear`` with the same weights."""
+    torch.manual_seed(0)
+    f = LocallyLinearTransition(state_dim, n_matrices=5, hidden=32, input_dim=input_dim).double()
+    assert isinstance(f.beta[0], NarrowLinear) == (state_dim + input_dim <= NARROW_MAX)
+    plain = copy.deepcopy(f)
+    plain.beta[0] = torch.nn.Linear(state_dim + input_dim, 32).double()
+    plain.beta[0].load_state_dict(f.beta[0].state_dict())
+    x = torch.randn(11, state_dim, dtype=torch.float64)
+    u = torch.randn(11, input_dim, dtype=torch.float64) if input_dim else None
+    grads = []
+    for model in (f, plain):
+        x0 = x.clone().requires_grad_(True)
+        state = x0
+        for _ in range(4):
+            state = model(state, u)
+        state.pow(2).sum().backward()
+        grads.append([x0.grad] + [p.grad for p in model.parameters()])
+    for a, b in zip(*grads):
+        torch.testing.assert_close(a, b)

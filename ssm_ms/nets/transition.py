@@ -13,6 +13,13 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from ssm_ms.nets.linear import NarrowLinear
+
+# SSM-LL's first beta layer is a NarrowLinear (same parameters, its weight gradient formed as x^T dy) where its input
+# width is at most this: on an AMD EPYC (MKL) its rollouts ran 1.3-1.55x faster at state 3 (Lorenz), 1.05-1.35x at
+# 10, up to 5% slower from 12 on (benchmarks/results/narrow_linear.md). Either way the same parameters and values.
+NARROW_MAX = 10
+
 
 def _check_input(module: nn.Module, u: torch.Tensor | None, x: torch.Tensor) -> None:
     if (u is None) != (module.input_dim == 0):
@@ -43,8 +50,9 @@ class LocallyLinearTransition(nn.Module):
                 f"{n_matrices}, {hidden}, {input_dim}"
             )
         self.state_dim, self.n_matrices, self.input_dim = state_dim, n_matrices, input_dim
+        width = state_dim + input_dim
         self.beta = nn.Sequential(
-            nn.Linear(state_dim + input_dim, hidden),
+            (NarrowLinear if width <= NARROW_MAX else nn.Linear)(width, hidden),
             nn.ReLU(inplace=True),
             nn.Linear(hidden, n_matrices),
             nn.Softmax(dim=-1),
