@@ -206,31 +206,32 @@ def run_stage(args: list[str], number: int, resume_pipeline: str | None = None) 
     cmd = [sys.executable, "cli.py", *args]
     print("\n>>> " + " ".join(cmd), flush=True)
     start = time.time()
-    proc = subprocess.Popen(cmd, cwd=ROOT)
     interrupted = False
+    proc: subprocess.Popen | None = None
 
-    def forward_sigterm(signum, frame):  # `kill <this pid>`, a scheduler's stop: the stage stops as on Ctrl-C
+    def stop(signum, frame):
+        # Ctrl-C reached the stage too, `kill [-INT] <this pid>` this process alone: which one is not known here, and
+        # SIGTERM stops the stage the same way in both cases (one already stopping on its Ctrl-C only notes it:
+        # Lightning's handler sets a flag while it trains). A second SIGINT does not wait for a clean stop.
         nonlocal interrupted
+        if proc is not None and interrupted and signum == signal.SIGINT:
+            proc.kill()
+        elif proc is not None:
+            proc.send_signal(signal.SIGTERM)
         interrupted = True
-        proc.send_signal(signal.SIGTERM)
 
-    previous = signal.signal(signal.SIGTERM, forward_sigterm)
+    # Handlers, not KeyboardInterrupt: a process started in the background by a non-interactive shell inherits
+    # SIGINT ignored, and Python then never raises KeyboardInterrupt. Installed before the stage starts, so that
+    # the stage starts with SIGINT's default disposition (a handler is reset by exec, an ignored signal is not).
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        while True:
-            try:
-                code = proc.wait()
-                break
-            except KeyboardInterrupt:
-                if interrupted:  # a second Ctrl-C: do not wait for the stage to stop cleanly
-                    proc.kill()
-                else:
-                    # a terminal's Ctrl-C reached the stage too, a `kill -INT <pid>` this process alone: which one
-                    # is not known here, and SIGTERM stops the stage the same way in both cases (one already
-                    # stopping on its Ctrl-C only notes it: Lightning's handler sets a flag while it trains)
-                    proc.send_signal(signal.SIGTERM)
-                interrupted = True
+        proc = subprocess.Popen(cmd, cwd=ROOT)
+        if interrupted:  # stopped while the stage was starting
+            proc.send_signal(signal.SIGTERM)
+        code = proc.wait()
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     stage = f"stage {number} (python cli.py {shlex.join(args)})"
     later = (
         f"Resume the whole pipeline (this stage, then the stages after it and the results file) with:\n"
