@@ -15,9 +15,9 @@ from torch import nn
 
 from ssm_ms.nets.linear import NarrowLinear
 
-# SSM-LL's first beta layer is a NarrowLinear (same parameters, its weight gradient formed as x^T dy) where its input
-# width is at most this: on an AMD EPYC (MKL) its rollouts ran 1.3-1.55x faster at state 3 (Lorenz), 1.05-1.35x at
-# 10, up to 5% slower from 12 on (benchmarks/results/narrow_linear.md). Either way the same parameters and values.
+# SSM-LL's first beta layer is a NarrowLinear (same parameters and values, its weight gradient formed as x^T dy) where
+# its input width is at most this: faster at the widths measured up to 10 (Lorenz's 3, the pendulum's 10), slower from
+# 12 on (benchmarks/results/narrow_linear.md, docs/performance.md).
 NARROW_MAX = 10
 
 
