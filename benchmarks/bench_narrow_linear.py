@@ -10,6 +10,7 @@ hold the same weights; each round times both, in alternating order; the ratio is
 steps, 50 steps per node: 800 rows at T = 1000, 8000 at T = 10,000), the simple pendulum (state 10) and the
 quadruple pendulum (state 40) (40 pieces x 4 nodes, 25 steps), and widths between, which place the threshold
 ``NARROW_MAX`` under which ``LocallyLinearTransition`` uses ``NarrowLinear`` (``ssm_ms/nets/transition.py``).
+A second table times the weight gradient of a layer from 3 inputs alone, in the two forms autograd takes for them.
 Writes benchmarks/results/narrow_linear.md with the machine, command and date.
 """
 
@@ -55,16 +56,37 @@ def with_first_layer(f: nn.Module, cls: type[nn.Linear]) -> nn.Module:
     return f
 
 
-def rollout_seconds(f: nn.Module, x0: torch.Tensor, steps: int, repeats: int) -> float:
-    """Mean seconds of ``repeats`` rollouts of ``steps`` steps from ``x0`` and their backward."""
-    start = time.perf_counter()
+def rollouts(f: nn.Module, x0: torch.Tensor, steps: int, repeats: int) -> None:
+    """``repeats`` rollouts of ``steps`` steps from ``x0``, each with its backward."""
     for _ in range(repeats):
         x, states = x0, []
         for _ in range(steps):
             x = f(x)
             states.append(x)
         torch.stack(states).pow(2).mean().backward()
-    return (time.perf_counter() - start) / repeats
+
+
+def weight_gradients(dy: torch.Tensor, x: torch.Tensor, as_narrow: bool) -> None:
+    """Ten weight gradients ``dy^T x`` as ``nn.Linear``'s autograd forms them, or as ``(x^T dy)^T`` (``NarrowLinear``)."""
+    for _ in range(10):
+        (x.t() @ dy).t() if as_narrow else dy.t() @ x
+
+
+def interleaved(variants: dict, rounds: int, run) -> tuple[dict[str, float], float]:
+    """Median seconds of ``run(*variant)`` per variant over ``rounds`` rounds (order alternating), and the median
+    per-round ratio first / second variant."""
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    for value in variants.values():  # warm-up
+        run(*value)
+    for r in range(rounds):
+        for name in variants if r % 2 == 0 else list(variants)[::-1]:
+            start = time.perf_counter()
+            run(*variants[name])
+            times[name].append(time.perf_counter() - start)
+    first, second = times.values()
+    return {name: statistics.median(t) for name, t in times.items()}, statistics.median(
+        a / b for a, b in zip(first, second)
+    )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -90,25 +112,26 @@ def main(argv: list[str] | None = None) -> None:
         torch.manual_seed(0)
         f = LocallyLinearTransition(d, k, hidden)
         x0 = torch.randn(rows, d, requires_grad=True)
+        repeats = 1 if rows * steps >= 100_000 else 5
         variants = {
-            name: (with_first_layer(f, cls), x0)
+            name: (with_first_layer(f, cls), x0, steps, repeats)
             for name, cls in (("nn.Linear", nn.Linear), ("NarrowLinear", NarrowLinear))
         }
-        repeats = 1 if rows * steps >= 100_000 else 5
-        times: dict[str, list[float]] = {name: [] for name in variants}
-        for f, x0 in variants.values():  # warm-up
-            rollout_seconds(f, x0, steps, 1)
-        for r in range(args.rounds):
-            for name in variants if r % 2 == 0 else list(variants)[::-1]:
-                f, x0 = variants[name]
-                times[name].append(rollout_seconds(f, x0, steps, repeats))
-        ratios = [a / b for a, b in zip(times["nn.Linear"], times["NarrowLinear"])]
-        med = {name: statistics.median(t) * 1e3 for name, t in times.items()}
+        med, ratio = interleaved(variants, args.rounds, rollouts)
+        med = {name: t / repeats * 1e3 for name, t in med.items()}
         rows_out.append(
             f"| {label} | {d} | {rows} | {steps} | {med['nn.Linear']:.1f} | {med['NarrowLinear']:.1f} | "
-            f"{statistics.median(ratios):.2f} | {'NarrowLinear' if d <= NARROW_MAX else 'nn.Linear'} |"
+            f"{ratio:.2f} | {'NarrowLinear' if d <= NARROW_MAX else 'nn.Linear'} |"
         )
         print(rows_out[-1], flush=True)
+    products = []  # the weight gradient of a [rows, 3] -> [rows, hidden] layer alone, as each variant forms it
+    for rows in (8,) if args.tiny else (800, 8000):
+        torch.manual_seed(0)
+        x, dy = torch.randn(rows, 3), torch.randn(rows, hidden)
+        forms = {"dy^T x": (dy, x, False), "(x^T dy)^T": (dy, x, True)}
+        med, ratio = interleaved(forms, args.rounds * 4, weight_gradients)
+        products.append(f"| {rows} | {med['dy^T x'] * 100:.3f} | {med['(x^T dy)^T'] * 100:.3f} | {ratio:.2f} |")
+        print(products[-1], flush=True)
     others = watch.others()
 
     lines = [
@@ -126,6 +149,14 @@ def main(argv: list[str] | None = None) -> None:
         "| case | input width | rows | steps | nn.Linear (ms) | NarrowLinear (ms) | ratio | shipped |",
         "|---|---:|---:|---:|---:|---:|---:|---|",
         *rows_out,
+        "",
+        f"The weight gradient alone of a layer from 3 to {hidden} (no rollout): `dy^T x` (`[{hidden}, rows] @ [rows, 3]`, "
+        "as autograd forms it for `nn.Linear`) and `(x^T dy)^T` (`[3, rows] @ [rows, "
+        f"{hidden}]`, for `NarrowLinear`), 10 products per timing, {args.rounds * 4} rounds:",
+        "",
+        "| rows | dy^T x (ms) | (x^T dy)^T (ms) | ratio |",
+        "|---:|---:|---:|---:|",
+        *products,
     ]
     write(args.out, lines)
 
