@@ -96,6 +96,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--tiny", action="store_true", help="a tiny case, to check that the script runs")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "narrow_linear.md"))
     args = parser.parse_args(argv)
+    if args.rounds < 1 or args.threads < 1:
+        parser.error(f"--rounds and --threads must be at least 1, got {args.rounds} and {args.threads}")
 
     from benchmarks.report import provenance, write
     from ssm_ms.nets.linear import NarrowLinear

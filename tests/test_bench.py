@@ -113,6 +113,12 @@ def test_benchmark_scripts_run_at_a_tiny_size(tmp_path, script):
     assert "TINY sizes" in out.read_text()
 
 
+def test_narrow_linear_benchmark_refuses_zero_rounds(capsys):
+    with pytest.raises(SystemExit) as stop:
+        bench_narrow_linear.main(["--tiny", "--rounds", "0"])
+    assert stop.value.code == 2 and "--rounds and --threads must be at least 1, got 0 and 2" in capsys.readouterr().err
+
+
 def test_two_jobs_benchmark_refuses_zero_rounds_before_starting_workers(capsys):
     with pytest.raises(SystemExit) as stop:
         bench_two_jobs.main(["--tiny", "--rounds", "0"])
