@@ -202,7 +202,10 @@ def run_stage(args: list[str], number: int, resume_pipeline: str | None = None) 
     ``last.ckpt`` for a ``fit`` that saved one, else the stage's own command) and ``resume_pipeline`` (the
     reproduce command that resumes it and runs the stages after it), and exits with status 130; a second Ctrl-C
     stops the stage at once. A stage that fails exits with its status after one ``error:`` line naming it (its
-    own message is printed above). Either way no traceback: the later stages and the results file do not run."""
+    own message is printed above); one killed by a signal from elsewhere (SIGKILL: most often the out-of-memory
+    killer) has no message of its own: the line names the signal and the checkpoint kept, and this process exits
+    with 128 + its number, as a shell does. Either way no traceback: the later stages and the results file do not
+    run."""
     cmd = [sys.executable, "cli.py", *args]
     print("\n>>> " + " ".join(cmd), flush=True)
     start = time.time()
@@ -249,13 +252,25 @@ def run_stage(args: list[str], number: int, resume_pipeline: str | None = None) 
             file=sys.stderr,
         )
         raise SystemExit(130)
-    if code != 0:
+    if code > 0:
         print(
             f"error: reproduce stopped: {stage} failed with status {code} (its message is above); the "
             f"stages after it and the results file did not run. {later}",
             file=sys.stderr,
         )
         raise SystemExit(code)
+    if code < 0:  # killed by a signal, with no message of its own: say which, and what is kept
+        killer = signal.Signals(-code).name
+        if -code == signal.SIGKILL:
+            killer += " (on Linux most often the kernel's out-of-memory killer: `dmesg` or the system log names it)"
+        ckpt = _stage_checkpoint(args)
+        saved = f"; its last completed epoch is kept in {ckpt}" if ckpt else ""
+        print(
+            f"error: reproduce stopped: {stage} was killed by {killer}{saved}; the stages after it and the "
+            f"results file did not run. {later}",
+            file=sys.stderr,
+        )
+        raise SystemExit(128 - code)  # the shell's status for a process killed by that signal
     return round(time.time() - start, 1)
 
 

@@ -202,6 +202,38 @@ def test_ctrl_c_or_sigterm_during_a_stage_names_it_and_the_command_that_resumes_
     assert torch.load(ckpt, weights_only=True)["epoch"] >= 0  # a completed epoch to resume from
 
 
+def test_a_stage_killed_from_outside_names_the_signal_and_what_is_kept(tmp_path):
+    """A stage killed with SIGKILL (what the kernel's out-of-memory killer sends) prints nothing itself: reproduce
+    names the signal, the likely killer and the checkpoint kept, and exits with 137 as a shell would."""
+    import os
+    import signal
+    import time
+
+    from tests.test_cli import ROTATION
+
+    config = tmp_path / "rot.yaml"
+    config.write_text(ROTATION.format(root=tmp_path).replace("max_epochs: 4", "max_epochs: 100000"))
+    args = ["fit", "--config", str(config), "--trainer.logger.init_args.version", "reproduce-x"]
+    ckpt = tmp_path / "runs" / "rot" / "reproduce-x" / "checkpoints" / "last.ckpt"
+    proc = _stage_in_own_group(tmp_path, args)
+    try:
+        deadline = time.time() + 120
+        while not ckpt.is_file() and proc.poll() is None and time.time() < deadline:
+            time.sleep(0.2)
+        assert ckpt.is_file(), proc.poll()
+        (stage,) = _children(proc.pid)
+        os.kill(stage, signal.SIGKILL)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 137 and "Traceback" not in err, err
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("error: reproduce stopped: stage 1 (python cli.py fit --config "), line
+    assert "was killed by SIGKILL (on Linux most often the kernel's out-of-memory killer" in line, line
+    assert f"its last completed epoch is kept in {ckpt}" in line, line
+
+
 def _children(pid: int) -> list[int]:
     return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
 
