@@ -1,6 +1,7 @@
-"""One command per experiment: SSM fit -> encoder fit -> test (-> UKF test, control test where a config exists: the
-control once with the UKF and, with an encoder, once more with the encoder estimating the state), then every baseline
-of the experiment (fit -> test); or one baseline alone.
+"""One command per experiment: SSM fit -> the tests that need the SSM alone (UKF test, control test with the UKF,
+where their configs exist) -> encoder fit -> test (-> the control again, the encoder estimating the state), then every
+baseline of the experiment (fit -> test); or one baseline alone. The SSM's own tests come first: they take seconds,
+and their rows land even where a long encoder stage then stops or fails.
 
     python -m ssm_ms.reproduce pendulum            # configs/pendulum*.yaml + configs/baselines/pendulum_*.yaml
     python -m ssm_ms.reproduce pendulum --size cpu # the CPU-sized twins under configs/cpu/
@@ -534,6 +535,12 @@ def main(argv: list[str] | None = None) -> None:
         ssm_ckpt = logger_dir(ssm_cfg) / version / "checkpoints" / "last.ckpt"
         ssm_ran = pipeline.stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v])
         with_ssm = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt)]
+        ssm_tests = [cfg for cfg in (ukf_cfg, control_cfg) if cfg.exists()]  # of the SSM, nothing to train
+        for stage_cfg in ssm_tests:  # seconds each: before a long encoder fit, which may stop or fail
+            pipeline.stage(
+                ["test", "--config", str(stage_cfg.relative_to(ROOT)), *with_ssm, *named(stage_cfg), *v],
+                again=ssm_ran,
+            )
         if enc_cfg.exists():
             enc_dir = logger_dir(enc_cfg) / version / "checkpoints"
             budget = [] if opts.encoder_epochs is None else ["--trainer.max_epochs", str(opts.encoder_epochs)]
@@ -545,13 +552,7 @@ def main(argv: list[str] | None = None) -> None:
             enc_test = ["test", "--config", str(enc_cfg.relative_to(ROOT)), *with_ssm, "--ckpt_path", str(enc_ckpt)]
             pipeline.stage([*enc_test, *named(enc_cfg), *v], again=ssm_ran or enc_ran)
             configs.append(enc_cfg)
-        for stage_cfg in (ukf_cfg, control_cfg):  # tests of the SSM with nothing to train
-            if stage_cfg.exists():
-                pipeline.stage(
-                    ["test", "--config", str(stage_cfg.relative_to(ROOT)), *with_ssm, *named(stage_cfg), *v],
-                    again=ssm_ran,
-                )
-                configs.append(stage_cfg)
+        configs += ssm_tests  # the results files listed in the order they always were: encoder first
         if control_cfg.exists() and enc_cfg.exists():  # the control again, the encoder estimating the state
             with_encoder = ["--model.init_args.encoder_checkpoint", str(enc_ckpt)]
             test = ["test", "--config", str(control_cfg.relative_to(ROOT)), *with_ssm, *with_encoder]

@@ -45,9 +45,9 @@ def test_an_experiment_runs_its_ssm_stages_then_every_baseline(recorded, capsys)
     configs = [(a[0], option(a, "--config")) for a in calls]
     assert configs == [
         ("fit", "configs/cpu/lorenz_T1000.yaml"),
+        ("test", "configs/cpu/lorenz_T1000_ukf.yaml"),  # the SSM alone: before the encoder's long fit
         ("fit", "configs/cpu/lorenz_T1000_encoder.yaml"),
         ("test", "configs/cpu/lorenz_T1000_encoder.yaml"),
-        ("test", "configs/cpu/lorenz_T1000_ukf.yaml"),
         ("fit", "configs/cpu/baselines/lorenz_T1000_lstm.yaml"),
         ("test", "configs/cpu/baselines/lorenz_T1000_lstm.yaml"),
         ("fit", "configs/cpu/baselines/lorenz_T1000_rkn.yaml"),
@@ -57,7 +57,7 @@ def test_an_experiment_runs_its_ssm_stages_then_every_baseline(recorded, capsys)
     assert all(option(a, "--trainer.logger.init_args.version") == version for a in calls)
     ssm_ckpt = f"runs/lorenz_T1000_cpu/{version}/checkpoints/last.ckpt"
     assert all(option(a, "--model.init_args.ssm_checkpoint") == ssm_ckpt for a in calls[1:4])
-    assert option(calls[2], "--ckpt_path") == f"runs/lorenz_T1000_encoder_cpu/{version}/checkpoints/last.ckpt"
+    assert option(calls[3], "--ckpt_path") == f"runs/lorenz_T1000_encoder_cpu/{version}/checkpoints/last.ckpt"
     assert option(calls[5], "--ckpt_path") == f"runs/lorenz_T1000_lstm_cpu/{version}/checkpoints/last.ckpt"
     assert "--model.init_args.ssm_checkpoint" not in calls[4] + calls[5]
     assert (
@@ -299,15 +299,15 @@ def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tm
     )  # said at the start: a run killed outright prints nothing at its end
     assert finished["running"] is None and len(finished["stages"]) == 4
     assert finished["options"]["experiment"] == "lorenz_T1000" and finished["options"]["no_baselines"] is True
-    # as the record reads when the machine stopped during stage 2
-    stage1, stage2 = finished["stages"][0], finished["stages"][1]
+    # as the record reads when the machine stopped during stage 3 (the SSM fit and its UKF test finished)
+    stage1, ukf, stage3 = finished["stages"][:3]
     started = 1_700_000_000.0
     record.write_text(
         json.dumps(
             {
                 "options": finished["options"],
-                "stages": [{**stage1, "seconds": 3000.0}],
-                "running": {"command": stage2["command"], "started": started, "seconds": 0.0, "runs": 1},
+                "stages": [{**stage1, "seconds": 3000.0}, {**ukf, "seconds": 40.0}],
+                "running": {"command": stage3["command"], "started": started, "seconds": 0.0, "runs": 1},
             }
         )
     )
@@ -320,12 +320,11 @@ def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tm
     assert [(a[0], option(a, "--config")) for a in calls] == [
         ("fit", "configs/cpu/lorenz_T1000_encoder.yaml"),
         ("test", "configs/cpu/lorenz_T1000_encoder.yaml"),
-        ("test", "configs/cpu/lorenz_T1000_ukf.yaml"),
     ]
     assert option(calls[0], "--ckpt_path") == f"runs/lorenz_T1000_encoder_cpu/{version}/checkpoints/last.ckpt"
     stages = written["pipeline"]["stages"]
-    assert [s["seconds"] for s in stages] == [3000.0, 100.0, 0.0, 0.0] and stages[1]["runs"] == 2
-    assert stages[1]["command"] == stage2["command"]  # the stage's command, without the --ckpt_path it resumed with
+    assert [s["seconds"] for s in stages] == [3000.0, 40.0, 100.0, 0.0] and stages[2]["runs"] == 2
+    assert stages[2]["command"] == stage3["command"]  # the stage's command, without the --ckpt_path it resumed with
     assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --no-baselines --size cpu"  # no --resume
     assert (
         written["resume_pipeline"] == f"python -m ssm_ms.reproduce lorenz_T1000 --no-baselines --size cpu "
@@ -417,7 +416,7 @@ def test_a_budget_raised_on_resume_continues_that_fit_and_tests_again(recorded, 
     version = option(calls[0], "--trainer.logger.init_args.version")
     record = tmp_path / "runs" / "lorenz_T1000_cpu" / version / "reproduce.json"
     saved = json.loads(record.read_text())
-    saved["stages"][1]["seconds"] = 500.0  # the 7 epochs took 500 s
+    saved["stages"][2]["seconds"] = 500.0  # the 7 epochs took 500 s (stage 3, after the SSM fit and UKF test)
     record.write_text(json.dumps(saved))
     enc_ckpt = tmp_path / "runs" / "lorenz_T1000_encoder_cpu" / version / "checkpoints" / "last.ckpt"
     enc_ckpt.parent.mkdir(parents=True)
@@ -453,8 +452,8 @@ def test_a_budget_raised_on_resume_continues_that_fit_and_tests_again(recorded, 
     assert option(calls[0], "--trainer.max_epochs") == "9"
     assert option(calls[0], "--ckpt_path") == f"runs/lorenz_T1000_encoder_cpu/{version}/checkpoints/last.ckpt"
     stages = written["pipeline"]["stages"]
-    assert len(stages) == 4 and stages[1]["seconds"] == 500.0 and stages[1]["runs"] == 2
-    assert "--trainer.max_epochs 9" in stages[1]["command"] and "--ckpt_path" not in stages[1]["command"]
+    assert len(stages) == 4 and stages[2]["seconds"] == 500.0 and stages[2]["runs"] == 2
+    assert "--trainer.max_epochs 9" in stages[2]["command"] and "--ckpt_path" not in stages[2]["command"]
     assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --encoder-epochs 9"
     # the results file keeps one record of this run: the 9-epoch command's replaces the 7-epoch one's
     assert written["replaces"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --encoder-epochs 7"
@@ -552,38 +551,41 @@ def test_a_fit_extended_on_resume_ends_as_a_fit_given_that_budget_from_the_start
 
 
 def test_control_stages_and_a_suite_of_experiments(recorded):
-    """An SSM's control test runs after its encoder stages, with the SSM's checkpoint, then again with the encoder
-    estimating the state (the SSM has one); a controller without an SSM
+    """An SSM's control test runs before its encoder stages, with the SSM's checkpoint, then again after them with the
+    encoder estimating the state (the SSM has one); a controller without an SSM
     (the true model) is one test stage; a suite (configs/suites/) runs its experiments one after the other."""
     calls, written = recorded
     reproduce.main(["pendulum_control"])
     stages = [(a[0], option(a, "--config")) for a in calls]
     assert stages == [
         ("fit", "configs/pendulum_torque.yaml"),
+        ("test", "configs/pendulum_torque_control.yaml"),  # the SSM and the UKF: before the encoder
         ("fit", "configs/pendulum_torque_encoder.yaml"),
         ("test", "configs/pendulum_torque_encoder.yaml"),
-        ("test", "configs/pendulum_torque_control.yaml"),
         ("test", "configs/pendulum_torque_control.yaml"),  # again, the encoder estimating the state
         ("test", "configs/pendulum_torque_record.yaml"),  # its own episodes recorded, with the encoder
         ("fit", "configs/pendulum_torque_dagger.yaml"),  # trained again with them
+        ("test", "configs/pendulum_torque_dagger_control.yaml"),
         ("fit", "configs/pendulum_torque_dagger_encoder.yaml"),
         ("test", "configs/pendulum_torque_dagger_encoder.yaml"),
         ("test", "configs/pendulum_torque_dagger_control.yaml"),
-        ("test", "configs/pendulum_torque_dagger_control.yaml"),
         ("fit", "configs/pendulum_torque_single.yaml"),
+        ("test", "configs/pendulum_torque_single_control.yaml"),
         ("fit", "configs/pendulum_torque_single_encoder.yaml"),
         ("test", "configs/pendulum_torque_single_encoder.yaml"),
         ("test", "configs/pendulum_torque_single_control.yaml"),
-        ("test", "configs/pendulum_torque_single_control.yaml"),
         ("test", "configs/pendulum_true_control.yaml"),
         ("fit", "configs/pendulum_sensors.yaml"),
+        ("test", "configs/pendulum_sensors_control.yaml"),
         ("fit", "configs/pendulum_sensors_encoder.yaml"),
         ("test", "configs/pendulum_sensors_encoder.yaml"),
         ("test", "configs/pendulum_sensors_control.yaml"),
-        ("test", "configs/pendulum_sensors_control.yaml"),
     ]
     version = option(calls[0], "--trainer.logger.init_args.version")
-    assert "--model.init_args.encoder_checkpoint" not in calls[3]
+    assert "--model.init_args.encoder_checkpoint" not in calls[1]
+    assert (
+        option(calls[1], "--model.init_args.ssm_checkpoint") == f"runs/pendulum_torque/{version}/checkpoints/last.ckpt"
+    )
     assert (
         option(calls[4], "--model.init_args.encoder_checkpoint")
         == f"runs/pendulum_torque_encoder/{version}/checkpoints/last.ckpt"
