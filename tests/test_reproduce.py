@@ -153,6 +153,30 @@ def _stage_in_own_group(tmp_path, args, sigint_ignored: bool = False):
     )
 
 
+def _long_stage_past_its_first_checkpoint(tmp_path, sigint_ignored: bool = False):
+    """A ``fit`` stage of 100000 epochs started by ``_stage_in_own_group``, returned once its first ``last.ckpt`` is
+    written: ``(reproduce's process, the stage's args, that checkpoint)``."""
+    import os
+    import signal
+    import time
+
+    from tests.test_cli import ROTATION
+
+    config = tmp_path / "rot.yaml"
+    config.write_text(ROTATION.format(root=tmp_path).replace("max_epochs: 4", "max_epochs: 100000"))
+    args = ["fit", "--config", str(config), "--trainer.logger.init_args.version", "reproduce-x"]
+    ckpt = tmp_path / "runs" / "rot" / "reproduce-x" / "checkpoints" / "last.ckpt"
+    proc = _stage_in_own_group(tmp_path, args, sigint_ignored=sigint_ignored)
+    deadline = time.time() + 120
+    while not ckpt.is_file() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.2)
+    if not ckpt.is_file():
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        raise AssertionError(f"no checkpoint within 120 s (reproduce's status: {proc.poll()})")
+    return proc, args, ckpt
+
+
 @pytest.mark.parametrize("how", ["ctrl-c", "sigterm", "sigint-background"])
 def test_ctrl_c_or_sigterm_during_a_stage_names_it_and_the_command_that_resumes_it(tmp_path, how):
     """Ctrl-C reaches the stage and reproduce together (SIGINT to the process group); SIGTERM or SIGINT to reproduce
@@ -163,21 +187,10 @@ def test_ctrl_c_or_sigterm_during_a_stage_names_it_and_the_command_that_resumes_
     import os
     import shlex
     import signal
-    import time
 
     import torch
 
-    from tests.test_cli import ROTATION
-
-    config = tmp_path / "rot.yaml"
-    config.write_text(ROTATION.format(root=tmp_path).replace("max_epochs: 4", "max_epochs: 100000"))
-    args = ["fit", "--config", str(config), "--trainer.logger.init_args.version", "reproduce-x"]
-    ckpt = tmp_path / "runs" / "rot" / "reproduce-x" / "checkpoints" / "last.ckpt"
-    proc = _stage_in_own_group(tmp_path, args, sigint_ignored=how == "sigint-background")
-    deadline = time.time() + 120
-    while not ckpt.is_file() and proc.poll() is None and time.time() < deadline:
-        time.sleep(0.2)
-    assert ckpt.is_file(), proc.poll()
+    proc, args, ckpt = _long_stage_past_its_first_checkpoint(tmp_path, sigint_ignored=how == "sigint-background")
     stage = _children(proc.pid)
     assert len(stage) == 1
     if how == "ctrl-c":
@@ -207,20 +220,9 @@ def test_a_stage_killed_from_outside_names_the_signal_and_what_is_kept(tmp_path)
     names the signal, the likely killer and the checkpoint kept, and exits with 137 as a shell would."""
     import os
     import signal
-    import time
 
-    from tests.test_cli import ROTATION
-
-    config = tmp_path / "rot.yaml"
-    config.write_text(ROTATION.format(root=tmp_path).replace("max_epochs: 4", "max_epochs: 100000"))
-    args = ["fit", "--config", str(config), "--trainer.logger.init_args.version", "reproduce-x"]
-    ckpt = tmp_path / "runs" / "rot" / "reproduce-x" / "checkpoints" / "last.ckpt"
-    proc = _stage_in_own_group(tmp_path, args)
+    proc, args, ckpt = _long_stage_past_its_first_checkpoint(tmp_path)
     try:
-        deadline = time.time() + 120
-        while not ckpt.is_file() and proc.poll() is None and time.time() < deadline:
-            time.sleep(0.2)
-        assert ckpt.is_file(), proc.poll()
         (stage,) = _children(proc.pid)
         os.kill(stage, signal.SIGKILL)
         _, err = proc.communicate(timeout=60)
