@@ -7,6 +7,7 @@ and their rows land even where a long encoder stage then stops or fails.
     python -m ssm_ms.reproduce pendulum --size cpu # the CPU-sized twins under configs/cpu/
     python -m ssm_ms.reproduce pendulum_lstm       # configs/baselines/pendulum_lstm.yaml alone
     python -m ssm_ms.reproduce pendulum --no-baselines
+    python -m ssm_ms.reproduce lorenz_T1000 --no-encoder --no-baselines   # the SSM and its UKF test only
     python -m ssm_ms.reproduce pendulum --encoder-epochs 120   # the encoder stage on a stated epoch budget
     python -m ssm_ms.reproduce pendulum_lstm --baseline-epochs 120   # a baseline on a stated epoch budget
     python -m ssm_ms.reproduce lorenz_T1000 --size cpu --seed 1  # another seed: results/lorenz_T1000_cpu_seed1.md
@@ -38,7 +39,9 @@ away while ``runs/`` stays): the stages it finished are not run again, its inter
 last completed epoch, then the remaining stages and the results file run as usual. Each run keeps its record in
 ``<first stage's run folder>/reproduce.json`` (see :class:`Pipeline`). The epoch budgets may be raised on resume
 (``--resume VERSION --encoder-epochs 330``): that fit continues to the new count and the stages depending on it run
-again.
+again. ``--no-encoder`` may be given or dropped on resume: dropped, a run that ended without its encoder gains the
+encoder's stages (the finished ones are not run again); given, a run whose encoder stage cannot finish on this machine
+ends with the SSM's own tests and its results file (the encoder's ``last.ckpt`` kept for a resume without it).
 """
 
 from __future__ import annotations
@@ -63,6 +66,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 BUDGETS = ("encoder_epochs", "baseline_epochs")  # options a resumed run may raise: its fits continue to the new count
+# options a resumed run may give or drop: dropping --no-encoder adds the encoder's stages to a finished run, giving it
+# ends a run whose encoder cannot finish (its last.ckpt kept, for a resume without it)
+STAGE_CHOICES = ("no_encoder",)
 
 
 SECTION_FILES = ("data", "model")  # sections a config may give as the path of a file holding them
@@ -310,7 +316,7 @@ class Pipeline:
             differ = [
                 f"{k.replace('_', '-')}: {started_with.get(k)} then, {v} now"
                 for k, v in options.items()
-                if started_with.get(k) != v and k not in BUDGETS
+                if started_with.get(k) != v and k not in BUDGETS + STAGE_CHOICES
             ]
             if differ:
                 raise SystemExit(
@@ -427,6 +433,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--size", choices=["paper", "cpu"], default="paper")
     parser.add_argument("--no-baselines", action="store_true", help="only the SSM and its inference stages")
     parser.add_argument(
+        "--no-encoder",
+        action="store_true",
+        help="no encoder stage, nor the stages that need it: the SSM and the tests of the SSM alone (UKF, control "
+        "with the UKF); for experiments whose encoder does not fit the machine (may be given or dropped on resume)",
+    )
+    parser.add_argument(
         "--encoder-epochs",
         type=int,
         default=None,
@@ -468,6 +480,8 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(opts, name)}")
     if opts.seed is not None and opts.seed < 0:
         parser.error(f"--seed must be >= 0, got {opts.seed}")
+    if opts.no_encoder and opts.encoder_epochs is not None:
+        parser.error("--encoder-epochs budgets the encoder stage that --no-encoder leaves out: give one of the two")
     suite = ROOT / "configs" / "suites" / f"{opts.experiment}.yaml"
     if suite.is_file():  # several experiments into one results file, one after the other
         if opts.resume:
@@ -497,6 +511,13 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(
             f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {sorted(set(known))}"
         )
+    ssm_tests = [cfg for cfg in (ukf_cfg, control_cfg) if cfg.exists()]  # of the SSM, nothing to train
+    if opts.no_encoder and ssm_stages and not ssm_tests:
+        parser.error(
+            f"--no-encoder: {opts.experiment} has no test of its SSM alone (no {ukf_cfg.relative_to(ROOT)} or "
+            f"{control_cfg.name} beside it): without its encoder nothing would score it; drop --no-encoder"
+        )
+    use_encoder = enc_cfg.exists() and not opts.no_encoder
     seeded = "" if opts.seed is None else f"seed{opts.seed}"
     version = opts.resume or "reproduce-" + (seeded + "-" if seeded else "") + datetime.now().strftime("%Y%m%d-%H%M%S")
     if "/" in version or not version.startswith("reproduce-"):
@@ -504,7 +525,7 @@ def main(argv: list[str] | None = None) -> None:
     options = _without_option(argv, "--resume")
     first = ssm_cfg if ssm_stages else baselines[0] if baselines else control_cfg
     # options make does not pass: the module's command
-    if opts.no_baselines or opts.encoder_epochs is not None or opts.baseline_epochs is not None:
+    if opts.no_baselines or opts.no_encoder or opts.encoder_epochs is not None or opts.baseline_epochs is not None:
         command = shlex.join(["python", "-m", "ssm_ms.reproduce", *options])
     else:
         command = (
@@ -535,13 +556,12 @@ def main(argv: list[str] | None = None) -> None:
         ssm_ckpt = logger_dir(ssm_cfg) / version / "checkpoints" / "last.ckpt"
         ssm_ran = pipeline.stage(["fit", "--config", str(ssm_cfg.relative_to(ROOT)), *v])
         with_ssm = ["--model.init_args.ssm_checkpoint", str(ssm_ckpt)]
-        ssm_tests = [cfg for cfg in (ukf_cfg, control_cfg) if cfg.exists()]  # of the SSM, nothing to train
         for stage_cfg in ssm_tests:  # seconds each: before a long encoder fit, which may stop or fail
             pipeline.stage(
                 ["test", "--config", str(stage_cfg.relative_to(ROOT)), *with_ssm, *named(stage_cfg), *v],
                 again=ssm_ran,
             )
-        if enc_cfg.exists():
+        if use_encoder:
             enc_dir = logger_dir(enc_cfg) / version / "checkpoints"
             budget = [] if opts.encoder_epochs is None else ["--trainer.max_epochs", str(opts.encoder_epochs)]
             enc_ran = pipeline.stage(
@@ -553,7 +573,7 @@ def main(argv: list[str] | None = None) -> None:
             pipeline.stage([*enc_test, *named(enc_cfg), *v], again=ssm_ran or enc_ran)
             configs.append(enc_cfg)
         configs += ssm_tests  # the results files listed in the order they always were: encoder first
-        if control_cfg.exists() and enc_cfg.exists():  # the control again, the encoder estimating the state
+        if control_cfg.exists() and use_encoder:  # the control again, the encoder estimating the state
             with_encoder = ["--model.init_args.encoder_checkpoint", str(enc_ckpt)]
             test = ["test", "--config", str(control_cfg.relative_to(ROOT)), *with_ssm, *with_encoder]
             pipeline.stage([*test, *named(control_cfg), *v], again=ssm_ran or enc_ran)

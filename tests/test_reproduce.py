@@ -101,6 +101,75 @@ def test_epoch_budgets_go_to_their_own_stages_only(recorded, capsys):
     assert "--baseline-epochs must be >= 1, got 0" in capsys.readouterr().err
 
 
+def test_no_encoder_runs_the_ssm_and_its_own_tests_only(recorded, capsys):
+    """--no-encoder: the SSM fit, its tests of the SSM alone (UKF; control with the UKF), the baselines; no encoder fit
+    and nothing that needs the encoder. Refused before any stage where nothing would then score the SSM, or beside an
+    encoder budget."""
+    calls, written = recorded
+    reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-encoder"])
+    assert [(a[0], option(a, "--config")) for a in calls] == [
+        ("fit", "configs/cpu/lorenz_T1000.yaml"),
+        ("test", "configs/cpu/lorenz_T1000_ukf.yaml"),
+        ("fit", "configs/cpu/baselines/lorenz_T1000_lstm.yaml"),
+        ("test", "configs/cpu/baselines/lorenz_T1000_lstm.yaml"),
+        ("fit", "configs/cpu/baselines/lorenz_T1000_rkn.yaml"),
+        ("test", "configs/cpu/baselines/lorenz_T1000_rkn.yaml"),
+    ]
+    assert written["experiment"] == "lorenz_T1000_cpu" and len(written["pipeline"]["stages"]) == 6
+    assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-encoder"
+    calls.clear()
+    reproduce.main(["pendulum_torque", "--no-encoder", "--no-baselines"])
+    assert [(a[0], option(a, "--config")) for a in calls] == [
+        ("fit", "configs/pendulum_torque.yaml"),
+        ("test", "configs/pendulum_torque_control.yaml"),  # the UKF estimating the state; not again with an encoder
+    ]
+    assert "--model.init_args.encoder_checkpoint" not in calls[1]
+    calls.clear()
+    for argv, message in [
+        (["pendulum", "--no-encoder"], "--no-encoder: pendulum has no test of its SSM alone (no configs/pendulum_ukf"),
+        (["lorenz_T1000", "--no-encoder", "--encoder-epochs", "5"], "--encoder-epochs budgets the encoder stage"),
+    ]:
+        with pytest.raises(SystemExit):
+            reproduce.main(argv)
+        assert message in capsys.readouterr().err
+    assert calls == []
+
+
+def test_no_encoder_given_or_dropped_on_resume(recorded, tmp_path):
+    """Dropped on resume, a run that ended without its encoder gains the encoder's stages alone, and its results
+    record replaces the one without; given on resume, a run stopped in its encoder fit ends without it."""
+    import json
+
+    calls, written = recorded
+    base = ["lorenz_T1000", "--size", "cpu", "--no-baselines"]
+    reproduce.main([*base, "--no-encoder"])
+    assert len(calls) == 2
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    calls.clear()
+    reproduce.main([*base, "--resume", version])
+    assert [(a[0], option(a, "--config")) for a in calls] == [
+        ("fit", "configs/cpu/lorenz_T1000_encoder.yaml"),
+        ("test", "configs/cpu/lorenz_T1000_encoder.yaml"),
+    ]
+    assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines"
+    assert written["replaces"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --no-encoder"
+    assert len(written["pipeline"]["stages"]) == 4
+    # a new run, stopped during its encoder fit (the SSM fit and its UKF test finished), then given --no-encoder
+    calls.clear()
+    reproduce.main(base)
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    record = tmp_path / "runs" / "lorenz_T1000_cpu" / version / "reproduce.json"
+    finished = json.loads(record.read_text())
+    ssm_fit, ukf, encoder_fit = finished["stages"][:3]
+    running = {"command": encoder_fit["command"], "started": 1_700_000_000.0, "seconds": 0.0, "runs": 1}
+    record.write_text(json.dumps({"options": finished["options"], "stages": [ssm_fit, ukf], "running": running}))
+    calls.clear()
+    reproduce.main([*base, "--no-encoder", "--resume", version])
+    assert calls == []  # nothing left to run: the results file's record is written
+    assert [s["command"] for s in written["pipeline"]["stages"]] == [ssm_fit["command"], ukf["command"]]
+    assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --no-encoder"
+
+
 def test_options_after_a_double_dash_go_to_every_stage_last(recorded, tmp_path):
     """``-- ARGS`` (make's ARGS) is appended to every stage's command after its own options (the last value wins in
     LightningCLI), the results file names it, and a resume given other ARGS is refused."""
