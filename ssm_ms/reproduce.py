@@ -486,6 +486,10 @@ def main(argv: list[str] | None = None) -> None:
     if suite.is_file():  # several experiments into one results file, one after the other
         if opts.resume:
             parser.error(f"{opts.experiment} is a suite of experiments: resume each with its own reproduce command")
+        if opts.no_encoder:  # a suite's experiments may train on what an earlier one's encoder-driven control records
+            parser.error(
+                f"--no-encoder: {opts.experiment} is a suite of experiments: give it to one experiment at a time"
+            )
         for experiment in load_config(suite).get("experiments", []):
             main([experiment, *argv[1:]])
         return

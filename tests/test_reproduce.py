@@ -128,6 +128,7 @@ def test_no_encoder_runs_the_ssm_and_its_own_tests_only(recorded, capsys):
     for argv, message in [
         (["pendulum", "--no-encoder"], "--no-encoder: pendulum has no test of its SSM alone (no configs/pendulum_ukf"),
         (["lorenz_T1000", "--no-encoder", "--encoder-epochs", "5"], "--encoder-epochs budgets the encoder stage"),
+        (["pendulum_control", "--no-encoder"], "--no-encoder: pendulum_control is a suite of experiments"),
     ]:
         with pytest.raises(SystemExit):
             reproduce.main(argv)
