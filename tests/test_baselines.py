@@ -15,6 +15,7 @@ from ssm_ms.baselines.rkn import RecurrentKalmanNetwork
 from ssm_ms.inference.encoder_module import StateEncoderModule
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import Projection
+from ssm_ms.runtime import memory
 from tests.conftest import ExactRotation, RotationDataModule, fast_trainer
 
 LSTM_NET = {"hidden": 16}
@@ -255,7 +256,7 @@ def test_training_windows_are_consecutive_steps_of_each_sequence():
     assert lstm.training_split(5) == 3  # n_filter 8 does not fit a 5-step window: 5 - n_predict given
 
 
-def test_bad_baseline_settings_are_refused_before_any_work(tmp_path):
+def test_bad_baseline_settings_are_refused_before_any_work(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="latent_state_dim must be even .* got 5: use 4 or 6"):
         RKNBaseline(n_filter=8, network={"latent_state_dim": 5}, obs_shape=[1])
     with pytest.raises(ValueError, match="unknown loss 'l1'"):
@@ -279,6 +280,15 @@ def test_bad_baseline_settings_are_refused_before_any_work(tmp_path):
     lstm = LSTMBaseline(n_filter=8, n_predict=2, network=LSTM_NET, train_window=20, metrics=["mse"])
     with pytest.raises(ValueError, match=r"train_window=20 is longer than the training sequences \(12 steps\)"):
         fast_trainer(tmp_path, max_epochs=1).fit(lstm, rotation(tmp_path))
+    # an LSTM that cannot train in the memory available (made 30 kB; it needs at least 60 x 4 x 12 x 16 bytes,
+    # 46 kB): refused before its first step
+    lstm = LSTMBaseline(n_filter=8, network=LSTM_NET, metrics=["mse"])
+    trainer = fast_trainer(tmp_path, max_epochs=1)
+    with monkeypatch.context() as m:
+        m.setattr(memory, "available_memory", lambda: 30_000)
+        with pytest.raises(ValueError, match=r"the LSTM needs at least 46 kB to train on batches of 4 sequences of 12"):
+            trainer.fit(lstm, rotation(tmp_path))
+    assert trainer.global_step == 0
     # a model built for other data
     lstm = LSTMBaseline(n_filter=8, network=LSTM_NET, obs_shape=[3], metrics=["mse"])
     with pytest.raises(ValueError, match=r"built for measurements of shape \[3\], the data have \[1\]"):

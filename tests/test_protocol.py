@@ -17,6 +17,7 @@ from ssm_ms.inference.filter_module import FilterForecaster
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import Projection
+from ssm_ms.runtime import memory
 from tests.conftest import ExactRotation, RotationDataModule, fast_trainer
 
 
@@ -194,6 +195,18 @@ def test_encoder_stage_on_a_tiny_trained_checkpoint(exact_ssm):
     fast_trainer(tmp, max_epochs=1).test(enc, dm)
     saved = json.loads((tmp / "results" / "rot_enc.json").read_text())["runs"]["encoder"]["summary"]
     assert saved["encoder/clean/mse"]["mean"] < saved["mean/clean/mse"]["mean"]
+
+
+def test_an_encoder_that_cannot_train_in_memory_is_refused_before_its_first_step(exact_ssm, monkeypatch):
+    """The encoder's LSTM (32 units) on batches of 4 sequences of 12 steps needs at least 60 x 4 x 12 x 32 bytes
+    (92 kB): with 50 kB available, fit stops before any step, naming a batch that fits (0.8 x 50 kB / 23 kB: 1)."""
+    tmp, ckpt = exact_ssm
+    enc = StateEncoderModule(str(ckpt), n_filter=8, encoder={"preset": "vector", "hidden": 32}, metrics=["mse"])
+    trainer = fast_trainer(tmp, max_epochs=1)
+    monkeypatch.setattr(memory, "available_memory", lambda: 50_000)
+    with pytest.raises(ValueError, match=r"the encoder needs at least 92 kB .* 4 sequences of 12 steps .* at most 1 "):
+        trainer.fit(enc, rotation_dm(tmp))
+    assert trainer.global_step == 0
 
 
 def test_ssim_on_vector_data_is_refused_before_any_sequence_is_scored(exact_ssm):

@@ -27,6 +27,7 @@ from ssm_ms.baselines.lstm import Seq2SeqLSTM
 from ssm_ms.baselines.rkn import RecurrentKalmanNetwork
 from ssm_ms.checkpointing import SSM_DIGEST_KEY
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
+from ssm_ms.runtime.memory import check_lstm_memory
 
 LOSSES = ("mse", "bce", "gaussian_nll")
 
@@ -136,6 +137,12 @@ class BaselineForecaster(ForecastModule):
             raise ValueError(
                 "loss bce is for images in [0, 1]; these measurements are vectors: use mse or gaussian_nll"
             )
+
+    def on_fit_start(self) -> None:
+        dm = self.datamodule
+        if dm is not None:
+            steps = min(dm.seq_len, self.train_window or dm.seq_len)
+            check_lstm_memory(self.net, dm.batch_size, steps, self.device, f"the {self.model_name}")
 
     def training_split(self, seq_len: int) -> int:
         """How many leading measurements of a training sequence of ``seq_len`` steps are given."""

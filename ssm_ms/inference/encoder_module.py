@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.nets.encoder import StateEncoder
+from ssm_ms.runtime.memory import check_lstm_memory
 from ssm_ms.training.shooting import rollout
 
 
@@ -120,6 +121,9 @@ class StateEncoderModule(SSMForecaster):
 
     def on_fit_start(self) -> None:
         self.ssm.eval()  # frozen: the trainer puts the whole module in train mode
+        dm = self.datamodule
+        if dm is not None:  # the encoder trains on whole training sequences
+            check_lstm_memory(self.encoder, dm.batch_size, dm.seq_len, self.device, "the encoder")
 
     # ------------------------------------------------------------------ training
     def _regression(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
