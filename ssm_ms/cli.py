@@ -32,6 +32,9 @@ What the command line adds to Lightning's:
   and the way to stop a run started in the background, where SIGINT is ignored) stops it the same way: Lightning
   finishes the batch under way and raises its ``SIGTERMException``, which :meth:`SSMCLI.fit` turns into the same
   message.
+- **Progress.** Where a config has a progress bar and names none, it is :class:`ssm_ms.progress.RunProgressBar`:
+  Lightning's bar, also saying the epoch count and the time the remaining epochs take (``Epoch 445/1000, ~3.9 h
+  to go``).
 - **Interpolation** (``${model.init_args.state_dim}``) is resolved after the command line is applied
   (jsonargparse's ``omegaconf+`` mode), so ``--model.init_args.state_dim 5`` reaches f and g too, and
   ``--print_config`` shows the values the run uses.
@@ -52,12 +55,14 @@ from typing import Any
 import lightning.pytorch as pl
 from jsonargparse import set_parsing_settings
 from lightning.fabric.utilities.exceptions import MisconfigurationException
+from lightning.pytorch.callbacks import ProgressBar
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.trainer.states import TrainerStatus
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
 from omegaconf.errors import InterpolationResolutionError
 
 from ssm_ms.checkpointing import EpochCheckpoint, read_checkpoint
+from ssm_ms.progress import RunProgressBar
 from ssm_ms.runtime.perf import configure_allocator
 
 TRACEBACK_ENV = "SSM_MS_TRACEBACK"
@@ -169,6 +174,11 @@ class SSMCLI(LightningCLI):
             self.model.checkpoint_source = self._checkpoint_source  # its data checks then name the checkpoint first
 
     def instantiate_trainer(self, **kwargs: Any) -> pl.Trainer:
+        trainer = self._get(self.config_init, "trainer", default={})
+        callbacks = trainer.get("callbacks") or []
+        callbacks = callbacks if isinstance(callbacks, list) else [callbacks]
+        if trainer.get("enable_progress_bar") is not False and not any(isinstance(c, ProgressBar) for c in callbacks):
+            kwargs.setdefault("callbacks", [*callbacks, RunProgressBar()])  # in place of Lightning's own bar
         try:
             return super().instantiate_trainer(**kwargs)
         except (MisconfigurationException, ValueError) as err:  # Lightning refusing a trainer setting
