@@ -58,6 +58,10 @@ def test_a_run_that_cannot_fit_is_refused_naming_a_batch_that_does(monkeypatch):
         "shorter training sequences, or a machine with more memory"
     )  # 26 = 0.8 * 20e9 / (60 * 10,000 * 1024)
     memory.check_lstm_memory(net, 32, 10_000, torch.device("cpu"), "the encoder")  # 19.7 GB: not refused
+    with pytest.raises(
+        ValueError, match=r"batches of 17 sequences of 10000 steps in each of 2 processes .* at most 13 "
+    ):
+        memory.check_lstm_memory(net, 17, 10_000, torch.device("cpu"), "the encoder", processes=2)  # 2 x 10.4 GB
     memory.check_lstm_memory(net, 40, 10_000, torch.device("meta"), "the encoder")  # not a CPU: not checked
     monkeypatch.setattr(memory, "available_memory", lambda: 10**8)
     with pytest.raises(ValueError, match="even one sequence does not fit: give shorter training sequences"):

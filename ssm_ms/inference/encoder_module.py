@@ -123,7 +123,8 @@ class StateEncoderModule(SSMForecaster):
         self.ssm.eval()  # frozen: the trainer puts the whole module in train mode
         dm = self.datamodule
         if dm is not None:  # the encoder trains on whole training sequences
-            check_lstm_memory(self.encoder, dm.batch_size, dm.seq_len, self.device, "the encoder")
+            devices = self.trainer.num_devices if self.device.type == "cpu" else 1  # DDP on CPU: a process each
+            check_lstm_memory(self.encoder, dm.batch_size, dm.seq_len, self.device, "the encoder", devices)
 
     # ------------------------------------------------------------------ training
     def _regression(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:

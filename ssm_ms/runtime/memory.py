@@ -49,14 +49,19 @@ def lstm_training_bytes(module: nn.Module, batch: int, steps: int) -> int:
     return per_step * batch * steps
 
 
-def check_lstm_memory(module: nn.Module, batch: int, steps: int, device: torch.device, what: str) -> None:
+def check_lstm_memory(
+    module: nn.Module, batch: int, steps: int, device: torch.device, what: str, processes: int = 1
+) -> None:
     """Refuse (:class:`ValueError`, naming a batch that fits) to train the LSTMs of ``module`` on ``batch``
-    sequences of ``steps`` steps where their need alone exceeds the memory this machine has available."""
+    sequences of ``steps`` steps where their need alone exceeds the memory this machine has available;
+    ``processes``: as many copies training side by side on this machine (DDP on CPU: one per device), each on its
+    own batch."""
     available = available_memory()
-    need = lstm_training_bytes(module, batch, steps)
+    need = lstm_training_bytes(module, batch, steps) * processes
     if torch.device(device).type != "cpu" or available is None or need <= available:
         return
     fits = int(0.8 * available // (need / batch))  # a fifth left for the rest: data, the other layers
+    each = f" in each of {processes} processes" if processes > 1 else ""
     fix = (
         f"give batches of at most {fits} (data.init_args.batch_size), shorter training sequences, or a machine with "
         "more memory"
@@ -64,7 +69,7 @@ def check_lstm_memory(module: nn.Module, batch: int, steps: int, device: torch.d
         else "even one sequence does not fit: give shorter training sequences, or a machine with more memory"
     )
     raise ValueError(
-        f"{what} needs at least {_size(need)} to train on batches of {batch} sequences of {steps} steps "
+        f"{what} needs at least {_size(need)} to train on batches of {batch} sequences of {steps} steps{each} "
         f"({lstm_units(module)} LSTM units), more than the {_size(available)} of memory this machine has available: "
         f"{fix}"
     )
