@@ -142,8 +142,8 @@ class BaselineForecaster(ForecastModule):
         dm = self.datamodule
         if dm is not None:
             steps = min(dm.seq_len, self.train_window or dm.seq_len)
-            devices = self.trainer.num_devices if self.device.type == "cpu" else 1  # DDP on CPU: a process each
-            check_lstm_memory(self.net, dm.batch_size, steps, self.device, f"the {self.model_name}", devices)
+            what = f"the {self.model_name}"
+            check_lstm_memory(self.net, dm.batch_size, steps, self.device, what, self.trainer.num_devices)
 
     def training_split(self, seq_len: int) -> int:
         """How many leading measurements of a training sequence of ``seq_len`` steps are given."""

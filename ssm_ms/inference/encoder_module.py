@@ -123,8 +123,9 @@ class StateEncoderModule(SSMForecaster):
         self.ssm.eval()  # frozen: the trainer puts the whole module in train mode
         dm = self.datamodule
         if dm is not None:  # the encoder trains on whole training sequences
-            devices = self.trainer.num_devices if self.device.type == "cpu" else 1  # DDP on CPU: a process each
-            check_lstm_memory(self.encoder, dm.batch_size, dm.seq_len, self.device, "the encoder", devices)
+            check_lstm_memory(
+                self.encoder, dm.batch_size, dm.seq_len, self.device, "the encoder", self.trainer.num_devices
+            )
 
     # ------------------------------------------------------------------ training
     def _regression(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:

@@ -54,8 +54,8 @@ def check_lstm_memory(
 ) -> None:
     """Refuse (:class:`ValueError`, naming a batch that fits) to train the LSTMs of ``module`` on ``batch``
     sequences of ``steps`` steps where their need alone exceeds the memory this machine has available;
-    ``processes``: as many copies training side by side on this machine (DDP on CPU: one per device), each on its
-    own batch."""
+    ``processes``: as many copies training side by side on this machine, each on its own batch (a trainer's
+    ``num_devices``: on CPU, DDP runs one process per device; off CPU nothing is checked)."""
     available = available_memory()
     need = lstm_training_bytes(module, batch, steps) * processes
     if torch.device(device).type != "cpu" or available is None or need <= available:
