@@ -74,7 +74,7 @@ def test_a_row_names_the_pipeline_that_produced_it_and_its_budget(results_copy):
     assert "--encoder-epochs 100" in quad_fc and "encoder 100 epochs" in quad_fc and "in 5 runs" in quad_fc
     assert "--encoder-epochs 25" not in table
     lstm = next(line for line in table.splitlines() if "pendulum_lstm" in line)
-    assert "LSTM 120 epochs" in lstm
+    assert "--baseline-epochs 1000" in lstm and "LSTM 1000 epochs" in lstm and "in 5 runs" in lstm
 
 
 def test_the_check_command_exits_1_on_a_stale_readme(tmp_path, results_copy, capsys):
