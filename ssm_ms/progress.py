@@ -3,13 +3,16 @@
 Lightning's bar counts the batches of the epoch under way (``Epoch 445: 44%|...``); the paper's fits run for 1000
 epochs, hours to days on CPU, in several sessions. :class:`RunProgressBar` adds the epoch count and the time the
 remaining epochs take at the pace of the last ones: ``Epoch 445/1000, ~3.9 h to go``. The pace is the time between
-the starts of consecutive epochs (training, validation, checkpoints: all an epoch costs), averaged over the last
-``window`` epochs of this process (a resumed run starts counting again). ``cli.py`` puts it in place of Lightning's
-bar whenever a config has a progress bar and names none of its own.
+the starts of consecutive epochs (training, validation, checkpoints: all an epoch costs), the median of the last
+``window`` epochs of this process (a resumed run starts counting again): an epoch that spans a pause (the process
+stopped while something else used the cores) or a slow first epoch does not inflate the estimate for the next
+``window`` epochs, as a mean would. ``cli.py`` puts it in place of Lightning's bar whenever a config has a progress
+bar and names none of its own.
 """
 
 from __future__ import annotations
 
+import statistics
 import time
 from collections import deque
 
@@ -21,7 +24,7 @@ class RunProgressBar(TQDMProgressBar):
     """Lightning's ``TQDMProgressBar``, the training bar described as ``Epoch e/max_epochs, ~T to go``.
 
     Args:
-        window: how many of the last epochs' durations make the pace.
+        window: how many of the last epochs' durations make the pace (their median).
         refresh_rate: as ``TQDMProgressBar``'s.
     """
 
@@ -48,7 +51,7 @@ class RunProgressBar(TQDMProgressBar):
         text = f"Epoch {epoch}/{max_epochs}"
         if not self._durations:
             return text
-        left = sum(self._durations) / len(self._durations) * (max_epochs - epoch)
+        left = statistics.median(self._durations) * (max_epochs - epoch)
         return f"{text}, ~{duration(left)} to go"
 
 

@@ -646,12 +646,12 @@ def test_the_package_log_goes_to_the_stderr_of_the_moment(monkeypatch):
 
 def test_a_fit_shows_the_epochs_and_time_to_go(tmp_path):
     """The bar in place of Lightning's (none named, bar not disabled) says ``Epoch e/max``, then from the second
-    epoch on the time left at the last epochs' pace: a clock advancing 60 s per epoch, 5 epochs, so at the start of
-    epoch 1 four epochs are left (4 min) and at epoch 3 two (2 min); with three of a window of two, the last two."""
+    epoch on the time left at the pace of the last epochs, their median: a clock advancing 60 s per epoch but 480 s
+    across epoch 2 (the process paused), 6 epochs, a window of three."""
     from ssm_ms.progress import RunProgressBar, duration
 
-    bar = RunProgressBar(window=2)
-    ticks = iter([0, 60, 120, 300, 360])  # each epoch's start: epoch 2 took 180 s
+    bar = RunProgressBar(window=3)
+    ticks = iter([0, 60, 120, 600, 660, 720])  # each epoch's start: epoch 2 took 480 s
     bar._clock = lambda: next(ticks)
     seen = []
 
@@ -659,16 +659,17 @@ def test_a_fit_shows_the_epochs_and_time_to_go(tmp_path):
         def on_train_epoch_start(self, trainer, pl_module):
             seen.append(bar.train_progress_bar.desc)
 
-    fast_trainer(tmp_path, max_epochs=5, callbacks=[bar, Read()], enable_progress_bar=True).fit(
+    fast_trainer(tmp_path, max_epochs=6, callbacks=[bar, Read()], enable_progress_bar=True).fit(
         rotation_model(), RotationDataModule(data_dir=str(tmp_path / "data"), batch_size=4, val_trajectories=2)
     )
-    # durations: 60, 60, 180, 60; the pace at each start averages the last two of those known
+    # durations: 60, 60, 480, 60, 60; the pace at each start is the median of the last three of those known
     assert [d.rstrip(": ") for d in seen] == [
-        "Epoch 0/5",
-        "Epoch 1/5, ~4 min to go",  # 60 s x 4
-        "Epoch 2/5, ~3 min to go",  # 60 s x 3
-        "Epoch 3/5, ~4 min to go",  # (60 + 180) / 2 x 2
-        "Epoch 4/5, ~2 min to go",  # (180 + 60) / 2 x 1
+        "Epoch 0/6",
+        "Epoch 1/6, ~5 min to go",  # 60 s x 5
+        "Epoch 2/6, ~4 min to go",  # median(60, 60) x 4
+        "Epoch 3/6, ~3 min to go",  # median(60, 60, 480) x 3 (a mean: 200 s x 3 = 10 min)
+        "Epoch 4/6, ~2 min to go",  # median(60, 480, 60) x 2
+        "Epoch 5/6, ~60 s to go",  # median(480, 60, 60) x 1
     ]
     assert [duration(s) for s in (45, 720, 14040, 216000)] == ["45 s", "12 min", "3.9 h", "2.5 days"]
     cli = main(["--config", str(ROOT / "configs" / "cpu" / "pendulum.yaml"), "--trainer.logger", "false"], run=False)
