@@ -270,7 +270,7 @@ class MultipleShootingModule(pl.LightningModule):
                     "per sensor, in the data's order and shapes"
                 )
 
-    def _fit_options(self) -> dict[str, Any]:
+    def fit_options(self) -> dict[str, Any]:
         """The fit's per-component weights and missing-sample masking (several sensors), or the paper's plain fit."""
         if not getattr(self, "_missing", False):
             return {}
@@ -424,7 +424,7 @@ class MultipleShootingModule(pl.LightningModule):
             self.hparams.decode_chunk,
             self._rollout_fn,
             batch.get("u"),
-            **self._fit_options(),
+            **self.fit_options(),
         )
 
     # ------------------------------------------------------------------ training
@@ -439,11 +439,11 @@ class MultipleShootingModule(pl.LightningModule):
         # the same arguments to the plain loss and to the residuals of the augmented Lagrangian
         args = (self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn, u)
         if self.al_options is None:
-            fit, gap = multiple_shooting_loss(*args, **self._fit_options())
+            fit, gap = multiple_shooting_loss(*args, **self.fit_options())
             loss = fit + self.alpha * gap
             residual = None
         else:
-            fit, residual = shooting_residuals(*args, **self._fit_options())
+            fit, residual = shooting_residuals(*args, **self.fit_options())
             gap = residual.pow(2).mean()
             lam = self.multipliers[index].view_as(residual)
             loss = augmented_lagrangian(fit, residual, lam, self.alpha * self.alpha_factor)

@@ -38,14 +38,16 @@ def test_weighted_fit_with_missing_samples_against_a_naive_loop():
     y_hat, y = torch.rand(2, 3, 4), torch.rand(2, 3, 4)
     y[0, 1, 3] = y[1, 2, 3] = float("nan")
     w = torch.tensor([1.0, 1.0, 2.0, 0.5])
-    total, count = 0.0, 0
+    totals, counts = [0.0, 0.0], [0, 0]
     for b in range(2):
         for t in range(3):
             for c in range(4):
                 if torch.isfinite(y[b, t, c]):
-                    total += w[c] * (y_hat[b, t, c] - y[b, t, c]) ** 2
-                    count += 1
-    torch.testing.assert_close(weighted_fit("mse", y_hat, y, w, missing=True), total / count)
+                    totals[b] += w[c] * (y_hat[b, t, c] - y[b, t, c]) ** 2
+                    counts[b] += 1
+    torch.testing.assert_close(weighted_fit("mse", y_hat, y, w, missing=True), sum(totals) / sum(counts))
+    per_sequence = torch.stack([torch.as_tensor(t / c) for t, c in zip(totals, counts)])
+    torch.testing.assert_close(weighted_fit("mse", y_hat, y, w, missing=True, per_sequence=True), per_sequence)
     clean = torch.nan_to_num(y)
     torch.testing.assert_close(weighted_fit("mse", y_hat, clean), torch.nn.functional.mse_loss(y_hat, clean))
 

@@ -150,16 +150,9 @@ class FilterForecaster(SSMForecaster):
 
     def prior_mean(self, y_filter: torch.Tensor) -> torch.Tensor:
         """``[B, d]``: the mean shooting node (``init_mean: zero``: zero), with measured components taken from
-        ``y[0]``."""
-        x0 = self.ssm.nodes.weight.view(-1, self.ssm.n_nodes, self.ssm.state_dim).mean((0, 1))
-        if self.init_mean == "zero":
-            x0 = torch.zeros_like(x0)
-        x0 = x0.to(y_filter).expand(len(y_filter), -1).clone()
-        mapping = self.ssm.hparams.get("node_init_map") or {}
-        first = y_filter[:, 0].reshape(len(y_filter), -1)
-        for state_i, obs_i in mapping.items():
-            x0[:, int(state_i)] = first[:, int(obs_i)]
-        return x0
+        ``y[0]`` (:meth:`~ssm_ms.inference.SSMForecaster.start_states`)."""
+        base = torch.zeros(self.ssm.state_dim) if self.init_mean == "zero" else None  # None: the mean node
+        return self.start_states(y_filter[:, :1], base)[:, 0]
 
     def infer(self, y_filter: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
         x0 = self.prior_mean(y_filter)

@@ -36,20 +36,29 @@ def loss_function(name: str) -> Callable[[torch.Tensor, torch.Tensor], torch.Ten
 
 
 def weighted_fit(
-    loss: str, y_hat: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None = None, missing: bool = False
+    loss: str,
+    y_hat: torch.Tensor,
+    y: torch.Tensor,
+    weights: torch.Tensor | None = None,
+    missing: bool = False,
+    per_sequence: bool = False,
 ) -> torch.Tensor:
     """The fit of several sensors: the elementwise ``loss`` weighted per component by ``weights`` (broadcast over
     ``y``'s trailing dimensions: one per measurement component), averaged over the observed elements; with
-    ``missing``, the NaN elements of ``y`` (samples a sensor did not take) are left out."""
+    ``missing``, the NaN elements of ``y`` (samples a sensor did not take) are left out. With ``per_sequence``,
+    one average per sequence (``y [B, ...]`` -> ``[B]``) in place of one over the batch."""
     loss_function(loss)
     observed = torch.isfinite(y) if missing else None
     target = y if observed is None else torch.where(observed, y, y_hat.detach())
     per_element = (F.mse_loss if loss == "mse" else F.binary_cross_entropy)(y_hat, target, reduction="none")
     if weights is not None:
         per_element = per_element * weights.to(per_element)
+    if per_sequence:
+        per_element, observed = per_element.flatten(1), None if observed is None else observed.flatten(1)
+    dims = 1 if per_sequence else None
     if observed is None:
-        return per_element.mean()
-    return (per_element * observed).sum() / observed.sum().clamp_min(1)
+        return per_element.mean(dims)
+    return (per_element * observed).sum(dims) / observed.sum(dims).clamp_min(1)
 
 
 Rollout = Callable[..., torch.Tensor]  # (x0 [N, d], steps, u [N, steps - 1, m] or None) -> [N, steps, d]
@@ -150,10 +159,11 @@ def shooting_residuals(
     u: torch.Tensor | None = None,
     weights: torch.Tensor | None = None,
     missing: bool = False,
+    per_sequence: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(fit, c)``: the fit term of :func:`multiple_shooting_loss` and the continuity gaps themselves,
-    ``c[b, i] = s[b, i+1] - f^n(s[b, i])``, shape ``[B, m-1, d]`` (empty when ``m = 1``). Arguments as
-    :func:`multiple_shooting_loss`."""
+    """``(fit, c)``: the fit term of :func:`multiple_shooting_loss` (with ``per_sequence``, one per trajectory,
+    ``[B]``) and the continuity gaps themselves, ``c[b, i] = s[b, i+1] - f^n(s[b, i])``, shape ``[B, m-1, d]``
+    (empty when ``m = 1``). Other arguments as :func:`multiple_shooting_loss`."""
     n = check_shapes(nodes, y, u)
     loss_fn = loss_function(loss)
     b, m, d = nodes.shape
@@ -168,10 +178,10 @@ def shooting_residuals(
             f"the observation model outputs measurements of shape {tuple(y_hat.shape[2:])} but the data "
             f"have shape {tuple(y.shape[2:])}: make g's output match the data (e.g. decoder preset / image size)"
         )
-    if weights is None and not missing:
+    if weights is None and not missing and not per_sequence:
         fit = loss_fn(y_hat.reshape(y.shape), y)
     else:
-        fit = weighted_fit(loss, y_hat.reshape(y.shape), y, weights, missing)
+        fit = weighted_fit(loss, y_hat.reshape(y.shape), y, weights, missing, per_sequence)
     end = states[:, n].view(b, m, d)
     return fit, nodes[:, 1:] - end[:, :-1]
 
