@@ -292,6 +292,27 @@ def test_ukf_prior_mean_is_the_mean_node_or_zero(exact_ssm):
         FilterForecaster(str(ckpt), n_filter=8, init_mean="mean")
 
 
+def test_the_ssm_training_figure_comes_only_from_the_ssm_run_itself(exact_ssm, tmp_path):
+    """A checkpoint in its training run's ``checkpoints/`` folder draws that run's curves; a copy elsewhere (a
+    ``pretrained/`` file) draws none, though the folder above it holds another run's event files."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    _, ckpt = exact_ssm
+    for run in (tmp_path / "run", tmp_path / "other"):
+        with SummaryWriter(str(run)) as writer:
+            writer.add_scalar("train/fit", 1.0, 0)
+    (tmp_path / "run" / "checkpoints").mkdir()
+    (tmp_path / "pretrained").mkdir()
+    first = {"y": torch.zeros(1, 12, 1), "y_model": torch.zeros(1, 12, 1), "states": torch.zeros(1, 12, 2)}
+    drawn = {}
+    for where in ("run/checkpoints", "pretrained"):
+        copy = tmp_path / where / "ssm.ckpt"
+        copy.write_bytes(ckpt.read_bytes())
+        drawn[where] = FilterForecaster(str(copy), n_filter=8).forecast_figures(first)
+    assert "ssm_training" in drawn["run/checkpoints"]
+    assert "ssm_training" not in drawn["pretrained"]
+
+
 # ---------------------------------------------------------------------------- bad input
 def test_missing_checkpoint_is_named(tmp_path):
     with pytest.raises(

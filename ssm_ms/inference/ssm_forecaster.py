@@ -86,6 +86,14 @@ def training_measurements(dm: Any, max_values: int = 2_000_000) -> torch.Tensor 
     return torch.from_numpy(np.array(flat[::every], dtype=np.float64))
 
 
+def ssm_log_dir(checkpoint: str | Path) -> Path | None:
+    """The run folder of an SSM checkpoint saved by training (``<run>/checkpoints/<file>.ckpt``, its TensorBoard
+    events in ``<run>``); ``None`` for a file elsewhere (a stripped ``pretrained/`` file: the folder above holds
+    other runs' events, not its own)."""
+    path = Path(checkpoint)
+    return path.parent.parent if path.parent.name == "checkpoints" else None
+
+
 def predict_states(f, x_last: torch.Tensor, steps: int, u: torch.Tensor | None = None) -> torch.Tensor:
     """States at the ``steps`` times after ``x_last [B, d]``: ``[B, steps, d]`` (the first is ``f(x_last)``; for a
     driven ``f``, ``f(x_last, u[:, 0])``, then under ``u[:, 1:]``)."""
@@ -342,9 +350,9 @@ class SSMForecaster(ForecastModule):
                 figures["attractor"] = drawing.attractor_figure(
                     attractor[:, :3], title="f iterated 10,000 times from a node", true_states=true
                 )
-        log_dir = Path(self.ssm_checkpoint).parent.parent
-        try:
-            figures["ssm_training"] = drawing.loss_curves_figure(log_dir)
-        except (FileNotFoundError, ValueError):
-            pass  # the SSM's TensorBoard logs are not beside its checkpoint
+        if (log_dir := ssm_log_dir(self.ssm_checkpoint)) is not None:
+            try:
+                figures["ssm_training"] = drawing.loss_curves_figure(log_dir)
+            except (FileNotFoundError, ValueError):
+                pass  # the SSM's TensorBoard logs are not beside its checkpoint
         return figures
