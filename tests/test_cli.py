@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CPU = ROOT / "configs" / "cpu"
 MNIST_ROOT = ROOT.parent / "shared" / "data"
 FILES = "datamodules.files.FileDataModule"  # a user's files: no data_dir to redirect
-SSM_CONFIGS = sorted(p for p in CPU.glob("*.yaml") if not p.stem.endswith(("_encoder", "_ukf")))
+SSM_CONFIGS = sorted(p for p in CPU.glob("*.yaml") if not p.stem.endswith(("_encoder", "_ukf", "_optimise")))
 
 TINY = {  # data overrides that make each data set a handful of short trajectories
     "pendulum": ["--data.init_args.n_train", "8", "--data.init_args.n_test", "4", "--data.init_args.workers", "1"],
@@ -378,7 +378,9 @@ PAPER_CONFIGS = sorted((ROOT / "configs").glob("*.yaml")) + sorted((ROOT / "conf
 
 @pytest.mark.parametrize("config", PAPER_CONFIGS, ids=[p.stem for p in PAPER_CONFIGS])
 def test_paper_configs_parse_and_instantiate(tmp_path, config):
-    if config.stem.endswith(("_encoder", "_ukf")) or (config.stem.endswith("_control") and "true" not in config.stem):
+    if config.stem.endswith(("_encoder", "_ukf", "_optimise")) or (
+        config.stem.endswith("_control") and "true" not in config.stem
+    ):
         pytest.skip("stage configs need a trained SSM checkpoint (covered above on CPU twins, and in test_control)")
     if config.stem.endswith("_record") or "_dagger" in config.stem:
         pytest.skip("recording needs a trained SSM, training on recordings needs them (both in test_control)")
@@ -398,7 +400,7 @@ def data_section(config: Path) -> dict:
 
 @pytest.mark.parametrize("folder", ["configs", "configs/cpu"])
 def test_stage_configs_use_their_ssm_data(folder):
-    stages = sorted((ROOT / folder).glob("*_encoder.yaml")) + sorted((ROOT / folder).glob("*_ukf.yaml"))
+    stages = [p for kind in ("encoder", "ukf", "optimise") for p in sorted((ROOT / folder).glob(f"*_{kind}.yaml"))]
     baselines = sorted((ROOT / folder / "baselines").glob("*.yaml"))
     assert stages and baselines
     for stage in stages + baselines:

@@ -19,7 +19,7 @@ CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.yaml") if p.parent.name 
 
 
 def is_stage(config: Path) -> bool:
-    return config.stem.endswith(("_encoder", "_ukf"))
+    return config.stem.endswith(("_encoder", "_ukf", "_optimise"))
 
 
 @pytest.fixture(scope="module")

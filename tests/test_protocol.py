@@ -14,6 +14,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 
 from ssm_ms.inference.encoder_module import StateEncoderModule
 from ssm_ms.inference.filter_module import FilterForecaster
+from ssm_ms.inference.optimise import OptimisationForecaster
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import Projection
@@ -290,6 +291,70 @@ def test_ukf_prior_mean_is_the_mean_node_or_zero(exact_ssm):
     assert zero.inference_settings().endswith("init_mean=zero; full precision")
     with pytest.raises(ValueError, match="init_mean must be 'nodes'"):
         FilterForecaster(str(ckpt), n_filter=8, init_mean="mean")
+
+
+def test_states_fitted_by_optimisation_track_the_exact_model(exact_ssm):
+    tmp, ckpt = exact_ssm
+    dm = rotation_dm(tmp)
+    results = tmp / "results" / "rot_optimise.json"
+    for nodes in (1, 4):  # single shooting, and four pieces of two steps joined by the SSM's own alpha
+        fitted = OptimisationForecaster(
+            str(ckpt),
+            n_filter=8,
+            n_nodes=nodes,
+            method_name=f"optimise{nodes}",
+            results_dir=str(tmp / "results"),
+            experiment="rot_optimise",
+        )
+        fast_trainer(tmp, max_epochs=1).test(fitted, dm)
+        run = json.loads(results.read_text())["runs"][f"optimise{nodes}"]
+        # noise std 0.05 on a unit circle, 8 samples: the phase is well determined, the forecast too
+        assert run["summary"][f"optimise{nodes}/clean/mse"]["mean"] < 0.01
+        assert run["summary"][f"optimise{nodes}/clean/mse"]["mean"] < 0.1 * run["summary"]["mean/clean/mse"]["mean"]
+        settings = run["info"]["inference_settings"]
+        assert settings.startswith(f"Adam on the shooting objective of the frozen f and g: n_nodes={nodes}, alpha=")
+    assert fitted.alpha == float(fitted.ssm.alpha)  # unset: the SSM's own, as its training ended
+
+
+@pytest.mark.parametrize("per_call", [None, 8])  # all candidates in one call, or in calls of a few
+def test_the_best_node_start_is_the_candidate_that_fits_each_piece_best(exact_ssm, monkeypatch, per_call):
+    tmp, ckpt = exact_ssm
+    if per_call is not None:  # 8 states per call: one candidate at a time over 2 sequences x 2 pieces of 2 steps
+        monkeypatch.setattr("ssm_ms.inference.optimise.SEARCH_STATES", per_call)
+    fitted = OptimisationForecaster(str(ckpt), n_filter=4, n_nodes=2, n_candidates=5)
+    candidates = fitted.candidates.double().numpy()
+    assert len(candidates) == 5
+    y = torch.randn(2, 4, 1, generator=torch.Generator().manual_seed(1))
+    c, s = math.cos(0.3), math.sin(0.3)
+    rotation = np.array([[c, -s], [s, c]])
+    expected = np.zeros((2, 2, 2))
+    for b in range(2):
+        for piece in range(2):
+            fits = []
+            for x in candidates:  # the rollout's first component against the piece's 2 measurements
+                states = [x, rotation @ x]
+                fits.append(np.mean([(states[j][0] - y[b, 2 * piece + j, 0].item()) ** 2 for j in range(2)]))
+            expected[b, piece] = candidates[int(np.argmin(fits))]
+    np.testing.assert_allclose(fitted.initial_nodes(y).double().numpy(), expected, rtol=1e-6)
+
+
+def test_optimisation_settings_are_checked_before_any_sequence(exact_ssm):
+    tmp, ckpt = exact_ssm
+    with pytest.raises(ValueError, match=r"n_nodes=3 does not cut the n_filter=8 .* among \[1, 2, 4, 8\]"):
+        OptimisationForecaster(str(ckpt), n_filter=8, n_nodes=3)
+    with pytest.raises(ValueError, match="start must be 'best_node' .*'nodes' .*or 'zero', got 'mean'"):
+        OptimisationForecaster(str(ckpt), n_filter=8, start="mean")
+    with pytest.raises(ValueError, match="lr must be > 0"):
+        OptimisationForecaster(str(ckpt), n_filter=8, lr=0)
+    with pytest.raises(ValueError, match="alpha must be >= 0"):
+        OptimisationForecaster(str(ckpt), n_filter=8, alpha=-1.0)
+    with pytest.raises(ValueError, match="n_candidates must be >= 1"):
+        OptimisationForecaster(str(ckpt), n_filter=8, n_candidates=0)
+    fitted = OptimisationForecaster(
+        str(ckpt), n_filter=8, n_nodes=4, analysis={"valid_time": {"n_filter": 6, "horizon": 4}}
+    )
+    with pytest.raises(ValueError, match="analysis.valid_time gives 6 measurements, which n_nodes=4 does not cut"):
+        fast_trainer(tmp, max_epochs=1).test(fitted, rotation_dm(tmp))
 
 
 def test_the_ssm_training_figure_comes_only_from_the_ssm_run_itself(exact_ssm, tmp_path):

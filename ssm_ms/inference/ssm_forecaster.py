@@ -31,7 +31,12 @@ MODEL_NAMES = {"LocallyLinearTransition": "SSM-LL", "FullyConnectedTransition": 
 # An observation model g the results tables name beside f's name (the paper's own g's are not named).
 G_NAMES = {"SpriteDecoder": "sprite decoder"}
 # How the results tables name the inference methods (a custom method_name is shown as it is).
-INFERENCE_LABELS = {"encoder": "CNN-LSTM encoder", "ukf": "UKF", "pf": "particle filter"}
+INFERENCE_LABELS = {
+    "encoder": "CNN-LSTM encoder",
+    "ukf": "UKF",
+    "pf": "particle filter",
+    "optimise": "states fitted by optimisation",
+}
 
 
 # ---------------------------------------------------------------------------- checkpoints
