@@ -340,7 +340,7 @@ def test_the_best_node_start_is_the_candidate_that_fits_each_piece_best(exact_ss
 
 def test_optimisation_settings_are_checked_before_any_sequence(exact_ssm):
     tmp, ckpt = exact_ssm
-    with pytest.raises(ValueError, match=r"n_nodes=3 does not cut the n_filter=8 .* among \[1, 2, 4, 8\]"):
+    with pytest.raises(ValueError, match=r"n_filter: 8 measurements, which n_nodes=3 .* among \[1, 2, 4, 8\]"):
         OptimisationForecaster(str(ckpt), n_filter=8, n_nodes=3)
     with pytest.raises(ValueError, match="start must be 'best_node' .*'nodes' .*or 'zero', got 'mean'"):
         OptimisationForecaster(str(ckpt), n_filter=8, start="mean")
@@ -348,12 +348,14 @@ def test_optimisation_settings_are_checked_before_any_sequence(exact_ssm):
         OptimisationForecaster(str(ckpt), n_filter=8, lr=0)
     with pytest.raises(ValueError, match="alpha must be >= 0"):
         OptimisationForecaster(str(ckpt), n_filter=8, alpha=-1.0)
+    with pytest.raises(ValueError, match="n_nodes must be >= 1"):
+        OptimisationForecaster(str(ckpt), n_filter=8, n_nodes=0)
     with pytest.raises(ValueError, match="n_candidates must be >= 1"):
         OptimisationForecaster(str(ckpt), n_filter=8, n_candidates=0)
     fitted = OptimisationForecaster(
         str(ckpt), n_filter=8, n_nodes=4, analysis={"valid_time": {"n_filter": 6, "horizon": 4}}
     )
-    with pytest.raises(ValueError, match="analysis.valid_time gives 6 measurements, which n_nodes=4 does not cut"):
+    with pytest.raises(ValueError, match="valid_time's n_filter: 6 measurements, which n_nodes=4 does not cut"):
         fast_trainer(tmp, max_epochs=1).test(fitted, rotation_dm(tmp))
 
 

@@ -113,6 +113,24 @@ def ssm_and_units(ckpt: Path):
     return model, norm["mean"].double(), norm["std"].double()
 
 
+def assert_forecast_by_hand(out, ckpt: Path):
+    """``predict``'s forecast is ``f`` iterated from the last inferred state, decoded by ``g`` with the normalisation
+    undone, and its estimate of the given samples ``g`` of the inferred states; returns ``(model, mean, std)``."""
+    model, mean, std = ssm_and_units(ckpt)
+    x = torch.from_numpy(out["states"][:, -1]).double()
+    with torch.no_grad():
+        for j in range(P):
+            x = model.f(x)
+            torch.testing.assert_close(
+                x, torch.from_numpy(out["predicted_states"][:, j]).double(), rtol=1e-4, atol=1e-5
+            )
+            y_j = model.g(x) * std + mean
+            torch.testing.assert_close(y_j, torch.from_numpy(out["predicted"][:, j]).double(), rtol=1e-4, atol=1e-5)
+        filtered = model.g(torch.from_numpy(out["states"]).double()) * std + mean
+    torch.testing.assert_close(filtered, torch.from_numpy(out["filtered"]).double(), rtol=1e-4, atol=1e-5)
+    return model, mean, std
+
+
 def test_ukf_predict_gives_the_test_protocol_forecasts_in_original_units(oscillator):
     tmp, ckpt, y, y_clean = oscillator
     cli(tmp, "test", "oscillator_ukf.yaml", *stage_args(tmp, ckpt))
@@ -138,20 +156,7 @@ def test_ukf_predict_gives_the_test_protocol_forecasts_in_original_units(oscilla
     assert (int(out["k"]), int(out["p"]), str(out["method"])) == (K, P, "ukf")
     assert out["index"].tolist() == [0, 1, 2, 3]
     assert_protocol_scores(out, summary, "ukf", y, y_clean)
-
-    # the forecast by hand: f iterated from the last inferred state, decoded by g, normalisation undone
-    model, mean, std = ssm_and_units(ckpt)
-    x = torch.from_numpy(out["states"][:, -1]).double()
-    with torch.no_grad():
-        for j in range(P):
-            x = model.f(x)
-            torch.testing.assert_close(
-                x, torch.from_numpy(out["predicted_states"][:, j]).double(), rtol=1e-4, atol=1e-5
-            )
-            y_j = model.g(x) * std + mean
-            torch.testing.assert_close(y_j, torch.from_numpy(out["predicted"][:, j]).double(), rtol=1e-4, atol=1e-5)
-        filtered = model.g(torch.from_numpy(out["states"]).double()) * std + mean
-    torch.testing.assert_close(filtered, torch.from_numpy(out["filtered"]).double(), rtol=1e-4, atol=1e-5)
+    model, _, _ = assert_forecast_by_hand(out, ckpt)
 
     # covariances: symmetric positive semi-definite; the first forecast one is the unscented transform of
     # the last posterior through f (alpha 1, beta 2, kappa 0: centre weights 0 and 2, the others 1 / 2d)
@@ -218,6 +223,48 @@ def test_encoder_predict_gives_the_test_protocol_forecasts(oscillator):
     assert_protocol_scores(out, summary, "encoder", y, y_clean)
 
 
+def test_optimisation_predict_gives_the_test_protocol_forecasts(oscillator, capsys):
+    """States fitted through f and g: the same forecasts from ``predict`` as from ``test`` (each sequence's fit is its
+    own, whatever the batch), states that are the rollouts of the fitted nodes, no covariances."""
+    tmp, ckpt, y, y_clean = oscillator
+    args = [*stage_args(tmp, ckpt), "--model.init_args.n_nodes", "2", "--model.init_args.steps", "100"]
+    cli(tmp, "test", "oscillator_optimise.yaml", *args)
+    summary = json.loads((tmp / "results" / "oscillator.json").read_text())["runs"]["optimise"]["summary"]
+    source = predict_file(tmp, y)
+    cli(
+        tmp,
+        "predict",
+        "oscillator_optimise.yaml",
+        *args,
+        "--data.init_args.predict_path",
+        str(source),
+        "--data.init_args.predict_given",
+        str(K),
+        "--data.init_args.predict_steps",
+        str(P),
+        *writer(tmp / "optimise.npz"),
+    )
+    out = np.load(tmp / "optimise.npz")
+    assert str(out["method"]) == "optimise" and "state_cov" not in out.files and out["states"].shape == (4, K, 4)
+    assert_protocol_scores(out, summary, "optimise", y, y_clean)
+    model, _, _ = assert_forecast_by_hand(out, ckpt)
+    states = torch.from_numpy(out["states"]).double()  # two pieces of K / 2: each a rollout of f from its node
+    with torch.no_grad():
+        for t in [*range(K // 2 - 1), *range(K // 2, K - 1)]:
+            torch.testing.assert_close(model.f(states[:, t]), states[:, t + 1], rtol=1e-4, atol=1e-5)
+    # given samples the pieces do not cut evenly: refused before predicting, or when the file is read (given whole)
+    short = predict_file(tmp, y[:, :25], "odd.npz")
+    for extra, words in (
+        (["--data.init_args.predict_path", str(source), "--data.init_args.predict_given", "7"], "predict_given: 7"),
+        (
+            ["--data.init_args.predict_path", str(short), "--model.init_args.n_predict", "5"],
+            "(predict_given unset): 25",
+        ),
+    ):
+        err = predict_error(tmp, ckpt, capsys, *args[-4:], *extra, config="oscillator_optimise.yaml")
+        assert f"{words} measurements, which n_nodes=2 does not cut into equal pieces" in err, err
+
+
 def test_predict_defaults_figures_and_the_particle_filter(oscillator, monkeypatch):
     tmp, ckpt, y, _ = oscillator
     source = predict_file(tmp, y[:, :25], "recording.npz")
@@ -256,9 +303,9 @@ def test_predict_defaults_figures_and_the_particle_filter(oscillator, monkeypatc
     assert sorted(p.name for p in (tmp / "pf_figures").iterdir()) == ["sequence_00000.png", "sequence_00001.png"]
 
 
-def predict_error(tmp: Path, ckpt: Path, capsys, *extra: str) -> str:
+def predict_error(tmp: Path, ckpt: Path, capsys, *extra: str, config: str = "oscillator_ukf.yaml") -> str:
     with pytest.raises(SystemExit) as exit_info:
-        cli(tmp, "predict", "oscillator_ukf.yaml", *stage_args(tmp, ckpt), *extra, *writer(tmp / "never.npz"))
+        cli(tmp, "predict", config, *stage_args(tmp, ckpt), *extra, *writer(tmp / "never.npz"))
     err = capsys.readouterr().err
     assert exit_info.value.code not in (0, None) and "Traceback" not in err, err
     assert not (tmp / "never.npz").exists()

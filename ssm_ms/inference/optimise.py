@@ -82,6 +82,16 @@ def fit_nodes(
     return best, best_value
 
 
+def check_pieces(k: int, n_nodes: int, what: str) -> None:
+    """Refuse ``k`` given measurements that ``n_nodes`` pieces do not cut into equal lengths (``what`` sets ``k``)."""
+    if k % n_nodes:
+        divisors = [m for m in range(1, k + 1) if k % m == 0]
+        raise ValueError(
+            f"{what}: {k} measurements, which n_nodes={n_nodes} does not cut into equal pieces: give a multiple "
+            f"of {n_nodes}, or set model.init_args.n_nodes among {divisors}"
+        )
+
+
 class OptimisationForecaster(SSMForecaster):
     """The forecasting protocol with states fitted to the given measurements through the frozen SSM (:func:`fit_nodes`).
 
@@ -122,12 +132,9 @@ class OptimisationForecaster(SSMForecaster):
         method_name: str | None = None,
         **kwargs: Any,
     ):
-        if n_nodes < 1 or n_filter % n_nodes:
-            divisors = [m for m in range(1, n_filter + 1) if n_filter % m == 0]
-            raise ValueError(
-                f"n_nodes={n_nodes} does not cut the n_filter={n_filter} given measurements into equal pieces: "
-                f"choose n_nodes among {divisors}"
-            )
+        if n_nodes < 1:
+            raise ValueError(f"n_nodes must be >= 1 (pieces of the given measurements), got {n_nodes}")
+        check_pieces(n_filter, n_nodes, "n_filter")
         if steps < 0:
             raise ValueError(f"steps must be >= 0 (Adam steps per batch), got {steps}")
         if not lr > 0:
@@ -161,12 +168,10 @@ class OptimisationForecaster(SSMForecaster):
         test = getattr(self.datamodule, "datasets", {}).get("test") if stage == "test" else None
         seq_len = getattr(test, "seq_len", None)
         if seq_len is not None and self.analysis_section("valid_time") is not None:
-            k = self._valid_time_split(seq_len)[0]
-            if k % self.n_nodes:
-                raise ValueError(
-                    f"analysis.valid_time gives {k} measurements, which n_nodes={self.n_nodes} does not cut into "
-                    "equal pieces: choose n_nodes dividing both it and n_filter"
-                )
+            check_pieces(self._valid_time_split(seq_len)[0], self.n_nodes, "analysis.valid_time's n_filter")
+        given = getattr(self.datamodule, "predict_given", None) if stage == "predict" else None
+        if given:  # unset: all samples of the file, checked when it is read
+            check_pieces(given, self.n_nodes, "predict_given")
 
     def inference_settings(self) -> str:
         return (
@@ -214,11 +219,7 @@ class OptimisationForecaster(SSMForecaster):
         """``(nodes [B, n_nodes, d], objective [B])`` fitted to ``y_filter [B, k, *obs]`` (inputs ``u [B, >= k, m]``
         for a driven SSM: ``u[:, k - 1]`` closes the last piece)."""
         k = y_filter.shape[1]
-        if k % self.n_nodes:
-            raise ValueError(
-                f"{k} given measurements do not cut into n_nodes={self.n_nodes} equal pieces: give a multiple of "
-                f"{self.n_nodes} (predict_given), or set model.init_args.n_nodes to a divisor of {k}"
-            )
+        check_pieces(k, self.n_nodes, "the sequences given whole (predict_given unset)")
         return fit_nodes(
             self.ssm.f,
             self.ssm.g,
