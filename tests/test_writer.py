@@ -131,25 +131,21 @@ def assert_forecast_by_hand(out, ckpt: Path):
     return model, mean, std
 
 
+def scores_and_predictions(tmp: Path, config: str, method: str, args: list[str], y: np.ndarray):
+    """``(summary, out)``: the test stage's scores of ``method`` (``config`` with ``args``), and ``predict``'s output
+    (the same ``args``) on the same test sequences ``y`` as a user's file, in original units, ``K`` given, ``P``
+    forecast."""
+    cli(tmp, "test", config, *args)
+    summary = json.loads((tmp / "results" / "oscillator.json").read_text())["runs"][method]["summary"]
+    given = ["--data.init_args.predict_given", str(K), "--data.init_args.predict_steps", str(P)]
+    source = ["--data.init_args.predict_path", str(predict_file(tmp, y))]
+    cli(tmp, "predict", config, *args, *source, *given, *writer(tmp / f"{method}.npz"))
+    return summary, np.load(tmp / f"{method}.npz")
+
+
 def test_ukf_predict_gives_the_test_protocol_forecasts_in_original_units(oscillator):
     tmp, ckpt, y, y_clean = oscillator
-    cli(tmp, "test", "oscillator_ukf.yaml", *stage_args(tmp, ckpt))
-    summary = json.loads((tmp / "results" / "oscillator.json").read_text())["runs"]["ukf"]["summary"]
-    source = predict_file(tmp, y)  # the test sequences as a user's file, in original units
-    cli(
-        tmp,
-        "predict",
-        "oscillator_ukf.yaml",
-        *stage_args(tmp, ckpt),
-        "--data.init_args.predict_path",
-        str(source),
-        "--data.init_args.predict_given",
-        str(K),
-        "--data.init_args.predict_steps",
-        str(P),
-        *writer(tmp / "ukf.npz"),
-    )
-    out = np.load(tmp / "ukf.npz")
+    summary, out = scores_and_predictions(tmp, "oscillator_ukf.yaml", "ukf", stage_args(tmp, ckpt), y)
     d = 4
     assert out["filtered"].shape == (4, K, 2) and out["predicted"].shape == (4, P, 2)
     assert out["states"].shape == (4, K, d) and out["predicted_states"].shape == (4, P, d)
@@ -200,25 +196,9 @@ def test_encoder_predict_gives_the_test_protocol_forecasts(oscillator):
         '{"preset": "vector", "hidden": 16}',
     )
     enc = tmp / "runs" / "oscillator_encoder" / "t" / "checkpoints" / "last.ckpt"
-    cli(tmp, "test", "oscillator_encoder.yaml", *args, "--ckpt_path", str(enc))
-    summary = json.loads((tmp / "results" / "oscillator.json").read_text())["runs"]["encoder"]["summary"]
-    source = predict_file(tmp, y)
-    cli(
-        tmp,
-        "predict",
-        "oscillator_encoder.yaml",
-        *args,
-        "--ckpt_path",
-        str(enc),
-        "--data.init_args.predict_path",
-        str(source),
-        "--data.init_args.predict_given",
-        str(K),
-        "--data.init_args.predict_steps",
-        str(P),
-        *writer(tmp / "encoder.npz"),
+    summary, out = scores_and_predictions(
+        tmp, "oscillator_encoder.yaml", "encoder", [*args, "--ckpt_path", str(enc)], y
     )
-    out = np.load(tmp / "encoder.npz")
     assert str(out["method"]) == "encoder" and "state_cov" not in out.files and out["states"].shape == (4, K, 4)
     assert_protocol_scores(out, summary, "encoder", y, y_clean)
 
@@ -228,23 +208,7 @@ def test_optimisation_predict_gives_the_test_protocol_forecasts(oscillator, caps
     own, whatever the batch), states that are the rollouts of the fitted nodes, no covariances."""
     tmp, ckpt, y, y_clean = oscillator
     args = [*stage_args(tmp, ckpt), "--model.init_args.n_nodes", "2", "--model.init_args.steps", "100"]
-    cli(tmp, "test", "oscillator_optimise.yaml", *args)
-    summary = json.loads((tmp / "results" / "oscillator.json").read_text())["runs"]["optimise"]["summary"]
-    source = predict_file(tmp, y)
-    cli(
-        tmp,
-        "predict",
-        "oscillator_optimise.yaml",
-        *args,
-        "--data.init_args.predict_path",
-        str(source),
-        "--data.init_args.predict_given",
-        str(K),
-        "--data.init_args.predict_steps",
-        str(P),
-        *writer(tmp / "optimise.npz"),
-    )
-    out = np.load(tmp / "optimise.npz")
+    summary, out = scores_and_predictions(tmp, "oscillator_optimise.yaml", "optimise", args, y)
     assert str(out["method"]) == "optimise" and "state_cov" not in out.files and out["states"].shape == (4, K, 4)
     assert_protocol_scores(out, summary, "optimise", y, y_clean)
     model, _, _ = assert_forecast_by_hand(out, ckpt)
@@ -253,7 +217,7 @@ def test_optimisation_predict_gives_the_test_protocol_forecasts(oscillator, caps
         for t in [*range(K // 2 - 1), *range(K // 2, K - 1)]:
             torch.testing.assert_close(model.f(states[:, t]), states[:, t + 1], rtol=1e-4, atol=1e-5)
     # given samples the pieces do not cut evenly: refused before predicting, or when the file is read (given whole)
-    short = predict_file(tmp, y[:, :25], "odd.npz")
+    source, short = predict_file(tmp, y), predict_file(tmp, y[:, :25], "odd.npz")
     for extra, words in (
         (["--data.init_args.predict_path", str(source), "--data.init_args.predict_given", "7"], "predict_given: 7"),
         (
