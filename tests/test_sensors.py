@@ -11,6 +11,7 @@ import torch
 from datamodules.files import FileDataModule
 from datamodules.pendulum import PendulumDataModule
 from ssm_ms.inference.filter_module import FilterForecaster
+from ssm_ms.inference.optimise import OptimisationForecaster
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import ConvDecoder, LinearReadout, LocallyLinearTransition
@@ -213,6 +214,38 @@ def test_predict_writes_each_sensor_in_its_own_shape(tmp_path):
     dm.predict_path, dm.datasets = [str(tmp_path / "one.npz")], {}
     with pytest.raises(ValueError, match="stream 'enc'"):
         dm.load_predict()
+
+
+def test_states_fitted_through_two_sensors_weigh_them_and_skip_missing_samples(tmp_path):
+    """The fit of several sensors is the SSM's own: each stream weighted by its noise, the samples a sensor did not take
+    left out; the objective of the fitted nodes against a naive loop over sequences, steps and components."""
+    pos, enc, dm, g = two_sensor_ssm(tmp_path, seed=2, every=2, test_path=str(tmp_path / "rec.npz"))
+    fitted = OptimisationForecaster(
+        str(tmp_path / "ssm.ckpt"), n_filter=10, n_nodes=2, steps=50, n_candidates=8, results_dir=str(tmp_path)
+    )
+    fast_trainer(tmp_path, max_epochs=1).test(fitted, dm)  # its setup adopts the data's sensors
+    y = torch.from_numpy(np.concatenate([pos, enc], -1)[:3, :10])
+    nodes, objective = fitted.fit_states(y)
+    weights = SensorLayout.from_state_dict(dm.sensor_layout).weights().double()
+    f, heads, alpha = fitted.ssm.f, fitted.ssm.g.heads, fitted.alpha
+    with torch.no_grad():
+        for b in range(3):
+            total, count, states, ends = 0.0, 0, [], []
+            for piece in range(2):  # two pieces of 5 steps, each rolled out from its node
+                x = nodes[b : b + 1, piece]
+                for _ in range(5):
+                    states.append(x)
+                    x = f(x)
+                ends.append(x)
+            for t, x in enumerate(states):
+                y_hat = torch.cat([heads["pos"](x), heads["enc"](x)], -1)[0].double()
+                for c in range(3):
+                    if torch.isfinite(y[b, t, c]):
+                        total += weights[c].item() * (y_hat[c].item() - y[b, t, c].item()) ** 2
+                        count += 1
+            gap = ((nodes[b, 1] - ends[0][0]) ** 2).mean().item()
+            assert objective[b].item() == pytest.approx(total / count + alpha * gap, rel=1e-4)
+    assert count < 30  # the loop left samples out
 
 
 def test_the_test_protocol_scores_each_sensor_over_the_frames_it_sampled(tmp_path):
