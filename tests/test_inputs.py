@@ -236,15 +236,21 @@ def exact_driven(tmp_path_factory):
     return tmp, path, data
 
 
-def test_a_driven_forecast_rolls_out_under_the_future_inputs(exact_driven):
-    """The UKF infers states under the given inputs, the forecast continues under the next ones: against a naive loop
-    of the true system from the filter's last estimate, and close to the noiseless future."""
+@pytest.mark.parametrize("method", ["ukf", "optimise"])
+def test_a_driven_forecast_rolls_out_under_the_future_inputs(exact_driven, method):
+    """The UKF (or a fit of 4 pieces through f and g) infers states under the given inputs, the forecast continues
+    under the next ones: against a naive loop of the true system from the last estimate, and close to the noiseless
+    future."""
     from ssm_ms.inference.filter_module import FilterForecaster
+    from ssm_ms.inference.optimise import OptimisationForecaster
 
     tmp, _, data = exact_driven
-    forecaster = FilterForecaster(
-        str(tmp / "ssm.ckpt"), n_filter=20, method="ukf", process_var=1e-6, measurement_var=1e-4, init_var=1.0
-    )
+    if method == "ukf":
+        forecaster = FilterForecaster(
+            str(tmp / "ssm.ckpt"), n_filter=20, method="ukf", process_var=1e-6, measurement_var=1e-4, init_var=1.0
+        )
+    else:
+        forecaster = OptimisationForecaster(str(tmp / "ssm.ckpt"), n_filter=20, n_nodes=4, n_candidates=8)
     assert forecaster.input_dim == 1
     y, u = torch.from_numpy(data["y"][:3]), torch.from_numpy(data["u"][:3])
     k, p = 20, 10

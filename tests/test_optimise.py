@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from ssm_ms.inference.optimise import fit_nodes
+from ssm_ms.inference.optimise import fit_nodes, step_scale
 
 D, OBS, T = 3, 2, 12
 
@@ -145,3 +145,13 @@ def test_bad_settings_are_named():
         fit_nodes(Affine(a), Affine(c), y, start, steps=-1)
     with pytest.raises(ValueError, match="lr must be > 0"):
         fit_nodes(Affine(a), Affine(c), y, start, lr=0.0)
+
+
+def test_the_step_unit_is_the_nodes_spread_with_a_floor():
+    rng = np.random.default_rng(0)
+    nodes = torch.from_numpy(np.stack([rng.normal(0, 2, 500), np.full(500, 3.0), rng.normal(0, 1e-6, 500)], 1))
+    spread = nodes.std(0)
+    expected = torch.tensor([spread[0], 1e-3 * spread[0], 1e-3 * spread[0]], dtype=nodes.dtype)
+    torch.testing.assert_close(step_scale(nodes), expected)  # a constant or barely used component still moves
+    torch.testing.assert_close(step_scale(torch.full((10, 3), 1e-9, dtype=torch.float64)), torch.ones(3).double())
+    torch.testing.assert_close(step_scale(nodes[:1]), torch.ones(3).double())  # one node: no spread to read

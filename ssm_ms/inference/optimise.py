@@ -82,6 +82,17 @@ def fit_nodes(
     return best, best_value
 
 
+def step_scale(nodes: torch.Tensor) -> torch.Tensor:
+    """``[d]``: the unit of the fit's steps per state component, the spread (std) of the SSM's shooting nodes ``[N,
+    d]``, at least a thousandth of the largest component's (a component the nodes barely use still moves); unit
+    steps where the nodes have not spread at all (largest std under 1e-6: an SSM whose nodes did not train)."""
+    spread = nodes.std(0) if len(nodes) > 1 else torch.zeros(nodes.shape[-1], dtype=nodes.dtype)
+    largest = float(spread.max())
+    if not largest > 1e-6:  # NaN too
+        return torch.ones_like(spread)
+    return spread.clamp_min(1e-3 * largest)
+
+
 def check_pieces(k: int, n_nodes: int, what: str) -> None:
     """Refuse ``k`` given measurements that ``n_nodes`` pieces do not cut into equal lengths (``what`` sets ``k``)."""
     if k % n_nodes:
@@ -101,7 +112,8 @@ class OptimisationForecaster(SSMForecaster):
         n_nodes: pieces the given measurements are cut into, one fitted node each (1: the initial value problem).
         alpha: weight of the continuity gaps between the pieces (default: the SSM's own, as its training ended).
         steps: Adam steps per batch of sequences.
-        lr: Adam's learning rate, in units of the spread of the SSM's shooting nodes (per state component).
+        lr: Adam's learning rate, in units of the spread of the SSM's shooting nodes (per state component,
+            :func:`step_scale`).
         start: where the nodes start: ``"best_node"`` (the default), for each piece the one of ``n_candidates``
             shooting nodes of the SSM (drawn once, seed 0) whose rollout fits that piece best (the objective is not
             convex: from one fixed start Adam stops in the nearest valley); ``"nodes"`` the mean shooting node;
@@ -155,10 +167,7 @@ class OptimisationForecaster(SSMForecaster):
         self.alpha = float(self.ssm.alpha) if alpha is None else float(alpha)
         d = self.ssm.state_dim
         nodes = self.ssm.nodes.weight.detach().view(-1, d)
-        spread = nodes.std(0) if len(nodes) > 1 else torch.ones(d)
-        # derived from the SSM, never saved: buffers only to move with the module
-        scale = torch.where(spread > 0, spread, torch.ones_like(spread))  # a constant component: unit steps
-        self.register_buffer("scale", scale, persistent=False)
+        self.register_buffer("scale", step_scale(nodes), persistent=False)  # never saved: it moves with the module
         pick = torch.randperm(len(nodes), generator=torch.Generator().manual_seed(0))[:n_candidates]
         self.register_buffer("candidates", nodes[pick].clone(), persistent=False)
 
