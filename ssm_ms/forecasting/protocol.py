@@ -2,7 +2,7 @@
 sequence, predict the next ``p``, and score the prediction.
 
 A forecaster is a :class:`ForecastModule` that implements :meth:`ForecastModule.forecast`: the SSM with
-an inference method (:class:`ssm_ms.inference.SSMForecaster`: CNN-LSTM encoder, UKF, particle filter;
+an inference method (:class:`ssm_ms.inference.SSMForecaster`: CNN-LSTM encoder, UKF, particle filter, a fit;
 the prediction of ``y[k + j]`` is ``g(f^{j+1}(x[k-1]))``) or a baseline without an SSM
 (:mod:`ssm_ms.baselines`: sequence-to-sequence CNN-LSTM, Recurrent Kalman Network). Everything else --
 the split, the metrics, the references, the results files and the figures -- is this one code path.

@@ -4,7 +4,8 @@ the last inferred state, decode with ``g``.
 :class:`SSMForecaster` is the :class:`~ssm_ms.forecasting.protocol.ForecastModule` of every inference method
 over a frozen ``MultipleShootingModule`` checkpoint; subclasses implement :meth:`SSMForecaster.infer`
 (:class:`~ssm_ms.inference.StateEncoderModule`: a trained CNN-LSTM; :class:`~ssm_ms.inference.FilterForecaster`:
-UKF or particle filter). It also checks that the test data are the data the SSM learned, and uses the
+UKF or particle filter; :class:`~ssm_ms.inference.OptimisationForecaster`: states fitted through ``f`` and ``g``). It
+also checks that the test data are the data the SSM learned, and uses the
 SSM's normalisation statistics.
 """
 
