@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
+from pathlib import Path
 
 import lightning.pytorch as pl
 import numpy as np
@@ -21,6 +22,32 @@ import torch
 from datamodules.base import TrajectoryDataModule
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import LocallyLinearTransition, Projection, native
+
+ROOT = Path(__file__).resolve().parents[1]
+# what the project commits as results: a test writes its own into tmp_path, never here
+COMMITTED_OUTPUTS = ("results", "benchmarks/results", "pretrained")
+
+
+def committed_outputs() -> dict[str, tuple[int, int]]:
+    """``{path: (size, mtime_ns)}`` of every file under :data:`COMMITTED_OUTPUTS`."""
+    return {
+        str(p.relative_to(ROOT)): (p.stat().st_size, p.stat().st_mtime_ns)
+        for folder in COMMITTED_OUTPUTS
+        for p in (ROOT / folder).rglob("*")
+        if p.is_file()
+    }
+
+
+@pytest.fixture(scope="session", autouse=True)
+def committed_outputs_untouched():
+    """Fail the session if a test wrote into the committed results, benchmarks' figures or pretrained files (a
+    forecaster left at its default ``results_dir`` writes ``results/<data set>.json`` of the working tree)."""
+    before = committed_outputs()
+    yield
+    after = committed_outputs()
+    changed = sorted(k for k in before.keys() | after.keys() if before.get(k) != after.get(k))
+    assert not changed, f"tests wrote into committed outputs (give them tmp_path): {changed}"
+
 
 if "OMP_NUM_THREADS" not in os.environ:  # the CI machine's 2 cores; OMP_NUM_THREADS=1 on a shared machine
     torch.set_num_threads(2)
