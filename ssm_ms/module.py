@@ -336,18 +336,26 @@ class MultipleShootingModule(pl.LightningModule):
             )
         raise ValueError(f"{problem[0]}: {problem[1]}")
 
-    @torch.no_grad()
-    def init_nodes_from_measurements(self, y_nodes: torch.Tensor) -> None:
-        """Start nodes at measurements: ``y_nodes [N, m, *obs]`` is y at each node's time."""
-        mapping = {int(k): int(v) for k, v in self.hparams["node_init_map"].items()}
-        flat = y_nodes.reshape(y_nodes.shape[0], self.n_nodes, -1)
+    def states_at_measurements(self, y_at: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
+        """``[N, m, d]``: states at the times of the measurements ``y_at [N, m, *obs]``, ``base [d]`` (default zero)
+        with the components ``node_init_map`` names read from the measurements there (how the nodes start, and where
+        the forecasters start an unseen sequence)."""
+        mapping = {int(k): int(v) for k, v in (self.hparams.get("node_init_map") or {}).items()}
+        flat = y_at.reshape(*y_at.shape[:2], -1)
         bad = [v for v in mapping.values() if not 0 <= v < flat.shape[-1]]
         if bad:
             raise ValueError(f"node_init_map reads measurement components {bad} outside 0..{flat.shape[-1] - 1}")
-        nodes = torch.zeros(flat.shape[0], self.n_nodes, self.state_dim)
+        base = torch.zeros(self.state_dim) if base is None else base
+        x = base.to(flat).expand(*flat.shape[:2], self.state_dim).clone()
         for state_i, obs_i in mapping.items():
-            nodes[:, :, state_i] = flat[:, :, obs_i]
-        self.nodes.weight.copy_(nodes.view(flat.shape[0], -1).to(self.nodes.weight))
+            x[..., state_i] = flat[..., obs_i]
+        return x
+
+    @torch.no_grad()
+    def init_nodes_from_measurements(self, y_nodes: torch.Tensor) -> None:
+        """Start nodes at measurements: ``y_nodes [N, m, *obs]`` is y at each node's time."""
+        nodes = self.states_at_measurements(y_nodes.reshape(y_nodes.shape[0], self.n_nodes, -1))
+        self.nodes.weight.copy_(nodes.view(len(nodes), -1).to(self.nodes.weight))
 
     # ------------------------------------------------------------------ model
     def forward(self, x0: torch.Tensor, steps: int, u: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

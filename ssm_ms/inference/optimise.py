@@ -23,6 +23,16 @@ STARTS = ("best_node", "nodes", "zero")
 SEARCH_STATES = 2**16  # states rolled out and decoded per call of the start search (memory, not values)
 
 
+def keep_lower(
+    best: torch.Tensor, best_value: torch.Tensor, candidate: torch.Tensor, value: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per sequence (the first axis), ``candidate`` and its ``value`` where that value is lower than ``best_value``
+    (a NaN value never is: a diverged rollout is never kept), else ``best`` and ``best_value``."""
+    better = value < best_value
+    mask = better.view(-1, *[1] * (best.dim() - 1))
+    return torch.where(mask, candidate.to(best), best), torch.where(better, value.to(best_value), best_value)
+
+
 def fit_nodes(
     f: Callable[..., torch.Tensor],
     g: Callable[[torch.Tensor], torch.Tensor],
@@ -71,9 +81,7 @@ def fit_nodes(
                 f, g, nodes, y, loss, decode_chunk, u=u, weights=weights, missing=missing, per_sequence=True
             )
             value = fit + alpha * gaps.pow(2).flatten(1).mean(1) if gaps.numel() else fit
-            better = value.detach() < best_value  # False for NaN: a diverged step is never kept
-            best = torch.where(better[:, None, None], nodes.detach(), best)
-            best_value = torch.where(better, value.detach(), best_value)
+            best, best_value = keep_lower(best, best_value, nodes.detach(), value.detach())
             if step == steps:
                 break
             (delta.grad,) = torch.autograd.grad(value.sum(), delta)
@@ -217,11 +225,9 @@ class OptimisationForecaster(SSMForecaster):
                     per_sequence=True,
                     **self.ssm.fit_options(),
                 )
-                fit, which = torch.nan_to_num(fit, nan=math.inf).view(c, b * m).min(0)  # a diverged rollout never wins
-                better = fit < best_fit
+                fit, which = torch.nan_to_num(fit, nan=math.inf).view(c, b * m).min(0)  # NaN: min would return it
                 chosen = starts.view(c, b * m, 1, d)[which, torch.arange(b * m, device=best.device)]
-                best = torch.where(better[:, None, None], chosen.to(best), best)
-                best_fit = torch.where(better, fit.to(best_fit), best_fit)
+                best, best_fit = keep_lower(best, best_fit, chosen, fit)
         return best.view(b, m, d)
 
     def fit_states(self, y_filter: torch.Tensor, u: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

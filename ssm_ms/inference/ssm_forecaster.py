@@ -158,14 +158,11 @@ class SSMForecaster(ForecastModule):
     def start_states(self, y_at: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
         """``[B, m, d]``: a start for the states at the times of the measurements ``y_at [B, m, *obs]``: ``base [d]``
         (default: the mean shooting node) with the components the SSM's ``node_init_map`` reads from measurements
-        taken from ``y_at`` (Lorenz: the measured coordinate), as the SSM's own nodes start."""
-        d = self.ssm.state_dim
-        base = self.ssm.nodes.weight.detach().view(-1, d).mean(0) if base is None else base
-        x = base.to(y_at).expand(*y_at.shape[:2], d).clone()
-        flat = y_at.reshape(*y_at.shape[:2], -1)
-        for state_i, obs_i in (self.ssm.hparams.get("node_init_map") or {}).items():
-            x[..., int(state_i)] = flat[..., int(obs_i)]
-        return x
+        taken from ``y_at`` (Lorenz: the measured coordinate), as the SSM's own nodes start
+        (:meth:`~ssm_ms.module.MultipleShootingModule.states_at_measurements`)."""
+        if base is None:
+            base = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim).mean(0)
+        return self.ssm.states_at_measurements(y_at, base)
 
     # ------------------------------------------------------------------ to implement
     def infer(self, y_filter: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
