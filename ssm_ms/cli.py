@@ -35,6 +35,10 @@ What the command line adds to Lightning's:
 - **Progress.** Where a config has a progress bar and names none, it is :class:`ssm_ms.progress.RunProgressBar`:
   Lightning's bar, also saying the epoch count and the time the remaining epochs take (``Epoch 445/1000, ~3.9 h
   to go``).
+- **Counts of batches.** ``--trainer.limit_val_batches 1`` is one batch and ``1.0`` all of them, as Lightning documents
+  (an int counts batches, a float is a fraction; the same for ``limit_{train,test,predict}_batches`` and
+  ``overfit_batches``): :func:`counts_before_fractions` undoes a reordering that made the parser read the int 1 as
+  1.0 (every batch).
 - **Interpolation** (``${model.init_args.state_dim}``) is resolved after the command line is applied
   (jsonargparse's ``omegaconf+`` mode), so ``--model.init_args.state_dim 5`` reaches f and g too, and
   ``--print_config`` shows the values the run uses.
@@ -42,7 +46,9 @@ What the command line adds to Lightning's:
 
 from __future__ import annotations
 
+import functools
 import logging
+import operator
 import os
 import re
 import shlex
@@ -50,7 +56,7 @@ import signal
 import sys
 from argparse import ArgumentError
 from pathlib import Path
-from typing import Any
+from typing import Any, Union, get_args, get_origin
 
 import lightning.pytorch as pl
 from jsonargparse import set_parsing_settings
@@ -346,6 +352,25 @@ def show_package_log() -> None:
         log.propagate = False
 
 
+def counts_before_fractions() -> None:
+    """Let the parser read ``--trainer.limit_val_batches 1`` as the int 1 (one batch), not 1.0 (every batch).
+
+    Lightning annotates ``limit_*_batches`` and ``overfit_batches`` as ``Union[int, float]`` (an int counts batches,
+    a float is a fraction) and jsonargparse tries a union's types in order. But typing caches unions by equality and
+    ``Union[int, float] == Union[float, int]``: where the other order was built first in the process (it is, by the
+    time Lightning is imported), the Trainer's annotation is ``Union[float, int, None]``: the int 1, on the command line
+    or in a config, became the float 1.0 (every batch) and ``--print_config`` showed every count as a float
+    (github.com/Lightning-AI/pytorch-lightning/issues/21259). Here each annotation of ``Trainer.__init__`` whose float
+    comes before its int is rebuilt int first as a PEP 604 union (``int | float | None``, not cached). Idempotent."""
+    annotations = pl.Trainer.__init__.__annotations__  # the wrapped __init__ shares the function's dict
+    for name, hint in annotations.items():
+        members = get_args(hint)
+        if get_origin(hint) is not Union or int not in members or float not in members:
+            continue
+        if members.index(float) < members.index(int):
+            annotations[name] = functools.reduce(operator.or_, [int, *(m for m in members if m is not int)])
+
+
 def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     """Parse ``args`` (default: ``sys.argv``) and run the subcommand.
 
@@ -357,6 +382,7 @@ def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     show_package_log()
     # interpolation paths are written from the config's root (the subcommand's level)
     set_parsing_settings(omegaconf_absolute_to_relative_paths=True)
+    counts_before_fractions()
     sigint = signal.getsignal(signal.SIGINT)  # Lightning ignores SIGINT after a Ctrl-C: restore it after
     try:
         return SSMCLI(
