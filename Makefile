@@ -72,7 +72,8 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_constraints.py --experiments lorenz_T1000 --fraction $(CONSTRAINTS_LORENZ) \
 		--out benchmarks/results/constraints_lorenz_T1000.md
 
-## One experiment end to end: SSM fit (-> UKF test) -> encoder fit -> test, results in results/$(EXP).md.
+## One experiment end to end: SSM fit (-> its UKF, fitted-states, control tests) -> encoder fit -> test,
+## results in results/$(EXP).md.
 ## make reproduce EXP=pendulum [SIZE=cpu] [SEED=N] [RESUME=reproduce-...] [ARGS="options for every stage"];
 ## EXP among pendulum pendulum_fc quad quad_fc mnist lorenz_T10 ... oscillator
 reproduce: $(STAMP) $(if $(filter oscillator,$(EXP)),data/oscillator.npz)

@@ -1,7 +1,8 @@
-"""One command per experiment: SSM fit -> the tests that need the SSM alone (UKF test, control test with the UKF,
-where their configs exist) -> encoder fit -> test (-> the control again, the encoder estimating the state), then every
-baseline of the experiment (fit -> test); or one baseline alone. The SSM's own tests come first: they take seconds,
-and their rows land even where a long encoder stage then stops or fails.
+"""One command per experiment: SSM fit -> the tests that need the SSM alone (UKF test, states fitted by optimisation,
+control test with the UKF, where their configs exist) -> encoder fit -> test (-> the control again, the encoder
+estimating the state), then every baseline of the experiment (fit -> test); or one baseline alone. The SSM's own tests
+come first: they train nothing (seconds to minutes), and their rows land even where a long encoder stage then stops or
+fails.
 
     python -m ssm_ms.reproduce pendulum            # configs/pendulum*.yaml + configs/baselines/pendulum_*.yaml
     python -m ssm_ms.reproduce pendulum --size cpu # the CPU-sized twins under configs/cpu/
@@ -435,8 +436,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--no-encoder",
         action="store_true",
-        help="no encoder stage, nor the stages that need it: the SSM and the tests of the SSM alone (UKF, control "
-        "with the UKF); for experiments whose encoder does not fit the machine (may be given or dropped on resume)",
+        help="no encoder stage, nor the stages that need it: the SSM and the tests of the SSM alone (UKF, states "
+        "fitted by optimisation, control with the UKF); for experiments whose encoder does not fit the machine "
+        "(may be given or dropped on resume)",
     )
     parser.add_argument(
         "--encoder-epochs",
@@ -497,12 +499,13 @@ def main(argv: list[str] | None = None) -> None:
     ssm_cfg = folder / f"{opts.experiment}.yaml"
     enc_cfg = folder / f"{opts.experiment}_encoder.yaml"
     ukf_cfg = folder / f"{opts.experiment}_ukf.yaml"
+    optimise_cfg = folder / f"{opts.experiment}_optimise.yaml"
     control_cfg = folder / f"{opts.experiment}_control.yaml"
     record_cfg = folder / f"{opts.experiment}_record.yaml"
     alone = folder / "baselines" / f"{opts.experiment}.yaml"
     if alone.exists():
         baselines, ssm_stages = [alone], False
-    elif ssm_cfg.exists() and (enc_cfg.exists() or ukf_cfg.exists() or control_cfg.exists()):
+    elif ssm_cfg.exists() and any(c.exists() for c in (enc_cfg, ukf_cfg, optimise_cfg, control_cfg)):
         baselines = [] if opts.no_baselines else sorted((folder / "baselines").glob(f"{opts.experiment}_*.yaml"))
         ssm_stages = True
     elif control_cfg.exists():  # a controller without a learned model (the true one): its test alone
@@ -515,11 +518,12 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(
             f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {sorted(set(known))}"
         )
-    ssm_tests = [cfg for cfg in (ukf_cfg, control_cfg) if cfg.exists()]  # of the SSM, nothing to train
+    ssm_tests = [cfg for cfg in (ukf_cfg, optimise_cfg, control_cfg) if cfg.exists()]  # of the SSM, nothing to train
     if opts.no_encoder and ssm_stages and not ssm_tests:
         parser.error(
-            f"--no-encoder: {opts.experiment} has no test of its SSM alone (no {ukf_cfg.relative_to(ROOT)} or "
-            f"{control_cfg.name} beside it): without its encoder nothing would score it; drop --no-encoder"
+            f"--no-encoder: {opts.experiment} has no test of its SSM alone (no {ukf_cfg.relative_to(ROOT)}, "
+            f"{optimise_cfg.name} or {control_cfg.name} beside it): without its encoder nothing would score it; "
+            "drop --no-encoder"
         )
     use_encoder = enc_cfg.exists() and not opts.no_encoder
     seeded = "" if opts.seed is None else f"seed{opts.seed}"

@@ -76,7 +76,8 @@ STEPS: dict[str, Step] = {
     "--data.init_args.predict_steps 50 --trainer.callbacks+=ssm_ms.forecasting.ForecastWriter "
     "--trainer.callbacks.output predictions/new_encoder.npz --trainer.callbacks.figures true": Step(),
     # the pipelines: one epoch of two batches per stage (ARGS / after --: appended to every stage)
-    "make reproduce EXP=pendulum": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
+    # (the pendulum's on 50 test sequences: its fitted-states test takes ~0.8 s a sequence)
+    "make reproduce EXP=pendulum": Step(quick=False, extra=f'ARGS="{TINY} {FEW_TESTS}"', timeout=1800),
     "make reproduce EXP=pendulum SIZE=cpu": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
     "make reproduce EXP=pendulum_control": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=3600),
     # the controller on the true model: make test runs one episode of 1 s
@@ -85,7 +86,7 @@ STEPS: dict[str, Step] = {
         "--model.init_args.timing_steps 2",
         slow_extra="",
     ),
-    "make reproduce EXP=pendulum RESUME=reproduce-<date>-<time>": Step(quick=False, extra=f'ARGS="{TINY}"'),
+    "make reproduce EXP=pendulum RESUME=reproduce-<date>-<time>": Step(quick=False, extra=f'ARGS="{TINY} {FEW_TESTS}"'),
     "make reproduce EXP=oscillator": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
     # the pretrained model, tested as shipped (make test: on 50 test sequences; make test-slow: all 1000)
     "python cli.py test --config configs/pendulum_encoder.yaml --ckpt_path pretrained/pendulum_encoder.ckpt": Step(

@@ -77,7 +77,14 @@ def test_a_baseline_alone_and_without_baselines(recorded):
     assert written["experiment"] == "pendulum"  # the same results file as the SSM's
     calls.clear()
     reproduce.main(["pendulum", "--no-baselines"])
-    assert [option(a, "--config") for a in calls] == ["configs/pendulum.yaml"] + ["configs/pendulum_encoder.yaml"] * 2
+    assert [(a[0], option(a, "--config")) for a in calls] == [
+        ("fit", "configs/pendulum.yaml"),
+        ("test", "configs/pendulum_optimise.yaml"),  # states fitted through the SSM alone: before the encoder
+        ("fit", "configs/pendulum_encoder.yaml"),
+        ("test", "configs/pendulum_encoder.yaml"),
+    ]
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    assert option(calls[1], "--model.init_args.ssm_checkpoint") == f"runs/pendulum/{version}/checkpoints/last.ckpt"
     assert (
         written["command"] == "python -m ssm_ms.reproduce pendulum --no-baselines"
     )  # not make's: it has no such option
@@ -94,7 +101,7 @@ def test_epoch_budgets_go_to_their_own_stages_only(recorded, capsys):
         if "--trainer.max_epochs" in a
     }
     assert budget == {("fit", "pendulum_encoder"): "7", ("fit", "pendulum_lstm"): "5", ("fit", "pendulum_rkn"): "5"}
-    assert len(calls) == 7
+    assert len(calls) == 8
     assert written["command"] == "python -m ssm_ms.reproduce pendulum --encoder-epochs 7 --baseline-epochs 5"
     with pytest.raises(SystemExit):
         reproduce.main(["pendulum_lstm", "--baseline-epochs", "0"])
@@ -102,8 +109,8 @@ def test_epoch_budgets_go_to_their_own_stages_only(recorded, capsys):
 
 
 def test_no_encoder_runs_the_ssm_and_its_own_tests_only(recorded, capsys):
-    """--no-encoder: the SSM fit, its tests of the SSM alone (UKF; control with the UKF), the baselines; no encoder fit
-    and nothing that needs the encoder. Refused before any stage where nothing would then score the SSM, or beside an
+    """--no-encoder: the SSM fit, its tests of the SSM alone (UKF; fitted states; control with the UKF), the baselines;
+    no encoder fit and nothing that needs the encoder. Refused before any stage where nothing would then score the SSM, or beside an
     encoder budget."""
     calls, written = recorded
     reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-encoder"])
@@ -125,8 +132,17 @@ def test_no_encoder_runs_the_ssm_and_its_own_tests_only(recorded, capsys):
     ]
     assert "--model.init_args.encoder_checkpoint" not in calls[1]
     calls.clear()
+    reproduce.main(["pendulum", "--no-encoder", "--no-baselines"])
+    assert [(a[0], option(a, "--config")) for a in calls] == [
+        ("fit", "configs/pendulum.yaml"),
+        ("test", "configs/pendulum_optimise.yaml"),  # its one test of the SSM alone
+    ]
+    calls.clear()
     for argv, message in [
-        (["pendulum", "--no-encoder"], "--no-encoder: pendulum has no test of its SSM alone (no configs/pendulum_ukf"),
+        (
+            ["quad", "--no-encoder"],
+            "--no-encoder: quad has no test of its SSM alone (no configs/quad_ukf.yaml, quad_opt",
+        ),
         (["lorenz_T1000", "--no-encoder", "--encoder-epochs", "5"], "--encoder-epochs budgets the encoder stage"),
         (["pendulum_control", "--no-encoder"], "--no-encoder: pendulum_control is a suite of experiments"),
     ]:
@@ -178,9 +194,9 @@ def test_options_after_a_double_dash_go_to_every_stage_last(recorded, tmp_path):
     reproduce.main(
         ["pendulum", "--encoder-epochs", "7", "--", "--trainer.max_epochs", "1", "--data.init_args.n_test", "9"]
     )
-    assert len(calls) == 7
+    assert len(calls) == 8
     assert all(a[-4:] == ["--trainer.max_epochs", "1", "--data.init_args.n_test", "9"] for a in calls)
-    encoder_fit = calls[1]
+    encoder_fit = calls[2]
     assert encoder_fit.index("7") < len(encoder_fit) - 3  # the budget first, the appended value last
     assert written["command"] == (
         "python -m ssm_ms.reproduce pendulum --encoder-epochs 7 -- --trainer.max_epochs 1 --data.init_args.n_test 9"
