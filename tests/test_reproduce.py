@@ -110,8 +110,8 @@ def test_epoch_budgets_go_to_their_own_stages_only(recorded, capsys):
 
 def test_no_encoder_runs_the_ssm_and_its_own_tests_only(recorded, capsys):
     """--no-encoder: the SSM fit, its tests of the SSM alone (UKF; fitted states; control with the UKF), the baselines;
-    no encoder fit and nothing that needs the encoder. Refused before any stage where nothing would then score the SSM, or beside an
-    encoder budget."""
+    no encoder fit and nothing that needs the encoder. Refused before any stage where nothing would then score the
+    SSM, or beside an encoder budget."""
     calls, written = recorded
     reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-encoder"])
     assert [(a[0], option(a, "--config")) for a in calls] == [
