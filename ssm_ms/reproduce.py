@@ -55,6 +55,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -64,6 +65,7 @@ from ssm_ms.forecasting.results import write_pipeline
 from ssm_ms.runtime.machine import describe
 
 ROOT = Path(__file__).resolve().parents[1]
+WAIT_TICK = 30.0  # seconds between the records of a running stage's time (Pipeline)
 
 
 BUDGETS = ("encoder_epochs", "baseline_epochs")  # options a resumed run may raise: its fits continue to the new count
@@ -200,8 +202,12 @@ def _absolute(path: Path) -> Path:
     return path if path.is_absolute() else ROOT / path
 
 
-def run_stage(args: list[str], number: int, resume_pipeline: str | None = None) -> float:
+def run_stage(
+    args: list[str], number: int, resume_pipeline: str | None = None, on_wait: Callable[[], None] | None = None
+) -> float:
     """Run ``python cli.py *args`` from the root (stage ``number`` of the pipeline); return its duration in seconds.
+    ``on_wait`` is called every :data:`WAIT_TICK` seconds while the stage runs and once when it has ended, however
+    it ended (before the messages below).
 
     Ctrl-C reaches the stage and this process together (one process group); a SIGTERM or SIGINT sent to this process
     alone (``kill <pid>``, what scripts and job schedulers send, or ``kill -INT <pid>``) reaches the stage as SIGTERM.
@@ -239,10 +245,18 @@ def run_stage(args: list[str], number: int, resume_pipeline: str | None = None) 
         proc = subprocess.Popen(cmd, cwd=ROOT)
         if interrupted:  # stopped while the stage was starting
             proc.send_signal(signal.SIGTERM)
-        code = proc.wait()
+        while True:
+            try:
+                code = proc.wait(timeout=WAIT_TICK)
+                break
+            except subprocess.TimeoutExpired:
+                if on_wait is not None:
+                    on_wait()
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+    if on_wait is not None:
+        on_wait()
     stage = f"stage {number} (python cli.py {shlex.join(args)})"
     later = (
         f"Resume the whole pipeline (this stage, then the stages after it and the results file) with:\n"
@@ -289,7 +303,10 @@ class Pipeline:
     Resumed, a stage recorded as finished is not run again (its recorded duration is kept); a ``fit`` stage that
     has a ``last.ckpt`` continues from it (``--ckpt_path``); every other stage runs as new. A stage's seconds add,
     over the runs it took, the time up to its last completed epoch's checkpoint (the work kept), so a resumed
-    stage's duration is the training it holds, not the work lost in the interrupted epoch."""
+    stage's duration is the training it holds, not the work lost in the interrupted epoch. That time is measured
+    while the stage runs, on its machine (the checkpoint's modification time against the run's start, recorded
+    every :data:`WAIT_TICK` seconds), so that a record and checkpoint copied to another machine (their times then
+    the copy's) or a machine lost mid-run keep it."""
 
     def __init__(self, record: Path, options: dict, resume_pipeline: str, resume: bool, command: str | None = None):
         self.record, self.options, self.resume_pipeline = record, options, resume_pipeline
@@ -412,13 +429,21 @@ class Pipeline:
             self.done.remove(extended)
             runs, kept = extended.get("runs", 1) + 1, extended["seconds"]
         elif earlier is not None:
-            runs = earlier["runs"] + 1
-            kept = earlier["seconds"] + (
-                max(0.0, _absolute(ckpt).stat().st_mtime - earlier["started"]) if ckpt else 0.0
-            )
-        self.running = {"command": command, "started": time.time(), "seconds": kept, "runs": runs}
+            runs, kept = earlier["runs"] + 1, earlier["seconds"]
+        started = time.time()
+        self.running = {"command": command, "seconds": kept, "runs": runs}
         self._write()
-        seconds = run_stage(args + (["--ckpt_path", str(ckpt)] if ckpt else []), number, self.resume_pipeline)
+
+        def account() -> None:  # the time up to this run's last checkpoint, while its modification time is ours
+            saved = _stage_checkpoint(args)
+            mtime = _absolute(saved).stat().st_mtime if saved is not None else 0.0
+            if self.running is not None and mtime >= started:
+                self.running["seconds"] = round(kept + mtime - started, 1)
+                self._write()
+
+        seconds = run_stage(
+            args + (["--ckpt_path", str(ckpt)] if ckpt else []), number, self.resume_pipeline, on_wait=account
+        )
         entry = {"command": command, "seconds": round(kept + seconds, 1)}
         if runs > 1:
             entry["runs"] = runs

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
@@ -19,7 +20,7 @@ def recorded(monkeypatch, tmp_path):
     monkeypatch.setattr(
         reproduce,
         "run_stage",
-        lambda args, number, resume_pipeline=None: (
+        lambda args, number, resume_pipeline=None, on_wait=None: (
             calls.append(args) or written.update(resume_pipeline=resume_pipeline) or 0.0
         ),
     )
@@ -178,7 +179,7 @@ def test_no_encoder_given_or_dropped_on_resume(recorded, tmp_path):
     record = tmp_path / "runs" / "lorenz_T1000_cpu" / version / "reproduce.json"
     finished = json.loads(record.read_text())
     ssm_fit, ukf, encoder_fit = finished["stages"][:3]
-    running = {"command": encoder_fit["command"], "started": 1_700_000_000.0, "seconds": 0.0, "runs": 1}
+    running = {"command": encoder_fit["command"], "seconds": 0.0, "runs": 1}
     record.write_text(json.dumps({"options": finished["options"], "stages": [ssm_fit, ukf], "running": running}))
     calls.clear()
     reproduce.main([*base, "--no-encoder", "--resume", version])
@@ -370,11 +371,10 @@ class KillAt(Callback):
 
 
 def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tmp_path, capsys):
-    """A run stopped during its encoder fit (record: SSM fit finished, encoder fit running, its last.ckpt written 100 s
-    after that stage started): resumed, the SSM fit is not run again, the encoder fit continues from its last.ckpt,
-    every later stage runs; the encoder stage's seconds are the 100 kept plus the resumed run's."""
+    """A run stopped during its encoder fit (record: SSM fit finished, encoder fit running, 100 s kept up to its
+    last.ckpt): resumed, the SSM fit is not run again, the encoder fit continues from its last.ckpt, every later
+    stage runs; the encoder stage's seconds are the 100 kept plus the resumed run's."""
     import json
-    import os
 
     calls, written = recorded
     reproduce.main(["lorenz_T1000", "--size", "cpu", "--no-baselines"])
@@ -389,20 +389,18 @@ def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tm
     assert finished["options"]["experiment"] == "lorenz_T1000" and finished["options"]["no_baselines"] is True
     # as the record reads when the machine stopped during stage 3 (the SSM fit and its UKF test finished)
     stage1, ukf, stage3 = finished["stages"][:3]
-    started = 1_700_000_000.0
     record.write_text(
         json.dumps(
             {
                 "options": finished["options"],
                 "stages": [{**stage1, "seconds": 3000.0}, {**ukf, "seconds": 40.0}],
-                "running": {"command": stage3["command"], "started": started, "seconds": 0.0, "runs": 1},
+                "running": {"command": stage3["command"], "seconds": 100.0, "runs": 1},
             }
         )
     )
     enc_ckpt = tmp_path / "runs" / "lorenz_T1000_encoder_cpu" / version / "checkpoints" / "last.ckpt"
     enc_ckpt.parent.mkdir(parents=True)
     enc_ckpt.write_bytes(b"")
-    os.utime(enc_ckpt, (started + 100, started + 100))
     calls.clear()
     reproduce.main(["lorenz_T1000", "--no-baselines", "--size", "cpu", "--resume", version])  # options in any order
     assert [(a[0], option(a, "--config")) for a in calls] == [
@@ -419,6 +417,56 @@ def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tm
         f"--resume {version}"
     )  # what an interrupted stage prints
     assert json.loads(record.read_text())["running"] is None
+
+
+def test_a_stage_keeps_the_time_to_its_last_checkpoint_when_copied_to_another_machine(recorded, tmp_path, monkeypatch):
+    """The time a stopped fit kept is measured while it runs (its last checkpoint's time against the run's start,
+    on its own machine), not on resume from the file's time, which a copy to another machine sets to the copy's.
+    Run 1 writes a checkpoint 50 s into the run (the record then says so), works on and is lost; the checkpoint
+    is copied (its time now a day later) and the run resumed: the stage's seconds are the 50 kept plus run 2's."""
+    import json
+    import os
+
+    calls, written = recorded
+    base = ["lorenz_T1000", "--size", "cpu", "--no-baselines"]
+    reproduce.main(base)
+    version = option(calls[0], "--trainer.logger.init_args.version")
+    record = tmp_path / "runs" / "lorenz_T1000_cpu" / version / "reproduce.json"
+    finished = json.loads(record.read_text())
+    record.write_text(json.dumps({**finished, "stages": finished["stages"][:2]}))  # stopped before the encoder fit
+    ckpt = tmp_path / "runs" / "lorenz_T1000_encoder_cpu" / version / "checkpoints" / "last.ckpt"
+    seen = []
+
+    def lost(args, number, resume_pipeline=None, on_wait=None):
+        if "lorenz_T1000_encoder" not in option(args, "--config") or args[0] != "fit":
+            return 7.0
+        start = time.time()
+        ckpt.parent.mkdir(parents=True, exist_ok=True)
+        ckpt.write_bytes(b"")
+        os.utime(ckpt, (start + 50, start + 50))  # the epoch's checkpoint, 50 s into the run
+        on_wait()  # the tick after it
+        seen.append(json.loads(record.read_text())["running"]["seconds"])
+        raise KeyboardInterrupt  # the machine is lost later in the run
+
+    with monkeypatch.context() as patch:
+        patch.setattr(reproduce, "run_stage", lost)
+        with pytest.raises(KeyboardInterrupt):
+            reproduce.main([*base, "--resume", version])
+    assert seen and 49.0 <= seen[0] <= 51.0
+    later = time.time() + 86_400
+    os.utime(ckpt, (later, later))  # copied to another machine a day later
+    reproduce.main([*base, "--resume", version])
+    encoder_fit = next(s for s in written["pipeline"]["stages"] if "lorenz_T1000_encoder" in s["command"])
+    assert encoder_fit["runs"] == 2 and 49.0 <= encoder_fit["seconds"] <= 51.0  # 50 kept + run 2's 0 s
+
+
+def test_a_running_stage_calls_on_wait_every_tick_and_once_at_its_end(monkeypatch, capfd):
+    """What keeps the record's time current: ``run_stage`` calls ``on_wait`` while the stage runs and after it."""
+    ticks = []
+    monkeypatch.setattr(reproduce, "WAIT_TICK", 0.05)
+    reproduce.run_stage(["fit", "--help"], 1, on_wait=lambda: ticks.append(time.monotonic()))
+    assert "--trainer" in capfd.readouterr().out  # the stage ran (its help), for well over a tick
+    assert len(ticks) >= 3
 
 
 def test_resume_refuses_another_run_or_other_options(recorded, tmp_path):
@@ -566,7 +614,7 @@ def test_a_raised_budget_interrupted_and_resumed_again_still_replaces_the_first_
     enc_ckpt.parent.mkdir(parents=True)
     enc_ckpt.write_bytes(b"")
 
-    def stopped(args, number, resume_pipeline=None):
+    def stopped(args, number, resume_pipeline=None, on_wait=None):
         raise KeyboardInterrupt  # the machine stops during the extended fit
 
     with monkeypatch.context() as patch:
@@ -703,7 +751,7 @@ def fit_writing_best(calls, root, run):
     """A ``run_stage`` that records its calls and, for the fit of the run logged under ``runs/<run>/``, writes the
     ``best.ckpt`` a config keeping its best epoch would."""
 
-    def stage(args, number, resume_pipeline=None):
+    def stage(args, number, resume_pipeline=None, on_wait=None):
         calls.append(args)
         if args[0] == "fit" and Path(option(args, "--config")).stem == run:  # its config names the run
             version = option(args, "--trainer.logger.init_args.version")
