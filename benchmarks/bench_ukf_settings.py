@@ -10,7 +10,8 @@ defaults to the unscented rule with beta = 2 (2d + 1 points, one at the centre) 
 node. Each of the four combinations runs the test protocol of the UKF stage ``--config`` (``cli.py test``, nothing
 trained; the analysis left out) on the SSM ``--ssm-checkpoint``, with the stage's noise settings; the table gives
 the protocol's forecast MSE against the noiseless x in original units (mean and std over the test sequences) and
-the ratio to the default.
+the ratio to the default. ``--process-vars`` adds rows: the default filter with other process variances (the
+stage's own is the paper's 1e-6 in normalised units), so the filter's tuning is weighed against its sigma points.
 """
 
 from __future__ import annotations
@@ -31,12 +32,17 @@ from benchmarks.report import provenance  # noqa: E402
 from ssm_ms.reproduce import load_config  # noqa: E402
 from ssm_ms.runtime.machine import CpuWatch, quiet_note  # noqa: E402
 
-VARIANTS = [  # (label, method name, unscented, init_mean)
-    ("beta = 2 (2d + 1 points), mean node start: ours, the default", "ukf", {"beta": 2.0}, "nodes"),
-    ("cubature (2d points), mean node start", "ukf_cubature", {"beta": 0.0}, "nodes"),
-    ("beta = 2, zero start", "ukf_zero", {"beta": 2.0}, "zero"),
-    ("cubature, zero start: the paper's filter", "ukf_paper", {"beta": 0.0}, "zero"),
+DEFAULT = {"unscented": {"beta": 2.0}, "init_mean": "nodes"}
+VARIANTS = [  # (label, method name, overrides of the stage's init_args)
+    ("beta = 2 (2d + 1 points), mean node start: ours, the default", "ukf", DEFAULT),
+    ("cubature (2d points), mean node start", "ukf_cubature", {"unscented": {"beta": 0.0}, "init_mean": "nodes"}),
+    ("beta = 2, zero start", "ukf_zero", {"unscented": {"beta": 2.0}, "init_mean": "zero"}),
+    ("cubature, zero start: the paper's filter", "ukf_paper", {"unscented": {"beta": 0.0}, "init_mean": "zero"}),
 ]
+
+
+def _arg(value: object) -> str:
+    return value if isinstance(value, str) else json.dumps(value)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -44,6 +50,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--ssm-checkpoint", required=True, help="the trained Lorenz SSM (last.ckpt)")
     parser.add_argument("--config", default="configs/cpu/lorenz_T1000_ukf.yaml", help="the UKF stage's config")
     parser.add_argument("--out", default="benchmarks/results/ukf_settings.md")
+    parser.add_argument(
+        "--process-vars",
+        type=float,
+        nargs="*",
+        default=[],
+        help="more rows: the default filter with these process variances",
+    )
     args = parser.parse_args(argv)
     ckpt = Path(args.ssm_checkpoint).resolve()
     if not ckpt.is_file():
@@ -51,9 +64,13 @@ def main(argv: list[str] | None = None) -> None:
             f"no SSM checkpoint at {ckpt}: train one first (python cli.py fit --config configs/cpu/lorenz_T1000.yaml)"
         )
     stage = load_config(ROOT / args.config)["model"]["init_args"]
+    variants = VARIANTS + [
+        (f"the default, process variance {q:g}", f"ukf_q{i}", {**DEFAULT, "process_var": q})
+        for i, q in enumerate(args.process_vars)
+    ]
     watch, rows = CpuWatch(), []
     with tempfile.TemporaryDirectory() as tmp:
-        for label, name, unscented, init_mean in VARIANTS:
+        for label, name, overrides in variants:
             cmd = [
                 sys.executable,
                 "cli.py",
@@ -61,8 +78,7 @@ def main(argv: list[str] | None = None) -> None:
                 "--config",
                 args.config,
                 f"--model.init_args.ssm_checkpoint={ckpt}",
-                f"--model.init_args.unscented={json.dumps(unscented)}",
-                f"--model.init_args.init_mean={init_mean}",
+                *(f"--model.init_args.{key}={_arg(value)}" for key, value in overrides.items()),
                 f"--model.init_args.method_name={name}",
                 "--model.init_args.analysis=null",
                 f"--model.init_args.results_dir={tmp}",
@@ -80,7 +96,7 @@ def main(argv: list[str] | None = None) -> None:
             print(f"  MSE {score['mean']:.4f} ({seconds:.0f} s)", flush=True)
     ref = rows[0][1]
     lines = [
-        "# The UKF's sigma points and prior mean against the paper's filter, on Lorenz (one run)",
+        "# The UKF's sigma points, prior mean and process variance against the paper's filter, on Lorenz (one run)",
         "",
         *provenance("benchmarks/bench_ukf_settings.py", argv),
         f"- Others' CPU use: {quiet_note(watch.others())}",
