@@ -237,12 +237,12 @@ def load_into(module: torch.nn.Module, saved: dict) -> None:
 def test_committed_checkpoint_matches_its_config(path, tmp_path):
     """Every tensor of the file has the shape the config's networks give it (strict load: no key missing or left
     over), the training run's structural settings equal the config's, the file is stripped, and a node table has
-    one row per training trajectory of the config's data."""
+    one row per training trajectory of the config's data (Lorenz's: per piece of T steps)."""
     cli, saved = model_of_config(path.stem, tmp_path)
     assert not set(DROPPED) & set(saved)
     load_into(cli.model, saved)
     if "nodes.weight" in saved["state_dict"]:
-        assert cli.model.nodes.num_embeddings == cli.datamodule.n_train
+        assert cli.model.nodes.num_embeddings == cli.datamodule.num_train_trajectories  # Lorenz: its pieces
     for key in ("state_dim", "n_nodes", "loss", "n_filter"):
         if key in saved["hyper_parameters"] and key in cli.model.hparams:
             assert saved["hyper_parameters"][key] == cli.model.hparams[key], key
