@@ -58,6 +58,8 @@ def main(argv: list[str] | None = None) -> None:
         help="more rows: the default filter with these process variances",
     )
     args = parser.parse_args(argv)
+    if any(q < 0 for q in args.process_vars):
+        parser.error(f"--process-vars: a variance cannot be negative, got {args.process_vars}")
     ckpt = Path(args.ssm_checkpoint).resolve()
     if not ckpt.is_file():
         sys.exit(
