@@ -186,3 +186,21 @@ def test_build_datamodule_names_a_config_without_data_and_an_argument_refused(tm
         build_datamodule(tmp_path / "nowhere.yaml")
     with pytest.raises(ValueError, match="refuses its arguments .*colour"):
         build_datamodule(ROOT / "configs/cpu/data/lorenz_T1000.yaml", colour="red")
+
+
+def test_the_batch400_ablation_takes_t10000s_steps_with_t1000s_pieces():
+    """configs/lorenz_T1000_batch400.yaml's premise, from the three configs' values: per epoch as many Adam steps, of
+    as many sub-trajectories, as T = 10,000, with T = 1000's pieces and nodes (its continuity links)."""
+
+    def per_epoch(name: str) -> tuple[int, int, int, int]:
+        config = load_config(ROOT / "configs" / f"{name}.yaml")
+        data, nodes = config["data"]["init_args"], config["model"]["init_args"]["n_nodes"]
+        pieces = data["n_train"] * data["train_steps"] // data["piece_length"]
+        steps, short = divmod(pieces, data["batch_size"])
+        assert short == 0, f"{name}: its last batch is short"
+        return steps, data["batch_size"] * nodes, data["piece_length"], nodes
+
+    ablation, t1000, t10000 = (per_epoch(n) for n in ("lorenz_T1000_batch400", "lorenz_T1000", "lorenz_T10000"))
+    assert ablation[:2] == t10000[:2] == (25, 8000)
+    assert t1000[:2] == (250, 800)
+    assert ablation[2:] == t1000[2:] == (1000, 20)
