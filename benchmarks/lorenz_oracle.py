@@ -56,13 +56,12 @@ def data_module(config: str, n_test: int | None) -> LorenzDataModule:
     return dm
 
 
-def oracle_forecast(
-    dm: LorenzDataModule, y: torch.Tensor, n_filter: int, n_predict: int, noise: float, particles: int = 0
+def oracle_filter(
+    dm: LorenzDataModule, y: torch.Tensor, n_filter: int, noise: float, particles: int = 0
 ) -> torch.Tensor:
-    """The true model's filter over ``y[:, :n_filter]`` (``[B, T, 1]``, original units, float64), then ``n_predict``
-    steps of the true transition from the last filtered mean: the forecast of x, ``[B, n_predict, 1]``. ``particles``
-    0: the UKF, ``noise`` its process variance; else a bootstrap particle filter of that many particles per sequence,
-    ``noise`` its process std (seeded)."""
+    """The true model's filter over ``y[:, :n_filter]`` (``[B, T, 1]``, original units, float64): its last filtered
+    mean of the state, ``[B, 3]``. ``particles`` 0: the UKF, ``noise`` its process variance; else a bootstrap particle
+    filter of that many particles per sequence, ``noise`` its process std (seeded)."""
     f, g = dm.true_transition(), lambda x: x[:, :1]
     init_var = dm.init_range**2 / 3.0  # the variance of the uniform initial states
     if particles:
@@ -70,12 +69,19 @@ def oracle_forecast(
             f, g, n_particles=particles, process_std=noise, measurement_std=dm.noise_std,
             init_std=init_var**0.5, state_dim=3, seed=0,
         )  # fmt: skip
-        x = pf.filter(y[:, :n_filter])[:, -1]
-    else:
-        ukf = UnscentedKalmanFilter(
-            f, g, process_var=noise, measurement_var=dm.noise_std**2, init_var=init_var, state_dim=3
-        )
-        x = ukf.filter(y[:, :n_filter]).means[:, -1]
+        return pf.filter(y[:, :n_filter])[:, -1]
+    ukf = UnscentedKalmanFilter(
+        f, g, process_var=noise, measurement_var=dm.noise_std**2, init_var=init_var, state_dim=3
+    )
+    return ukf.filter(y[:, :n_filter]).means[:, -1]
+
+
+def oracle_forecast(
+    dm: LorenzDataModule, y: torch.Tensor, n_filter: int, n_predict: int, noise: float, particles: int = 0
+) -> torch.Tensor:
+    """:func:`oracle_filter`, then ``n_predict`` steps of the true transition from its last filtered mean: the
+    forecast of x, ``[B, n_predict, 1]``."""
+    f, x = dm.true_transition(), oracle_filter(dm, y, n_filter, noise, particles)
     out = []
     for _ in range(n_predict):
         x = f(x)

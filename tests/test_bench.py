@@ -608,3 +608,45 @@ def test_ssm_rollouts_score_the_first_node_rolled_out_as_a_naive_loop(tmp_path):
     assert ssim == pytest.approx(ssim_per_sequence(torch.stack(frames, 1), item["y_clean"]).mean().item(), abs=6e-5)
     image = Image.open(out.with_name("rollouts_0.png"))
     assert image.size == (2 * (10 * 25 + 1), 2 * (4 * 3 * 25 + 1))  # 10 frames of 24 px + 1 px borders, 12 rows, x2
+
+
+def test_lorenz_error_by_step_averages_to_the_protocol_score(tmp_path):
+    """benchmarks/lorenz_error_by_step.py on the pretrained T = 1000 SSM and 4 short test sequences: the mean of its
+    predicted steps is the score ``cli.py test`` writes for the same stage (the protocol's own path: Lightning's test
+    loop, its metric); the true model's step-0 error on those sequences is below the SSM's; a wrong config is refused
+    in one line."""
+    import json
+    import subprocess
+    import sys
+
+    from benchmarks import lorenz_error_by_step
+
+    config = tmp_path / "ukf.yaml"
+    config.write_text(
+        f"config: {ROOT / 'configs/lorenz_T1000_ukf.yaml'}\n"
+        "model.init_args.n_filter: 290\nmodel.init_args.analysis: null\n"
+        "data.init_args.n_test: 4\ndata.init_args.test_steps: 300\ndata.init_args.n_train: 2\n"
+        f"data.init_args.train_steps: 1000\ndata.init_args.data_dir: {tmp_path / 'data'}\n"
+    )
+    ckpt = ROOT / "pretrained/lorenz_T1000.ckpt"
+    out = tmp_path / "by_step.md"
+    lorenz_error_by_step.main(["--ssm", str(ckpt), "--config", str(config), "--out", str(out)])
+    rows = {r[0].strip(): r[1:] for r in (line.strip("|").split("|") for line in out.read_text().splitlines()) if r}
+    assert [str(step) for step in range(11)] == [k for k in rows if k.isdigit()]
+    mean = float(rows["mean of 1-10"][0].split("±")[0])
+    step0_ssm, step0_true = (float(c.split("±")[0]) for c in rows["0"][:2])
+    assert step0_true < step0_ssm
+    subprocess.run(
+        [
+            sys.executable, "cli.py", "test", "--config", str(config), f"--model.init_args.ssm_checkpoint={ckpt}",
+            f"--model.init_args.results_dir={tmp_path}", f"--model.init_args.figures_dir={tmp_path}/figures",
+            f"--trainer.logger.init_args.save_dir={tmp_path}/runs", "--trainer.enable_progress_bar=false",
+        ],
+        cwd=ROOT, check=True, stdout=subprocess.DEVNULL,
+    )  # fmt: skip
+    runs = json.loads((tmp_path / "lorenz_T1000.json").read_text())["runs"]
+    score = next(iter(runs.values()))["summary"]
+    score = next(v for k, v in score.items() if k.endswith("/clean/mse") and not k.startswith(("last", "mean")))
+    assert mean == pytest.approx(score["mean"], rel=1e-3, abs=1e-4)
+    with pytest.raises(SystemExit, match="is not a Lorenz UKF stage"):
+        lorenz_error_by_step.main(["--ssm", str(ckpt), "--config", "configs/pendulum.yaml", "--out", str(out)])
