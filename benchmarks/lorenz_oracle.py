@@ -76,17 +76,21 @@ def oracle_filter(
     return ukf.filter(y[:, :n_filter]).means[:, -1]
 
 
-def oracle_forecast(
-    dm: LorenzDataModule, y: torch.Tensor, n_filter: int, n_predict: int, noise: float, particles: int = 0
-) -> torch.Tensor:
-    """:func:`oracle_filter`, then ``n_predict`` steps of the true transition from its last filtered mean: the
-    forecast of x, ``[B, n_predict, 1]``."""
-    f, x = dm.true_transition(), oracle_filter(dm, y, n_filter, noise, particles)
-    out = []
+def oracle_rollout(dm: LorenzDataModule, x: torch.Tensor, n_predict: int) -> torch.Tensor:
+    """``n_predict`` steps of the true transition from the states ``x [B, 3]``: x of each, ``[B, n_predict, 1]``."""
+    f, out = dm.true_transition(), []
     for _ in range(n_predict):
         x = f(x)
         out.append(x[:, :1])
     return torch.stack(out, dim=1)
+
+
+def oracle_forecast(
+    dm: LorenzDataModule, y: torch.Tensor, n_filter: int, n_predict: int, noise: float, particles: int = 0
+) -> torch.Tensor:
+    """:func:`oracle_filter`, then :func:`oracle_rollout` from its last filtered mean: the forecast of x,
+    ``[B, n_predict, 1]``."""
+    return oracle_rollout(dm, oracle_filter(dm, y, n_filter, noise, particles), n_predict)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -648,5 +648,10 @@ def test_lorenz_error_by_step_averages_to_the_protocol_score(tmp_path):
     score = next(iter(runs.values()))["summary"]
     score = next(v for k, v in score.items() if k.endswith("/clean/mse") and not k.startswith(("last", "mean")))
     assert mean == pytest.approx(score["mean"], rel=1e-3, abs=1e-4)
-    with pytest.raises(SystemExit, match="is not a Lorenz UKF stage"):
-        lorenz_error_by_step.main(["--ssm", str(ckpt), "--config", "configs/pendulum.yaml", "--out", str(out)])
+    for wrong in ("configs/pendulum.yaml", "configs/lorenz_T1000.yaml"):  # not Lorenz; Lorenz, but no filter stage
+        with pytest.raises(SystemExit, match="is not a Lorenz UKF stage"):
+            lorenz_error_by_step.main(["--ssm", str(ckpt), "--config", wrong, "--out", str(out)])
+    with pytest.raises(SystemExit, match="make g match the data"):  # an SSM of other data
+        lorenz_error_by_step.main(
+            ["--ssm", str(ROOT / "pretrained/pendulum.ckpt"), "--config", str(config), "--out", str(out)]
+        )
