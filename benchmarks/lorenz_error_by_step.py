@@ -13,7 +13,8 @@ squared error of x against the noiseless x in original units at step 0 (the filt
 sample) and at each predicted step, averaged over the test sequences (± the standard error of that mean). The mean of
 the predicted steps is the protocol's ``clean/mse``. Step 0 is what the filter leaves; the growth over the predicted
 steps is what iterating ``f`` from that state adds (for the oracle, only the doubt about the unmeasured y and z, grown
-by the true dynamics).
+by the true dynamics). A second table follows the filter along the given samples (the same squared error of its
+estimate of x at sample t, the measurements up to t filtered): how fast each filter settles, and where.
 """
 
 from __future__ import annotations
@@ -39,10 +40,14 @@ FILTER_KEYS = ("method", "process_var", "measurement_var", "init_var", "init_mea
 BATCH = 200
 
 
+# the given samples (1-based) at which the second table reads the filter, those up to n_filter, and n_filter itself
+FILTER_SAMPLES = (1, 10, 100, 250, 500, 750, 1000, 1250, 1500, 1750)
+
+
 @torch.inference_mode()
 def ssm_errors(ckpt: Path, settings: dict, dm: LorenzDataModule, y: torch.Tensor, clean: torch.Tensor, k: int, p: int):
-    """Squared errors ``[N, p + 1]`` (original units) of the SSM's UKF: the filtered estimate of sample ``k - 1``,
-    then the ``p`` predicted samples, each against the noiseless x."""
+    """Squared errors ``[N, k + p]`` (original units) of the SSM's UKF against the noiseless x: its filtered
+    estimates of the ``k`` given samples, then the ``p`` predicted samples."""
     forecaster = FilterForecaster(str(ckpt), n_filter=k, n_predict=p, **settings).eval()
     _, checkpoint = load_ssm(ckpt)
     dm.load_state_dict(datamodule_state(checkpoint)[1])  # the normalisation this SSM was trained with
@@ -50,16 +55,16 @@ def ssm_errors(ckpt: Path, settings: dict, dm: LorenzDataModule, y: torch.Tensor
     for start in range(0, len(y), BATCH):
         yb = dm.normalizer.normalize(y[start : start + BATCH, :k].float())
         fc = forecaster.forecast(yb, p)
-        x = dm.normalizer.denormalize(torch.cat([fc.filtered[:, -1:], fc.predicted], dim=1)).double()
-        out.append((x - clean[start : start + BATCH, k - 1 : k + p]).square().flatten(1))
+        x = dm.normalizer.denormalize(torch.cat([fc.filtered, fc.predicted], dim=1)).double()
+        out.append((x - clean[start : start + BATCH, : k + p]).square().flatten(1))
     return torch.cat(out)
 
 
 def oracle_errors(dm: LorenzDataModule, y: torch.Tensor, clean: torch.Tensor, k: int, p: int, q: float):
-    """The same squared errors ``[N, p + 1]`` of the true model's UKF (process variance ``q``)."""
+    """The same squared errors ``[N, k + p]`` of the true model's UKF (process variance ``q``)."""
     x = oracle_filter(dm, y, k, q)
-    xs = torch.cat([x[:, None, :1], oracle_rollout(dm, x, p)], dim=1)
-    return (xs - clean[:, k - 1 : k + p]).square().flatten(1)
+    xs = torch.cat([x[..., :1], oracle_rollout(dm, x[:, -1], p)], dim=1)
+    return (xs - clean[:, : k + p]).square().flatten(1)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -97,7 +102,7 @@ def main(argv: list[str] | None = None) -> None:
         except ValueError as e:  # not an SSM of this data (its g draws other measurements)
             sys.exit(f"error: {name}: {e}")
         columns.append((f"`{name}`", errors, time.perf_counter() - start))
-        print(f"{name}: MSE {errors[:, 1:].mean():.4f} ({columns[-1][2]:.0f} s)", flush=True)
+        print(f"{name}: MSE {errors[:, k:].mean():.4f} ({columns[-1][2]:.0f} s)", flush=True)
     start = time.perf_counter()
     columns.append(
         ("true model", oracle_errors(dm, y, clean, k, p, args.oracle_process_var), time.perf_counter() - start)
@@ -123,9 +128,19 @@ def main(argv: list[str] | None = None) -> None:
         "|---:|" + "---:|" * len(columns),
     ]
     for step in range(p + 1):
-        lines.append(f"| {step} | " + " | ".join(cell(e[:, step]) for _, e, _ in columns) + " |")
-    lines.append(f"| mean of 1-{p} | " + " | ".join(cell(e[:, 1:].mean(1)) for _, e, _ in columns) + " |")
+        lines.append(f"| {step} | " + " | ".join(cell(e[:, k - 1 + step]) for _, e, _ in columns) + " |")
+    lines.append(f"| mean of 1-{p} | " + " | ".join(cell(e[:, k:].mean(1)) for _, e, _ in columns) + " |")
     lines.append("| seconds | " + " | ".join(f"{t:.0f}" for _, _, t in columns) + " |")
+    samples = sorted({t for t in FILTER_SAMPLES if t < k} | {k})
+    lines += [
+        "",
+        f"The filter along the given samples: the squared error of its estimate of x at sample t (1-based; t = {k} is "
+        "step 0 above), the measurements up to t filtered, the same sequences.",
+        "",
+        "| sample t | " + " | ".join(label for label, _, _ in columns) + " |",
+        "|---:|" + "---:|" * len(columns),
+        *(f"| {t} | " + " | ".join(cell(e[:, t - 1]) for _, e, _ in columns) + " |" for t in samples),
+    ]
     write(ROOT / args.out, lines)
 
 

@@ -59,8 +59,8 @@ def data_module(config: str, n_test: int | None) -> LorenzDataModule:
 def oracle_filter(
     dm: LorenzDataModule, y: torch.Tensor, n_filter: int, noise: float, particles: int = 0
 ) -> torch.Tensor:
-    """The true model's filter over ``y[:, :n_filter]`` (``[B, T, 1]``, original units, float64): its last filtered
-    mean of the state, ``[B, 3]``. ``particles`` 0: the UKF, ``noise`` its process variance; else a bootstrap particle
+    """The true model's filter over ``y[:, :n_filter]`` (``[B, T, 1]``, original units, float64): its filtered means
+    of the state at each of those samples, ``[B, n_filter, 3]``. ``particles`` 0: the UKF, ``noise`` its process variance; else a bootstrap particle
     filter of that many particles per sequence, ``noise`` its process std (seeded)."""
     f, g = dm.true_transition(), lambda x: x[:, :1]
     init_var = dm.init_range**2 / 3.0  # the variance of the uniform initial states
@@ -69,11 +69,11 @@ def oracle_filter(
             f, g, n_particles=particles, process_std=noise, measurement_std=dm.noise_std,
             init_std=init_var**0.5, state_dim=3, seed=0,
         )  # fmt: skip
-        return pf.filter(y[:, :n_filter])[:, -1]
+        return pf.filter(y[:, :n_filter])
     ukf = UnscentedKalmanFilter(
         f, g, process_var=noise, measurement_var=dm.noise_std**2, init_var=init_var, state_dim=3
     )
-    return ukf.filter(y[:, :n_filter]).means[:, -1]
+    return ukf.filter(y[:, :n_filter]).means
 
 
 def oracle_rollout(dm: LorenzDataModule, x: torch.Tensor, n_predict: int) -> torch.Tensor:
@@ -90,7 +90,7 @@ def oracle_forecast(
 ) -> torch.Tensor:
     """:func:`oracle_filter`, then :func:`oracle_rollout` from its last filtered mean: the forecast of x,
     ``[B, n_predict, 1]``."""
-    return oracle_rollout(dm, oracle_filter(dm, y, n_filter, noise, particles), n_predict)
+    return oracle_rollout(dm, oracle_filter(dm, y, n_filter, noise, particles)[:, -1], n_predict)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -613,28 +613,45 @@ def test_ssm_rollouts_score_the_first_node_rolled_out_as_a_naive_loop(tmp_path):
 def test_lorenz_error_by_step_averages_to_the_protocol_score(tmp_path):
     """benchmarks/lorenz_error_by_step.py on the pretrained T = 1000 SSM and 4 short test sequences: the mean of its
     predicted steps is the score ``cli.py test`` writes for the same stage (the protocol's own path: Lightning's test
-    loop, its metric); the true model's step-0 error on those sequences is below the SSM's; a wrong config is refused
-    in one line."""
+    loop, its metric); the true model's step-0 error on those sequences is below the SSM's; the second table's error
+    at given sample 100 is the step-0 error of a run that filters only the first 100 (both filters are causal); a
+    wrong config is refused in one line."""
     import json
     import subprocess
     import sys
 
     from benchmarks import lorenz_error_by_step
 
-    config = tmp_path / "ukf.yaml"
-    config.write_text(
-        f"config: {ROOT / 'configs/lorenz_T1000_ukf.yaml'}\n"
-        "model.init_args.n_filter: 290\nmodel.init_args.analysis: null\n"
-        "data.init_args.n_test: 4\ndata.init_args.test_steps: 300\ndata.init_args.n_train: 2\n"
-        f"data.init_args.train_steps: 1000\ndata.init_args.data_dir: {tmp_path / 'data'}\n"
-    )
+    def run(n_filter: int) -> list[dict[str, list[float]]]:
+        """The script on the first ``n_filter`` samples: its tables, each ``{first cell: [column means]}``."""
+        config = tmp_path / f"ukf{n_filter}.yaml"
+        config.write_text(
+            f"config: {ROOT / 'configs/lorenz_T1000_ukf.yaml'}\n"
+            f"model.init_args.n_filter: {n_filter}\nmodel.init_args.analysis: null\n"
+            "data.init_args.n_test: 4\ndata.init_args.test_steps: 300\ndata.init_args.n_train: 2\n"
+            f"data.init_args.train_steps: 1000\ndata.init_args.data_dir: {tmp_path / 'data'}\n"
+        )
+        lorenz_error_by_step.main(["--ssm", str(ckpt), "--config", str(config), "--out", str(out)])
+        tables = [[]]
+        for line in out.read_text().splitlines():
+            if line.startswith("|"):
+                tables[-1].append([c.strip() for c in line.strip("|").split("|")])
+            elif tables[-1]:
+                tables.append([])
+        return [{r[0]: [float(c.split("±")[0]) for c in r[1:]] for r in t[2:]} for t in tables if t]
+
     ckpt = ROOT / "pretrained/lorenz_T1000.ckpt"
     out = tmp_path / "by_step.md"
-    lorenz_error_by_step.main(["--ssm", str(ckpt), "--config", str(config), "--out", str(out)])
-    rows = {r[0].strip(): r[1:] for r in (line.strip("|").split("|") for line in out.read_text().splitlines()) if r}
-    assert [str(step) for step in range(11)] == [k for k in rows if k.isdigit()]
-    mean = float(rows["mean of 1-10"][0].split("±")[0])
-    step0_ssm, step0_true = (float(c.split("±")[0]) for c in rows["0"][:2])
+    short_steps, _ = run(100)
+    steps, along = run(290)
+    config = tmp_path / "ukf290.yaml"
+    assert [str(step) for step in range(11)] == [k for k in steps if k.isdigit()]
+    assert list(along) == ["1", "10", "100", "250", "290"]
+    assert along["290"] == steps["0"]
+    assert along["100"] == pytest.approx(short_steps["0"], rel=1e-3, abs=1e-4)
+    assert along["100"] != steps["0"]
+    mean = steps["mean of 1-10"][0]
+    step0_ssm, step0_true = steps["0"]
     assert step0_true < step0_ssm
     subprocess.run(
         [
