@@ -11,7 +11,8 @@ Each SSM ``--ssm`` runs the protocol of the UKF stage ``--config`` (its filter s
 (``benchmarks/lorenz_oracle.py``'s floor, process variance ``--oracle-process-var`` in original units). For each, the
 squared error of x against the noiseless x in original units at step 0 (the filter's estimate of the last given
 sample) and at each predicted step, averaged over the test sequences (± the standard error of that mean). The mean of
-the predicted steps is the protocol's ``clean/mse``. Step 0 is what the filter leaves; the growth over the predicted
+the predicted steps is the protocol's ``clean/mse``; each column after the first also gets that score less the
+first column's, paired over the same sequences (± its standard error: whether two SSMs differ). Step 0 is what the filter leaves; the growth over the predicted
 steps is what iterating ``f`` from that state adds (for the oracle, only the doubt about the unmeasured y and z, grown
 by the true dynamics). A second table follows the filter along the given samples (the same squared error of its
 estimate of x at sample t, the measurements up to t filtered): how fast each filter settles, and where.
@@ -121,8 +122,10 @@ def main(argv: list[str] | None = None) -> None:
         f"true model: its own UKF (process variance {args.oracle_process_var:g} in original units, "
         "`benchmarks/lorenz_oracle.py`).",
         "- Cell: squared error of x against the noiseless x in original units, mean over the test sequences ± its "
-        "standard error. Step 0: the filter's estimate of the last given sample; steps 1.. : the forecast. Last row: "
-        "the mean of the predicted steps, the protocol's `clean/mse`.",
+        "standard error. Step 0: the filter's estimate of the last given sample; steps 1.. : the forecast. "
+        "`mean of 1-..`: the mean of the predicted steps, the protocol's `clean/mse`; below it, each column's "
+        "per-sequence score less the first column's on the same sequence (a paired difference: negative is better "
+        "than the first).",
         "",
         "| step | " + " | ".join(label for label, _, _ in columns) + " |",
         "|---:|" + "---:|" * len(columns),
@@ -130,6 +133,12 @@ def main(argv: list[str] | None = None) -> None:
     for step in range(p + 1):
         lines.append(f"| {step} | " + " | ".join(cell(e[:, k - 1 + step]) for _, e, _ in columns) + " |")
     lines.append(f"| mean of 1-{p} | " + " | ".join(cell(e[:, k:].mean(1)) for _, e, _ in columns) + " |")
+    first = columns[0][1][:, k:].mean(1)
+    lines.append(
+        f"| mean of 1-{p} less the first column's, paired | | "
+        + " | ".join(cell(e[:, k:].mean(1) - first) for _, e, _ in columns[1:])
+        + " |"
+    )
     lines.append("| seconds | " + " | ".join(f"{t:.0f}" for _, _, t in columns) + " |")
     samples = sorted({t for t in FILTER_SAMPLES if t < k} | {k})
     lines += [

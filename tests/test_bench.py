@@ -638,7 +638,7 @@ def test_lorenz_error_by_step_averages_to_the_protocol_score(tmp_path):
                 tables[-1].append([c.strip() for c in line.strip("|").split("|")])
             elif tables[-1]:
                 tables.append([])
-        return [{r[0]: [float(c.split("±")[0]) for c in r[1:]] for r in t[2:]} for t in tables if t]
+        return [{r[0]: [float(c.split("±")[0]) for c in r[1:] if c] for r in t[2:]} for t in tables if t]
 
     ckpt = ROOT / "pretrained/lorenz_T1000.ckpt"
     out = tmp_path / "by_step.md"
@@ -651,6 +651,8 @@ def test_lorenz_error_by_step_averages_to_the_protocol_score(tmp_path):
     assert along["100"] == pytest.approx(short_steps["0"], rel=1e-3, abs=1e-4)
     assert along["100"] != steps["0"]
     mean = steps["mean of 1-10"][0]
+    paired = steps.pop("mean of 1-10 less the first column's, paired")  # the true model's score less the SSM's
+    assert paired == pytest.approx([steps["mean of 1-10"][1] - mean], abs=2e-4)
     step0_ssm, step0_true = steps["0"]
     assert step0_true < step0_ssm
     subprocess.run(
