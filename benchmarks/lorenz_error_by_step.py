@@ -15,7 +15,8 @@ the predicted steps is the protocol's ``clean/mse``; each column after the first
 first column's, paired over the same sequences (± its standard error: whether two SSMs differ). Step 0 is what the filter leaves; the growth over the predicted
 steps is what iterating ``f`` from that state adds (for the oracle, only the doubt about the unmeasured y and z, grown
 by the true dynamics). A second table follows the filter along the given samples (the same squared error of its
-estimate of x at sample t, the measurements up to t filtered): how fast each filter settles, and where.
+estimate of x at sample t, the measurements up to t filtered, and its mean over the samples after the first 250,
+paired as above): how fast each filter settles, and where.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ BATCH = 200
 
 # the given samples (1-based) at which the second table reads the filter, those up to n_filter, and n_filter itself
 FILTER_SAMPLES = (1, 10, 100, 250, 500, 750, 1000, 1250, 1500, 1750)
+SETTLED = 250  # samples after which the second table also averages each sequence's errors (the filters have settled)
 
 
 @torch.inference_mode()
@@ -144,12 +146,21 @@ def main(argv: list[str] | None = None) -> None:
     lines += [
         "",
         f"The filter along the given samples: the squared error of its estimate of x at sample t (1-based; t = {k} is "
-        "step 0 above), the measurements up to t filtered, the same sequences.",
+        f"step 0 above), the measurements up to t filtered, the same sequences; below, each sequence's mean over the "
+        f"samples after the first {SETTLED} (the filters settled), and that less the first column's (paired).",
         "",
         "| sample t | " + " | ".join(label for label, _, _ in columns) + " |",
         "|---:|" + "---:|" * len(columns),
         *(f"| {t} | " + " | ".join(cell(e[:, t - 1]) for _, e, _ in columns) + " |" for t in samples),
     ]
+    if k > SETTLED:  # each sequence's mean over the samples after the filters have settled, then paired
+        late = [e[:, SETTLED:k].mean(1) for _, e, _ in columns]
+        lines += [
+            f"| mean of {SETTLED + 1}-{k} | " + " | ".join(cell(v) for v in late) + " |",
+            f"| mean of {SETTLED + 1}-{k} less the first column's, paired | | "
+            + " | ".join(cell(v - late[0]) for v in late[1:])
+            + " |",
+        ]
     write(ROOT / args.out, lines)
 
 
