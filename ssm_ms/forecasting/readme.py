@@ -225,6 +225,12 @@ def full_size(results: Results) -> list[str]:
                 (("lorenz_T1000", "ukf"),),
                 ("repeat the last estimate", "lorenz_T1000", "ukf", "last"),
             ),
+            Group(
+                "Lorenz (Table 4), T = 10,000: 10-step MSE of x, original units",
+                (LORENZ,),
+                (("lorenz_T10000", "ukf"),),
+                ("repeat the last estimate", "lorenz_T10000", "ukf", "last"),
+            ),
         ],
         with_valid=True,
     )
