@@ -12,9 +12,9 @@ Each SSM ``--ssm`` runs the protocol of the UKF stage ``--config`` (its filter s
 squared error of x against the noiseless x in original units at step 0 (the filter's estimate of the last given
 sample) and at each predicted step, averaged over the test sequences (± the standard error of that mean). The mean of
 the predicted steps is the protocol's ``clean/mse``; each column after the first also gets that score less the
-first column's, paired over the same sequences (± its standard error: whether two SSMs differ). Step 0 is what the filter leaves; the growth over the predicted
-steps is what iterating ``f`` from that state adds (for the oracle, only the doubt about the unmeasured y and z, grown
-by the true dynamics). A second table follows the filter along the given samples (the same squared error of its
+first column's, paired over the same sequences (± its standard error: whether two SSMs differ). Step 0 is what the
+filter leaves; the growth over the predicted steps is what iterating ``f`` from that state adds (for the oracle, only
+the doubt about the unmeasured y and z, grown by the true dynamics). A second table follows the filter along the given samples (the same squared error of its
 estimate of x at sample t, the measurements up to t filtered, and its mean over the samples after the first 250,
 paired as above): how fast each filter settles, and where.
 """
@@ -115,6 +115,15 @@ def main(argv: list[str] | None = None) -> None:
     def cell(v: torch.Tensor) -> str:
         return f"{v.mean():.4f} ± {v.std() / n**0.5:.4f}"
 
+    def mean_rows(label: str, per_sequence: list[torch.Tensor]) -> list[str]:
+        """The columns' per-sequence values averaged, then each later column's less the first's (paired)."""
+        return [
+            f"| {label} | " + " | ".join(cell(v) for v in per_sequence) + " |",
+            f"| {label} less the first column's, paired | | "
+            + " | ".join(cell(v - per_sequence[0]) for v in per_sequence[1:])
+            + " |",
+        ]
+
     lines = [
         "# Lorenz, Table 4's score split by step: the filter's state (step 0) and the forecast's growth (one run)",
         "",
@@ -134,13 +143,7 @@ def main(argv: list[str] | None = None) -> None:
     ]
     for step in range(p + 1):
         lines.append(f"| {step} | " + " | ".join(cell(e[:, k - 1 + step]) for _, e, _ in columns) + " |")
-    lines.append(f"| mean of 1-{p} | " + " | ".join(cell(e[:, k:].mean(1)) for _, e, _ in columns) + " |")
-    first = columns[0][1][:, k:].mean(1)
-    lines.append(
-        f"| mean of 1-{p} less the first column's, paired | | "
-        + " | ".join(cell(e[:, k:].mean(1) - first) for _, e, _ in columns[1:])
-        + " |"
-    )
+    lines += mean_rows(f"mean of 1-{p}", [e[:, k:].mean(1) for _, e, _ in columns])
     lines.append("| seconds | " + " | ".join(f"{t:.0f}" for _, _, t in columns) + " |")
     samples = sorted({t for t in FILTER_SAMPLES if t < k} | {k})
     lines += [
@@ -153,14 +156,8 @@ def main(argv: list[str] | None = None) -> None:
         "|---:|" + "---:|" * len(columns),
         *(f"| {t} | " + " | ".join(cell(e[:, t - 1]) for _, e, _ in columns) + " |" for t in samples),
     ]
-    if k > SETTLED:  # each sequence's mean over the samples after the filters have settled, then paired
-        late = [e[:, SETTLED:k].mean(1) for _, e, _ in columns]
-        lines += [
-            f"| mean of {SETTLED + 1}-{k} | " + " | ".join(cell(v) for v in late) + " |",
-            f"| mean of {SETTLED + 1}-{k} less the first column's, paired | | "
-            + " | ".join(cell(v - late[0]) for v in late[1:])
-            + " |",
-        ]
+    if k > SETTLED:  # each sequence's mean over the samples after the filters have settled
+        lines += mean_rows(f"mean of {SETTLED + 1}-{k}", [e[:, SETTLED:k].mean(1) for _, e, _ in columns])
     write(ROOT / args.out, lines)
 
 

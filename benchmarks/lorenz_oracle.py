@@ -60,8 +60,9 @@ def oracle_filter(
     dm: LorenzDataModule, y: torch.Tensor, n_filter: int, noise: float, particles: int = 0
 ) -> torch.Tensor:
     """The true model's filter over ``y[:, :n_filter]`` (``[B, T, 1]``, original units, float64): its filtered means
-    of the state at each of those samples, ``[B, n_filter, 3]``. ``particles`` 0: the UKF, ``noise`` its process variance; else a bootstrap particle
-    filter of that many particles per sequence, ``noise`` its process std (seeded)."""
+    of the state at each of those samples, ``[B, n_filter, 3]``. ``particles`` 0: the UKF, ``noise`` its process
+    variance; else a bootstrap particle filter of that many particles per sequence, ``noise`` its process std
+    (seeded)."""
     f, g = dm.true_transition(), lambda x: x[:, :1]
     init_var = dm.init_range**2 / 3.0  # the variance of the uniform initial states
     if particles:

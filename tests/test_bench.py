@@ -622,8 +622,8 @@ def test_lorenz_error_by_step_averages_to_the_protocol_score(tmp_path):
 
     from benchmarks import lorenz_error_by_step
 
-    def run(n_filter: int) -> list[dict[str, list[float]]]:
-        """The script on the first ``n_filter`` samples: its tables, each ``{first cell: [column means]}``."""
+    def run(n_filter: int) -> tuple[Path, list[dict[str, list[float]]]]:
+        """The script on the first ``n_filter`` samples: its config and tables, each ``{first cell: [column means]}``."""
         config = tmp_path / f"ukf{n_filter}.yaml"
         config.write_text(
             f"config: {ROOT / 'configs/lorenz_T1000_ukf.yaml'}\n"
@@ -638,13 +638,12 @@ def test_lorenz_error_by_step_averages_to_the_protocol_score(tmp_path):
                 tables[-1].append([c.strip() for c in line.strip("|").split("|")])
             elif tables[-1]:
                 tables.append([])
-        return [{r[0]: [float(c.split("±")[0]) for c in r[1:] if c] for r in t[2:]} for t in tables if t]
+        return config, [{r[0]: [float(c.split("±")[0]) for c in r[1:] if c] for r in t[2:]} for t in tables if t]
 
     ckpt = ROOT / "pretrained/lorenz_T1000.ckpt"
     out = tmp_path / "by_step.md"
-    short_steps, _ = run(100)
-    steps, along = run(290)
-    config = tmp_path / "ukf290.yaml"
+    _, (short_steps, _) = run(100)
+    config, (steps, along) = run(290)
     assert [str(step) for step in range(11)] == [k for k in steps if k.isdigit()]
     assert list(along)[:5] == ["1", "10", "100", "250", "290"]
     late = along.pop("mean of 251-290 less the first column's, paired")  # the true model's less the SSM's
