@@ -34,7 +34,8 @@ What the command line adds to Lightning's:
   message.
 - **Progress.** Where a config has a progress bar and names none, it is :class:`ssm_ms.progress.RunProgressBar`:
   Lightning's bar, also saying the epoch count and the time the remaining epochs take (``Epoch 445/1000, ~3.9 h
-  to go``).
+  to go``); where stdout is not a terminal (``> run.log``), plain lines, one per epoch. Lightning's advertisements
+  and a deprecation warning it triggers are left out (:func:`ssm_ms.runtime.console.quiet_lightning`).
 - **Counts of batches.** ``--trainer.limit_val_batches 1`` is one batch and ``1.0`` all of them, as Lightning documents
   (an int counts batches, a float is a fraction; the same for ``limit_{train,test,predict}_batches`` and
   ``overfit_batches``): :func:`counts_before_fractions` undoes a reordering that made the parser read the int 1 as
@@ -69,6 +70,7 @@ from omegaconf.errors import InterpolationResolutionError
 
 from ssm_ms.checkpointing import EpochCheckpoint, read_checkpoint
 from ssm_ms.progress import RunProgressBar
+from ssm_ms.runtime.console import quiet_lightning
 from ssm_ms.runtime.perf import configure_allocator
 
 TRACEBACK_ENV = "SSM_MS_TRACEBACK"
@@ -380,6 +382,7 @@ def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     """
     configure_allocator()  # large CPU tensors: reuse freed memory instead of page-faulting it back
     show_package_log()
+    quiet_lightning()  # Lightning's advertisements and a deprecation warning it triggers: nothing to act on
     # interpolation paths are written from the config's root (the subcommand's level)
     set_parsing_settings(omegaconf_absolute_to_relative_paths=True)
     counts_before_fractions()

@@ -652,7 +652,7 @@ def test_a_fit_shows_the_epochs_and_time_to_go(tmp_path):
     across epoch 2 (the process paused), 6 epochs, a window of three."""
     from ssm_ms.progress import RunProgressBar, duration
 
-    bar = RunProgressBar(window=3)
+    bar = RunProgressBar(window=3, mode="bar")  # pytest captures stdout: "auto" would write lines
     ticks = iter([0, 60, 120, 600, 660, 720])  # each epoch's start: epoch 2 took 480 s
     bar._clock = lambda: next(ticks)
     seen = []
@@ -673,7 +673,7 @@ def test_a_fit_shows_the_epochs_and_time_to_go(tmp_path):
         "Epoch 4/6, ~2 min to go",  # median(60, 480, 60) x 2
         "Epoch 5/6, ~60 s to go",  # median(480, 60, 60) x 1
     ]
-    assert [duration(s) for s in (45, 720, 14040, 216000)] == ["45 s", "12 min", "3.9 h", "2.5 days"]
+    assert [duration(s) for s in (1.4, 45, 720, 14040, 216000)] == ["1.4 s", "45 s", "12 min", "3.9 h", "2.5 days"]
     cli = main(["--config", str(ROOT / "configs" / "cpu" / "pendulum.yaml"), "--trainer.logger", "false"], run=False)
     assert sum(isinstance(c, RunProgressBar) for c in cli.trainer.callbacks) == 1
     quiet = ["--trainer.enable_progress_bar", "false"]
