@@ -2,7 +2,8 @@
 
 Used by :mod:`datamodules.files` (a user's recorded trajectories) and by
 :meth:`datamodules.base.TrajectoryDataModule.load_predict` (sequences to forecast); it imports nothing of
-either, so neither imports the other to read an array.
+either, so neither imports the other to read an array. A file holds ``N`` trajectories ``[N, T, ...]`` or, where
+``one_recording`` is allowed (training files), a single recording ``[T]`` / ``[T, D]``, served as ``[1, T, D]``.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 LAYOUTS = "[N, T, D] vectors, [N, T, H, W] grey images or [N, T, C, H, W] images"
+RECORDING_LAYOUTS = "[T] or [T, D] one recording, " + LAYOUTS
 
 
 @dataclass(frozen=True)
@@ -101,20 +103,26 @@ def open_array(h: ArrayHeader) -> np.ndarray:
         return npz[h.key]
 
 
-def check_header(h: ArrayHeader, what: str) -> None:
-    """Refuse arrays that cannot be trajectories: object arrays, non-numeric dtypes, other ranks, empty ones."""
+def check_header(h: ArrayHeader, what: str, one_recording: bool = False) -> None:
+    """Refuse arrays that cannot be trajectories: object arrays, non-numeric dtypes, other ranks, empty ones.
+    ``one_recording``: a single recording ``[T]`` or ``[T, D]`` is accepted too."""
+    layouts = RECORDING_LAYOUTS if one_recording else LAYOUTS
     if h.dtype.hasobject:
         raise ValueError(
-            f"{what}: {h.label} is an object array (ragged trajectories or a pickled list): all trajectories "
-            "must have the same length T; pad or cut them and save one numeric array "
-            f"({LAYOUTS})"
+            f"{what}: {h.label} is an object array (ragged trajectories or a pickled list): save each set of "
+            f"recordings of one length as one numeric array ({layouts}), each in its own file, and give the files "
+            "as a list"
         )
     if h.dtype.kind not in "biuf":
         raise ValueError(f"{what}: {h.label} has dtype {h.dtype}; expected a real numeric (float, int or uint8) array")
-    if len(h.shape) not in (3, 4, 5):
-        hint = " (scalar measurements [N, T]: add a trailing axis, y[..., None])" if len(h.shape) == 2 else ""
+    if len(h.shape) not in ((1, 2, 3, 4, 5) if one_recording else (3, 4, 5)):
+        hint = (
+            " (scalar measurements [N, T]: add a trailing axis, y[..., None])"
+            if len(h.shape) == 2 and not one_recording
+            else ""
+        )
         raise ValueError(
-            f"{what}: {h.label} has shape {h.shape} (rank {len(h.shape)}); accepted layouts: {LAYOUTS}{hint}"
+            f"{what}: {h.label} has shape {h.shape} (rank {len(h.shape)}); accepted layouts: {layouts}{hint}"
         )
     if 0 in h.shape:
         raise ValueError(
@@ -124,8 +132,14 @@ def check_header(h: ArrayHeader, what: str) -> None:
 
 
 def served_shape(shape: tuple[int, ...]) -> tuple[int, ...]:
-    """``[N, T, H, W]`` files are served channel-first as ``[N, T, 1, H, W]``."""
-    return (shape[0], shape[1], 1, *shape[2:]) if len(shape) == 4 else tuple(shape)
+    """The served layout ``[N, T, *obs]`` of an array: one recording ``[T]`` / ``[T, D]`` as ``[1, T, 1]`` /
+    ``[1, T, D]``, grey images ``[N, T, H, W]`` channel-first as ``[N, T, 1, H, W]``."""
+    shape = tuple(shape)
+    if len(shape) == 1:
+        return (1, shape[0], 1)
+    if len(shape) == 2:
+        return (1, *shape)
+    return (shape[0], shape[1], 1, *shape[2:]) if len(shape) == 4 else shape
 
 
 def concat_shape(heads: list[ArrayHeader], what: str) -> tuple[int, ...]:
@@ -141,38 +155,62 @@ def concat_shape(heads: list[ArrayHeader], what: str) -> tuple[int, ...]:
     return (sum(h.shape[0] for h in heads), *first[1:])
 
 
-def stream_headers(heads: list[ArrayHeader], key: str, first: str, what: str) -> list[ArrayHeader]:
+def stream_headers(
+    heads: list[ArrayHeader], key: str, first: str, what: str, one_recording: bool = False
+) -> list[ArrayHeader]:
     """A further sensor's array ``key`` in the ``.npz`` files of ``heads`` (the first sensor's, named ``first``),
     checked: one per file, numeric, with the first sensor's ``N`` and ``T`` (a sample slot per step, NaN where the
-    sensor has none)."""
+    sensor has none). ``one_recording``: as :func:`check_header`'s."""
     streams = []
     for h in heads:
         if h.key is None:
             raise ValueError(f"{what}: several sensors are read from .npz files holding them all, not {h.path}")
         s = read_header(h.path, key, what)
-        check_header(s, what)
-        if tuple(s.shape[:2]) != tuple(h.shape[:2]):
+        check_header(s, what, one_recording)
+        if served_shape(s.shape)[:2] != served_shape(h.shape)[:2]:
             raise ValueError(
-                f"{what}: {s.label} holds {s.shape[:2]} (N, T) but '{first}' holds {h.shape[:2]}: "
-                "every sensor of a trajectory has a sample slot per step (NaN where it has none)"
+                f"{what}: {s.label} holds {served_shape(s.shape)[:2]} (N, T) but '{first}' holds "
+                f"{served_shape(h.shape)[:2]}: every sensor of a trajectory has a sample slot per step (NaN where it "
+                "has none)"
             )
         streams.append(s)
     return streams
 
 
-def load_files(heads: list[ArrayHeader], missing: bool = False) -> np.ndarray:
-    """The arrays of headers, checked finite (with ``missing``: NaN allowed, the samples a sensor did not take; inf
-    refused), served layout, concatenated along ``N`` (one file stays mapped)."""
+def harmonise(arrays: list[np.ndarray]) -> list[np.ndarray]:
+    """Arrays of one kind of measurement in one dtype: as they are where they share one, else float32 with the uint8
+    ones mapped to [0, 1] (images stored as 0..255, as they are served)."""
+    if len({a.dtype for a in arrays}) <= 1:
+        return arrays
+    return [a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32) for a in arrays]
+
+
+def stored_dtype(dtype: np.dtype) -> np.dtype:
+    """The dtype an array is held in once copied: uint8 stays (images, served in [0, 1]), anything else float32 (as
+    it is served)."""
+    return np.dtype(np.uint8) if np.dtype(dtype) == np.uint8 else np.dtype(np.float32)
+
+
+def open_files(heads: list[ArrayHeader], missing: bool = False) -> list[np.ndarray]:
+    """The arrays of headers, each checked finite (with ``missing``: NaN allowed, the samples a sensor did not take;
+    inf refused), in the served layout ``[N, T, *obs]`` (memory-mapped where the file allows it), in one dtype
+    (:func:`harmonise`)."""
     arrays = []
     for h in heads:
         a = open_array(h)
         check_finite(h.label, a, missing=missing)
-        arrays.append(a.reshape(served_shape(a.shape)) if a.ndim == 4 else a)
+        shape = served_shape(a.shape)
+        arrays.append(a.reshape(shape) if a.shape != shape else a)
+    return harmonise(arrays)
+
+
+def load_files(heads: list[ArrayHeader], missing: bool = False) -> np.ndarray:
+    """The arrays of :func:`open_files` concatenated along ``N`` (one file stays mapped; several are concatenated,
+    float32 where they are floats)."""
+    arrays = open_files(heads, missing)
     if len(arrays) == 1:
         return arrays[0]
-    if len({a.dtype for a in arrays}) > 1:  # e.g. uint8 with float files: bring all to float32 in [0, 1]
-        arrays = [a.astype(np.float32) / 255.0 if a.dtype == np.uint8 else a.astype(np.float32) for a in arrays]
-    elif arrays[0].dtype.kind == "f" and arrays[0].dtype != np.float32:
+    if arrays[0].dtype.kind == "f" and arrays[0].dtype != np.float32:
         arrays = [a.astype(np.float32) for a in arrays]
     return np.concatenate(arrays)
 

@@ -1,30 +1,46 @@
 """A user's own recorded trajectories, from ``.npy`` / ``.npz`` files.
 
-Accepted layouts (``N`` trajectories of ``T`` samples each):
+Accepted layouts of a file (``N`` trajectories of ``T`` samples each):
 
+- ``[T]`` or ``[T, D]``: one recording, served with ``obs_shape = (1,)`` / ``(D,)``;
 - ``[N, T, D]`` vectors, served with ``obs_shape = (D,)``;
 - ``[N, T, H, W]`` grey images, served as ``(1, H, W)``;
 - ``[N, T, C, H, W]`` images, served as ``(C, H, W)``.
 
 ``uint8`` arrays are images stored as 0..255 and are served in [0, 1]; other numeric arrays are
-served as float32. Several files of one split are concatenated along ``N``. The array headers are
-read at construction (nothing else), so the number of training trajectories is known before any
-data are loaded; the data are read in :meth:`setup`, memory-mapped where the file allows it (``.npy``
-and uncompressed ``.npz``, i.e. ``numpy.save`` / ``numpy.savez``; ``numpy.savez_compressed`` files
-are read into memory). Several files of one split are concatenated in memory (as float32 when their
-dtypes differ, uint8 parts mapped to [0, 1]); a single file stays memory-mapped.
+served as float32. The array headers are read at construction (nothing else), so the number of
+training trajectories is known before any data are loaded; the data are read in :meth:`setup`.
+
+Every trajectory of every file of a split is a recording. Several recordings of one length are served as
+they are: several files of one split are concatenated along ``N`` (in memory, as float32 when their
+dtypes differ, uint8 parts mapped to [0, 1]); a single file stays memory-mapped where the file allows it
+(``.npy`` and uncompressed ``.npz``, i.e. ``numpy.save`` / ``numpy.savez``; ``numpy.savez_compressed``
+files are read into memory). One recording, recordings of different lengths, or any recordings given a
+``window`` are cut into windows of one length (:mod:`datamodules.windows`; the windows are copied into
+memory): each window is a training trajectory, with its own shooting nodes.
 """
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from torch.utils.data import DataLoader
 
-from datamodules.arrays import ArrayHeader, check_header, concat_shape, load_files, read_header, stream_headers
+from datamodules.arrays import (
+    ArrayHeader,
+    check_header,
+    load_files,
+    open_files,
+    read_header,
+    served_shape,
+    stored_dtype,
+    stream_headers,
+)
 from datamodules.base import TrajectoryDataModule, TrajectoryDataset
+from datamodules.windows import Windows, cut_windows
 
 
 def _as_list(paths: str | list[str] | None) -> list[str]:
@@ -33,11 +49,38 @@ def _as_list(paths: str | list[str] | None) -> list[str]:
     return [paths] if isinstance(paths, (str, Path)) else [str(p) for p in paths]
 
 
+def _obs(heads: list[ArrayHeader], what: str) -> tuple[int, ...]:
+    """The served sample shape of the recordings of ``heads``, checked to be the same in every file."""
+    first = served_shape(heads[0].shape)[2:]
+    for h in heads[1:]:
+        other = served_shape(h.shape)[2:]
+        if other != first:
+            raise ValueError(
+                f"{what}: {h.label} holds samples of shape {other} but {heads[0].label} holds {first} (served layout "
+                "[N, T, *obs]); the recordings of one split must hold the same kind of measurement"
+            )
+    return first
+
+
+def _lengths(heads: list[ArrayHeader]) -> list[int]:
+    """The length of every recording of ``heads``, file after file (each trajectory of a file is one)."""
+    return [served_shape(h.shape)[1] for h in heads for _ in range(served_shape(h.shape)[0])]
+
+
+def _shape_of(heads: list[ArrayHeader]) -> tuple[int, ...] | list[tuple[int, ...]]:
+    """The served shape of files concatenated, ``[N, T, *obs]``; where their lengths differ, each file's."""
+    shapes = [served_shape(h.shape) for h in heads]
+    if len({s[1:] for s in shapes}) == 1:
+        return (sum(s[0] for s in shapes), *shapes[0][1:])
+    return shapes
+
+
 class FileDataModule(TrajectoryDataModule):
     """Trajectories recorded by the user, from ``.npy`` / ``.npz`` files.
 
     Args:
-        train_path: a file or a list of files (concatenated along N) of training trajectories.
+        train_path: a file or a list of files of training recordings (see the module's docstring: recordings of one
+            length are concatenated along N, others cut into windows).
         val_path: optional validation files (checked and normalised with the training statistics).
             Lightning's validation loop runs on them for every model that forecasts from measurements
             (the baselines). A model whose validation needs the training trajectories' own states
@@ -52,15 +95,24 @@ class FileDataModule(TrajectoryDataModule):
         noise_std: several sensors: each stream's noise standard deviation, ``{name: std}``, which weighs the fit
             (the maximum-likelihood weighting, each stream by ``1 / std^2``); a stream not named weighs 1.
         clean_key: optional name of the noiseless targets (``y_clean``) inside the same ``.npz`` files.
-        input_key: optional name of the inputs ``u [N, T, m]`` inside the same ``.npz`` files, for a system driven
-            by them (torques, voltages): ``u[:, t]`` acts between samples ``t`` and ``t + 1``, the model learns
-            ``x[t+1] = f(x[t], u[t])`` (give ``f`` ``input_dim: m``). Every file of every split must hold it, with
-            the measurements' N and T, finite, in a float or signed integer dtype; normalised like the measurements
-            (per component, training statistics, kept in checkpoints) when ``normalize`` is on.
-        train_clean_path, val_clean_path, test_clean_path: noiseless targets in separate files (same
-            shape as the measurements once concatenated; ``.npz`` read at ``clean_key`` or else ``key``).
-        test_fraction: hold out the last ``round(test_fraction * N)`` training trajectories as the test
-            split (only without ``test_path``).
+        input_key: optional name of the inputs ``u`` inside the same ``.npz`` files (``[N, T, m]`` beside ``[N, T,
+            ...]`` measurements, ``[T, m]`` beside one recording), for a system driven by them (torques,
+            voltages): ``u[:, t]`` acts between samples ``t`` and ``t + 1``, the model learns ``x[t+1] = f(x[t],
+            u[t])`` (give ``f`` ``input_dim: m``). Every file of every split must hold it, with the measurements' N
+            and T, finite, in a float or signed integer dtype; normalised like the measurements (per component,
+            training statistics, kept in checkpoints) when ``normalize`` is on.
+        train_clean_path, val_clean_path, test_clean_path: noiseless targets in separate files (the measurements'
+            recordings, of the same shapes, once concatenated; ``.npz`` read at ``clean_key`` or else ``key``).
+        window: samples per training trajectory where the recordings are cut into windows (every split's files are
+            cut alike; :mod:`datamodules.windows`). Default: several recordings of one length are served whole; one
+            recording, or recordings of different lengths, are cut into windows of the shortest recording's length,
+            at most 200 and rounded down to a multiple of 10. A recording shorter than the window gives none (a
+            warning says which).
+        stride: samples between the starts of a recording's windows (default: the window, windows side by side; a
+            last window ends at the recording's end). A stride below the window gives overlapping windows, more
+            training trajectories from the same samples.
+        test_fraction: hold out the last ``round(test_fraction * N)`` training trajectories (windows) as the test
+            split (only without ``test_path``); training windows that share samples with a held-out one are dropped.
         seed: seed of the shuffling.
         **kwargs: the :class:`~datamodules.base.TrajectoryDataModule` arguments (``batch_size``,
             ``eval_batch_size``, ``num_workers``, ``val_trajectories``, ``normalize``, ``shuffle``;
@@ -81,6 +133,8 @@ class FileDataModule(TrajectoryDataModule):
         train_clean_path: str | list[str] | None = None,
         val_clean_path: str | list[str] | None = None,
         test_clean_path: str | list[str] | None = None,
+        window: int | None = None,
+        stride: int | None = None,
         test_fraction: float = 0.0,
         seed: int = 0,
         **kwargs: Any,
@@ -112,12 +166,15 @@ class FileDataModule(TrajectoryDataModule):
             if self.clean_paths[split] and not self.paths[split]:
                 raise ValueError(f"{split}_clean_path is given but {split}_path is not")
         self.test_fraction = float(test_fraction)
+        self.window, self.stride = window, stride
 
-        # Headers only: shapes, dtypes, clean targets; every check that needs no data happens here.
+        # Headers only: shapes, dtypes, clean targets, windows; every check that needs no data happens here.
         self.headers: dict[str, list[ArrayHeader]] = {}
         self.clean_headers: dict[str, list[ArrayHeader]] = {}
         self.input_headers: dict[str, list[ArrayHeader]] = {}
         self.stream_headers: dict[str, dict[str, list[ArrayHeader]]] = {}  # several sensors: the other streams
+        self.stream_obs: dict[str, tuple[int, ...]] = {}  # several sensors: each stream's served sample shape
+        self.windows: dict[str, Windows] = {}  # each split's windows (``whole``: its recordings served as they are)
         self.shapes: dict[str, tuple[int, ...]] = {}  # served shape of each split, [N, T, *obs_shape]
         for split, files in self.paths.items():
             if files:
@@ -127,7 +184,9 @@ class FileDataModule(TrajectoryDataModule):
         )
         n = self.shapes["train"][0]
         self.n_holdout = max(1, int(round(n * test_fraction))) if test_fraction > 0 else 0
-        if self.n_holdout >= n:
+        # the training and held-out test windows of the training files
+        self.holdout = self.windows["train"].split_last(self.n_holdout) if self.n_holdout else None
+        if self.holdout is not None and len(self.holdout[0]) == 0:
             raise ValueError(
                 f"test_fraction={test_fraction} holds out {self.n_holdout} of the {n} training trajectories and "
                 "leaves none to train on; lower it"
@@ -139,15 +198,14 @@ class FileDataModule(TrajectoryDataModule):
         what = f"{split}_path"
         heads = [read_header(p, self.key, what) for p in self.paths[split]]
         for h in heads:
-            check_header(h, what)
-        shape = concat_shape(heads, what)
-        if split != "train":
-            obs, train_obs = shape[2:], self.shapes["train"][2:]
-            if obs != train_obs:
-                raise ValueError(
-                    f"{what}: observations of shape {obs} do not match the training observations {train_obs} "
-                    f"(served layout [N, T, *obs]); every split must hold the same kind of measurement"
-                )
+            check_header(h, what, one_recording=True)
+        obs = _obs(heads, what)
+        if split != "train" and obs != self.shapes["train"][2:]:
+            raise ValueError(
+                f"{what}: observations of shape {obs} do not match the training observations "
+                f"{self.shapes['train'][2:]} (served layout [N, T, *obs]); every split must hold the same kind of "
+                "measurement"
+            )
         if self.clean_paths[split]:
             what_clean = f"{split}_clean_path"
             clean = [read_header(p, self.clean_key or self.key, what_clean) for p in self.clean_paths[split]]
@@ -165,25 +223,28 @@ class FileDataModule(TrajectoryDataModule):
             clean = []
         if clean:
             for h in clean:
-                check_header(h, what_clean)
-            clean_shape = concat_shape(clean, what_clean)
-            if clean_shape != shape:
+                check_header(h, what_clean, one_recording=True)
+            if _lengths(clean) != _lengths(heads) or _obs(clean, what_clean) != obs:
                 raise ValueError(
-                    f"{what_clean}: the clean targets have shape {clean_shape} but the measurements have shape "
-                    f"{shape}: clean targets must have exactly the measurements' shape"
+                    f"{what_clean}: the clean targets have shape {_shape_of(clean)} but the measurements have shape "
+                    f"{_shape_of(heads)}: clean targets must have exactly the measurements' shape"
                 )
-        self.input_headers[split] = self._input_headers(split, heads, shape) if self.input_key else []
+        windows = cut_windows(_lengths(heads), self.window, self.stride, what)
+        if windows.note(what):
+            warnings.warn(windows.note(what), stacklevel=3)
+        self.input_headers[split] = self._input_headers(split, heads) if self.input_key else []
         self.stream_headers[split] = {key: self._stream_headers(split, key, heads) for key in self.keys[1:]}
-        self.headers[split], self.clean_headers[split], self.shapes[split] = heads, clean, shape
+        self.headers[split], self.clean_headers[split], self.windows[split] = heads, clean, windows
+        self.shapes[split] = (len(windows), windows.window, *obs)
 
     def _stream_headers(self, split: str, key: str, heads: list[ArrayHeader]) -> list[ArrayHeader]:
         """A further sensor's headers in a split's files, checked beside the first stream's (same N and T)."""
         what = f"stream '{key}' of {split}_path"
-        streams = stream_headers(heads, key, self.key, what)
-        if (
-            split != "train"
-            and concat_shape(streams, what)[2:] != concat_shape(self.stream_headers["train"][key], what)[2:]
-        ):
+        streams = stream_headers(heads, key, self.key, what, one_recording=True)
+        obs = _obs(streams, what)
+        if split == "train":
+            self.stream_obs[key] = obs
+        elif obs != self.stream_obs[key]:
             raise ValueError(f"{what}: its samples' shape differs from the training files'")
         return streams
 
@@ -192,13 +253,12 @@ class FileDataModule(TrajectoryDataModule):
         """Several sensors: the streams of ``key`` in order, their shapes as served and ``noise_std``."""
         if len(self.keys) == 1:
             return None
-        shapes = {self.keys[0]: tuple(self.shapes["train"][2:])}
-        for key in self.keys[1:]:
-            shapes[key] = tuple(concat_shape(self.stream_headers["train"][key], f"stream '{key}'")[2:])
+        shapes = {self.keys[0]: tuple(self.shapes["train"][2:]), **self.stream_obs}
         return [{"name": k, "shape": list(shapes[k]), "noise_std": self.noise_std.get(k, 1.0)} for k in self.keys]
 
-    def _input_headers(self, split: str, heads: list[ArrayHeader], shape: tuple[int, ...]) -> list[ArrayHeader]:
-        """The inputs' headers of a split's files, checked: one ``[N, T, m]`` array per file beside ``y``."""
+    def _input_headers(self, split: str, heads: list[ArrayHeader]) -> list[ArrayHeader]:
+        """The inputs' headers of a split's files, checked: one array per file beside ``y``, ``[N, T, m]`` (``[T,
+        m]`` beside one recording)."""
         what = f"input_key '{self.input_key}' of {split}_path"
         inputs = []
         for h in heads:
@@ -208,21 +268,23 @@ class FileDataModule(TrajectoryDataModule):
                     ".npy file: save both with numpy.savez(path, y=..., u=...)"
                 )
             u = read_header(h.path, self.input_key, what)
-            check_header(u, what)
-            if len(u.shape) != 3 or u.dtype == np.uint8 or u.dtype.kind not in "fi":
+            check_header(u, what, one_recording=True)
+            layout = "[T, m]" if len(h.shape) <= 2 else "[N, T, m]"
+            if len(u.shape) != (2 if len(h.shape) <= 2 else 3) or u.dtype == np.uint8 or u.dtype.kind not in "fi":
                 raise ValueError(
-                    f"{what}: {u.label} must be a float (or signed integer) array [N, T, m], got "
+                    f"{what}: {u.label} must be a float (or signed integer) array {layout}, got "
                     f"shape {u.shape} and dtype {u.dtype}"
                 )
-            if tuple(u.shape[:2]) != tuple(h.shape[:2]):
+            (n_u, t_u), (n, t) = served_shape(u.shape)[:2], served_shape(h.shape)[:2]
+            if (n_u, t_u) != (n, t):
                 raise ValueError(
-                    f"{what}: {u.label} holds {u.shape[0]} trajectories of {u.shape[1]} inputs but its "
-                    f"measurements hold {h.shape[0]} of {h.shape[1]} samples: one input per sample"
+                    f"{what}: {u.label} holds {n_u} trajectories of {t_u} inputs but its "
+                    f"measurements hold {n} of {t} samples: one input per sample"
                 )
             inputs.append(u)
-        widths = {u.shape[2] for u in inputs}
+        widths = {u.shape[-1] for u in inputs}
         if len(widths) > 1 or (
-            self.input_headers.get("train") and self.input_headers["train"][0].shape[2] not in widths
+            self.input_headers.get("train") and self.input_headers["train"][0].shape[-1] not in widths
         ):
             raise ValueError(f"{what}: every file must have the same number of inputs m, got {sorted(widths)}")
         return inputs
@@ -230,7 +292,7 @@ class FileDataModule(TrajectoryDataModule):
     # ------------------------------------------------------------------ sizes known before loading
     @property
     def num_train_trajectories(self) -> int:
-        return self.shapes["train"][0] - self.n_holdout
+        return len(self.holdout[0]) if self.holdout is not None else self.shapes["train"][0]
 
     @property
     def obs_shape(self) -> tuple[int, ...]:
@@ -246,10 +308,12 @@ class FileDataModule(TrajectoryDataModule):
     @property
     def input_dim(self) -> int:
         """Inputs per step (0 without ``input_key``), known from the headers before any data are read."""
-        return int(self.input_headers["train"][0].shape[2]) if self.input_headers.get("train") else 0
+        return int(self.input_headers["train"][0].shape[-1]) if self.input_headers.get("train") else 0
 
     def generator_params(self) -> dict[str, Any]:
-        """Where the data came from (stored in checkpoints with the DataModule's state)."""
+        """Where the data came from (stored in checkpoints with the DataModule's state); ``window`` and ``stride``:
+        the training recordings' cut (``None``: served whole)."""
+        cut = self.windows["train"]
         return {
             "paths": self.paths,
             "clean_paths": self.clean_paths,
@@ -258,35 +322,44 @@ class FileDataModule(TrajectoryDataModule):
             "clean_key": self.clean_key,
             "input_key": self.input_key,
             "test_fraction": self.test_fraction,
+            "window": None if cut.whole else cut.window,
+            "stride": None if cut.whole else cut.stride,
         }
 
     # ------------------------------------------------------------------ loading
     def prepare_split(self, split: str) -> None:
         """Nothing to generate or cache: the files are read in :meth:`setup`."""
 
+    def _read(self, split: str, indices: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The arrays of a split's files, ``[N, T, *obs]``, their trajectories (windows) ``indices`` (all: None):
+        recordings served whole stay as :func:`~datamodules.arrays.load_files` reads them (memory-mapped where they
+        can be; a selection is a view), windows are cut (a copy)."""
+        sources = {"y": (self.headers[split], False)}
+        if self.clean_headers[split]:
+            sources["y_clean"] = (self.clean_headers[split], False)
+        if self.input_headers[split]:
+            sources["u"] = (self.input_headers[split], False)
+        for key, heads in self.stream_headers[split].items():  # further sensors: NaN where they did not sample
+            sources[f"y_{key}"] = (heads, True)
+        windows = self.windows[split]
+        if indices is not None:
+            windows = windows.subset(indices)
+        arrays = {}
+        for name, (heads, missing) in sources.items():
+            if self.windows[split].whole:
+                a = load_files(heads, missing)  # one window per recording: a held-out selection is contiguous
+                arrays[name] = a if indices is None else a[indices[0] : indices[-1] + 1]
+            else:
+                recordings = [a[n] for a in open_files(heads, missing) for n in range(len(a))]
+                arrays[name] = windows.gather(recordings, stored_dtype(recordings[0].dtype))
+        return arrays
+
     def _split_arrays(self, split: str) -> dict[str, np.ndarray]:
-        if split in self._arrays:
-            return self._arrays[split]
-        if split in ("train", "test") and self.n_holdout:
-            full = {"y": load_files(self.headers["train"])}
-            if self.clean_headers["train"]:
-                full["y_clean"] = load_files(self.clean_headers["train"])
-            if self.input_headers["train"]:
-                full["u"] = load_files(self.input_headers["train"])
-            for key, heads in self.stream_headers["train"].items():
-                full[f"y_{key}"] = load_files(heads, missing=True)
-            cut = len(full["y"]) - self.n_holdout
-            self._arrays["train"] = {k: a[:cut] for k, a in full.items()}
-            self._arrays["test"] = {k: a[cut:] for k, a in full.items()}
-        else:
-            arrays = {"y": load_files(self.headers[split])}
-            if self.clean_headers[split]:
-                arrays["y_clean"] = load_files(self.clean_headers[split])
-            if self.input_headers[split]:
-                arrays["u"] = load_files(self.input_headers[split])
-            for key, heads in self.stream_headers[split].items():
-                arrays[f"y_{key}"] = load_files(heads, missing=True)
-            self._arrays[split] = arrays
+        if split not in self._arrays:
+            if split in ("train", "test") and self.holdout is not None:
+                self._arrays[split] = self._read("train", self.holdout[0 if split == "train" else 1])
+            else:
+                self._arrays[split] = self._read(split)
         return self._arrays[split]
 
     def load_split(self, split: str) -> TrajectoryDataset:

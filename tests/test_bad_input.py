@@ -137,8 +137,8 @@ def test_nan_in_data(setup, capsys):
 
 def test_wrong_rank(setup, capsys):
     root, _ = setup
-    path = save(root, "rank2.npy", y=np.zeros((8, 12), np.float32))
-    fails(capsys, fit(root, "--data.init_args.train_path", path), 1, "rank 2", "add a trailing axis")
+    path = save(root, "rank6.npy", y=np.zeros((1, 2, 3, 4, 5, 6), np.float32))
+    fails(capsys, fit(root, "--data.init_args.train_path", path), 1, "rank 6", "accepted layouts")
 
 
 def test_ragged_trajectories(setup, capsys):
@@ -147,7 +147,7 @@ def test_ragged_trajectories(setup, capsys):
     ragged[0], ragged[1] = np.zeros((12, 2)), np.zeros((10, 2))
     path = root / "ragged.npy"
     np.save(path, ragged, allow_pickle=True)
-    fails(capsys, fit(root, "--data.init_args.train_path", str(path)), 1, "object array", "same length T")
+    fails(capsys, fit(root, "--data.init_args.train_path", str(path)), 1, "object array", "in its own file")
 
 
 def test_not_a_numpy_file(setup, capsys):

@@ -258,6 +258,119 @@ def test_arguments_are_yaml_expressible(tmp_path):
     cfg = parser.parse_string(f"data:\n  train_path: [{a}, {b}]\n  normalize: true\n  test_fraction: 0.3\n")
     dm = FileDataModule(**cfg.data.as_dict())
     assert dm.num_train_trajectories == 2
+    cfg = parser.parse_string(f"data:\n  train_path: {a}\n  window: 2\n  stride: 1\n")
+    assert FileDataModule(**cfg.data.as_dict()).num_train_trajectories == 4  # 2 recordings of 3: windows at 0, 1
+
+
+# ---------------------------------------------------------------------------- recordings cut into windows
+def windows_by_hand(recordings: list[np.ndarray], origins: list[tuple[int, int]], w: int) -> np.ndarray:
+    return np.stack([recordings[r][s : s + w] for r, s in origins])
+
+
+def test_one_recording_file_is_windowed(tmp_path):
+    y = rng().normal(size=(47, 2)).astype(np.float32)
+    u = rng(1).normal(size=(47, 1)).astype(np.float32)
+    path = save(tmp_path / "one.npz", y=y, u=u)
+    dm = FileDataModule(train_path=path, input_key="u", window=10, batch_size=3)
+    # windows of 10 at 0, 10, 20, 30, and the one ending at 47 (37)
+    origins = [(0, 0), (0, 10), (0, 20), (0, 30), (0, 37)]
+    assert dm.num_train_trajectories == 5 and dm.seq_len == 10 and dm.obs_shape == (2,) and dm.input_dim == 1
+    assert dm.windows["train"].origins.tolist() == [list(o) for o in origins]
+    assert dm.generator_params()["window"] == 10 and dm.generator_params()["stride"] == 10
+    dm.setup("fit")
+    for batch in dm.train_dataloader():
+        index = batch["index"].numpy()
+        np.testing.assert_array_equal(batch["y"].numpy(), windows_by_hand([y], origins, 10)[index])
+        np.testing.assert_array_equal(batch["u"].numpy(), windows_by_hand([u], origins, 10)[index])
+    # the default window: 47 samples rounded down to 40, at 0 and ending at 47
+    default = FileDataModule(train_path=path)
+    assert default.windows["train"].origins.tolist() == [[0, 0], [0, 7]] and default.seq_len == 40
+    # a scalar recording [T] is one recording of one component
+    scalar = FileDataModule(train_path=save(tmp_path / "s.npy", y=y[:, 0]), window=20)
+    assert scalar.obs_shape == (1,) and scalar.num_train_trajectories == 3
+    scalar.setup()
+    served = all_items(scalar.datasets["train"])
+    np.testing.assert_array_equal(served, np.stack([y[0:20, :1], y[20:40, :1], y[27:47, :1]]))
+
+
+def test_files_of_different_lengths_are_windowed(tmp_path):
+    a = rng(0).normal(size=(23, 2)).astype(np.float32)  # one recording
+    b = rng(1).normal(size=(3, 14, 2)).astype(np.float32)  # three of 14 samples
+    paths = [save(tmp_path / "a.npz", y=a, clean=a + 1), save(tmp_path / "b.npz", y=b, clean=b + 1)]
+    dm = FileDataModule(train_path=paths, clean_key="clean", batch_size=4, normalize=True)
+    # the default window: the shortest, 14, rounded down to 10; 23 -> 0, 10, 13; each 14 -> 0, 4
+    recordings = [a, *b]
+    origins = [(0, 0), (0, 10), (0, 13), (1, 0), (1, 4), (2, 0), (2, 4), (3, 0), (3, 4)]
+    assert dm.windows["train"].origins.tolist() == [list(o) for o in origins]
+    assert dm.num_train_trajectories == 9 and dm.seq_len == 10
+    dm.setup("fit")
+    y_win = windows_by_hand(recordings, origins, 10).astype(np.float64)
+    mean, std = y_win.reshape(-1, 2).mean(0), y_win.reshape(-1, 2).std(0)
+    np.testing.assert_allclose(all_items(dm.datasets["train"]), (y_win - mean) / std, atol=1e-5)
+    np.testing.assert_allclose(all_items(dm.datasets["train"], "y_clean"), (y_win + 1 - mean) / std, atol=1e-5)
+    # a window longer than some recordings leaves them out, and says so
+    with pytest.warns(UserWarning, match=r"train_path: recordings 1 \(14 samples\), 2 \(14 samples\), 3 \(14"):
+        long = FileDataModule(train_path=paths, window=15)
+    assert long.windows["train"].origins.tolist() == [[0, 0], [0, 8]]
+    with pytest.raises(ValueError, match=r"window=30 is longer than every recording \(train_path: the longest has 23"):
+        FileDataModule(train_path=paths, window=30)
+
+
+def test_recordings_of_one_length_stay_mapped_and_whole(tmp_path):
+    y = rng().normal(size=(4, 20, 2)).astype(np.float32)
+    path = save(tmp_path / "y.npy", y=y)
+    dm = FileDataModule(train_path=path)
+    assert dm.windows["train"].whole and dm.generator_params()["window"] is None
+    dm.setup()
+    assert isinstance(dm.datasets["train"].arrays["y"], np.memmap)
+    # given a window, they are cut too
+    cut = FileDataModule(train_path=path, window=8, stride=6)
+    origins = [(r, s) for r in range(4) for s in (0, 6, 12)]  # 12 + 8 = 20: no extra window
+    assert cut.windows["train"].origins.tolist() == [list(o) for o in origins]
+    cut.setup()
+    np.testing.assert_array_equal(all_items(cut.datasets["train"]), windows_by_hand(list(y), origins, 8))
+
+
+def test_test_fraction_of_windows_never_overlaps_training(tmp_path):
+    y = rng().normal(size=(40, 1)).astype(np.float32)
+    dm = FileDataModule(train_path=save(tmp_path / "y.npy", y=y), window=10, stride=5, test_fraction=0.3)
+    # windows at 0, 5, ..., 30; the last round(0.3 * 7) = 2 (25, 30) are the test split; 20 shares samples with 25
+    assert dm.num_train_trajectories == 4
+    dm.setup()
+    np.testing.assert_array_equal(
+        all_items(dm.datasets["train"]), windows_by_hand([y], [(0, s) for s in (0, 5, 10, 15)], 10)
+    )
+    np.testing.assert_array_equal(all_items(dm.datasets["test"]), windows_by_hand([y], [(0, 25), (0, 30)], 10))
+
+
+def test_one_recording_file_of_several_sensors(tmp_path):
+    pos = rng(0).normal(size=(30, 2)).astype(np.float32)
+    enc = rng(1).normal(size=(30, 1)).astype(np.float32)
+    enc[1::3] = np.nan
+    path = save(tmp_path / "rec.npz", pos=pos, enc=enc)
+    dm = FileDataModule(train_path=path, key=["pos", "enc"], window=10)
+    assert dm.obs_shape == (3,) and dm.num_train_trajectories == 3
+    assert dm.sensor_layout == [
+        {"name": "pos", "shape": [2], "noise_std": 1.0},
+        {"name": "enc", "shape": [1], "noise_std": 1.0},
+    ]
+    dm.setup()
+    packed = np.concatenate([pos, enc], -1)
+    np.testing.assert_array_equal(
+        all_items(dm.datasets["train"]), windows_by_hand([packed], [(0, 0), (0, 10), (0, 20)], 10)
+    )
+
+
+def test_inputs_beside_one_recording(tmp_path):
+    y = np.zeros((47, 2), np.float32)
+    with pytest.raises(
+        ValueError, match=r"holds 1 trajectories of 46 inputs but its measurements hold 1 of 47 samples"
+    ):
+        FileDataModule(train_path=save(tmp_path / "a.npz", y=y, u=np.zeros((46, 1), np.float32)), input_key="u")
+    with pytest.raises(
+        ValueError, match=r"must be a float \(or signed integer\) array \[T, m\], got shape \(1, 47, 1\)"
+    ):
+        FileDataModule(train_path=save(tmp_path / "b.npz", y=y, u=np.zeros((1, 47, 1), np.float32)), input_key="u")
 
 
 # ---------------------------------------------------------------------------- bad input
@@ -274,27 +387,28 @@ def test_ragged_trajectories(tmp_path):
     ragged = np.empty(2, dtype=object)
     ragged[0], ragged[1] = np.zeros((5, 2)), np.zeros((7, 2))
     np.save(tmp_path / "r.npy", ragged, allow_pickle=True)
-    with pytest.raises(ValueError, match="all trajectories must have the same length T; pad or cut them"):
+    with pytest.raises(ValueError, match="object array .*: save each set of recordings of one length as one numeric"):
         FileDataModule(train_path=str(tmp_path / "r.npy"))
     np.savez(tmp_path / "r.npz", y=ragged)  # a pickled list inside an .npz
-    with pytest.raises(ValueError, match=r"r\.npz.*same length T; pad or cut them"):
+    with pytest.raises(ValueError, match=r"r\.npz.*object array.*in its own file, and give the files as a list"):
         FileDataModule(train_path=str(tmp_path / "r.npz"))
 
 
-@pytest.mark.parametrize("shape", [(5,), (4, 6), (1, 2, 3, 4, 5, 6)])
+@pytest.mark.parametrize("shape", [(1, 2, 3, 4, 5, 6), ()])
 def test_wrong_rank(tmp_path, shape):
     path = save(tmp_path / "w.npy", y=np.zeros(shape, np.float32))
     with pytest.raises(
-        ValueError, match=rf"shape {re.escape(str(shape))}.*accepted layouts: \[N, T, D\] vectors, \[N, T, H, W\]"
+        ValueError,
+        match=rf"shape {re.escape(str(shape))}.*accepted layouts: \[T\] or \[T, D\] one recording, \[N, T, D\] vectors",
     ):
         FileDataModule(train_path=path)
 
 
 def test_mismatched_shapes(tmp_path):
     a = save(tmp_path / "a.npy", y=np.zeros((2, 5, 3), np.float32))
-    b = save(tmp_path / "b.npy", y=np.zeros((2, 6, 3), np.float32))
+    b = save(tmp_path / "b.npy", y=np.zeros((2, 6, 4), np.float32))
     c = save(tmp_path / "c.npy", y=np.zeros((2, 5, 4), np.float32))
-    with pytest.raises(ValueError, match=r"b\.npy holds trajectories of shape \(6, 3\) but .*a\.npy holds \(5, 3\)"):
+    with pytest.raises(ValueError, match=r"b\.npy holds samples of shape \(4,\) but .*a\.npy holds \(3,\)"):
         FileDataModule(train_path=[a, b])
     with pytest.raises(
         ValueError, match=r"val_path: observations of shape \(4,\) do not match the training observations \(3,\)"
