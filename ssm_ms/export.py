@@ -18,8 +18,8 @@
 
   Each exported file is checked against the module on a batch of another size before :func:`export`
   returns. ``model.json`` beside them says what the files are: ``state_dim``, ``obs_shape`` and, from a
-  checkpoint, the measurement normalisation (``g`` outputs normalised measurements: ``y = g(x) * std +
-  mean`` per channel, the first observation axis).
+  checkpoint (:func:`export_checkpoint`: ``f`` and ``g`` in the data's own units, the normalisation inside them),
+  the normalisation statistics built in.
 
 From the command line (a trained SSM's checkpoint)::
 
@@ -164,16 +164,18 @@ def export(
 
 
 def export_checkpoint(checkpoint: str | Path, out_dir: str | Path, formats: Sequence[str] = FORMATS) -> dict[str, Path]:
-    """:func:`export` the ``f`` and ``g`` of a trained ``MultipleShootingModule`` checkpoint, with the
-    measurement normalisation it was trained with in ``model.json`` (``normalization``: ``mean``, ``std``;
-    ``null`` when the data were not normalised; ``input_normalization`` the same for the inputs)."""
-    from ssm_ms.module import datamodule_state, load_ssm
+    """:func:`export` the ``f`` and ``g`` of a trained ``MultipleShootingModule`` checkpoint in the data's own units
+    (:meth:`~ssm_ms.module.MultipleShootingModule.in_units`): the exported ``f`` takes the inputs and ``g`` returns the
+    measurements as the training files held them, the normalisation built in. ``model.json`` records it
+    (``normalization``: ``mean``, ``std`` of the measurements, ``input_normalization`` of the inputs; ``null`` where
+    the data were not normalised)."""
+    from ssm_ms.module import load_ssm
 
-    model, saved = load_ssm(checkpoint)  # a missing, truncated or foreign file: ValueError / OSError naming it
-    data = datamodule_state(saved)
+    model, _ = load_ssm(checkpoint)  # a missing, truncated or foreign file: ValueError / OSError naming it
+    data = model.data_state or {}
 
     def statistics(key: str, applies_to: str) -> dict[str, Any] | None:
-        norm = data[1].get(key) if data is not None else None
+        norm = data.get(key)
         if norm is None or (bool((norm["mean"] == 0).all()) and bool((norm["std"] == 1).all())):
             return None
         return {"mean": norm["mean"].tolist(), "std": norm["std"].tolist(), "applies_to": applies_to}
@@ -182,10 +184,12 @@ def export_checkpoint(checkpoint: str | Path, out_dir: str | Path, formats: Sequ
         "checkpoint": str(checkpoint),
         "f_class": type(model.f).__name__,
         "g_class": type(model.g).__name__,
-        "normalization": statistics("normalizer", "g's output: y = g(x) * std + mean along the first observation axis"),
-        "input_normalization": statistics("input_normalizer", "f's input: u_f = (u - mean) / std per component"),
+        "units": "the data's own: inputs into f and measurements out of g as the training files held them",
+        "normalization": statistics("normalizer", "inside g: g(x) = g_normalised(x) * std + mean per channel"),
+        "input_normalization": statistics("input_normalizer", "inside f: f(x, u) = f_normalised(x, (u - mean) / std)"),
     }
-    return export(model.f, model.g, model.state_dim, out_dir, formats, metadata)
+    f, g = model.in_units()
+    return export(f, g, model.state_dim, out_dir, formats, metadata)
 
 
 def main(argv: list[str] | None = None) -> int:

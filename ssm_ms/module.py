@@ -24,8 +24,10 @@ from torch import nn
 
 from ssm_ms.checkpointing import read_checkpoint, restore_float_weights
 from ssm_ms.nets.sensors import SensorLayout
+from ssm_ms.progress import time_budget
 from ssm_ms.runtime.perf import check_precision
 from ssm_ms.runtime.private import built_by_lightning_cli
+from ssm_ms.schedule import ShootingSchedule
 from ssm_ms.training import distributed
 from ssm_ms.training.constraints import (
     AugmentedLagrangianOptions,
@@ -43,7 +45,11 @@ from ssm_ms.training.shooting import (
     rollout,
     shooting_residuals,
 )
+from ssm_ms.units import ObservationInUnits, TransitionInUnits, Units
 
+# where a checkpoint holds the data state of a model saved without its DataModule, and the last epoch's fit term
+DATA_STATE_KEY = "data_state"
+FIT_MSE_KEY = "fit_mse"
 # Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
 STRUCTURAL_HPARAMS = ("state_dim", "num_trajectories", "n_nodes", "f", "g", "node_optimizer", "constraint")
 NODE_OPTIMIZERS = ("dense", "sparse")
@@ -51,6 +57,23 @@ NODE_OPTIMIZERS = ("dense", "sparse")
 
 class NonFiniteLossError(FloatingPointError):
     """Training produced a NaN or inf loss."""
+
+
+def _state_dim(f: nn.Module, state_dim: int | None) -> int:
+    """The latent dimension: as given, else ``f.state_dim``; the two must agree where both are known."""
+    own = getattr(f, "state_dim", None)
+    if state_dim is None:
+        if not isinstance(own, int):
+            raise ValueError(
+                f"state_dim is not given and f ({type(f).__name__}) has no state_dim attribute: give state_dim"
+            )
+        return own
+    if isinstance(own, int) and own != state_dim:
+        raise ValueError(
+            f"f has state_dim {own} but the model was given state_dim {state_dim}: give it once (leave the model's "
+            "unset, or interpolate f's from it: ${model.init_args.state_dim})"
+        )
+    return int(state_dim)
 
 
 def _structure(value: Any) -> Any:
@@ -66,12 +89,20 @@ class MultipleShootingModule(pl.LightningModule):
     The loss of a batch is ``fit + alpha * gap`` (see :func:`ssm_ms.training.shooting.multiple_shooting_loss`).
     The shooting nodes of training trajectory ``j`` are row ``j`` of ``self.nodes``, an
     ``nn.Embedding(num_trajectories, n_nodes * state_dim)`` indexed by the batch's ``"index"``.
-    ``alpha`` is a buffer, stepped by :class:`ssm_ms.schedule.ShootingSchedule`.
+    ``alpha`` is a buffer, stepped by :class:`ssm_ms.schedule.ShootingSchedule`: a fit whose trainer has none gets
+    the paper's (:meth:`ShootingSchedule.paper`, its milestones scaled to the run's epochs or time budget), so leaving
+    the schedule out never silently trains at a constant alpha (for that, give a ``ShootingSchedule`` that never
+    raises it).
+
+    The model keeps the state of the data it was trained on (:attr:`data_state`: the DataModule's normalisation
+    statistics, measurement shape, identity), from the DataModule when a fit starts and from the checkpoint when it
+    is loaded: :attr:`units` converts between the user's units and the normalised ones ``f`` and ``g`` work in, and
+    :meth:`in_units` gives ``f`` and ``g`` in the user's units.
 
     Args:
         f: transition model ``[N, state_dim] -> [N, state_dim]`` (e.g. ``LocallyLinearTransition``).
         g: observation model ``[N, state_dim] -> [N, *obs_shape]`` (e.g. ``ConvDecoder``, ``Projection``).
-        state_dim: dimension of the latent state.
+        state_dim: dimension of the latent state (``None``: ``f.state_dim``, so that it is said once).
         num_trajectories: number of training trajectories (rows of the node table). ``None``: taken
             from the DataModule's ``num_train_trajectories`` when fitting starts.
         n_nodes: shooting nodes per trajectory ``m``; the trajectory length must be a multiple of it.
@@ -106,7 +137,7 @@ class MultipleShootingModule(pl.LightningModule):
         self,
         f: nn.Module,
         g: nn.Module,
-        state_dim: int,
+        state_dim: int | None = None,
         num_trajectories: int | None = None,
         n_nodes: int = 4,
         loss: str = "mse",
@@ -126,6 +157,8 @@ class MultipleShootingModule(pl.LightningModule):
         # `load_from_checkpoint` rebuilds them; built in Python, checkpoints carry the networks
         # themselves (see on_save_checkpoint).
         self.save_hyperparameters(ignore=[] if built_by_lightning_cli() else ["f", "g"])
+        state_dim = _state_dim(f, state_dim)
+        self.hparams["state_dim"] = state_dim
         loss_function(loss)  # unknown loss name: fail now, not at the first step
         if state_dim < 1 or n_nodes < 1:
             raise ValueError(
@@ -148,6 +181,10 @@ class MultipleShootingModule(pl.LightningModule):
         self.state_dim, self.n_nodes = state_dim, n_nodes
         # where this model's weights are restored from, when its settings came from a checkpoint (see check_data)
         self.checkpoint_source: str | None = None
+        # the state of the data this model was trained on (DataModule.state_dict(): normalisation, shape, identity)
+        self.data_state: dict[str, Any] | None = None
+        self.fit_mse: float | None = None  # the last training epoch's mean fit term (normalised units)
+        self._fit_sums = [0.0, 0]
         self.register_buffer("alpha", torch.tensor(float(alpha)))
         if node_optimizer not in NODE_OPTIMIZERS:
             raise ValueError(f"unknown node_optimizer {node_optimizer!r}: choose one of {list(NODE_OPTIMIZERS)}")
@@ -241,6 +278,8 @@ class MultipleShootingModule(pl.LightningModule):
                 )
             self._make_nodes(int(n))
         if dm is not None and hasattr(dm, "seq_len"):
+            if stage == "fit" and callable(getattr(dm, "state_dict", None)):
+                self.data_state = dm.state_dict()  # the statistics f and g learn in (a resumed fit: the checkpoint's)
             self.check_inputs(int(getattr(dm, "input_dim", 0)))
             self.adopt_sensors(getattr(dm, "sensor_layout", None))
             self.adopt_measurement_shape(tuple(dm.obs_shape))
@@ -251,6 +290,30 @@ class MultipleShootingModule(pl.LightningModule):
                 self.init_nodes_from_measurements(dm.node_measurements(self.n_nodes))
         if stage == "fit" and distributed.world_size() > 1:  # before DDP compares the ranks' models
             self._check_replicated_tables()
+
+    @property
+    def units(self) -> Units:
+        """The normalisation of the data this model was trained on (the identity where there was none)."""
+        return Units.from_data_state(self.data_state)
+
+    def in_units(self) -> tuple[TransitionInUnits, ObservationInUnits]:
+        """``f`` taking inputs and ``g`` returning measurements in the user's units (the data's original units):
+        hand these, not ``f`` and ``g``, to code that knows nothing of the normalisation (e.g.
+        ``UnscentedKalmanFilter(*model.in_units(), measurement_var=...)`` on raw measurements)."""
+        units = self.units
+        return TransitionInUnits(self.f, units), ObservationInUnits(self.g, units)
+
+    def configure_callbacks(self) -> list[pl.Callback]:
+        """A fit whose trainer has no :class:`~ssm_ms.schedule.ShootingSchedule` runs the paper's, scaled to the
+        run (alpha raised and lr / 10 at 20% of its epochs or time budget, lr / 10 again at 60%; a run bounded by
+        neither: at the paper's epochs 200 and 600): the schedule is part of the method."""
+        if self._trainer is None or self.trainer.state.fn != "fit":
+            return []
+        if any(isinstance(c, ShootingSchedule) for c in self.trainer.callbacks):
+            return []
+        bounded = (self.trainer.max_epochs or 0) > 0 or time_budget(self.trainer) is not None
+        paper = ShootingSchedule.paper()
+        return [paper if bounded else ShootingSchedule(paper.alpha, paper.alpha_epoch, paper.lr_milestones)]
 
     def adopt_sensors(self, layout: Any) -> None:
         """Several sensors (:mod:`ssm_ms.nets.sensors`): weigh each measurement component by the inverse of its
@@ -463,6 +526,8 @@ class MultipleShootingModule(pl.LightningModule):
         if distributed.world_size() > 1:  # shards of unequal size: weight so DDP's average is the global mean
             loss = loss * distributed.shard_weight(len(index), loss.device)
         bs = len(index)
+        self._fit_sums[0] += float(fit.detach()) * bs
+        self._fit_sums[1] += bs
         self.log_dict({"train/fit": fit, "train/gap": gap, "train/loss": loss}, batch_size=bs, prog_bar=True)
         self.log("alpha", self.alpha if self.al_options is None else self.alpha * self.alpha_factor, batch_size=bs)
         self.log("lr", self.optimizers().param_groups[0]["lr"], batch_size=bs)
@@ -522,6 +587,7 @@ class MultipleShootingModule(pl.LightningModule):
     def on_train_epoch_start(self) -> None:
         self._pending.clear()
         self._gap_sums = [0.0, 0]
+        self._fit_sums = [0.0, 0]
 
     def _multiplier_epoch(self) -> bool:
         return self.al_options is not None and (self.current_epoch + 1) % self.al_options.every_n_epochs == 0
@@ -556,6 +622,8 @@ class MultipleShootingModule(pl.LightningModule):
             self._gap_sums[1] += residual.numel()
 
     def on_train_epoch_end(self) -> None:
+        if self._fit_sums[1]:
+            self.fit_mse = self._fit_sums[0] / self._fit_sums[1]
         if self._multiplier_epoch() and self._gap_sums[1] > 0 and self.al_options.growth > 1:
             rms = (self._gap_sums[0] / self._gap_sums[1]) ** 0.5
             factor = raised_factor(float(self.alpha_factor), rms, float(self.last_gap_rms), self.al_options)
@@ -564,6 +632,10 @@ class MultipleShootingModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if self.fit_mse is not None:
+            checkpoint[FIT_MSE_KEY] = self.fit_mse
+        if self.data_state is not None and datamodule_state(checkpoint) is None:  # saved without its DataModule
+            checkpoint[DATA_STATE_KEY] = self.data_state
         if "f" not in self.hparams:  # built in Python: keep the networks so the checkpoint reloads on its own
             buffer = io.BytesIO()  # as bytes: the checkpoint itself stays loadable with weights_only=True
             torch.save({"f": self.f, "g": self.g}, buffer)
@@ -592,6 +664,11 @@ class MultipleShootingModule(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse a checkpoint of another configuration with a message that says what differs."""
         restore_float_weights(checkpoint)
+        saved_data = datamodule_state(checkpoint)
+        if saved_data is not None:
+            self.data_state = saved_data[1]
+        if checkpoint.get(FIT_MSE_KEY) is not None:
+            self.fit_mse = float(checkpoint[FIT_MSE_KEY])
         if checkpoint.get("forecaster"):
             raise ValueError(
                 f"the checkpoint is a {checkpoint['forecaster']}'s (a baseline), not an SSM's: resume an SSM from "

@@ -22,6 +22,7 @@ import torch
 from datamodules.base import TrajectoryDataModule
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import LocallyLinearTransition, Projection, native
+from ssm_ms.schedule import ShootingSchedule
 
 ROOT = Path(__file__).resolve().parents[1]
 # what the project commits as results: a test writes its own into tmp_path, never here
@@ -111,7 +112,26 @@ def rotation_model(**kwargs) -> MultipleShootingModule:
     return MultipleShootingModule(LocallyLinearTransition(d, n_matrices=4, hidden=16), Projection([0]), **args)
 
 
+class ConstantSchedule(ShootingSchedule):
+    """:meth:`ShootingSchedule.constant` for any module (a forecaster has no alpha: nothing to hold)."""
+
+    def __init__(self):
+        super().__init__(alpha_epoch=None, lr_milestones=())
+
+    def on_fit_start(self, trainer, pl_module):
+        if hasattr(pl_module, "alpha"):
+            super().on_fit_start(trainer, pl_module)
+
+    def on_train_epoch_start(self, trainer, pl_module):
+        if hasattr(pl_module, "alpha"):
+            super().on_train_epoch_start(trainer, pl_module)
+
+
 def fast_trainer(tmp_path, max_epochs: int, callbacks=(), **kwargs) -> pl.Trainer:
+    """A quick CPU trainer. Its fits keep alpha and lr constant unless ``callbacks`` hold a schedule (the model adds
+    the paper's to a fit that names none: tests/test_api.py tests that)."""
+    if not any(isinstance(c, ShootingSchedule) for c in callbacks):
+        callbacks = [*callbacks, ConstantSchedule()]
     args = dict(
         max_epochs=max_epochs,
         accelerator="cpu",

@@ -247,8 +247,8 @@ def test_f_of_another_state_size(setup, capsys):
         capsys,
         fit(root, "--model.init_args.f.init_args.state_dim", "4"),
         1,
-        "f fails on a state batch of shape [2, 3]",
-        "f's state_dim",
+        "f has state_dim 4 but the model was given state_dim 3",
+        "give it once",
     )
 
 

@@ -94,8 +94,12 @@ def test_observation_shape_mismatch_stops_before_training(tmp_path):
 def test_constructor_rejects_impossible_settings():
     with pytest.raises(ValueError, match="unknown loss 'mae'"):
         rotation_model(loss="mae")
-    with pytest.raises(ValueError, match=r"f fails on a state batch of shape \[2, 2\] .* check that f's state_dim"):
+    with pytest.raises(ValueError, match=r"f has state_dim 3 but the model was given state_dim 2: give it once"):
         MultipleShootingModule(LocallyLinearTransition(3), Projection([0]), state_dim=2)
+    # said once: f's own
+    assert MultipleShootingModule(LocallyLinearTransition(3), Projection([0])).state_dim == 3
+    with pytest.raises(ValueError, match="has no state_dim attribute: give state_dim"):
+        MultipleShootingModule(torch.nn.Linear(2, 2), Projection([0]))
     with pytest.raises(ValueError, match=r"f maps states \[2, 2\] to shape \(2, 3\)"):
         MultipleShootingModule(torch.nn.Linear(2, 3), Projection([0]), state_dim=2)
     with pytest.raises(ValueError, match="node_init_map names state components"):

@@ -38,7 +38,7 @@ from ssm_ms.control.estimators import EncoderEstimator, UKFEstimator, load_encod
 from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
 from ssm_ms.control.mppi import MPPISettings, RecedingHorizon, checked_offset_gain
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
-from ssm_ms.module import datamodule_state, load_ssm
+from ssm_ms.module import load_ssm
 from ssm_ms.nets.sensors import SensorLayout
 from ssm_ms.runtime.machine import describe
 from ssm_ms.training.shooting import decode, rollout
@@ -169,7 +169,7 @@ class ClosedLoop(pl.LightningModule):
                 "(the true equations and state), not both or neither"
             )
         if ssm_checkpoint is not None:
-            self.ssm, self._ssm_file = load_ssm(ssm_checkpoint)
+            self.ssm, _ = load_ssm(ssm_checkpoint)
             if not self.ssm.input_dim:
                 raise ValueError(
                     f"{ssm_checkpoint} is an autonomous SSM (f takes no inputs): control needs a model of the driven "
@@ -196,10 +196,8 @@ class ClosedLoop(pl.LightningModule):
         :meth:`controller` on episodes of its own)."""
         if not hasattr(dm, "environment"):
             raise ValueError(f"{type(dm).__name__} has no environment(): closed-loop control needs a simulated system")
-        if self.ssm is not None:
-            saved = datamodule_state(self._ssm_file)
-            if saved is not None:
-                dm.load_state_dict(saved[1])  # the SSM's normalisations of frames and inputs
+        if self.ssm is not None and self.ssm.data_state is not None:
+            dm.load_state_dict(self.ssm.data_state)  # the SSM's normalisations of frames and inputs
         self.env = dm.environment(self.seed)
         self.frame_dt = self.env.frame_dt
         n_links = self.env.params["n_links"]

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import sys
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
@@ -116,7 +117,13 @@ class ForecastModule(pl.LightningModule):
         analysis: AnalysisOptions | None = None,
     ):
         super().__init__()
-        self.save_hyperparameters()  # with the subclass's arguments too
+        with warnings.catch_warnings():  # Lightning's advice to ignore a module given as ssm_checkpoint: done below
+            warnings.filterwarnings("ignore", message=".*is an instance of `nn.Module`")
+            self.save_hyperparameters()  # with the subclass's arguments too
+        for hparams in (self._hparams, self._hparams_initial):  # a model object given from Python is no setting
+            for key, value in list(hparams.items()):
+                if isinstance(value, torch.nn.Module) or isinstance(getattr(value, "module", None), torch.nn.Module):
+                    hparams[key] = None
         bad = [m for m in metrics if m not in METRICS]
         if bad:
             raise ValueError(f"unknown metrics {bad}: choose among {list(METRICS)}")

@@ -14,6 +14,7 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.nets.encoder import StateEncoder
@@ -25,7 +26,7 @@ class StateEncoderModule(SSMForecaster):
     """Trains a :class:`~ssm_ms.nets.encoder.StateEncoder` on the SSM's latent trajectories.
 
     Args:
-        ssm_checkpoint: the trained ``MultipleShootingModule`` (frozen here).
+        ssm_checkpoint: the trained ``MultipleShootingModule``: its checkpoint, or the model itself (frozen here).
         n_filter: measurements the encoder reads at test time.
         encoder: keyword arguments of ``StateEncoder`` (``preset``, ``hidden``, ...), without
             ``state_dim`` / ``obs_shape`` / ``input_dim`` / ``streams`` (taken from the SSM: an SSM whose ``g`` has one
@@ -48,7 +49,7 @@ class StateEncoderModule(SSMForecaster):
 
     def __init__(
         self,
-        ssm_checkpoint: str | None = None,
+        ssm_checkpoint: str | nn.Module | None = None,
         *,
         n_filter: int,
         encoder: dict[str, Any] | None = None,

@@ -12,6 +12,7 @@ import math
 from typing import Any
 
 import torch
+from torch import nn
 
 from ssm_ms.inference.particle import ParticleFilter
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
@@ -23,7 +24,7 @@ class FilterForecaster(SSMForecaster):
     """The forecasting protocol with states inferred by a UKF or a particle filter.
 
     Args:
-        ssm_checkpoint: the trained ``MultipleShootingModule``.
+        ssm_checkpoint: the trained ``MultipleShootingModule``: its checkpoint, or the model itself.
         n_filter: measurements filtered before predicting.
         method: ``"ukf"`` or ``"pf"``.
         process_var: process noise variance of the UKF (paper: 1e-6).
@@ -53,7 +54,7 @@ class FilterForecaster(SSMForecaster):
 
     def __init__(
         self,
-        ssm_checkpoint: str | None = None,
+        ssm_checkpoint: str | nn.Module | None = None,
         *,
         n_filter: int,
         method: str = "ukf",

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
+from torch import nn
 
 from ssm_ms.inference.ssm_forecaster import SSMForecaster
 from ssm_ms.training.shooting import rollout, shooting_residuals
@@ -115,7 +116,7 @@ class OptimisationForecaster(SSMForecaster):
     """The forecasting protocol with states fitted to the given measurements through the frozen SSM (:func:`fit_nodes`).
 
     Args:
-        ssm_checkpoint: the trained ``MultipleShootingModule``.
+        ssm_checkpoint: the trained ``MultipleShootingModule``: its checkpoint, or the model itself.
         n_filter: measurements given before predicting; a multiple of ``n_nodes``.
         n_nodes: pieces the given measurements are cut into, one fitted node each (1: the initial value problem).
         alpha: weight of the continuity gaps between the pieces (default: the SSM's own, as its training ended).
@@ -139,7 +140,7 @@ class OptimisationForecaster(SSMForecaster):
 
     def __init__(
         self,
-        ssm_checkpoint: str | None = None,
+        ssm_checkpoint: str | nn.Module | None = None,
         *,
         n_filter: int,
         n_nodes: int = 1,

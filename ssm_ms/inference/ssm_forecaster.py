@@ -18,11 +18,12 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from ssm_ms.checkpointing import SSM_DIGEST_KEY, state_digest
 from ssm_ms.forecasting.analysis_settings import DynamicsSettings, ValidTimeSettings
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
-from ssm_ms.module import MultipleShootingModule, datamodule_state, load_ssm
+from ssm_ms.module import MultipleShootingModule, load_ssm
 from ssm_ms.training.shooting import decode, rollout
 
 _log = logging.getLogger("ssm_ms")
@@ -41,14 +42,13 @@ INFERENCE_LABELS = {
 
 
 # ---------------------------------------------------------------------------- checkpoints
-def data_differences(checkpoint: Mapping[str, Any], dm: Any, split: str = "train") -> list[str]:
-    """How the ``split`` of ``dm`` differs from the one of the data the SSM of ``checkpoint`` learned (empty: the
-    same). Only what determines that split is compared (:meth:`~datamodules.base.TrajectoryDataModule.params_of`):
-    a test split of another size is the same training data."""
-    saved = datamodule_state(checkpoint)
-    if saved is None or dm is None:
+def data_differences(state: Mapping[str, Any] | None, dm: Any, split: str = "train") -> list[str]:
+    """How the ``split`` of ``dm`` differs from the one of the data an SSM learned (``state``: its
+    :attr:`~ssm_ms.module.MultipleShootingModule.data_state`; empty: the same). Only what determines that split is
+    compared (:meth:`~datamodules.base.TrajectoryDataModule.params_of`): a test split of another size is the same
+    training data."""
+    if state is None or dm is None:
         return []
-    _, state = saved
     current = dm.state_dict() if hasattr(dm, "state_dict") else {}
     if current.get("name") is not None and state["name"] != current.get("name"):
         return [f"data set {state['name']!r} in the checkpoint, {current.get('name')!r} here"]
@@ -61,10 +61,10 @@ def data_differences(checkpoint: Mapping[str, Any], dm: Any, split: str = "train
     return [f"data parameters differ (checkpoint, here): {diff}"] if diff else []
 
 
-def check_same_data(checkpoint: Mapping[str, Any], dm: Any, ssm: MultipleShootingModule) -> None:
+def check_same_data(dm: Any, ssm: MultipleShootingModule) -> None:
     """Refuse to train an encoder on other training data than the SSM learned: its targets are the SSM's
     shooting nodes, one per training trajectory."""
-    problems = data_differences(checkpoint, dm)
+    problems = data_differences(ssm.data_state, dm)
     n = getattr(dm, "num_train_trajectories", None)
     if n is not None and n != ssm.nodes.num_embeddings:
         problems.append(f"the SSM has nodes for {ssm.nodes.num_embeddings} training trajectories, the data have {n}")
@@ -115,8 +115,10 @@ class SSMForecaster(ForecastModule):
     Subclasses implement :meth:`infer`. The prediction of ``y[k + j]`` is ``g(f^{j+1}(x[k-1]))``.
 
     Args:
-        ssm_checkpoint: checkpoint of the trained ``MultipleShootingModule``. Optional on the command line with
-            ``--ckpt_path``: that checkpoint's recorded one is used (and wins over a given one, as every setting).
+        ssm_checkpoint: checkpoint of the trained ``MultipleShootingModule``, or the model itself (from Python: a
+            ``MultipleShootingModule`` or an ``ssm_ms.SSM``, its data state read from it). Optional on the
+            command line with ``--ckpt_path``: that checkpoint's recorded one is used (and wins over a given one, as
+            every setting).
         n_filter: measurements given to the inference method.
         **kwargs: the protocol's other arguments (``n_predict``, ``metrics``, ``bce_reduction``,
             ``original_units``, ``experiment``, ``results_dir``, ``figures_dir``, ``method_name``, ``analysis``),
@@ -127,16 +129,25 @@ class SSMForecaster(ForecastModule):
     # method with a name of its own (another SSM of the experiment, e.g. `encoder_ssm1000`), after that method
     shared_figures = ("attractor", "ssm_training")
 
-    def __init__(self, ssm_checkpoint: str | None = None, *, n_filter: int, **kwargs: Any):
+    def __init__(self, ssm_checkpoint: str | nn.Module | None = None, *, n_filter: int, **kwargs: Any):
         if ssm_checkpoint is None:
             raise ValueError(
                 "model.init_args.ssm_checkpoint is not set: give the last.ckpt of the SSM run (python cli.py fit "
                 "--config configs/<experiment>.yaml); a checkpoint of this stage given with --ckpt_path supplies "
                 "the one it was trained with"
             )
+        given = getattr(ssm_checkpoint, "module", ssm_checkpoint)  # an ssm_ms.SSM holds its MultipleShootingModule
+        if isinstance(given, nn.Module) and not isinstance(given, MultipleShootingModule):
+            raise ValueError(
+                f"ssm_checkpoint takes an SSM checkpoint path or a MultipleShootingModule, got a {type(given).__name__}"
+            )
         super().__init__(n_filter, **kwargs)
-        self.ssm, self._ssm_checkpoint = load_ssm(ssm_checkpoint)
-        self.ssm_checkpoint = str(ssm_checkpoint)
+        if isinstance(given, MultipleShootingModule):  # used, not frozen: the caller may train it further
+            self.ssm = given.eval()
+            self.ssm_checkpoint = None
+        else:
+            self.ssm, _ = load_ssm(given)
+            self.ssm_checkpoint = str(given)
         self.input_dim = self.ssm.input_dim
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -222,14 +233,13 @@ class SSMForecaster(ForecastModule):
             )
         dm = self.datamodule
         if stage == "fit":
-            check_same_data(self._ssm_checkpoint, dm, self.ssm)
+            check_same_data(dm, self.ssm)
         else:  # a test on other data (another noise level, rendering, ...) is an experiment: said, not refused
-            self.data_note = "; ".join(data_differences(self._ssm_checkpoint, dm, "test")) or None
+            self.data_note = "; ".join(data_differences(self.ssm.data_state, dm, "test")) or None
             if self.data_note:
                 _log.warning("the test data differ from the SSM's data set: %s", self.data_note)
-        saved = datamodule_state(self._ssm_checkpoint)
-        if dm is not None and saved is not None and hasattr(dm, "load_state_dict"):
-            dm.load_state_dict(saved[1])  # the SSM's normalisation statistics, not recomputed ones
+        if dm is not None and self.ssm.data_state is not None and hasattr(dm, "load_state_dict"):
+            dm.load_state_dict(self.ssm.data_state)  # the SSM's normalisation statistics, not recomputed ones
         if dm is not None and hasattr(dm, "obs_shape"):
             if tuple(dm.obs_shape) != tuple(self.ssm.obs_shape()):
                 raise ValueError(
