@@ -3,7 +3,7 @@ as written in a clean copy of the repository, with an empty HOME and no ``runs/`
 other tests.
 
 Every shell command of those blocks must be listed in :data:`STEPS` with how the test runs it: a command that is not
-is a failing test. A Python block runs whole, as a script (none trains). Commands that train for long get tiny overrides appended (stated beside them: one epoch of two
+is a failing test. A Python block runs whole, as a script (those that train do so on a budget of their own: a minute at most). Commands that train for long get tiny overrides appended (stated beside them: one epoch of two
 batches, fewer test sequences); ``make test`` runs the quick ones (``quick`` set), ``make test-slow`` every one.
 ``make test-slow`` runs each document in its own copy, its commands in the order written (later ones use what
 earlier ones wrote); ``make test`` runs the documents one after the other in one copy, a command that an earlier
@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 VENV = Path(sys.executable).parent.parent  # the environment running the tests (make's .venv)
 
 # the documents whose blocks are promises: the README, and the docs' quick starts (a user's own data, forecasting)
-DOCS = ("README.md", "docs/your-data.md", "docs/forecasting.md")
+DOCS = ("README.md", "docs/your-data.md", "docs/forecasting.md", "docs/python.md")
 
 TINY = "--trainer.max_epochs 1 --trainer.limit_train_batches 2 --trainer.limit_val_batches 1"  # a training smoke test
 FEW_TESTS = "--data.init_args.n_test 50"  # a test on the first 50 test sequences (generating only those)

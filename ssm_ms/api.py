@@ -1,0 +1,630 @@
+"""The Python API: learn a state-space model from arrays, then simulate, forecast and filter in the user's units.
+
+::
+
+    from ssm_ms import Recordings, SSM, fit
+
+    data = Recordings(y=y, u=u, dt=0.05)        # arrays in memory: [T, D], [N, T, D], or a list of any lengths
+    model = SSM(data, state_dim=8)              # SSM-LL, g sized from the data, the paper's defaults
+    fit(model, data, epochs=300)                # Lightning: the paper's schedule, progress, TensorBoard, checkpoints
+    y_sim = model.simulate(u_new[50:], y_init=y_new[:50], u_init=u_new[:50])   # original units
+    x, P = model.filter(y_new[:50], u=u_new[:50])                               # states of a sequence
+
+:class:`SSM` wraps the :class:`~ssm_ms.module.MultipleShootingModule` that ``cli.py`` trains (``model.module``), so a
+checkpoint of either loads in the other (:meth:`SSM.load`). Every array in and out of its methods is in the data's
+own units (the model keeps the normalisation it was trained with): numpy arrays in, numpy arrays out (torch tensors
+in, tensors out). Time runs along the first axis of one sequence (``[T, ...]``), the second of a batch
+(``[B, T, ...]``); inputs ``u[t]`` are those at the time of ``y[t]``, acting between ``t`` and ``t + 1``.
+docs/python.md is the guide.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping, Sequence
+from datetime import timedelta
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from lightning.pytorch.loggers import TensorBoardLogger
+from lightning.pytorch.trainer.states import TrainerStatus
+from torch import nn
+
+from datamodules.base import TrajectoryDataModule
+from datamodules.recordings import Recordings
+from ssm_ms.checkpointing import EpochCheckpoint
+from ssm_ms.cli import show_package_log
+from ssm_ms.inference import FilterForecaster, OptimisationForecaster, StateEncoderModule
+from ssm_ms.module import MultipleShootingModule
+from ssm_ms.nets import (
+    ConvDecoder,
+    FullyConnectedTransition,
+    LinearReadout,
+    LocallyLinearTransition,
+    SensorHeads,
+)
+from ssm_ms.progress import RunProgressBar
+from ssm_ms.runtime.console import quiet_lightning
+from ssm_ms.training.shooting import decode, rollout
+from ssm_ms.units import Units
+
+__all__ = ["SSM", "Recordings", "fit"]
+
+TRANSITIONS = {"ll": LocallyLinearTransition, "fc": FullyConnectedTransition}
+METHODS = ("ukf", "fit", "encoder")
+MAX_PIECE = 25  # the paper's pieces: 100-frame pendulum sequences in 4 of 25 samples
+
+
+def default_nodes(seq_len: int) -> int:
+    """The fewest shooting nodes ``m`` dividing ``T`` whose pieces have at most :data:`MAX_PIECE` samples."""
+    return next(m for m in range(1, seq_len + 1) if seq_len % m == 0 and seq_len // m <= MAX_PIECE)
+
+
+def default_observation(state_dim: int, data: TrajectoryDataModule) -> nn.Module:
+    """``g`` for the data: a linear read-out of vectors, the paper's decoder for square grey images, one such head per
+    sensor for several."""
+    layout = getattr(data, "sensor_layout", None)
+    if layout:
+        return SensorHeads(state_dim, {s["name"]: _head(state_dim, tuple(s["shape"])) for s in layout})
+    return _head(state_dim, tuple(data.obs_shape))
+
+
+def _head(state_dim: int, shape: tuple[int, ...]) -> nn.Module:
+    if len(shape) == 1:
+        return LinearReadout(state_dim, out_features=shape[0])
+    if len(shape) == 3 and shape[0] == 1 and shape[1] == shape[2]:
+        return ConvDecoder(state_dim, preset="pendulum", image_size=shape[1])
+    raise ValueError(
+        f"no default g for measurements of shape {shape}: give SSM(..., g=<an nn.Module [N, state_dim] -> [N, "
+        f"{', '.join(map(str, shape))}]>)"
+    )
+
+
+class SSM:
+    """A discrete state-space model ``x[t+1] = f(x[t], u[t])``, ``y[t] = g(x[t])``, learned by multiple shooting.
+
+    Args:
+        data: the training data (:class:`Recordings`, or any of this project's DataModules): they size ``g`` (their
+            measurement shape), ``f``'s inputs, the shooting nodes (one row per training window) and ``n_nodes``.
+        state_dim: the latent dimension ``d``, said here only (``f`` and ``g`` are built with it).
+        f: ``"ll"`` (the paper's SSM-LL, :class:`~ssm_ms.nets.LocallyLinearTransition`), ``"fc"`` (SSM-FC,
+            :class:`~ssm_ms.nets.FullyConnectedTransition`), or an ``nn.Module`` of your own (then ``state_dim`` may
+            be left out: its ``state_dim`` attribute).
+        f_options: keyword arguments of the transition class (default: the paper's: SSM-LL 32 matrices and a
+            1024-wide beta network, SSM-FC three 512-wide layers), e.g. ``{"n_matrices": 8, "hidden": 128}``.
+        g: the observation model (default :func:`default_observation`: a linear read-out of vectors, the paper's
+            transposed-convolution decoder for square grey images, one head per sensor for several).
+        n_nodes: shooting nodes per training window (default :func:`default_nodes`: the fewest whose pieces have at
+            most 25 samples); must divide the window length.
+        seed: the seed of the networks' initial weights (``lightning.seed_everything``, as ``seed_everything`` of a
+            config: the same seed and settings build the same model as ``cli.py``).
+        **options: the other arguments of :class:`~ssm_ms.module.MultipleShootingModule` (``loss``, ``lr``,
+            ``alpha``, ``node_init_map``, ``node_optimizer``, ``constraint``, ``val_horizon``, ...).
+    """
+
+    def __init__(
+        self,
+        data: TrajectoryDataModule,
+        state_dim: int | None = None,
+        *,
+        f: str | nn.Module = "ll",
+        f_options: Mapping[str, Any] | None = None,
+        g: nn.Module | None = None,
+        n_nodes: int | None = None,
+        seed: int | None = 0,
+        **options: Any,
+    ):
+        if not isinstance(data, TrajectoryDataModule):
+            raise ValueError(
+                f"data must be the training data as a DataModule (ssm_ms.Recordings(y=..., u=...)), got "
+                f"{type(data).__name__}"
+            )
+        if seed is not None:
+            pl.seed_everything(seed, verbose=False)
+        input_dim = int(data.input_dim)
+        if isinstance(f, str):
+            if f not in TRANSITIONS:
+                raise ValueError(f"f must be one of {sorted(TRANSITIONS)} or an nn.Module, got {f!r}")
+            if state_dim is None:
+                raise ValueError("give state_dim, the latent dimension (e.g. SSM(data, state_dim=8))")
+            f = TRANSITIONS[f](state_dim, input_dim=input_dim, **dict(f_options or {}))
+        elif f_options:
+            raise ValueError("f_options configure a transition named by f ('ll', 'fc'): build your f with them instead")
+        state_dim = state_dim or getattr(f, "state_dim", None)
+        if g is None:
+            if state_dim is None:
+                raise ValueError("give state_dim, the latent dimension (e.g. SSM(data, state_dim=8))")
+            g = default_observation(state_dim, data)
+        n_nodes = default_nodes(int(data.seq_len)) if n_nodes is None else n_nodes
+        module = MultipleShootingModule(
+            f, g, state_dim, num_trajectories=int(data.num_train_trajectories), n_nodes=n_nodes, **options
+        )
+        module.check_inputs(input_dim)
+        module.check_data(int(data.seq_len), tuple(data.obs_shape), int(data.num_train_trajectories))
+        data.setup("fit")  # the training split's statistics: the model works in the data's units from the start
+        module.data_state = data.state_dict()
+        self._attach(module)
+
+    def _attach(self, module: MultipleShootingModule, encoder: StateEncoderModule | None = None) -> None:
+        self.module, self.encoder = module, encoder
+        self.trainer: pl.Trainer | None = None
+        self.checkpoint_path: Path | None = None  # the last checkpoint its fit wrote
+
+    @classmethod
+    def from_module(cls, module: MultipleShootingModule, encoder: StateEncoderModule | None = None) -> SSM:
+        """An ``SSM`` around a ``MultipleShootingModule`` (e.g. one ``cli.py`` trained, loaded from its checkpoint)."""
+        if not isinstance(module, MultipleShootingModule):
+            raise ValueError(f"from_module takes a MultipleShootingModule, got {type(module).__name__}")
+        model = cls.__new__(cls)
+        model._attach(module, encoder)
+        return model
+
+    # ------------------------------------------------------------------ what it is
+    @property
+    def f(self) -> nn.Module:
+        """The transition, in the model's (normalised) units: :meth:`in_units` gives it in the user's."""
+        return self.module.f
+
+    @property
+    def g(self) -> nn.Module:
+        """The observation model, in the model's (normalised) units."""
+        return self.module.g
+
+    @property
+    def state_dim(self) -> int:
+        return self.module.state_dim
+
+    @property
+    def input_dim(self) -> int:
+        return self.module.input_dim
+
+    @property
+    def units(self) -> Units:
+        """The normalisation it was trained with (``units.y_to_user``, ``units.u_to_model``, ...)."""
+        return self.module.units
+
+    def in_units(self) -> tuple[nn.Module, nn.Module]:
+        """``f`` and ``g`` in the user's units (inputs in, measurements out)."""
+        return self.module.in_units()
+
+    def __repr__(self) -> str:
+        return (
+            f"SSM({type(self.f).__name__}, {type(self.g).__name__}, state_dim={self.state_dim}, "
+            f"input_dim={self.input_dim}, n_nodes={self.module.n_nodes}"
+            + (", with an encoder" if self.encoder is not None else "")
+            + ")"
+        )
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path) -> Path:
+        """Write the model to ``path`` (a checkpoint ``cli.py`` and :meth:`load` read; its encoder, if any, beside
+        it as ``<path stem>_encoder.ckpt``)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(_checkpoint_of(self.module), path)
+        if self.encoder is not None:
+            self.encoder.hparams["ssm_checkpoint"] = str(path)
+            torch.save(_checkpoint_of(self.encoder), _encoder_path(path))
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> SSM:
+        """A model from a checkpoint: one written by :meth:`save`, by :func:`fit` or by ``cli.py fit`` (its
+        ``last.ckpt``), or a file of ``pretrained/``; with its encoder where ``<stem>_encoder.ckpt`` is beside it."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such checkpoint")
+        module = MultipleShootingModule.load_from_checkpoint(path, map_location="cpu", weights_only=False).eval()
+        encoder = None
+        if _encoder_path(path).is_file():
+            encoder = StateEncoderModule.load_from_checkpoint(
+                _encoder_path(path), map_location="cpu", weights_only=False, ssm_checkpoint=module
+            ).eval()
+        return cls.from_module(module, encoder)
+
+    # ------------------------------------------------------------------ states
+    def filter(
+        self, y: Any, u: Any = None, method: str = "ukf", **options: Any
+    ) -> tuple[np.ndarray | torch.Tensor, np.ndarray | torch.Tensor | None]:
+        """The latent states of measurements ``y`` (``[T, *obs]`` or a batch ``[B, T, *obs]``, the user's units) under
+        inputs ``u`` (``[T, m]`` or ``[T - 1, m]``; a batch ``[B, T, m]``).
+
+        Args:
+            method: ``"ukf"`` (an unscented Kalman filter on ``f`` and ``g``: nothing to train), ``"fit"`` (one state
+                fitted through ``f`` and ``g`` by the shooting objective, its rollout the states) or ``"encoder"``
+                (the CNN-LSTM of :meth:`fit_encoder`).
+            **options: the method's settings: UKF (:class:`~ssm_ms.inference.FilterForecaster`) ``measurement_var``
+                in the user's units, per component or one for all (default: the variance of the model's fit residual
+                at the end of training, which holds the measurement noise; 0.5 in normalised units, the paper's, for a
+                checkpoint without it), ``process_var`` (default the paper's 1e-6), ``init_var`` (in the state's
+                units); fit (:class:`~ssm_ms.inference.OptimisationForecaster`) ``steps``, ``lr``,
+                ``n_nodes``, ``start``.
+
+        Returns:
+            ``(x, P)``: the states ``[T, d]`` (``[B, T, d]``) and, for the UKF, their covariances ``[T, d, d]``
+            (else ``None``).
+        """
+        y_t, batched, as_numpy = self._measurements(y, "y")
+        u_t = self._inputs(u, y_t.shape[0], y_t.shape[1] - 1, "u", batched)
+        with torch.no_grad():
+            x, covs = self._infer(y_t, u_t, method, options, want_covs=True)
+        return _out(x, batched, as_numpy), (None if covs is None else _out(covs, batched, as_numpy))
+
+    def _infer(
+        self, y: torch.Tensor, u: torch.Tensor | None, method: str, options: Mapping[str, Any], want_covs: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """States ``[B, k, d]`` (and the UKF's covariances) of normalised measurements ``y [B, k, *obs]``."""
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {list(METHODS)}, got {method!r}")
+        k = y.shape[1]
+        if method == "encoder":
+            if self.encoder is None:
+                raise ValueError("method 'encoder' needs a trained encoder: call model.fit_encoder(data) first")
+            if options:
+                raise ValueError(f"the encoder takes no options, got {sorted(options)}")
+            return self.encoder.infer(y, u), None
+        if method == "fit":
+            forecaster = OptimisationForecaster(self.module, n_filter=k, **{"n_nodes": 1, **options})
+            return forecaster.infer(y, u), None
+        options = dict(options)
+        if "measurement_var" in options:
+            var = torch.as_tensor(options["measurement_var"], dtype=torch.float64)
+            std = self.units.measurement_std(tuple(y.shape[2:]))
+            scaled = var / std.pow(2)  # per component: a variance in the user's units over the data's variance
+            options["measurement_var"] = scaled.tolist() if scaled.numel() > 1 else float(scaled)
+        else:
+            options["measurement_var"] = self.module.fit_mse if self.module.fit_mse is not None else 0.5
+        forecaster = FilterForecaster(self.module, n_filter=k, method="ukf", **options)
+        result = forecaster.filter.filter(y, forecaster.prior_mean(y), u=None if u is None else u[:, : k - 1])
+        return result.means, (result.covs if want_covs else None)
+
+    # ------------------------------------------------------------------ forecasts
+    def simulate(
+        self,
+        u: Any = None,
+        *,
+        steps: int | None = None,
+        y_init: Any = None,
+        u_init: Any = None,
+        x0: Any = None,
+        method: str = "ukf",
+        chunk: int = 10_000,
+        **options: Any,
+    ) -> np.ndarray | torch.Tensor:
+        """A free-run simulation: ``f`` iterated under the inputs ``u`` alone, decoded by ``g``, in the user's units.
+
+        Args:
+            u: the inputs ``[T, m]`` (a batch ``[B, T, m]``) at the simulated samples' times; the simulation has as
+                many samples as ``u`` (an autonomous model: give ``steps`` instead).
+            steps: the samples to simulate of an autonomous model.
+            y_init, u_init: measurements ``[k, *obs]`` and inputs ``[k, m]`` just before the simulation: its state
+                is estimated from them (``method``, ``options``: as :meth:`filter`), and the simulation continues
+                from the last one (``u_init[k - 1]`` the transition into the first simulated sample).
+            x0: else the latent state of the first simulated sample, ``[d]`` (``[B, d]``); neither: the mean
+                shooting node.
+            chunk: samples rolled out per call (memory stays bounded on long simulations).
+
+        Returns:
+            ``[T, *obs]`` (``[B, T, *obs]``): the simulated measurements.
+        """
+        batched, as_numpy = False, isinstance(u, np.ndarray) or u is None
+        if u is not None:
+            if not self.input_dim:
+                raise ValueError("this model is autonomous (its f takes no inputs): give steps, not u")
+            u_t, batched, as_numpy = self._raw_inputs(u, "u")
+            steps = u_t.shape[1]
+        elif self.input_dim:
+            raise ValueError(
+                f"this model is driven by {self.input_dim} inputs per step: give u, the inputs to simulate"
+            )
+        elif steps is None or steps < 1:
+            raise ValueError(f"give steps >= 1, the samples to simulate, got {steps}")
+        else:
+            u_t = None
+        if y_init is not None:
+            if x0 is not None:
+                raise ValueError("give y_init (a state estimated from measurements) or x0, not both")
+            y0, init_batched, init_numpy = self._measurements(y_init, "y_init")
+            if u is not None and (init_batched != batched or y0.shape[0] != u_t.shape[0]):
+                raise ValueError(f"y_init holds {y0.shape[0]} sequences but u holds {u_t.shape[0]}: give one each")
+            batched, as_numpy = init_batched, init_numpy if u is None else as_numpy
+            k = y0.shape[1]
+            ui = self._inputs(u_init, y0.shape[0], k, "u_init", batched)
+            with torch.no_grad():
+                states, _ = self._infer(y0, None if ui is None else ui[:, : k - 1], method, options)
+                last = states[:, -1]
+                x = self.f(last) if ui is None else self.f(last, ui[:, k - 1])
+        elif u_init is not None:
+            raise ValueError("u_init goes with y_init (the samples the state is estimated from): give y_init too")
+        elif x0 is not None:
+            x = torch.as_tensor(np.asarray(x0) if not isinstance(x0, torch.Tensor) else x0, dtype=torch.float32)
+            if x.shape[-1] != self.state_dim or x.ndim > 2:
+                raise ValueError(f"x0 must be [d] or [B, d] with d = {self.state_dim}, got {list(x.shape)}")
+            batched = batched or x.ndim == 2
+            x = x.reshape(-1, self.state_dim)
+        else:
+            nodes = self.module.nodes.weight.detach().view(-1, self.state_dim)
+            x = nodes.mean(0, keepdim=True).expand(1 if u_t is None else u_t.shape[0], -1)
+        if u_t is not None and x.shape[0] != u_t.shape[0]:
+            raise ValueError(f"{x.shape[0]} initial states for {u_t.shape[0]} input sequences: give one each")
+        with torch.no_grad():
+            y = self._free_run(x, steps, None if u_t is None else self.units.u_to_model(u_t), chunk)
+        return _out(self.units.y_to_user(y), batched, as_numpy)
+
+    def forecast(self, y: Any, steps: int, u: Any = None, method: str = "ukf", **options: Any):
+        """The ``steps`` measurements after ``y`` (``[k, *obs]``, a batch ``[B, k, *obs]``): its state estimated
+        (``method``, ``options``: as :meth:`filter`), then :meth:`simulate` on; a driven model takes the inputs ``u``
+        of the given samples and of the forecast, ``[k + steps, m]`` (at least ``k + steps - 1``)."""
+        if steps < 1:
+            raise ValueError(f"steps must be >= 1, got {steps}")
+        k = _time_length(y, self.module.obs_shape())
+        if not self.input_dim:
+            return self.simulate(steps=steps, y_init=y, method=method, **options)
+        if u is None:
+            raise ValueError(f"this model is driven: give u, the inputs of the {k} given and {steps} forecast samples")
+        u_t, batched, _ = self._raw_inputs(u, "u")
+        if u_t.shape[1] < k + steps - 1:
+            raise ValueError(
+                f"u holds {u_t.shape[1]} inputs: a forecast of {steps} samples after {k} needs {k + steps - 1}"
+            )
+        u_future = u_t[:, k : k + steps]
+        if u_future.shape[1] < steps:  # the input after the last sample moves nothing that is returned
+            u_future = torch.cat([u_future, u_t[:, -1:].expand(-1, steps - u_future.shape[1], -1)], 1)
+        as_numpy = isinstance(u, np.ndarray)
+        u_future = u_future.numpy() if as_numpy else u_future
+        u_given = u_t[:, :k].numpy() if as_numpy else u_t[:, :k]
+        if not batched:
+            u_future, u_given = u_future[0], u_given[0]
+        return self.simulate(u_future, y_init=y, u_init=u_given, method=method, **options)
+
+    def _free_run(self, x: torch.Tensor, steps: int, u: torch.Tensor | None, chunk: int) -> torch.Tensor:
+        """``g`` of ``x`` and of its ``steps - 1`` successors under ``u [B, >= steps - 1, m]`` (model units), rolled
+        out ``chunk`` samples at a time."""
+        if chunk < 1:
+            raise ValueError(f"chunk must be >= 1, got {chunk}")
+        out = []
+        for start in range(0, steps, chunk):
+            n = min(chunk, steps - start)
+            states = rollout(self.f, x, n, None if u is None else u[:, start : start + n - 1])
+            out.append(decode(self.g, states, self.module.hparams.decode_chunk))
+            if start + n < steps:
+                last = states[:, -1]
+                x = self.f(last) if u is None else self.f(last, u[:, start + n - 1])
+        return torch.cat(out, 1)
+
+    # ------------------------------------------------------------------ the encoder
+    def fit_encoder(self, data: TrajectoryDataModule, epochs: int = 100, **options: Any) -> SSM:
+        """Train the CNN-LSTM encoder (:class:`~ssm_ms.inference.StateEncoderModule`: the paper's second stage) on
+        the data this model learned, for :meth:`filter` and :meth:`simulate` with ``method="encoder"``.
+
+        ``options``: :func:`fit`'s (``time``, ``name``, ``save_dir``, ...) and the encoder's (``encoder``, ``lr``).
+        """
+        encoder_keys = {"encoder", "lr", "validate_held_out"}
+        encoder_options = {k: options.pop(k) for k in list(options) if k in encoder_keys}
+        if "encoder" not in encoder_options and len(self.module.obs_shape()) == 1:
+            encoder_options["encoder"] = {"preset": "vector", "hidden": 128}
+        encoder = StateEncoderModule(self.module, n_filter=int(data.seq_len), **encoder_options)
+        options.setdefault("name", "encoder")
+        _train(encoder, data, epochs=epochs, **options)
+        self.encoder = encoder.eval()
+        return self
+
+    # ------------------------------------------------------------------ arrays in, arrays out
+    def _measurements(self, y: Any, what: str) -> tuple[torch.Tensor, bool, bool]:
+        """``y`` (one sequence or a batch, user's units) -> ``([B, T, *obs]`` normalised, batched, was numpy)."""
+        obs = tuple(self.module.obs_shape())
+        t, as_numpy = _tensor(y, what)
+        if obs == (1,) and t.ndim == 1:
+            t = t.unsqueeze(-1)  # one measured component: [T]
+        if t.ndim not in (len(obs) + 1, len(obs) + 2) or tuple(t.shape[t.ndim - len(obs) :]) != obs:
+            raise ValueError(
+                f"{what} must be [T, {', '.join(map(str, obs))}] (or a batch [B, T, ...]): this model's measurements "
+                f"have shape {obs}, got {list(t.shape)}"
+            )
+        batched = t.ndim == len(obs) + 2
+        t = t if batched else t.unsqueeze(0)
+        _check_finite(t, what)
+        return self.units.y_to_model(t), batched, as_numpy
+
+    def _raw_inputs(self, u: Any, what: str) -> tuple[torch.Tensor, bool, bool]:
+        """``u`` -> ``([B, T, m]`` in the user's units, batched, was numpy)."""
+        t, as_numpy = _tensor(u, what)
+        m = self.input_dim
+        if m == 1 and t.ndim == 1:
+            t = t.unsqueeze(-1)  # one input: [T]
+        if t.ndim not in (2, 3) or t.shape[-1] != m:
+            raise ValueError(f"{what} must be [T, {m}] (or a batch [B, T, {m}]): got {list(t.shape)}")
+        batched = t.ndim == 3
+        t = t if batched else t.unsqueeze(0)
+        _check_finite(t, what)
+        return t, batched, as_numpy
+
+    def _inputs(self, u: Any, batch: int, needed: int, what: str, batched: bool) -> torch.Tensor | None:
+        """Inputs beside measurements: ``[B, >= needed, m]`` normalised (``None`` for an autonomous model)."""
+        if not self.input_dim:
+            if u is not None:
+                raise ValueError(f"this model is autonomous (its f takes no inputs): give no {what}")
+            return None
+        if u is None:
+            raise ValueError(f"this model is driven by {self.input_dim} inputs per step: give {what}")
+        t, u_batched, _ = self._raw_inputs(u, what)
+        if u_batched != batched or t.shape[0] != batch:
+            raise ValueError(f"{what} must hold one input sequence per measured sequence ({batch}), got {t.shape[0]}")
+        if t.shape[1] < needed:
+            raise ValueError(f"{what} holds {t.shape[1]} inputs per sequence, the measurements need {needed}")
+        return self.units.u_to_model(t)
+
+
+def _tensor(a: Any, what: str) -> tuple[torch.Tensor, bool]:
+    if isinstance(a, torch.Tensor):
+        return a.detach().to(torch.float32), False
+    try:
+        arr = np.asarray(a, dtype=np.float32)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{what} must be an array of numbers ({err})") from None
+    return torch.from_numpy(arr.copy()), True
+
+
+def _check_finite(t: torch.Tensor, what: str) -> None:
+    bad = ~torch.isfinite(t)
+    if bool(bad.any()):
+        where = bad.nonzero()[0].tolist()
+        raise ValueError(f"{what} holds NaN or inf (first at index {where}): give finite values")
+
+
+def _out(t: torch.Tensor, batched: bool, as_numpy: bool) -> np.ndarray | torch.Tensor:
+    t = t if batched else t[0]
+    return t.detach().cpu().numpy() if as_numpy else t
+
+
+def _time_length(y: Any, obs: tuple[int, ...]) -> int:
+    shape = tuple(np.shape(y)) if not isinstance(y, torch.Tensor) else tuple(y.shape)
+    return int(shape[1] if len(shape) == len(obs) + 2 else shape[0])
+
+
+def _encoder_path(path: Path) -> Path:
+    return path.with_name(f"{path.stem}_encoder{path.suffix or '.ckpt'}")
+
+
+def _checkpoint_of(module: pl.LightningModule) -> dict[str, Any]:
+    """What Lightning's checkpoint of ``module`` holds for inference: weights, hyperparameters, the module's own
+    additions (its data state, its networks when built in Python)."""
+    checkpoint = {
+        "state_dict": module.state_dict(),
+        "hyper_parameters": dict(module.hparams),
+        "pytorch-lightning_version": pl.__version__,
+    }
+    module.on_save_checkpoint(checkpoint)
+    return checkpoint
+
+
+# ---------------------------------------------------------------------------- training
+_DURATION = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*(s|sec|min|m|h|d)\s*$")
+_UNIT_SECONDS = {"s": 1, "sec": 1, "m": 60, "min": 60, "h": 3600, "d": 86400}
+
+
+def parse_duration(value: float | str | timedelta) -> timedelta:
+    """A training budget: seconds, a ``timedelta``, ``"90s"``, ``"12min"``, ``"1.5h"`` or Lightning's
+    ``"DD:HH:MM:SS"``."""
+    if isinstance(value, timedelta):
+        seconds = value.total_seconds()
+    elif isinstance(value, (int, float)):
+        seconds = float(value)
+    else:
+        text = str(value)
+        match = _DURATION.match(text)
+        if match:
+            seconds = float(match.group(1)) * _UNIT_SECONDS[match.group(2)]
+        elif re.fullmatch(r"\d+:\d{1,2}:\d{1,2}:\d{1,2}", text.strip()):
+            days, hours, minutes, secs = (int(p) for p in text.strip().split(":"))
+            seconds = ((days * 24 + hours) * 60 + minutes) * 60 + secs
+        else:
+            raise ValueError(f"time must be seconds, '12min', '1.5h', '90s' or 'DD:HH:MM:SS', got {value!r}")
+    if not math.isfinite(seconds) or seconds <= 0:
+        raise ValueError(f"time must be a positive duration, got {value!r}")
+    return timedelta(seconds=seconds)
+
+
+def fit(
+    model: SSM,
+    data: TrajectoryDataModule,
+    epochs: int | None = None,
+    *,
+    time: float | str | timedelta | None = None,
+    name: str = "ssm",
+    save_dir: str | Path = "runs",
+    callbacks: Sequence[pl.Callback] = (),
+    ckpt_path: str | Path | None = None,
+    **trainer_options: Any,
+) -> SSM:
+    """Train ``model`` on ``data`` by multiple shooting, as ``python cli.py fit`` does.
+
+    The paper's schedule runs unless ``callbacks`` hold a :class:`~ssm_ms.schedule.ShootingSchedule` (alpha raised and
+    lr / 10 at 20% of the budget, lr / 10 again at 60%: of ``epochs``, or of ``time``, whichever runs out first). The
+    run writes TensorBoard events and ``checkpoints/last.ckpt`` (every epoch) to ``<save_dir>/<name>/version_N/``;
+    ``model.checkpoint_path`` names it after the fit, and ``fit(..., ckpt_path=that)`` resumes an interrupted run.
+    On a terminal a progress bar, in a log file one line per epoch.
+
+    Args:
+        epochs: training epochs; ``time``: a budget (seconds, ``"12min"``, ``"1.5h"``, a ``timedelta``); one of
+            them or both (training stops at the first reached).
+        callbacks: further Lightning callbacks.
+        **trainer_options: other ``lightning.Trainer`` arguments (``accelerator``, ``check_val_every_n_epoch``,
+            ``logger=False``, ...).
+    """
+    if not isinstance(model, SSM):
+        raise ValueError(
+            f"fit trains an ssm_ms.SSM, got {type(model).__name__}: build one with SSM(data, state_dim=...)"
+        )
+    if data is None or not isinstance(data, TrajectoryDataModule):
+        raise ValueError("fit needs the training data: fit(model, Recordings(y=..., u=...), epochs=...)")
+    model.module.check_inputs(int(data.input_dim))
+    model.module.check_data(int(data.seq_len), tuple(data.obs_shape), int(data.num_train_trajectories))
+    model.module.train()
+    model.trainer = _train(
+        model.module,
+        data,
+        epochs,
+        time=time,
+        name=name,
+        save_dir=save_dir,
+        callbacks=callbacks,
+        ckpt_path=ckpt_path,
+        **trainer_options,
+    )
+    last = getattr(model.trainer.checkpoint_callback, "last_model_path", "")
+    model.checkpoint_path = Path(last) if last else None
+    model.module.eval()
+    return model
+
+
+def _train(
+    module: pl.LightningModule,
+    data: TrajectoryDataModule,
+    epochs: int | None = None,
+    *,
+    time: float | str | timedelta | None = None,
+    name: str = "ssm",
+    save_dir: str | Path = "runs",
+    callbacks: Sequence[pl.Callback] = (),
+    ckpt_path: str | Path | None = None,
+    **trainer_options: Any,
+) -> pl.Trainer:
+    """A Lightning fit with this project's console, checkpoints and logger."""
+    if epochs is None and time is None:
+        raise ValueError("give a training budget: epochs=..., time=... (e.g. '12min'), or both")
+    if epochs is not None and (int(epochs) != epochs or epochs < 1):
+        raise ValueError(f"epochs must be a whole number >= 1, got {epochs!r}")
+    budget = None if time is None else parse_duration(time)
+    quiet_lightning()
+    show_package_log()
+    options = {
+        "accelerator": "auto",
+        "devices": 1,
+        "log_every_n_steps": 5,
+        "check_val_every_n_epoch": 10,
+        **trainer_options,
+    }
+    if "logger" not in options:
+        options["logger"] = TensorBoardLogger(save_dir=str(save_dir), name=name)
+    elif options["logger"] is False:
+        options.setdefault("default_root_dir", str(Path(save_dir) / name))
+    callbacks = [EpochCheckpoint(), *callbacks]
+    if options.get("enable_progress_bar", True):
+        callbacks.append(RunProgressBar())
+    trainer = pl.Trainer(
+        max_epochs=-1 if epochs is None else int(epochs), max_time=budget, callbacks=callbacks, **options
+    )
+    try:
+        trainer.fit(module, datamodule=data, ckpt_path=None if ckpt_path is None else str(ckpt_path))
+    except SystemExit:
+        if trainer.state.status == TrainerStatus.INTERRUPTED:  # Lightning's answer to Ctrl-C
+            last = getattr(trainer.checkpoint_callback, "last_model_path", "")
+            resume = f"; resume with fit(..., ckpt_path={str(last)!r})" if last else ""
+            raise KeyboardInterrupt(f"training interrupted at epoch {trainer.current_epoch}{resume}") from None
+        raise
+    return trainer
