@@ -309,7 +309,8 @@ class SSM:
             chunk: samples rolled out per call (memory stays bounded on long simulations).
 
         Returns:
-            ``[T, *obs]`` (``[B, T, *obs]``): the simulated measurements.
+            ``[T, *obs]`` (``[B, T, *obs]``): the simulated measurements (images with their channel axis); several
+            sensors: ``{stream: [T, *shape]}``.
         """
         batched, as_numpy = False, isinstance(u, np.ndarray) or u is None
         if u is not None:
@@ -352,8 +353,21 @@ class SSM:
         if u_t is not None and x.shape[0] != u_t.shape[0]:
             raise ValueError(f"{x.shape[0]} initial states for {u_t.shape[0]} input sequences: give one each")
         with torch.no_grad():
-            y = self._free_run(x, steps, None if u_t is None else self.units.u_to_model(u_t), chunk)
-        return _out(self.units.y_to_user(y), batched, as_numpy)
+            y = self.units.y_to_user(
+                self._free_run(x, steps, None if u_t is None else self.units.u_to_model(u_t), chunk)
+            )
+        if self.streams is not None:  # several sensors: one array per stream
+            return {name: _out(part, batched, as_numpy) for name, part in self._split(y).items()}
+        return _out(y, batched, as_numpy)
+
+    def _split(self, y: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Packed measurements ``[B, T, P]`` -> ``{stream: [B, T, *shape]}``."""
+        out, start = {}, 0
+        for name, shape in self.streams.items():
+            size = int(np.prod(shape))
+            out[name] = y[..., start : start + size].reshape(*y.shape[:-1], *shape)
+            start += size
+        return out
 
     def forecast(self, y: Any, steps: int, u: Any = None, method: str = "ukf", **options: Any):
         """The ``steps`` measurements after ``y`` (``[k, *obs]``, a batch ``[B, k, *obs]``): its state estimated
@@ -361,7 +375,7 @@ class SSM:
         of the given samples and of the forecast, ``[k + steps, m]`` (at least ``k + steps - 1``)."""
         if steps < 1:
             raise ValueError(f"steps must be >= 1, got {steps}")
-        k = _time_length(y, self.module.obs_shape())
+        k = self._measurements(y, "y")[0].shape[1]
         if not self.input_dim:
             return self.simulate(steps=steps, y_init=y, method=method, **options)
         if u is None:
@@ -414,12 +428,46 @@ class SSM:
         return self
 
     # ------------------------------------------------------------------ arrays in, arrays out
+    @property
+    def streams(self) -> dict[str, tuple[int, ...]] | None:
+        """Several sensors: each stream's sample shape, in the order ``g`` packs them (``None``: one sensor)."""
+        shapes = getattr(self.g, "shapes", None)
+        return {name: tuple(shape) for name, shape in shapes.items()} if shapes else None
+
     def _measurements(self, y: Any, what: str) -> tuple[torch.Tensor, bool, bool]:
-        """``y`` (one sequence or a batch, user's units) -> ``([B, T, *obs]`` normalised, batched, was numpy)."""
-        obs = tuple(self.module.obs_shape())
+        """``y`` (one sequence or a batch, user's units; several sensors: a dict of streams) -> ``([B, T, *obs]``
+        normalised, batched, was numpy)."""
+        streams = self.streams
+        if streams is not None:
+            if not isinstance(y, Mapping) or list(y) != list(streams):
+                got = list(y) if isinstance(y, Mapping) else type(y).__name__
+                raise ValueError(
+                    f"{what}: this model reads the sensors {list(streams)}: give a dict of them, got {got}"
+                )
+            parts = [
+                self._sequence(y[name], shape, f"{what}['{name}']", missing=i > 0)
+                for i, (name, shape) in enumerate(streams.items())
+            ]
+            if len({(p[0].shape[0], p[0].shape[1], p[1]) for p in parts}) > 1:
+                raise ValueError(f"{what}: every stream must hold the same sequences and samples")
+            packed = torch.cat([p[0].flatten(2) for p in parts], -1)
+            return self.units.y_to_model(packed), parts[0][1], parts[0][2]
+        if isinstance(y, Mapping):
+            raise ValueError(f"{what}: this model reads one sensor: give its array, not a dict")
+        t, batched, as_numpy = self._sequence(y, tuple(self.module.obs_shape()), what)
+        return self.units.y_to_model(t), batched, as_numpy
+
+    @staticmethod
+    def _sequence(y: Any, obs: tuple[int, ...], what: str, missing: bool = False) -> tuple[torch.Tensor, bool, bool]:
+        """One stream's samples of shape ``obs`` -> ``([B, T, *obs]``, batched, was numpy): ``[T, *obs]`` or
+        ``[B, T, *obs]``; one component also ``[T]``, grey images ``(1, H, W)`` also ``[T, H, W]`` / ``[B, T, H, W]``.
+        ``missing``: NaN allowed (a sensor's unsampled times)."""
         t, as_numpy = _tensor(y, what)
         if obs == (1,) and t.ndim == 1:
             t = t.unsqueeze(-1)  # one measured component: [T]
+        grey = len(obs) == 3 and obs[0] == 1 and t.ndim in (3, 4) and tuple(t.shape[-3:]) != obs
+        if grey and tuple(t.shape[-2:]) == obs[1:]:
+            t = t.unsqueeze(-3)  # [T, H, W] or [B, T, H, W]: grey images without their channel
         if t.ndim not in (len(obs) + 1, len(obs) + 2) or tuple(t.shape[t.ndim - len(obs) :]) != obs:
             raise ValueError(
                 f"{what} must be [T, {', '.join(map(str, obs))}] (or a batch [B, T, ...]): this model's measurements "
@@ -427,8 +475,8 @@ class SSM:
             )
         batched = t.ndim == len(obs) + 2
         t = t if batched else t.unsqueeze(0)
-        _check_finite(t, what)
-        return self.units.y_to_model(t), batched, as_numpy
+        _check_finite(torch.nan_to_num(t, nan=0.0) if missing else t, what)
+        return t, batched, as_numpy
 
     def _raw_inputs(self, u: Any, what: str) -> tuple[torch.Tensor, bool, bool]:
         """``u`` -> ``([B, T, m]`` in the user's units, batched, was numpy)."""
@@ -479,11 +527,6 @@ def _check_finite(t: torch.Tensor, what: str) -> None:
 def _out(t: torch.Tensor, batched: bool, as_numpy: bool) -> np.ndarray | torch.Tensor:
     t = t if batched else t[0]
     return t.detach().cpu().numpy() if as_numpy else t
-
-
-def _time_length(y: Any, obs: tuple[int, ...]) -> int:
-    shape = tuple(np.shape(y)) if not isinstance(y, torch.Tensor) else tuple(y.shape)
-    return int(shape[1] if len(shape) == len(obs) + 2 else shape[0])
 
 
 def _encoder_path(path: Path) -> Path:

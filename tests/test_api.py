@@ -218,3 +218,41 @@ def test_a_fit_through_the_api_and_through_cli_py_give_the_same_weights(tmp_path
     assert cli.model.data_state["normalizer"]["mean"].tolist() == pytest.approx(
         model.module.data_state["normalizer"]["mean"].tolist()
     )
+
+
+def test_images_and_several_sensors_go_through_the_same_calls(tmp_path):
+    """Grey frames ``[N, T, H, W]``: g is the paper's decoder; a dict of a camera and an angle sensor (the angle at
+    every other sample, NaN between): g one head per stream, simulate returns a dict; both against the loop."""
+    rng = np.random.default_rng(0)
+    frames = rng.random((4, 20, 24, 24)).astype(np.float32)
+    data = Recordings(y=frames, batch_size=2)
+    model = SSM(data, state_dim=3, f_options=SMALL_F, loss="bce")
+    assert type(model.g).__name__ == "ConvDecoder" and model.units.is_identity  # images: not normalised
+    fit(model, data, epochs=1, save_dir=tmp_path, logger=False, enable_progress_bar=False)
+    x0 = np.zeros(3, dtype=np.float32)
+    got = model.simulate(steps=5, x0=x0)
+    assert got.shape == (5, 1, 24, 24)
+    with torch.no_grad():
+        x, expected = torch.zeros(1, 3), []
+        for _ in range(5):
+            expected.append(model.g(x)[0].numpy())
+            x = model.f(x)
+    np.testing.assert_allclose(got, np.stack(expected), rtol=1e-5, atol=1e-6)
+    x_f, _ = model.filter(frames[0, :6])  # grey frames without their channel axis, as given
+    assert x_f.shape == (6, 3)
+
+    angle = rng.normal(size=(4, 20, 1)).astype(np.float32)
+    angle[:, 1::2] = np.nan
+    sensors = Recordings(y={"camera": frames, "angle": angle}, noise_std={"camera": 0.1, "angle": 0.05}, batch_size=2)
+    both = SSM(sensors, state_dim=3, f_options=SMALL_F)
+    assert type(both.g).__name__ == "SensorHeads" and list(both.streams) == ["camera", "angle"]
+    fit(both, sensors, epochs=1, save_dir=tmp_path, logger=False, enable_progress_bar=False)
+    sim = both.simulate(steps=4, x0=x0)
+    assert set(sim) == {"camera", "angle"} and sim["camera"].shape == (4, 1, 24, 24) and sim["angle"].shape == (4, 1)
+    with torch.no_grad():
+        packed = both.g(torch.zeros(1, 3))[0].numpy()
+    np.testing.assert_allclose(sim["angle"][0], packed[-1:], rtol=1e-5, atol=1e-6)
+    x_f, p_f = both.filter({"camera": frames[0, :6], "angle": angle[0, :6]})  # NaN angles: not sampled
+    assert x_f.shape == (6, 3) and np.isfinite(x_f).all()
+    with pytest.raises(ValueError, match=r"reads the sensors \['camera', 'angle'\]: give a dict"):
+        both.filter(frames[0, :6])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -289,3 +290,39 @@ def test_the_pretrained_pendulum_forecasts_by_optimisation_as_documented(tmp_pat
     assert run["info"]["inference_settings"].endswith(
         "steps=100, lr=0.05 in the nodes' spread (cosine to lr/100), the best step per sequence; start=best_node of 64"
     )
+
+
+SSM_FILES = [p for p in COMMITTED if not p.stem.endswith("_encoder")]
+
+
+@pytest.mark.parametrize("path", SSM_FILES, ids=lambda p: p.name)
+def test_every_pretrained_ssm_loads_in_the_python_api_and_computes_as_its_config(path, tmp_path):
+    """``SSM.load`` of each file (with its encoder where one is beside it) simulates what the network its config
+    builds computes from the same weights, a loop over f and g, decoded into the units of the file's data state by
+    hand; the encoder loaded beside it reads frames into states of the SSM's size."""
+    from ssm_ms import SSM
+    from ssm_ms.module import datamodule_state
+
+    model = SSM.load(path)
+    cli, saved = model_of_config(path.stem, tmp_path)
+    load_into(cli.model, saved)
+    x0 = saved["state_dict"]["nodes.weight"][:1].float().view(-1, cli.model.state_dim)[:1]
+    got = model.simulate(steps=4, x0=x0[0].numpy())
+    norm = datamodule_state(saved)[1].get("normalizer")
+    with torch.no_grad():
+        x, expected = x0, []
+        for _ in range(4):
+            y = cli.model.g(x)[0].double()
+            if norm is not None:  # per channel, the first observation axis
+                view = (-1, *[1] * (y.dim() - 1))
+                y = y * norm["std"].double().view(view) + norm["mean"].double().view(view)
+            expected.append(y.numpy())
+            x = cli.model.f(x)
+    np.testing.assert_allclose(got, np.stack(expected), rtol=1e-4, atol=1e-4)
+    encoder = ROOT / "pretrained" / f"{path.stem}_encoder.ckpt"
+    assert (model.encoder is not None) == encoder.exists()
+    if model.encoder is not None:
+        assert model.encoder.ssm is model.module
+        frames = torch.from_numpy(np.stack(expected)).float().clamp(0, 1)  # four frames in the data's units
+        states, _ = model.filter(frames, method="encoder")
+        assert states.shape == (4, model.state_dim) and torch.isfinite(states).all()
