@@ -317,6 +317,22 @@ def test_missing_config_is_refused_before_lightning_is_imported(form):
     )
 
 
+@pytest.mark.parametrize("program", [["ssm-ms"], ["python", "-m", "ssm_ms"]], ids=["console script", "module"])
+def test_the_console_script_is_cli_py(program):
+    """``ssm-ms`` (pyproject's console script) and ``python -m ssm_ms`` are ``python cli.py``: the same refusal of a
+    missing config, before Lightning is imported."""
+    bin_dir = Path(sys.executable).parent
+    command = [str(bin_dir / "ssm-ms")] if program == ["ssm-ms"] else [sys.executable, "-m", "ssm_ms"]
+    done = subprocess.run(
+        [*command, "fit", "--config", "configs/nope.yaml"], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2
+    assert (
+        done.stderr.strip()
+        == "error: --config configs/nope.yaml: no such file (the shipped configs are under configs/)"
+    )
+
+
 # ---------------------------------------------------------------------------- checkpoints
 def test_missing_checkpoint(setup, capsys):
     root, _ = setup
