@@ -572,18 +572,7 @@ def parse_duration(value: float | str | timedelta) -> timedelta:
     return timedelta(seconds=seconds)
 
 
-def fit(
-    model: SSM,
-    data: TrajectoryDataModule,
-    epochs: int | None = None,
-    *,
-    time: float | str | timedelta | None = None,
-    name: str = "ssm",
-    save_dir: str | Path = "runs",
-    callbacks: Sequence[pl.Callback] = (),
-    ckpt_path: str | Path | None = None,
-    **trainer_options: Any,
-) -> SSM:
+def fit(model: SSM, data: TrajectoryDataModule, epochs: int | None = None, **options: Any) -> SSM:
     """Train ``model`` on ``data`` by multiple shooting, as ``python cli.py fit`` does.
 
     The paper's schedule runs unless ``callbacks`` hold a :class:`~ssm_ms.schedule.ShootingSchedule` (alpha raised and
@@ -595,9 +584,9 @@ def fit(
     Args:
         epochs: training epochs; ``time``: a budget (seconds, ``"12min"``, ``"1.5h"``, a ``timedelta``); one of
             them or both (training stops at the first reached).
-        callbacks: further Lightning callbacks.
-        **trainer_options: other ``lightning.Trainer`` arguments (``accelerator``, ``check_val_every_n_epoch``,
-            ``logger=False``, ...).
+        **options: ``time``, ``name`` (default ``"ssm"``), ``save_dir`` (``"runs"``), ``callbacks`` (further
+            Lightning callbacks), ``ckpt_path``, and other ``lightning.Trainer`` arguments (``accelerator``,
+            ``check_val_every_n_epoch``, ``logger=False``, ...).
     """
     if not isinstance(model, SSM):
         raise ValueError(
@@ -608,17 +597,7 @@ def fit(
     model.module.check_inputs(int(data.input_dim))
     model.module.check_data(int(data.seq_len), tuple(data.obs_shape), int(data.num_train_trajectories))
     model.module.train()
-    model.trainer = _train(
-        model.module,
-        data,
-        epochs,
-        time=time,
-        name=name,
-        save_dir=save_dir,
-        callbacks=callbacks,
-        ckpt_path=ckpt_path,
-        **trainer_options,
-    )
+    model.trainer = _train(model.module, data, epochs, **options)
     last = getattr(model.trainer.checkpoint_callback, "last_model_path", "")
     model.checkpoint_path = Path(last) if last else None
     model.module.eval()

@@ -75,14 +75,18 @@ def test_resume_continues_exactly_like_an_uninterrupted_run(tmp_path, stop_after
     trainer = fast_trainer(tmp_path / "b", max_epochs=5, callbacks=[schedule(), resumed_probe])
     trainer.fit(resumed, dm(), ckpt_path=str(tmp_path / "ckpt" / "last.ckpt"))
 
+    assert_resumed_as_uninterrupted(full, full_probe, resumed, resumed_probe, stop_after)
+
+
+def assert_resumed_as_uninterrupted(full, full_probe, resumed, resumed_probe, stop_after: int) -> None:
+    """The resumed run's epochs saw the uninterrupted run's alpha, lr and Adam step counts, and both end with the
+    same weights and Adam moments, bit for bit."""
     for epoch in range(stop_after, 5):
         assert resumed_probe.seen[epoch] == full_probe.seen[epoch]
     a, b = _params(full), _params(resumed)
     for key in a:
         torch.testing.assert_close(b[key], a[key], rtol=0, atol=0)
-    opt_full = adam_moments(full)
-    opt_resumed = adam_moments(resumed)
-    for x, y in zip(opt_full, opt_resumed):
+    for x, y in zip(adam_moments(full), adam_moments(resumed)):
         torch.testing.assert_close(y, x, rtol=0, atol=0)
 
 
@@ -273,13 +277,7 @@ def test_a_resumed_run_keeps_the_epochs_its_milestones_fired_at(tmp_path, stop_a
     trainer.fit(resumed, dm(), ckpt_path=str(tmp_path / "ckpt" / "last.ckpt"))
 
     assert sorted(resumed_probe.seen) == list(range(stop_after, 5))
-    for epoch in range(stop_after, 5):
-        assert resumed_probe.seen[epoch] == full_probe.seen[epoch]
-    a, b = _params(full), _params(resumed)
-    for key in a:
-        torch.testing.assert_close(b[key], a[key], rtol=0, atol=0)
-    for x, y in zip(adam_moments(full), adam_moments(resumed)):
-        torch.testing.assert_close(y, x, rtol=0, atol=0)
+    assert_resumed_as_uninterrupted(full, full_probe, resumed, resumed_probe, stop_after)
 
 
 class Tick(Callback):
