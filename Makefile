@@ -40,9 +40,11 @@ format: $(STAMP)
 
 ## deepSI, the peer of benchmarks/bench_deepsi.py (optional, never needed by `make test`): installed beside the pinned
 ## torch without its own dependencies (an unpinned torch would pull several GB of CUDA wheels), then those it needs.
+## It asks for nonlinear_benchmarks < 0.2 but uses only its Input_output_data, which 1.0.1 (the benchmarks extra,
+## the official loader's current release) has with the same signature.
 peers: $(STAMP)
 	$(PY) -m pip install --quiet --no-deps "deepsi==0.4.*"
-	$(PY) -m pip install --quiet cloudpickle "nonlinear_benchmarks<0.2" requests progressbar2 scipy
+	$(PY) -m pip install --quiet cloudpickle requests progressbar2 scipy  # its loader: the benchmarks extra's 1.0.1
 
 ## Long tests excluded from `make test`.
 test-slow: $(STAMP)
@@ -75,7 +77,9 @@ bench: $(STAMP)
 ## One experiment end to end: SSM fit (-> its UKF, fitted-states, control tests) -> encoder fit -> test,
 ## results in results/$(EXP).md.
 ## make reproduce EXP=pendulum [SIZE=cpu] [SEED=N] [RESUME=reproduce-...] [ARGS="options for every stage"];
-## EXP among pendulum pendulum_fc quad quad_fc mnist lorenz_T10 ... oscillator
+## EXP among pendulum pendulum_fc quad quad_fc mnist lorenz_T10 ... oscillator, and the identification benchmarks
+## silverbox wiener_hammerstein emps cascaded_tanks (configs/benchmarks/; offline: ARGS="--data.init_args.dir_placement
+## ../shared/data/nonlinear_benchmarks")
 reproduce: $(STAMP) $(if $(filter oscillator,$(EXP)),data/oscillator.npz)
 	$(PY) -m ssm_ms.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(RESUME),--resume $(RESUME)) $(if $(ARGS),-- $(ARGS))
 

@@ -54,7 +54,7 @@ from benchmarks.report import provenance  # noqa: E402
 from ssm_ms.inference.filter_module import FilterForecaster  # noqa: E402
 from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
 from ssm_ms.reproduce import build_datamodule, load_config  # noqa: E402
-from ssm_ms.runtime.machine import CpuWatch, quiet_note  # noqa: E402
+from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
 
 # Per system: ssm-ms's config, the test protocol, the UKF's noise (ssm-ms's training units; or the UKF stage config
 # that holds it) and deepSI's windows.
@@ -290,9 +290,90 @@ def write(r: dict, args, watch_note: str, out: Path) -> None:
     print(f"wrote {out} and {out.with_suffix('.json')}")
 
 
+# ---------------------------------------------------------------------------- the identification benchmarks
+BENCHMARK_BUDGET = 720.0  # seconds: configs/benchmarks/parts/base.yaml's trainer.max_time, ssm-ms's budget on them
+
+
+def run_benchmark(name: str, args, deepSI, work: Path) -> None:
+    """deepSI's SUBNET on a benchmark of configs/benchmarks/ by ssm-ms's protocol: trained on the same windows'
+    recording (the training recording less its held-out end, on which its validation simulates), for ssm-ms's
+    budget; each test recording simulated from its first ``n_init`` samples (the encoder reads the last ``na`` /
+    ``nb`` of them); its last and its best-on-validation models scored by the loader's metrics into
+    ``results/benchmarks/<name>.json`` beside ssm-ms's rows."""
+    from ssm_ms.forecasting.benchmark_results import write_benchmark_results
+    from ssm_ms.inference.simulation import scores
+
+    config = ROOT / "configs" / "benchmarks" / f"{name}.yaml"
+    test_config = load_config(ROOT / "configs" / "benchmarks" / f"{name}_test.yaml")
+    dm = build_datamodule(load_config(config), dir_placement=args.dir_placement)
+    train, val = dm.raw_recordings("train"), dm.raw_recordings("val")
+    dt = float(dm.sample_period or 1.0)
+    as_io = [deepSI.Input_output_data(u=u, y=y, sampling_time=dt) for y, u in train]
+    val_io = [deepSI.Input_output_data(u=u, y=y, sampling_time=dt) for y, u in val]
+    settings = {"na": min(20, dm.n_init), "nb": min(20, dm.n_init)}
+    system = {"deepsi": settings}
+    budget = BENCHMARK_BUDGET if args.tiny is False and args.deepsi_seconds is None else args.deepsi_seconds or 30.0
+    log = work / f"{name}-deepsi.log"
+    last, best, iterations, seconds, curve = train_deepsi(deepSI, as_io, val_io, budget, system, args.val_freq, log)
+    results_dir = (
+        Path(args.results_dir) if args.results_dir else ROOT / test_config["model"]["init_args"]["results_dir"]
+    )
+    n_init, k = dm.n_init, max(settings["na"], settings["nb"])
+    for label, model in (("last model", last), ("best on validation", best)):
+        rows, figures = {}, {}
+        for test_name, (y, u) in zip(dm.test_names, dm.raw_recordings("test")):
+            started = time.perf_counter()
+            with torch.no_grad():
+                model.eval()
+                y_t, u_t = torch.as_tensor(y[None]), torch.as_tensor(u[None])
+                sim = model(u_t[:, n_init - k : n_init], y_t[:, n_init - k : n_init], u_t[:, n_init:])[0].numpy()
+            truth = y * dm.unit_scale
+            simulated = (
+                np.concatenate([np.full((n_init, y.shape[1]), np.nan), sim.reshape(len(sim), -1)]) * dm.unit_scale
+            )
+            finite = bool(np.isfinite(simulated[n_init:]).all())
+            row = {"samples": len(y), "n_init": n_init, "seconds": round(time.perf_counter() - started, 2)}
+            row.update(scores(truth, simulated, n_init) if finite else {"rmse": None, "nrmse": None, "fit_index": None})
+            row["diverged_at"] = None if finite else int(n_init + np.argmax(~np.isfinite(simulated[n_init:]).all(1)))
+            rows[test_name], figures[test_name] = row, (truth, np.nan_to_num(simulated, nan=0.0))
+        info = {
+            "experiment": test_config["model"]["init_args"].get("experiment", name),
+            "method": f"deepSI SUBNET, {label}",
+            "model": "SUBNET",
+            "state_dim": 10,
+            "ssm_checkpoint": None,
+            "inference": {"method": f"SUBNET's encoder of the last {k} of the first {n_init} samples"},
+            "benchmark": dm.benchmark,
+            "unit": dm.unit,
+            "command": shlex.join(["python", "benchmarks/bench_deepsi.py", *args.argv]),
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "machine": describe(),
+            "test_seconds": round(sum(r["seconds"] for r in rows.values()), 1),
+            "training": {
+                "seconds": round(seconds, 1),
+                "iterations": iterations,
+                "deepsi": args.deepsi_version,
+                "settings": {**settings, "nx": 10, "T": 50, "batch_size": 256, "lr": 1e-3},
+                "validation_nrms": curve,
+            },
+        }
+        figures_dir = test_config["model"]["init_args"].get("figures_dir") if not args.results_dir else None
+        write_benchmark_results(results_dir, info, rows, figures, figures_dir, n_init)
+    print(f"deepSI on {name}: {iterations} iterations in {seconds:.0f} s; results in {results_dir}", flush=True)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--systems", nargs="+", choices=sorted(SYSTEMS), default=["pendulum", "lorenz"])
+    parser.add_argument("--systems", nargs="*", choices=sorted(SYSTEMS), default=None)
+    parser.add_argument(
+        "--benchmarks",
+        nargs="*",
+        default=[],
+        help="identification benchmarks of configs/benchmarks/ (silverbox, wiener_hammerstein, emps, cascaded_tanks): "
+        "SUBNET by their protocol, into results/benchmarks/",
+    )
+    parser.add_argument("--dir-placement", default=None, help="the benchmarks' files (the loader's dir_placement)")
+    parser.add_argument("--results-dir", default=None, help="the benchmarks' results (default: their test configs')")
     parser.add_argument("--tiny", action="store_true", help="a few trajectories and epochs: the script's check")
     parser.add_argument("--val-freq", type=int, default=250, help="deepSI iterations between validations")
     parser.add_argument("--deepsi-seconds", type=float, default=None, help="deepSI's budget (default: ssm-ms's time)")
@@ -313,10 +394,13 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(2)
     out_dir = Path(args.out_dir) if args.out_dir else (work if args.tiny else ROOT / "benchmarks/results")
     out_dir.mkdir(parents=True, exist_ok=True)
-    for name in args.systems:  # each system's file as soon as it is done, with the CPU use of its own run
+    systems = args.systems if args.systems is not None else ([] if args.benchmarks else ["pendulum", "lorenz"])
+    for name in systems:  # each system's file as soon as it is done, with the CPU use of its own run
         watch = CpuWatch()
         result = run_system(name, args, deepSI, work)
         write(result, args, quiet_note(watch.others()), out_dir / f"deepsi_{name}{'_tiny' * args.tiny}.md")
+    for name in args.benchmarks:
+        run_benchmark(name, args, deepSI, work)
 
 
 if __name__ == "__main__":

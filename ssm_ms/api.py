@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from collections.abc import Mapping, Sequence
 from datetime import timedelta
 from pathlib import Path
@@ -38,7 +39,8 @@ from datamodules.base import TrajectoryDataModule
 from datamodules.recordings import Recordings
 from ssm_ms.checkpointing import EpochCheckpoint
 from ssm_ms.cli import show_package_log
-from ssm_ms.inference import FilterForecaster, OptimisationForecaster, StateEncoderModule
+from ssm_ms.inference import StateEncoderModule
+from ssm_ms.inference.simulation import divergence_bound, estimate_states, free_run
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import (
     ConvDecoder,
@@ -49,13 +51,11 @@ from ssm_ms.nets import (
 )
 from ssm_ms.progress import RunProgressBar
 from ssm_ms.runtime.console import quiet_lightning
-from ssm_ms.training.shooting import decode, rollout
 from ssm_ms.units import Units
 
 __all__ = ["SSM", "Recordings", "fit"]
 
 TRANSITIONS = {"ll": LocallyLinearTransition, "fc": FullyConnectedTransition}
-METHODS = ("ukf", "fit", "encoder")
 MAX_PIECE = 25  # the paper's pieces: 100-frame pendulum sequences in 4 of 25 samples
 
 
@@ -257,30 +257,18 @@ class SSM:
     def _infer(
         self, y: torch.Tensor, u: torch.Tensor | None, method: str, options: Mapping[str, Any], want_covs: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """States ``[B, k, d]`` (and the UKF's covariances) of normalised measurements ``y [B, k, *obs]``."""
-        if method not in METHODS:
-            raise ValueError(f"method must be one of {list(METHODS)}, got {method!r}")
-        k = y.shape[1]
-        if method == "encoder":
-            if self.encoder is None:
-                raise ValueError("method 'encoder' needs a trained encoder: call model.fit_encoder(data) first")
-            if options:
-                raise ValueError(f"the encoder takes no options, got {sorted(options)}")
-            return self.encoder.infer(y, u), None
-        if method == "fit":
-            forecaster = OptimisationForecaster(self.module, n_filter=k, **{"n_nodes": 1, **options})
-            return forecaster.infer(y, u), None
+        """States ``[B, k, d]`` (and the UKF's covariances) of normalised measurements ``y [B, k, *obs]``
+        (:func:`~ssm_ms.inference.simulation.estimate_states`; a UKF ``measurement_var`` given in the user's units)."""
         options = dict(options)
-        if "measurement_var" in options:
+        if method == "ukf" and "measurement_var" in options:
             var = torch.as_tensor(options["measurement_var"], dtype=torch.float64)
             std = self.units.measurement_std(tuple(y.shape[2:]))
             scaled = var / std.pow(2)  # per component: a variance in the user's units over the data's variance
             options["measurement_var"] = scaled.tolist() if scaled.numel() > 1 else float(scaled)
-        else:
-            options["measurement_var"] = self.module.fit_mse if self.module.fit_mse is not None else 0.5
-        forecaster = FilterForecaster(self.module, n_filter=k, method="ukf", **options)
-        result = forecaster.filter.filter(y, forecaster.prior_mean(y), u=None if u is None else u[:, : k - 1])
-        return result.means, (result.covs if want_covs else None)
+        if method == "encoder" and self.encoder is None:
+            raise ValueError("method 'encoder' needs a trained encoder: call model.fit_encoder(data) first")
+        states, covs = estimate_states(self.module, y, u, method, options, self.encoder)
+        return states, (covs if want_covs else None)
 
     # ------------------------------------------------------------------ forecasts
     def simulate(
@@ -397,18 +385,19 @@ class SSM:
 
     def _free_run(self, x: torch.Tensor, steps: int, u: torch.Tensor | None, chunk: int) -> torch.Tensor:
         """``g`` of ``x`` and of its ``steps - 1`` successors under ``u [B, >= steps - 1, m]`` (model units), rolled
-        out ``chunk`` samples at a time."""
-        if chunk < 1:
-            raise ValueError(f"chunk must be >= 1, got {chunk}")
-        out = []
-        for start in range(0, steps, chunk):
-            n = min(chunk, steps - start)
-            states = rollout(self.f, x, n, None if u is None else u[:, start : start + n - 1])
-            out.append(decode(self.g, states, self.module.hparams.decode_chunk))
-            if start + n < steps:
-                last = states[:, -1]
-                x = self.f(last) if u is None else self.f(last, u[:, start + n - 1])
-        return torch.cat(out, 1)
+        out ``chunk`` samples at a time (:func:`~ssm_ms.inference.simulation.free_run`); a run that diverges gets a
+        warning that says where."""
+        y, diverged = free_run(
+            self.f, self.g, x, steps, u, chunk, self.module.hparams.decode_chunk, divergence_bound(self.module)
+        )
+        for b, at in enumerate(diverged.tolist()):
+            if at >= 0:
+                warnings.warn(
+                    f"the simulation{f' of sequence {b}' if len(diverged) > 1 else ''} diverged at sample {at} (it left "
+                    "the finite range, or 100 training standard deviations from the data's mean)",
+                    stacklevel=3,
+                )
+        return y
 
     # ------------------------------------------------------------------ the encoder
     def fit_encoder(self, data: TrajectoryDataModule, epochs: int = 100, **options: Any) -> SSM:

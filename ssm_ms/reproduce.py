@@ -13,6 +13,8 @@ fails.
     python -m ssm_ms.reproduce pendulum_lstm --baseline-epochs 120   # a baseline on a stated epoch budget
     python -m ssm_ms.reproduce lorenz_T1000 --size cpu --seed 1  # another seed: results/lorenz_T1000_cpu_seed1.md
     python -m ssm_ms.reproduce pendulum -- --trainer.max_epochs 1   # options after -- go to every stage's cli.py
+    python -m ssm_ms.reproduce silverbox -- --data.init_args.dir_placement ../shared/data/nonlinear_benchmarks
+                                                   # a benchmark: configs/benchmarks/silverbox{,_test}.yaml
 
 (``make reproduce EXP=pendulum [SIZE=cpu] [SEED=1] [ARGS="..."]``.) Options after ``--`` (make's ``ARGS``) are
 appended to every stage's ``python cli.py`` command, after the stage's own: a smoke test of the whole pipeline
@@ -50,6 +52,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import shlex
 import signal
 import subprocess
@@ -85,7 +88,7 @@ def load_config(config: Path | str, _including: tuple[Path, ...] = ()) -> dict:
     - then the file's other keys in order: a dotted key (``trainer.max_epochs: 5``) sets that one value (a dict or
       list given there replaces the value whole), a plain key (``trainer:``) replaces the whole section;
     - ``data`` or ``model`` given as a path (``data: data/pendulum.yaml``, relative to the file) is that file's
-      content (``class_path`` and ``init_args``).
+      content (``class_path`` and ``init_args``; its interpolations, written within the section, from the root).
 
     tests/test_configs.py checks it against ``cli.py --print_config`` on every shipped config."""
     path = Path(config)
@@ -101,7 +104,7 @@ def load_config(config: Path | str, _including: tuple[Path, ...] = ()) -> dict:
             out = _merged(out, load_config(path.parent / str(value), (*_including, path.resolve())))
             continue
         if key in SECTION_FILES and isinstance(value, str):
-            value = OmegaConf.to_container(OmegaConf.load(path.parent / value), resolve=False)
+            value = _from_root(OmegaConf.to_container(OmegaConf.load(path.parent / value), resolve=False), key)
         *parents, leaf = key.split(".")
         node = out
         for part in parents:
@@ -110,6 +113,18 @@ def load_config(config: Path | str, _including: tuple[Path, ...] = ()) -> dict:
             node = node[part]
         node[leaf] = value
     return out
+
+
+def _from_root(value, section: str):
+    """A section file's interpolations written from the config's root: ``${init_args.x}`` in the ``model`` file is
+    ``${model.init_args.x}`` (jsonargparse resolves a section file's interpolations within the section)."""
+    if isinstance(value, dict):
+        return {k: _from_root(v, section) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_from_root(v, section) for v in value]
+    if isinstance(value, str):
+        return value.replace("${init_args.", "${" + section + ".init_args.")
+    return value
 
 
 def _merged(under: dict, over: dict) -> dict:
@@ -490,6 +505,15 @@ def main(argv: list[str] | None = None) -> None:
         "results/<experiment>_seed<N>.md",
     )
     parser.add_argument(
+        "--orders",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="D",
+        help="a benchmark: one fit per latent dimension D (state_dim, the same budget each); the one whose validation "
+        "on the held-out end of the training recording (val/sim_rmse) is lowest is tested",
+    )
+    parser.add_argument(
         "--resume",
         default=None,
         metavar="VERSION",
@@ -507,6 +531,8 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(opts, name)}")
     if opts.seed is not None and opts.seed < 0:
         parser.error(f"--seed must be >= 0, got {opts.seed}")
+    if opts.orders is not None and not (ROOT / "configs" / "benchmarks" / f"{opts.experiment}.yaml").is_file():
+        parser.error("--orders chooses a benchmark's latent dimension (configs/benchmarks/): not for this experiment")
     if opts.no_encoder and opts.encoder_epochs is not None:
         parser.error("--encoder-epochs budgets the encoder stage that --no-encoder leaves out: give one of the two")
     suite = ROOT / "configs" / "suites" / f"{opts.experiment}.yaml"
@@ -519,6 +545,10 @@ def main(argv: list[str] | None = None) -> None:
             )
         for experiment in load_config(suite).get("experiments", []):
             main([experiment, *argv[1:]])
+        return
+    benchmark = ROOT / "configs" / "benchmarks" / f"{opts.experiment}.yaml"
+    if benchmark.is_file():
+        run_benchmark(opts, argv, benchmark)
         return
     folder = ROOT / "configs" / ("cpu" if opts.size == "cpu" else "")
     ssm_cfg = folder / f"{opts.experiment}.yaml"
@@ -540,6 +570,7 @@ def main(argv: list[str] | None = None) -> None:
         known += sorted(p.stem[: -len("_control")] for p in folder.glob("*_control.yaml"))
         known += sorted(p.stem for p in (folder / "baselines").glob("*.yaml"))
         known += sorted(p.stem for p in (ROOT / "configs" / "suites").glob("*.yaml"))
+        known += sorted(p.stem[: -len("_test")] for p in (ROOT / "configs" / "benchmarks").glob("*_test.yaml"))
         raise SystemExit(
             f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {sorted(set(known))}"
         )
@@ -567,14 +598,7 @@ def main(argv: list[str] | None = None) -> None:
             + (f" SEED={opts.seed}" if seeded else "")
             + (f" ARGS={shlex.quote(shlex.join(stage_args))}" if stage_args else "")
         )
-    pipeline = Pipeline(
-        _absolute(logger_dir(first)) / version / "reproduce.json",
-        {k: v for k, v in vars(opts).items() if k != "resume"},
-        shlex.join(["python", "-m", "ssm_ms.reproduce", *options, "--resume", version]),
-        resume=opts.resume is not None,
-        command=command,
-    )
-    print(f"reproduce run {version}; if it stops, finish it with:\n  {pipeline.resume_pipeline}", flush=True)
+    pipeline = open_pipeline(opts, options, first, version, command)
     v = ["--trainer.logger.init_args.version", version]
     if seeded:
         v += ["--seed_everything", str(opts.seed)]
@@ -635,6 +659,76 @@ def main(argv: list[str] | None = None) -> None:
     for md in pipeline.finished(files):
         print(f"\nresults: {md.relative_to(ROOT)}\n")
         print(md.read_text())
+
+
+def validation_score(checkpoint: Path) -> float:
+    """The score a fit's ``ModelCheckpoint`` kept its best epoch by (``val/sim_rmse``), read from that checkpoint;
+    infinite where there is none (a fit without that validation)."""
+    path = _absolute(checkpoint)
+    if not path.is_file():
+        return math.inf
+    import torch  # the stage is done: reading its checkpoint costs the import once
+
+    saved = torch.load(path, map_location="cpu", weights_only=False)
+    scores = [
+        float(state["best_model_score"])
+        for key, state in saved.get("callbacks", {}).items()
+        if key.startswith("ModelCheckpoint") and state.get("best_model_score") is not None
+    ]
+    return min(scores, default=math.inf)
+
+
+def open_pipeline(opts: argparse.Namespace, options: list[str], first: Path, version: str, command: str) -> Pipeline:
+    """The record of this run (in the first stage's run folder), saying how to finish it if it stops."""
+    pipeline = Pipeline(
+        _absolute(logger_dir(first)) / version / "reproduce.json",
+        {k: v for k, v in vars(opts).items() if k != "resume"},
+        shlex.join(["python", "-m", "ssm_ms.reproduce", *options, "--resume", version]),
+        resume=opts.resume is not None,
+        command=command,
+    )
+    print(f"reproduce run {version}; if it stops, finish it with:\n  {pipeline.resume_pipeline}", flush=True)
+    return pipeline
+
+
+def run_benchmark(opts: argparse.Namespace, argv: list[str], config: Path) -> None:
+    """An identification benchmark (``configs/benchmarks/<experiment>.yaml``): the SSM's fit, then the benchmark's
+    protocol on the test recordings (``<experiment>_test.yaml``) from the epoch its validation chose (``best.ckpt``);
+    its results file is the test's (``results/benchmarks/<experiment>.md``, the commands and durations in this run's
+    record)."""
+    test_cfg = config.with_name(f"{opts.experiment}_test.yaml")
+    if opts.size != "paper" or opts.no_encoder or opts.encoder_epochs or opts.baseline_epochs:
+        raise SystemExit(f"error: {opts.experiment} is a benchmark: one size, no encoder or baselines to choose")
+    seeded = "" if opts.seed is None else f"seed{opts.seed}"
+    version = opts.resume or "reproduce-" + (seeded + "-" if seeded else "") + datetime.now().strftime("%Y%m%d-%H%M%S")
+    options = _without_option(argv, "--resume")
+    command = f"make reproduce EXP={opts.experiment}" + (f" SEED={opts.seed}" if seeded else "")
+    command += f" ARGS={shlex.quote(shlex.join(opts.stage_args))}" if opts.stage_args else ""
+    pipeline = open_pipeline(opts, options, config, version, command)
+    seed = ["--seed_everything", str(opts.seed)] if seeded else []
+    fits = {}  # the run folder of each fit: one, or one per order
+    for d in opts.orders or [None]:
+        run = version if d is None else f"{version}-d{d}"
+        order = [] if d is None else ["--model.init_args.state_dim", str(d)]
+        v = ["--trainer.logger.init_args.version", run, *seed, *order, *opts.stage_args]
+        fits[d] = (pipeline.stage(["fit", "--config", str(config.relative_to(ROOT)), *v]), run)
+    chosen, scores = None, {}
+    if opts.orders:  # the order whose kept epoch validated best
+        kept = {d: tested_checkpoint(logger_dir(config) / run / "checkpoints") for d, (_, run) in fits.items()}
+        scores = {d: validation_score(path) for d, path in kept.items()}
+        chosen = min(scores, key=lambda d: scores[d])
+    ran, run = fits[chosen]
+    ssm = tested_checkpoint(logger_dir(config) / run / "checkpoints")
+    named = ["--model.init_args.method_name", f"SSM ({seeded})"] if seeded else []
+    if opts.orders:
+        chosen_by = {"state_dim, by val/sim_rmse": {str(d): scores[d] for d in scores}, "chosen": chosen}
+        named += ["--model.init_args.selection", json.dumps(chosen_by)]
+    test = ["test", "--config", str(test_cfg.relative_to(ROOT)), "--model.init_args.ssm_checkpoint", str(ssm)]
+    pipeline.stage([*test, *named, *opts.stage_args], again=any(r for r, _ in fits.values()))
+    results = ROOT / str(config_value(test_cfg, "model.init_args.results_dir", default="results"))
+    md = results / f"{experiment_name(test_cfg)}.md"
+    if md.is_file():
+        print(f"\nresults: {md.relative_to(ROOT)}\n\n{md.read_text()}")
 
 
 if __name__ == "__main__":

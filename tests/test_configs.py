@@ -14,8 +14,11 @@ from ssm_ms.cli import SSMCLI, main
 from ssm_ms.reproduce import config_value, experiment_name, load_config, logger_dir
 
 ROOT = Path(__file__).resolve().parents[1]
-# every runnable config: not the shared sections (configs/data/, configs/cpu/data/), not the examples added after one
-CONFIGS = sorted(p for p in (ROOT / "configs").rglob("*.yaml") if p.parent.name not in ("data", "examples", "suites"))
+# every runnable config: not the shared sections (configs/data/, configs/cpu/data/, configs/benchmarks/parts/), not
+# the examples added after one
+CONFIGS = sorted(
+    p for p in (ROOT / "configs").rglob("*.yaml") if p.parent.name not in ("data", "examples", "suites", "parts")
+)
 
 
 def is_stage(config: Path) -> bool:

@@ -43,6 +43,7 @@ def test_every_row_is_produced_by_a_command_a_clean_clone_can_run():
 def results_copy(tmp_path: Path) -> Path:
     for path in RESULTS.glob("*.json"):
         shutil.copy2(path, tmp_path / path.name)
+    shutil.copytree(RESULTS / "benchmarks", tmp_path / "benchmarks")
     return tmp_path
 
 

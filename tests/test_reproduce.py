@@ -787,3 +787,52 @@ def test_a_baseline_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeyp
     version = option(fit, "--trainer.logger.init_args.version")
     assert (fit[0], test[0]) == ("fit", "test")
     assert option(test, "--ckpt_path") == f"runs/pendulum_lstm/{version}/checkpoints/best.ckpt"
+
+
+def test_a_benchmark_fits_then_tests_from_the_epoch_its_validation_chose(recorded, monkeypatch, tmp_path):
+    """``make reproduce EXP=cascaded_tanks``: the fit of configs/benchmarks/cascaded_tanks.yaml, then its protocol
+    (cascaded_tanks_test.yaml) on the fit's best.ckpt; ARGS reach both stages."""
+    calls, _ = recorded
+    monkeypatch.setattr(reproduce, "run_stage", fit_writing_best(calls, tmp_path, "cascaded_tanks"))
+    reproduce.main(["cascaded_tanks", "--", "--data.init_args.dir_placement", "here"])
+    fit, test = calls
+    assert (fit[0], option(fit, "--config")) == ("fit", "configs/benchmarks/cascaded_tanks.yaml")
+    assert (test[0], option(test, "--config")) == ("test", "configs/benchmarks/cascaded_tanks_test.yaml")
+    version = option(fit, "--trainer.logger.init_args.version")
+    assert option(test, "--model.init_args.ssm_checkpoint") == f"runs/cascaded_tanks/{version}/checkpoints/best.ckpt"
+    assert option(fit, "--data.init_args.dir_placement") == option(test, "--data.init_args.dir_placement") == "here"
+    with pytest.raises(SystemExit, match="is a benchmark"):
+        reproduce.main(["cascaded_tanks", "--size", "cpu"])
+
+
+def test_a_benchmark_with_orders_tests_the_one_its_validation_chose(recorded, monkeypatch, tmp_path):
+    """``--orders 2 4 8``: one fit per state_dim, each in its own run folder; the test reads the best.ckpt of the one
+    whose kept validation score (its ModelCheckpoint's best_model_score) is lowest, here d = 4."""
+    import json
+
+    import torch
+
+    calls, _ = recorded
+    val = {"2": 1.5, "4": 0.9, "8": 1.1}
+
+    def stage(args, number, resume_pipeline=None, on_wait=None):
+        calls.append(args)
+        if args[0] == "fit":
+            d = option(args, "--model.init_args.state_dim")
+            best = tmp_path / "runs" / "silverbox" / option(args, "--trainer.logger.init_args.version") / "checkpoints"
+            best.mkdir(parents=True)
+            state = {"monitor": "val/sim_rmse", "best_model_score": torch.tensor(val[d])}
+            torch.save({"callbacks": {"ModelCheckpoint{'monitor': 'val/sim_rmse'}": state}}, best / "best.ckpt")
+        return 0.0
+
+    monkeypatch.setattr(reproduce, "run_stage", stage)
+    reproduce.main(["silverbox", "--orders", "2", "4", "8"])
+    fits, (test,) = calls[:3], calls[3:]
+    assert [option(a, "--model.init_args.state_dim") for a in fits] == ["2", "4", "8"]
+    versions = [option(a, "--trainer.logger.init_args.version") for a in fits]
+    assert len(set(versions)) == 3 and versions[1].endswith("-d4")
+    assert option(test, "--model.init_args.ssm_checkpoint") == f"runs/silverbox/{versions[1]}/checkpoints/best.ckpt"
+    selection = json.loads(option(test, "--model.init_args.selection"))
+    assert selection["chosen"] == 4 and selection["state_dim, by val/sim_rmse"] == pytest.approx(val)
+    with pytest.raises(SystemExit):
+        reproduce.main(["pendulum", "--orders", "2"])

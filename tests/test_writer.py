@@ -303,3 +303,19 @@ def test_predict_refuses_bad_inputs_with_one_message(oscillator, capsys):
     ]
     for extra, words in cases:
         assert words in predict_error(tmp, ckpt, capsys, *extra), extra
+
+
+def test_forecasts_that_diverge_are_named_with_their_step():
+    """A forecast that leaves the finite range, or 100 training stds (here: std 2, so 200 from the mean 1), is named
+    with its first such step; one within the bound is not."""
+    from types import SimpleNamespace
+
+    from datamodules.base import Normalizer
+    from ssm_ms.forecasting.writer import ForecastWriter
+
+    predicted = np.ones((3, 6, 1))
+    predicted[1, 4, 0] = 1 + 2 * 101.0  # 101 stds away
+    predicted[2, 2, 0] = np.inf
+    predicted[0, 5, 0] = 1 + 2 * 99.0  # within
+    module = SimpleNamespace(normalizer=lambda: Normalizer(torch.tensor([1.0]), torch.tensor([2.0]), 1))
+    assert ForecastWriter._diverged({"predicted": predicted}, module) == [(1, 4), (2, 2)]

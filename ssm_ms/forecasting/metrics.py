@@ -28,6 +28,19 @@ from typing import Any
 import numpy as np
 import torch
 
+# a simulation or forecast farther than this many training standard deviations from the data's mean has diverged
+DIVERGENCE_BOUND = 100.0
+
+
+def first_divergence(y: torch.Tensor, bound: float | None = DIVERGENCE_BOUND) -> torch.Tensor:
+    """Per sequence of ``y [B, T, ...]`` (normalised units), the first step that is not finite or, with ``bound``,
+    exceeds it in magnitude; ``-1`` where there is none."""
+    bad = ~torch.isfinite(y).flatten(2).all(-1)
+    if bound is not None:
+        bad |= y.flatten(2).abs().amax(-1).nan_to_num(float("inf")) > bound
+    return torch.where(bad.any(1), bad.float().argmax(1), torch.full(bad.shape[:1], -1, device=y.device))
+
+
 BCE_EPS = 1e-12
 METRICS = ("mse", "bce", "mse_sum", "ssim")
 SSIM_WINDOW, SSIM_SIGMA, SSIM_K1, SSIM_K2 = 11, 1.5, 0.01, 0.03

@@ -330,10 +330,47 @@ def lorenz_sweep(results: Results) -> list[str]:
     return lines
 
 
+def benchmarks(results: Results) -> list[str]:
+    """The identification benchmarks (``results/benchmarks/*.json``): each test recording's free-run RMSE of every
+    run, the published rows beside them (``<name>.published.json``), the machine and date of ours."""
+    folder = results.dir / "benchmarks"
+    lines = [
+        "| benchmark | test recording | ssm-ms (free run after n_init samples) | published | run on |",
+        "|---|---|---|---|---|",
+    ]
+    for path in sorted(folder.glob("*.json")):
+        if path.name.endswith(".published.json"):
+            continue
+        data = json.loads(path.read_text())
+        published = folder / f"{path.stem}.published.json"
+        pub = json.loads(published.read_text())["rows"] if published.is_file() else {}
+        runs = data["runs"]
+        unit = next((r["info"].get("unit") for r in runs.values() if r["info"].get("unit")), "")
+        tests = list(dict.fromkeys(t for r in runs.values() for t in r["tests"]))
+        for i, test in enumerate(tests):
+            ours = []
+            for method, run in runs.items():
+                row = run["tests"].get(test)
+                if row is not None:
+                    value = (
+                        f"diverged at {row['diverged_at']}"
+                        if row.get("diverged_at") is not None
+                        else sig(row["rmse"], 3)
+                    )
+                    ours.append(f"{value} ({method})")
+            theirs = ", ".join(f"{name} {sig(v[test], 3)}" for name, v in pub.items() if test in v)
+            info = next(iter(runs.values()))["info"]
+            when = f"{info.get('machine', '')}, {str(info.get('date', ''))[:10]}" if i == 0 else ""
+            name = f"{data['experiment']} ({unit})" if i == 0 else ""
+            lines.append(f"| {name} | {test} | {'; '.join(ours)} | {theirs} | {when} |")
+    return lines
+
+
 TABLES: dict[str, Callable[[Results], list[str]]] = {
     "full-size": full_size,
     "cpu-twins": cpu_twins,
     "lorenz-sweep": lorenz_sweep,
+    "benchmarks": benchmarks,
 }
 
 

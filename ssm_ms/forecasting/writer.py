@@ -34,6 +34,7 @@ followed), images as the given-then-following frames over the model's frames.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +42,7 @@ import numpy as np
 import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 
+from ssm_ms.forecasting.metrics import DIVERGENCE_BOUND, first_divergence
 from ssm_ms.nets.sensors import SensorLayout
 
 # predict_step outputs that are not written to the .npz (the figures use them)
@@ -115,7 +117,35 @@ class ForecastWriter(BasePredictionWriter):
             f"wrote {self.output}: forecasts of {p} steps after {k} given for {n} sequences (original units), "
             f"states{covs}" + (f"; figures in {self.figures_dir}" if self.figures else "")
         )
+        diverged = self._diverged(arrays, pl_module)
+        if diverged:
+            shown = ", ".join(f"sequence {i} at step {s}" for i, s in diverged[:5])
+            more = f" and {len(diverged) - 5} more" if len(diverged) > 5 else ""
+            print(
+                f"warning: {len(diverged)} of the {n} forecasts diverged (left the finite range, or "
+                f"{DIVERGENCE_BOUND:g} training standard deviations): {shown}{more}; their values there are not a "
+                "forecast",
+                file=sys.stderr,
+            )
         self._parts = []
+
+    @staticmethod
+    def _diverged(arrays: dict[str, np.ndarray], pl_module: Any) -> list[tuple[int, int]]:
+        """``(sequence, step)`` of the forecasts that diverged: the first predicted step (counted from the forecast's
+        start) outside the finite range or :data:`DIVERGENCE_BOUND` in the model's normalised units."""
+        norm = pl_module.normalizer() if callable(getattr(pl_module, "normalizer", None)) else None
+        keys = [k for k in arrays if k == "predicted" or k.startswith("predicted_") and k != "predicted_states"]
+        keys = [k for k in keys if "cov" not in k]
+        found: dict[int, int] = {}
+        for key in keys:
+            y = torch.from_numpy(np.asarray(arrays[key], dtype=np.float64))
+            if key == "predicted" and norm is not None:
+                y = norm.normalize(y)
+            bound = DIVERGENCE_BOUND if key == "predicted" and norm is not None and not norm.is_identity else None
+            for i, step in enumerate(first_divergence(y, bound).tolist()):
+                if step >= 0:
+                    found[i] = min(step, found.get(i, step))
+        return sorted(found.items())
 
     # ------------------------------------------------------------------ figures
     def _draw(self, part: dict[str, np.ndarray], pl_module: Any) -> None:

@@ -1,0 +1,196 @@
+"""The identification benchmarks of nonlinearbenchmark.org (Silverbox, Wiener-Hammerstein, EMPS, Cascaded Tanks, ...),
+read by their official loader (PyPI ``nonlinear-benchmarks``; ``pip install -e '.[benchmarks]'``).
+
+Each benchmark is a training recording and one or more test recordings of a physical system driven by a known input
+``u``, measured through its output ``y``. The benchmarks' rules, kept here: the test recordings decide nothing (they are
+served only to ``test``); the end of the training recording (``val_fraction``) is held out as the validation recording,
+which chooses the epoch kept and the model order; the rest is cut into training windows (:mod:`datamodules.windows`),
+normalised with their statistics (saved in checkpoints). Splits: ``train`` (windows), ``val`` (the held-out end, one
+whole sequence), ``test`` (each test recording whole, one data loader each, in the loader's order).
+
+The benchmark's protocol (:mod:`ssm_ms.inference.simulation`): the state from a test recording's first ``n_init``
+samples, then a free-run simulation of the rest from its inputs alone, scored by the loader's own
+``error_metrics.RMSE`` in the benchmark's unit (``unit``, ``unit_scale``: the factor from the files' units to it).
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from torch.utils.data import DataLoader
+
+from datamodules.base import TrajectoryDataset
+from datamodules.recordings import Recordings
+
+EXTRA = "pip install -e '.[benchmarks]' (or: pip install nonlinear-benchmarks==1.0.1 rarfile progressbar)"
+
+
+def loader_module() -> Any:
+    """The official loader, or one message naming the fix where it is not installed."""
+    try:
+        return importlib.import_module("nonlinear_benchmarks")
+    except ImportError:
+        raise ValueError(f"the benchmarks need their official loader, nonlinear-benchmarks: {EXTRA}") from None
+
+
+def loader_names(nb: Any) -> list[str]:
+    """The benchmarks the loader knows with a train / test split."""
+    names = getattr(nb, "all_splitted_benchmarks", None)
+    return sorted(f.__name__ for f in names) if names else sorted(n for n in dir(nb) if n[:1].isupper())
+
+
+def load_benchmark(name: str, dir_placement: str | None = None) -> tuple[Any, list[Any]]:
+    """``(train, [test, ...])`` of the loader's ``name`` (``Input_output_data`` each), its files under
+    ``dir_placement`` (``None``: the loader's cache, ``~/.nonlinear_benchmarks``, downloaded once)."""
+    nb = loader_module()
+    known = loader_names(nb)
+    if name not in known:
+        raise ValueError(f"unknown benchmark {name!r}: the loader knows {', '.join(known)}")
+    if dir_placement is not None and not Path(dir_placement).is_dir():
+        raise ValueError(
+            f"dir_placement {dir_placement}: no such folder; give the folder holding the benchmark's files (the "
+            "loader's layout, e.g. ../shared/data/nonlinear_benchmarks), or leave it unset to download them"
+        )
+    try:
+        train, test = getattr(nb, name)(dir_placement=dir_placement)
+    except Exception as err:  # no file and no internet: the loader's download fails (a plain Exception of its own)
+        where = dir_placement or "~/.nonlinear_benchmarks"
+        raise ValueError(
+            f"benchmark {name}: its files are not in {where} and could not be downloaded ({err}); give dir_placement "
+            "a folder holding them (the loader's layout), or run once where the internet is reachable"
+        ) from None
+    return train, list(test) if isinstance(test, (list, tuple)) else [test]
+
+
+def _sequence(y: np.ndarray, u: np.ndarray) -> dict[str, np.ndarray]:
+    """One recording ``y [T]`` / ``[T, p]``, ``u`` likewise as a batch of one: ``{"y": [1, T, p], "u": [1, T, m]}``."""
+    y = np.asarray(y, dtype=np.float32).reshape(len(y), -1)
+    u = np.asarray(u, dtype=np.float32).reshape(len(u), -1)
+    return {"y": y[None], "u": u[None]}
+
+
+class BenchmarkDataModule(Recordings):
+    """A nonlinearbenchmark.org benchmark through its official loader (the module's docstring: splits, rules).
+
+    Args:
+        benchmark: the loader's name of it (``Silverbox``, ``WienerHammerBenchMark``, ``EMPS``, ``Cascaded_Tanks``,
+            ...); an unknown name is refused with the loader's list.
+        dir_placement: the folder of the benchmark files in the loader's layout (``None``: the loader's own cache,
+            downloading them where the internet is reachable; the tests use ``../shared/data/nonlinear_benchmarks``).
+        val_fraction: the end of the training recording held out for validation (default 0.2: a fifth).
+        window, stride: the training windows cut from the rest (:class:`~datamodules.recordings.Recordings`).
+        n_init: samples of each recording given to estimate its initial state (default: the loader's
+            ``state_initialization_window_length`` of the test recordings).
+        unit, unit_scale: the unit the benchmark reports in and the factor from the files' units to it (Silverbox:
+            ``mV`` and 1000, the files hold volts).
+        test_names: names of the test recordings (default: the loader's, numbered where they repeat).
+        **kwargs: :class:`~datamodules.recordings.Recordings`' ``batch_size``, ``seed``, ``normalize``, ...
+    """
+
+    def __init__(
+        self,
+        benchmark: str,
+        dir_placement: str | None = None,
+        val_fraction: float = 0.2,
+        window: int | None = None,
+        stride: int | None = None,
+        n_init: int | None = None,
+        unit: str = "",
+        unit_scale: float = 1.0,
+        test_names: list[str] | None = None,
+        **kwargs: Any,
+    ):
+        if not 0.0 < val_fraction < 1.0:
+            raise ValueError(
+                f"val_fraction must be in (0, 1): the end of the training recording held out, got {val_fraction}"
+            )
+        if not unit_scale > 0:
+            raise ValueError(f"unit_scale must be > 0 (the files' units to the reported one), got {unit_scale}")
+        train, tests = load_benchmark(benchmark, dir_placement)
+        cut = int(round(len(train.y) * (1.0 - val_fraction)))
+        dt = getattr(train, "sampling_time", None)
+        super().__init__(
+            y=np.asarray(train.y)[:cut],
+            u=np.asarray(train.u)[:cut],
+            dt=float(dt) if dt else None,
+            window=window,
+            stride=stride,
+            **kwargs,
+        )
+        self.benchmark, self.dir_placement, self.val_fraction = benchmark, dir_placement, float(val_fraction)
+        self.name = benchmark.lower()
+        self.unit, self.unit_scale = unit, float(unit_scale)
+        given = {int(t.state_initialization_window_length) for t in tests if t.state_initialization_window_length}
+        self.n_init = int(n_init) if n_init is not None else (max(given) if given else 0)
+        if self.n_init < 1:
+            raise ValueError(
+                f"benchmark {benchmark}: the loader gives no n_init: give n_init, the samples to estimate the state from"
+            )
+        self._sequences = {
+            "train": [_sequence(np.asarray(train.y)[:cut], np.asarray(train.u)[:cut])],
+            "val": [_sequence(np.asarray(train.y)[cut:], np.asarray(train.u)[cut:])],
+            "test": [_sequence(t.y, t.u) for t in tests],
+        }
+        if len(self._sequences["val"][0]["y"][0]) <= self.n_init:
+            raise ValueError(
+                f"val_fraction={val_fraction} holds out no more than n_init={self.n_init} samples: raise it"
+            )
+        names = list(test_names) if test_names is not None else _unique([str(t.name) for t in tests])
+        if len(names) != len(tests):
+            raise ValueError(f"test_names names {len(names)} test recordings, the benchmark has {len(tests)}")
+        self.test_names = names
+        self.splits = ("train", "val", "test")
+
+    def stage_splits(self, stage: str | None) -> tuple[str, ...]:
+        """``fit`` and ``validate`` load the training windows; the held-out recordings are served whole
+        (:meth:`sequences`), never as a split of windows."""
+        return ("train",) if stage in (None, "fit", "validate") else ()
+
+    def generator_params(self) -> dict[str, Any]:
+        return {"benchmark": self.benchmark, "val_fraction": self.val_fraction, **super().generator_params()}
+
+    # ------------------------------------------------------------------ the held-out recordings
+    def load_split(self, split: str) -> TrajectoryDataset:
+        if split == "train":
+            return super().load_split(split)
+        if split == "val":
+            return TrajectoryDataset(self._sequences["val"][0])
+        raise ValueError(f"the benchmark's test recordings are served one loader each: test_dataloader(), not {split}")
+
+    def sequences(self, split: str) -> list[TrajectoryDataset]:
+        """The whole recordings of ``split`` (``"val"``: the held-out end; ``"test"``: the test recordings; ``"train"``:
+        the part the windows are cut from), each a data set of one sequence, normalised with the training
+        statistics."""
+        out = [TrajectoryDataset(arrays) for arrays in self._sequences[split]]
+        for ds in out:
+            self._set_normalizer(ds)
+        return out
+
+    def raw_recordings(self, split: str) -> list[tuple[np.ndarray, np.ndarray]]:
+        """``[(y [T, p], u [T, m]), ...]`` of ``split`` in the files' units, whole (``"train"``: the training
+        recording less its held-out end, the part the windows are cut from): for a peer trained on the same data."""
+        return [(arrays["y"][0], arrays["u"][0]) for arrays in self._sequences[split]]
+
+    def test_dataloader(self) -> list[DataLoader]:
+        return [self._loader(ds, 1) for ds in self.sequences("test")]
+
+    def split_dataloader(self, split: str) -> DataLoader | list[DataLoader]:
+        """The whole recordings of ``"val"`` (one loader) or ``"test"`` (one each)."""
+        loaders = [self._loader(ds, 1) for ds in self.sequences(split)]
+        return loaders[0] if split == "val" else loaders
+
+    @property
+    def val_length(self) -> int:
+        return int(self._sequences["val"][0]["y"].shape[1])
+
+
+def _unique(names: list[str]) -> list[str]:
+    """Names made unique by numbering the repeated ones (``a``, ``a (2)``)."""
+    out = []
+    for name in names:
+        k = sum(1 for n in names[: len(out)] if n == name)
+        out.append(name if k == 0 else f"{name} ({k + 1})")
+    return out

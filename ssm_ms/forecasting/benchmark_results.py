@@ -1,0 +1,142 @@
+"""The results files of the identification benchmarks: ``<results_dir>/<experiment>.json`` (every run, the one source
+of the scores) and ``<experiment>.md`` rendered from it with the published baselines beside ours, and a figure per
+test recording (measured and simulated output over a window, the error along the whole recording).
+
+A run is keyed by its method name (a later run of the same name replaces it); published rows come from
+``<experiment>.published.json`` beside it when that file exists (``{"source": ..., "rows": {name: {test: rmse}}}``),
+and a hand-written ``<experiment>.notes.md`` is appended as the Notes.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def write_benchmark_results(
+    results_dir: Path,
+    info: dict[str, Any],
+    rows: dict[str, dict[str, Any]],
+    figures: dict[str, tuple[np.ndarray, np.ndarray]],
+    figures_dir: str | None,
+    n_init: int,
+) -> Path:
+    """Add this run (``info``: what was run where; ``rows``: ``{test recording: scores}``) to the experiment's JSON,
+    render its markdown, draw the figures; return the JSON's path."""
+    results_dir.mkdir(parents=True, exist_ok=True)
+    name = info["experiment"]
+    path = results_dir / f"{name}.json"
+    data = json.loads(path.read_text()) if path.exists() else {"experiment": name, "runs": {}}
+    data["runs"][info["method"]] = {"info": info, "tests": rows}
+    path.write_text(json.dumps(data, indent=2) + "\n")  # in order: the test recordings as the benchmark lists them
+    if figures_dir is not None:
+        for test, (truth, model) in figures.items():
+            draw(
+                Path(figures_dir) / f"{name}_{_slug(info['method'])}_{_slug(test)}.png",
+                truth,
+                model,
+                n_init,
+                test,
+                info,
+            )
+    (results_dir / f"{name}.md").write_text(render(data, results_dir))
+    return path
+
+
+def _slug(text: str) -> str:
+    """``SSM-LL (d = 4) + UKF`` -> ``ssm_ll_d_4_ukf``."""
+    return "_".join("".join(c if c.isalnum() else " " for c in text.lower()).split())
+
+
+def _cell(value: Any) -> str:
+    return "—" if value is None else f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
+def render(data: dict[str, Any], results_dir: Path) -> str:
+    """The experiment's markdown: the RMSE of each run on each test recording (diverged runs say where), then the
+    published rows, then each run's details and the notes."""
+    runs = data["runs"]
+    tests = list(dict.fromkeys(t for run in runs.values() for t in run["tests"]))
+    unit = next((run["info"].get("unit") for run in runs.values() if run["info"].get("unit")), "")
+    lines = [f"# {data['experiment']}: free-run simulation RMSE ({unit or 'data units'})", ""]
+    lines += ["| method | " + " | ".join(tests) + " |", "|---|" + "---|" * len(tests)]
+    for method, run in runs.items():
+        cells = []
+        for t in tests:
+            row = run["tests"].get(t)
+            if row is None:
+                cells.append("")
+            elif row.get("diverged_at") is not None:
+                cells.append(f"diverged at sample {row['diverged_at']}")
+            else:
+                cells.append(_cell(row["rmse"]))
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    published = results_dir / f"{data['experiment']}.published.json"
+    if published.exists():
+        pub = json.loads(published.read_text())
+        for method, values in pub["rows"].items():
+            lines.append(f"| {method} (published) | " + " | ".join(_cell(values.get(t)) for t in tests) + " |")
+        lines += ["", f"Published rows: {pub['source']}."]
+    lines += ["", "## Runs", ""]
+    for method, run in runs.items():
+        info = run["info"]
+        stability = info.get("stability") or {}
+        lines += [
+            f"### {method}",
+            "",
+            f"- model: {info.get('model')}, state_dim {info.get('state_dim')}, from `{info.get('ssm_checkpoint')}`",
+            f"- state estimate: {info.get('inference')}",
+            f"- machine: {info.get('machine')}; date {info.get('date')}; test {info.get('test_seconds')} s",
+            f"- command: `{info.get('command')}`",
+        ]
+        if info.get("selection"):
+            lines.append(f"- chosen on validation (the held-out end of the training recording): {info['selection']}")
+        if stability:
+            lines.append(
+                f"- f's local stability (spectral radius of df/dx at {stability['states']} training states): median "
+                f"{stability['median']:.4g}, 90th percentile {stability['p90']:.4g}, max {stability['max']:.4g}, "
+                f"above 1 at {100 * stability['share_above_1']:.0f}%"
+            )
+        for t, row in run["tests"].items():
+            lines.append(
+                f"- {t}: {row['samples']} samples (state from the first {row['n_init']}); RMSE {_cell(row['rmse'])}, "
+                f"NRMSE {_cell(row['nrmse'])}, fit index {_cell(row['fit_index'])}"
+                + (f"; diverged at sample {row['diverged_at']}" if row.get("diverged_at") is not None else "")
+                + f"; {row['seconds']} s"
+            )
+        lines.append("")
+    notes = results_dir / f"{data['experiment']}.notes.md"
+    if notes.exists():
+        lines += ["## Notes", "", notes.read_text().strip(), ""]
+    return "\n".join(lines)
+
+
+def draw(path: Path, truth: np.ndarray, model: np.ndarray, n_init: int, test: str, info: dict[str, Any]) -> None:
+    """Measured and simulated output over the first 1000 simulated samples, and the error along the whole recording
+    (its RMS over windows of 1% of it)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(10, 6))
+    end = min(len(truth), n_init + 1000)
+    steps = np.arange(len(truth))
+    top.plot(steps[:end], truth[:end, 0], label="measured", lw=1)
+    top.plot(steps[:end], model[:end, 0], label="simulated", lw=1)
+    top.axvline(n_init, color="grey", ls=":", lw=1)
+    top.set_title(f"{info['experiment']}, {test}: {info['method']}")
+    top.legend(loc="upper right")
+    error = np.abs(model[n_init:, 0] - truth[n_init:, 0])
+    window = max(1, len(error) // 100)
+    rms = np.sqrt(np.convolve(np.nan_to_num(error, nan=np.inf) ** 2, np.ones(window) / window, mode="valid"))
+    bottom.plot(steps[n_init : n_init + len(rms)], rms, lw=1)
+    bottom.set_ylabel(f"|error| RMS over {window} samples ({info.get('unit') or 'units'})")
+    bottom.set_xlabel("sample")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

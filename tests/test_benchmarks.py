@@ -1,0 +1,156 @@
+"""The nonlinearbenchmark.org benchmarks through their official loader (../shared/data/nonlinear_benchmarks, offline):
+the splits against the loader's arrays sliced by hand, the protocol (state from the first n_init samples, then a free
+run) against a loop written here, divergence reported where it happens, one message for each mistake."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ssm_ms.cli import main as cli_main
+from ssm_ms.inference import UnscentedKalmanFilter
+from ssm_ms.inference.simulation import free_run, local_stability
+from ssm_ms.module import MultipleShootingModule
+from ssm_ms.nets import LinearReadout, LocallyLinearTransition
+
+nb = pytest.importorskip("nonlinear_benchmarks")
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "nonlinear_benchmarks"
+pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"no benchmark files at {DATA}")
+
+
+def tanks(**kwargs):
+    from datamodules.benchmarks import BenchmarkDataModule
+
+    return BenchmarkDataModule("Cascaded_Tanks", dir_placement=str(DATA), **kwargs)
+
+
+def test_the_splits_are_the_loader_s_arrays():
+    """Training windows from the first 80% of the training recording, its last 20% the validation recording whole,
+    the test recording whole; normalised with the training part's statistics (numpy, here)."""
+    train, test = nb.Cascaded_Tanks(dir_placement=str(DATA))
+    dm = tanks(window=100, batch_size=4)
+    cut = round(1024 * 0.8)
+    assert dm.n_init == 50 and dm.sample_period == 4.0 and dm.val_length == 1024 - cut
+    dm.setup("fit")
+    y_train = np.asarray(train.y[:cut], dtype=np.float64)
+    windows = dm.datasets["train"].arrays["y"]
+    for i, (_, start) in enumerate(dm.window_origins.tolist()):
+        np.testing.assert_array_equal(windows[i, :, 0], np.asarray(train.y[start : start + 100], dtype=np.float32))
+    assert dm.window_origins[-1, 1] + 100 == cut  # the last window ends where the held-out part begins
+    in_windows = np.concatenate([y_train[s : s + 100] for _, s in dm.window_origins.tolist()])
+    np.testing.assert_allclose(dm.normalizer.mean.numpy(), [in_windows.mean()], rtol=1e-5)
+    np.testing.assert_allclose(dm.normalizer.std.numpy(), [in_windows.std()], rtol=1e-4)
+    val = next(iter(dm.split_dataloader("val")))
+    expected = (np.asarray(train.y[cut:]) - in_windows.mean()) / in_windows.std()
+    np.testing.assert_allclose(val["y"][0, :, 0].numpy(), expected, rtol=1e-4, atol=1e-5)
+    (loader,) = dm.test_dataloader()
+    batch = next(iter(loader))
+    np.testing.assert_allclose(
+        batch["y"][0, :, 0].numpy(), (test.y - in_windows.mean()) / in_windows.std(), rtol=1e-4, atol=1e-5
+    )
+    assert batch["u"].shape == (1, 1024, 1)
+
+
+def test_mistakes_get_one_message(monkeypatch, tmp_path):
+    from datamodules import benchmarks
+
+    with pytest.raises(ValueError, match="unknown benchmark 'Silverbx': the loader knows .*Silverbox"):
+        benchmarks.BenchmarkDataModule("Silverbx", dir_placement=str(DATA))
+    with pytest.raises(ValueError, match="no such folder"):
+        benchmarks.BenchmarkDataModule("Silverbox", dir_placement=str(tmp_path / "nowhere"))
+    with pytest.raises(ValueError, match="could not be downloaded"):  # a folder without the files, and no internet
+        benchmarks.BenchmarkDataModule("Cascaded_Tanks", dir_placement=str(tmp_path))
+    real = importlib.import_module
+
+    def without_loader(name, *args):
+        if name == "nonlinear_benchmarks":
+            raise ImportError(name)
+        return real(name, *args)
+
+    monkeypatch.setattr(importlib, "import_module", without_loader)
+    with pytest.raises(ValueError, match=r"pip install -e '\.\[benchmarks\]'"):
+        benchmarks.BenchmarkDataModule("Cascaded_Tanks", dir_placement=str(DATA))
+
+
+def test_a_free_run_that_leaves_the_bound_says_where():
+    """``f(x) = 2 x`` from 1: past the bound 100 at step 7 (2^7 = 128), the values as computed."""
+
+    class Doubling(torch.nn.Module):
+        def forward(self, x):
+            return 2 * x
+
+    y, where = free_run(Doubling(), torch.nn.Identity(), torch.ones(2, 1), 20, chunk=3, bound=100.0)
+    assert where.tolist() == [7, 7]
+    np.testing.assert_array_equal(y[0, :, 0].numpy(), 2.0 ** np.arange(20))
+    _, never = free_run(Doubling(), torch.nn.Identity(), torch.ones(1, 1), 5, bound=100.0)
+    assert never.tolist() == [-1]
+
+
+def test_local_stability_is_the_spectral_radius_of_df_dx():
+    """An SSM-LL with one matrix is linear: x + A x, whose spectral radius the test computes by hand."""
+    torch.manual_seed(0)
+    f = LocallyLinearTransition(2, n_matrices=1, hidden=4)
+    model = MultipleShootingModule(f, LinearReadout(2, 1), num_trajectories=3, n_nodes=2)
+    with torch.no_grad():
+        model.nodes.weight.normal_()
+        jac = torch.eye(2) + f.matrices.view(2, 2)
+    radius = float(torch.linalg.eigvals(jac.double()).abs().max())
+    stats = local_stability(model)
+    assert stats["median"] == pytest.approx(radius, rel=1e-5) and stats["max"] == pytest.approx(radius, rel=1e-5)
+    assert stats["share_above_1"] == float(radius > 1) and stats["states"] == 6
+
+
+def test_cascaded_tanks_end_to_end_and_its_score_by_hand(tmp_path):
+    """A tiny SSM fitted on Cascaded Tanks (the benchmark's config, shrunk), the validation keeping its best epoch,
+    then ``cli.py test``: the results file's RMSE equals the protocol computed here (the UKF on the first 50
+    normalised samples, f iterated under the test inputs, the statistics undone by hand, numpy's RMSE)."""
+    where = ["--data.init_args.dir_placement", str(DATA), "--trainer.logger.init_args.save_dir", str(tmp_path)]
+    small = [
+        "--trainer.max_time", "null", "--trainer.max_epochs", "60", "--trainer.check_val_every_n_epoch", "10", "--model.init_args.lr", "1e-2",
+        "--trainer.enable_progress_bar", "false", "--model.init_args.state_dim", "2",
+        "--model.init_args.f.init_args.n_matrices", "2", "--model.init_args.f.init_args.hidden", "8",
+        "--data.init_args.window", "100", "--model.init_args.n_nodes", "4",
+    ]  # fmt: skip
+    cli_main(["fit", "--config", "configs/benchmarks/cascaded_tanks.yaml", *where, *small])
+    best = tmp_path / "cascaded_tanks" / "version_0" / "checkpoints" / "best.ckpt"
+    assert best.is_file()
+    test = [
+        "test", "--config", "configs/benchmarks/cascaded_tanks_test.yaml", "--data.init_args.dir_placement", str(DATA),
+        "--model.init_args.ssm_checkpoint", str(best), "--model.init_args.results_dir", str(tmp_path / "results"),
+        "--model.init_args.figures_dir", str(tmp_path / "figures"), "--trainer.enable_progress_bar", "false",
+    ]  # fmt: skip
+    cli_main(test)
+    results = json.loads((tmp_path / "results" / "cascaded_tanks.json").read_text())
+    (run,) = results["runs"].values()
+    row = run["tests"]["test"]
+    assert row["n_init"] == 50 and row["samples"] == 1024
+    assert (tmp_path / "results" / "cascaded_tanks.md").read_text().startswith("# cascaded_tanks")
+    assert list((tmp_path / "figures").glob("*.png"))
+
+    model = MultipleShootingModule.load_from_checkpoint(best, weights_only=False).eval()
+    saved = torch.load(best, weights_only=False)
+    norm = next(v for v in saved.values() if isinstance(v, dict) and "normalizer" in v)
+    y_mean, y_std = norm["normalizer"]["mean"].item(), norm["normalizer"]["std"].item()
+    u_mean, u_std = norm["input_normalizer"]["mean"].item(), norm["input_normalizer"]["std"].item()
+    _, test_data = nb.Cascaded_Tanks(dir_placement=str(DATA))
+    y = torch.tensor((test_data.y - y_mean) / y_std, dtype=torch.float32).view(1, -1, 1)
+    u = torch.tensor((test_data.u - u_mean) / u_std, dtype=torch.float32).view(1, -1, 1)
+    ukf = UnscentedKalmanFilter(model.f, model.g, process_var=1e-6, measurement_var=model.fit_mse, init_var=0.1)
+    prior = model.nodes.weight.detach().view(-1, 2).mean(0)
+    with torch.no_grad():
+        x = ukf.filter(y[:, :50], prior[None], u=u[:, :49]).means[:, -1]
+        x = model.f(x, u[:, 49])
+        sim = []
+        for t in range(50, 1024):
+            sim.append(model.g(x)[0, 0].item() * y_std + y_mean)
+            x = model.f(x, u[:, t])
+    rmse = math.sqrt(np.mean((np.array(sim) - test_data.y[50:]) ** 2))
+    assert row["rmse"] == pytest.approx(rmse, rel=1e-4)
