@@ -390,6 +390,7 @@ def main(argv: list[str] | None = None) -> None:
     args.deepsi_version = importlib.metadata.version("deepSI")
     work = (ROOT / args.work).resolve()
     work.mkdir(parents=True, exist_ok=True)
+    (work / "home").mkdir(exist_ok=True)
     os.environ["HOME"] = str(work / "home")  # deepSI writes its checkpoints under ~/.deepSI-checkpoints
     torch.set_num_threads(2)
     out_dir = Path(args.out_dir) if args.out_dir else (work if args.tiny else ROOT / "benchmarks/results")

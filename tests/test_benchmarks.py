@@ -154,3 +154,17 @@ def test_cascaded_tanks_end_to_end_and_its_score_by_hand(tmp_path):
             x = model.f(x, u[:, t])
     rmse = math.sqrt(np.mean((np.array(sim) - test_data.y[50:]) ** 2))
     assert row["rmse"] == pytest.approx(rmse, rel=1e-4)
+
+
+@pytest.mark.parametrize(
+    "path",
+    sorted(p for p in (ROOT / "results" / "benchmarks").glob("*.json") if not p.name.endswith(".published.json")),
+    ids=lambda p: p.stem,
+)
+def test_the_committed_results_are_rendered_from_their_json(path):
+    """Each results/benchmarks/<experiment>.md is what its JSON, published rows and notes render to (after an edit of
+    the notes: ``python -m ssm_ms.forecasting.benchmark_results``)."""
+    from ssm_ms.forecasting.benchmark_results import render
+
+    data = json.loads(path.read_text())
+    assert path.with_suffix(".md").read_text() == render(data, path.parent)

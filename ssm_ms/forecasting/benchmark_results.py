@@ -140,3 +140,24 @@ def draw(path: Path, truth: np.ndarray, model: np.ndarray, n_init: int, test: st
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m ssm_ms.forecasting.benchmark_results [--results-dir DIR]``: render every results file's markdown
+    anew from its JSON, published rows and notes (after editing the notes)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument(
+        "--results-dir", type=Path, default=Path(__file__).resolve().parents[2] / "results" / "benchmarks"
+    )
+    opts = parser.parse_args(argv)
+    for path in sorted(opts.results_dir.glob("*.json")):
+        if not path.name.endswith(".published.json"):
+            path.with_suffix(".md").write_text(render(json.loads(path.read_text()), opts.results_dir))
+            print(f"rendered {path.with_suffix('.md')}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
