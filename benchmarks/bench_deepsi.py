@@ -299,7 +299,8 @@ def run_benchmark(name: str, args, deepSI, work: Path) -> None:
     recording (the training recording less its held-out end, on which its validation simulates), for ssm-ms's
     budget; each test recording simulated from its first ``n_init`` samples (the encoder reads the last ``na`` /
     ``nb`` of them); its last and its best-on-validation models scored by the loader's metrics into
-    ``results/benchmarks/<name>.json`` beside ssm-ms's rows."""
+    ``results/benchmarks/<name>.json`` beside ssm-ms's rows; both models saved as ``<work>/<name>-subnet-{last,best}.pt``
+    (``torch.save``: benchmarks/bench_simulation.py times them)."""
     from ssm_ms.forecasting.benchmark_results import write_benchmark_results
     from ssm_ms.inference.simulation import scores
 
@@ -315,6 +316,8 @@ def run_benchmark(name: str, args, deepSI, work: Path) -> None:
     budget = BENCHMARK_BUDGET if args.tiny is False and args.deepsi_seconds is None else args.deepsi_seconds or 30.0
     log = work / f"{name}-deepsi.log"
     last, best, iterations, seconds, curve = train_deepsi(deepSI, as_io, val_io, budget, system, args.val_freq, log)
+    for label, model in (("last", last), ("best", best)):  # for benchmarks/bench_simulation.py --deepsi
+        torch.save(model, work / f"{name}-subnet-{label}.pt")
     results_dir = (
         Path(args.results_dir) if args.results_dir else ROOT / test_config["model"]["init_args"]["results_dir"]
     )

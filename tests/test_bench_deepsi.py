@@ -24,3 +24,26 @@ def test_the_deepsi_comparison_runs_and_scores_both(tmp_path):
         assert methods[0].startswith("ssm-ms") and all(m.startswith("deepSI") for m in methods[1:])
         assert all(row["mse"] >= 0 and row["seconds"] > 0 for row in r["rows"])
         assert "| deepSI SUBNET, last model |" in out.read_text()
+
+
+@pytest.mark.slow
+def test_subnet_runs_a_benchmark_by_its_protocol(tmp_path):
+    """``--benchmarks cascaded_tanks``: SUBNET's last and best models scored into a results file of their own."""
+    pytest.importorskip("deepSI")
+    data = ROOT.parent / "shared" / "data" / "nonlinear_benchmarks"
+    cmd = [sys.executable, "benchmarks/bench_deepsi.py", "--benchmarks", "cascaded_tanks", "--tiny", "--val-freq", "10"]
+    cmd += [
+        "--deepsi-seconds",
+        "5",
+        "--dir-placement",
+        str(data),
+        "--work",
+        str(tmp_path),
+        "--results-dir",
+        str(tmp_path),
+    ]
+    subprocess.run(cmd, cwd=ROOT, check=True, timeout=900)
+    runs = json.loads((tmp_path / "cascaded_tanks.json").read_text())["runs"]
+    assert sorted(runs) == ["deepSI SUBNET, best on validation", "deepSI SUBNET, last model"]
+    assert all(run["tests"]["test"]["n_init"] == 50 for run in runs.values())
+    assert (tmp_path / "cascaded_tanks-subnet-best.pt").is_file()

@@ -168,3 +168,24 @@ def test_the_committed_results_are_rendered_from_their_json(path):
 
     data = json.loads(path.read_text())
     assert path.with_suffix(".md").read_text() == render(data, path.parent)
+
+
+def test_the_simulation_speed_bench_times_a_free_run(tmp_path):
+    """benchmarks/bench_simulation.py on a tiny driven SSM: one row, its steps per second the steps over its seconds."""
+    import sys
+
+    sys.path.insert(0, str(ROOT))
+    from benchmarks import bench_simulation
+    from ssm_ms import SSM, Recordings, fit
+
+    rng = np.random.default_rng(0)
+    data = Recordings(y=rng.normal(size=(300, 1)), u=rng.normal(size=(300, 1)), batch_size=2)
+    model = SSM(data, state_dim=2, f_options={"n_matrices": 2, "hidden": 8})
+    fit(model, data, epochs=1, save_dir=tmp_path, logger=False, enable_progress_bar=False)
+    out = tmp_path / "speed.md"
+    bench_simulation.main(
+        ["--checkpoint", str(model.save(tmp_path / "m.ckpt")), "--steps", "500", "--rounds", "1", "--out", str(out)]
+    )
+    (row,) = [line.split(" | ") for line in out.read_text().splitlines() if line.startswith("| ssm-ms")]
+    seconds, per_second = float(row[1]), float(row[2].replace(",", ""))
+    assert per_second == pytest.approx(500 / seconds, rel=0.01) and row[3].strip(" |") == "1.00"

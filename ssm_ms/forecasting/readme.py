@@ -335,7 +335,7 @@ def benchmarks(results: Results) -> list[str]:
     run, the published rows beside them (``<name>.published.json``), the machine and date of ours."""
     folder = results.dir / "benchmarks"
     lines = [
-        "| benchmark | test recording | ssm-ms (free run after n_init samples) | published | run on |",
+        "| benchmark | test recording | run here: ssm-ms and deepSI (free run after n_init samples) | published | run on |",
         "|---|---|---|---|---|",
     ]
     for path in sorted(folder.glob("*.json")):
