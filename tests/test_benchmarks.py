@@ -188,4 +188,6 @@ def test_the_simulation_speed_bench_times_a_free_run(tmp_path):
     )
     (row,) = [line.split(" | ") for line in out.read_text().splitlines() if line.startswith("| ssm-ms")]
     seconds, per_second = float(row[1]), float(row[2].replace(",", ""))
-    assert per_second == pytest.approx(500 / seconds, rel=0.01) and row[3].strip(" |") == "1.00"
+    # the table's seconds are rounded to 1 ms: the rate lies between the steps over its bounds
+    assert 500 / (seconds + 0.0005) - 1 <= per_second <= 500 / max(seconds - 0.0005, 1e-9) + 1
+    assert row[3].strip(" |") == "1.00"
