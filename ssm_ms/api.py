@@ -237,7 +237,7 @@ class SSM:
             method: ``"ukf"`` (an unscented Kalman filter on ``f`` and ``g``: nothing to train), ``"fit"`` (one state
                 fitted through ``f`` and ``g`` by the shooting objective, its rollout the states) or ``"encoder"``
                 (the CNN-LSTM of :meth:`fit_encoder`).
-            **options: the method's settings: UKF (:class:`~ssm_ms.inference.FilterForecaster`) ``measurement_var``
+            **options: the method's settings: UKF (:class:`~ssm_ms.inference.UnscentedKalmanFilter`) ``measurement_var``
                 in the user's units, per component or one for all (default: the variance of the model's fit residual
                 at the end of training, which holds the measurement noise; 0.5 in normalised units, the paper's, for a
                 checkpoint without it), ``process_var`` (default the paper's 1e-6), ``init_var`` (in the state's

@@ -526,7 +526,7 @@ class MultipleShootingModule(pl.LightningModule):
         if distributed.world_size() > 1:  # shards of unequal size: weight so DDP's average is the global mean
             loss = loss * distributed.shard_weight(len(index), loss.device)
         bs = len(index)
-        self._fit_sums[0] += float(fit.detach()) * bs
+        self._fit_sums[0] = self._fit_sums[0] + fit.detach() * bs  # a tensor: no device sync in the step
         self._fit_sums[1] += bs
         self.log_dict({"train/fit": fit, "train/gap": gap, "train/loss": loss}, batch_size=bs, prog_bar=True)
         self.log("alpha", self.alpha if self.al_options is None else self.alpha * self.alpha_factor, batch_size=bs)
@@ -623,7 +623,7 @@ class MultipleShootingModule(pl.LightningModule):
 
     def on_train_epoch_end(self) -> None:
         if self._fit_sums[1]:
-            self.fit_mse = self._fit_sums[0] / self._fit_sums[1]
+            self.fit_mse = float(self._fit_sums[0]) / self._fit_sums[1]
         if self._multiplier_epoch() and self._gap_sums[1] > 0 and self.al_options.growth > 1:
             rms = (self._gap_sums[0] / self._gap_sums[1]) ** 0.5
             factor = raised_factor(float(self.alpha_factor), rms, float(self.last_gap_rms), self.al_options)

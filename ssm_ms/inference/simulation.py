@@ -31,9 +31,9 @@ import torch
 from torch import nn
 
 from ssm_ms.forecasting.metrics import DIVERGENCE_BOUND, first_divergence
-from ssm_ms.inference.filter_module import FilterForecaster
 from ssm_ms.inference.optimise import OptimisationForecaster
 from ssm_ms.inference.ssm_forecaster import INFERENCE_LABELS, MODEL_NAMES
+from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.module import MultipleShootingModule, load_ssm
 from ssm_ms.runtime.machine import describe
 from ssm_ms.training.shooting import decode, rollout
@@ -53,7 +53,7 @@ def estimate_states(
     """States ``[B, k, d]`` of normalised measurements ``y [B, k, *obs]`` under the inputs ``u [B, >= k - 1, m]``, and
     the UKF's covariances ``[B, k, d, d]`` (``None`` for the other methods).
 
-    ``method``: ``"ukf"`` (:class:`~ssm_ms.inference.FilterForecaster`'s settings in ``options``; its measurement
+    ``method``: ``"ukf"`` (:class:`~ssm_ms.inference.UnscentedKalmanFilter`'s settings in ``options``; its measurement
     variance defaults to the model's fit residual at the end of training, ``fit_mse``, else the paper's 0.5),
     ``"fit"`` (:class:`~ssm_ms.inference.OptimisationForecaster`'s, one node by default) or ``"encoder"`` (a trained
     :class:`~ssm_ms.inference.StateEncoderModule` given as ``encoder``)."""
@@ -72,8 +72,13 @@ def estimate_states(
         return OptimisationForecaster(ssm, n_filter=k, **{"n_nodes": 1, **options}).infer(y, u), None
     if "measurement_var" not in options:
         options["measurement_var"] = ssm.fit_mse if ssm.fit_mse is not None else 0.5
-    forecaster = FilterForecaster(ssm, n_filter=k, method="ukf", **options)
-    result = forecaster.filter.filter(y, forecaster.prior_mean(y), u=given)
+    try:
+        ukf = UnscentedKalmanFilter(ssm.f, ssm.g, state_dim=ssm.state_dim, **options)
+    except TypeError as err:
+        raise ValueError(f"the UKF's options are UnscentedKalmanFilter's (process_var, init_var, ...): {err}") from None
+    # the prior mean as FilterForecaster's: the mean shooting node, the components node_init_map reads from y[0]
+    prior = ssm.states_at_measurements(y[:, :1], ssm.nodes.weight.detach().view(-1, ssm.state_dim).mean(0))[:, 0]
+    result = ukf.filter(y, prior, u=given)
     return result.means, result.covs
 
 
