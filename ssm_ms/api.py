@@ -336,7 +336,7 @@ class SSM:
             batched = batched or x.ndim == 2
             x = x.reshape(-1, self.state_dim)
         else:
-            nodes = self.module.nodes.weight.detach().view(-1, self.state_dim)
+            nodes = self.module.training_states()
             x = nodes.mean(0, keepdim=True).expand(1 if u_t is None else u_t.shape[0], -1)
         if u_t is not None and x.shape[0] != u_t.shape[0]:
             raise ValueError(f"{x.shape[0]} initial states for {u_t.shape[0]} input sequences: give one each")

@@ -69,6 +69,7 @@ from lightning.pytorch.utilities.rank_zero import rank_zero_only
 from omegaconf.errors import InterpolationResolutionError
 
 from ssm_ms.checkpointing import EpochCheckpoint, read_checkpoint
+from ssm_ms.module import holds_ssm
 from ssm_ms.progress import RunProgressBar
 from ssm_ms.runtime.console import quiet_lightning
 from ssm_ms.runtime.perf import configure_allocator
@@ -133,7 +134,7 @@ class SSMCLI(LightningCLI):
         ssm = model_args.get("ssm_checkpoint") if model_args is not None else None
         if ssm:
             saved = read_checkpoint(ssm, "model.init_args.ssm_checkpoint")
-            if "nodes.weight" not in saved.get("state_dict", {}):
+            if not holds_ssm(saved):
                 kind = (
                     saved.get("hyper_parameters", {}).get("_class_path") or saved.get("forecaster") or "another model"
                 )

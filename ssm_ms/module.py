@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ssm_ms.checkpointing import read_checkpoint, restore_float_weights
+from ssm_ms.nets.history import HistoryEncoder
 from ssm_ms.nets.sensors import SensorLayout
 from ssm_ms.progress import time_budget
 from ssm_ms.runtime.perf import check_precision
@@ -51,8 +52,19 @@ from ssm_ms.units import ObservationInUnits, TransitionInUnits, Units
 DATA_STATE_KEY = "data_state"
 FIT_MSE_KEY = "fit_mse"
 # Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
-STRUCTURAL_HPARAMS = ("state_dim", "num_trajectories", "n_nodes", "f", "g", "node_optimizer", "constraint")
+STRUCTURAL_HPARAMS = (
+    "state_dim",
+    "num_trajectories",
+    "n_nodes",
+    "f",
+    "g",
+    "node_optimizer",
+    "constraint",
+    "node_encoder",
+)
 NODE_OPTIMIZERS = ("dense", "sparse")
+NETWORKS = ("f", "g", "node_encoder")  # the modules a model built in Python carries in its checkpoints
+STATE_SAMPLE = 256  # training states an amortised-node model keeps (training_states: priors, stability reports)
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -128,6 +140,13 @@ class MultipleShootingModule(pl.LightningModule):
         val_horizon: steps of the validation rollout (``val/rollout_mse``) from each validation trajectory's
             first node (``None``: its whole length). On chaotic data set it to a few Lyapunov times: a rollout
             far beyond them compares unrelated signals and the score saturates whatever the model learns.
+        node_encoder: ``None`` (the paper: free shooting nodes, one row of ``nodes`` per training trajectory) or
+            amortised nodes: a network of the ``history`` samples before a node's time to its state
+            (:class:`ssm_ms.nets.HistoryEncoder`, or any module ``(y [N, H, *obs], u [N, H, m]) -> [N, d]`` with a
+            ``history`` attribute), trained through the same loss, gap term included. A training window then
+            holds ``history`` samples before its first node: ``T = history + n_nodes * n``. No node table, so
+            windows may start at every sample (``stride: 1``); the state of a new recording is the encoder's
+            reading of its last ``history`` samples (docs/method.md, "Amortised nodes").
     """
 
     # validation rolls out from the shooting nodes, which only training trajectories have
@@ -151,12 +170,13 @@ class MultipleShootingModule(pl.LightningModule):
         constraint_options: dict[str, float] | None = None,
         compile_rollout: str | None = None,
         val_horizon: int | None = None,
+        node_encoder: nn.Module | None = None,
     ):
         super().__init__()
-        # Built by LightningCLI, f and g are recorded as their config (class_path + init_args), so
+        # Built by LightningCLI, f, g and the node encoder are recorded as their config (class_path + init_args), so
         # `load_from_checkpoint` rebuilds them; built in Python, checkpoints carry the networks
         # themselves (see on_save_checkpoint).
-        self.save_hyperparameters(ignore=[] if built_by_lightning_cli() else ["f", "g"])
+        self.save_hyperparameters(ignore=[] if built_by_lightning_cli() else list(NETWORKS))
         state_dim = _state_dim(f, state_dim)
         self.hparams["state_dim"] = state_dim
         loss_function(loss)  # unknown loss name: fail now, not at the first step
@@ -179,6 +199,8 @@ class MultipleShootingModule(pl.LightningModule):
                 raise ValueError(f"node_init_map names state components {bad} outside 0..{state_dim - 1}")
         self.f, self.g = f, g
         self.state_dim, self.n_nodes = state_dim, n_nodes
+        self.node_encoder = node_encoder
+        self.history = self._check_node_encoder(node_encoder, node_optimizer, node_lr, constraint, node_init_map)
         # where this model's weights are restored from, when its settings came from a checkpoint (see check_data)
         self.checkpoint_source: str | None = None
         # the state of the data this model was trained on (DataModule.state_dict(): normalisation, shape, identity)
@@ -208,7 +230,10 @@ class MultipleShootingModule(pl.LightningModule):
             except RuntimeError as err:
                 raise ValueError(str(err)) from None
         self.nodes: nn.Embedding | None = None
-        if num_trajectories is not None:
+        if node_encoder is not None:  # a sample of the states it gave in training (training_states)
+            self.register_buffer("state_sample", torch.zeros(STATE_SAMPLE, state_dim))
+            self.register_buffer("states_seen", torch.zeros((), dtype=torch.long))
+        elif num_trajectories is not None:
             self._make_nodes(num_trajectories)
 
     # ------------------------------------------------------------------ construction
@@ -233,6 +258,43 @@ class MultipleShootingModule(pl.LightningModule):
                 f"f maps states [2, {self.state_dim}] to shape {tuple(out.shape)}: a transition must return "
                 f"[N, state_dim]; check that f's state_dim equals model.state_dim={self.state_dim}"
             )
+
+    def _check_node_encoder(
+        self,
+        encoder: nn.Module | None,
+        node_optimizer: str,
+        node_lr: float | None,
+        constraint: str,
+        node_init_map: Any,
+    ) -> int:
+        """The samples an amortised-node model reads before each node (0: free nodes), or one message for a
+        setting that belongs to free nodes."""
+        if encoder is None:
+            return 0
+        history = getattr(encoder, "history", None)
+        if not isinstance(history, int) or history < 1:
+            raise ValueError(
+                f"the node encoder ({type(encoder).__name__}) needs a 'history' attribute, the samples it reads "
+                "before a node (>= 1): use ssm_ms.nets.HistoryEncoder"
+            )
+        given = {
+            "node_optimizer: sparse": node_optimizer != "dense",
+            "node_lr": node_lr is not None,
+            "constraint: augmented_lagrangian": constraint != "penalty",
+            "node_init_map": bool(node_init_map),
+        }
+        bad = [k for k, v in given.items() if v]
+        if bad:
+            raise ValueError(
+                f"{', '.join(bad)} set the free shooting nodes, but this model's nodes come from its node_encoder: "
+                "remove them (or remove node_encoder for free nodes)"
+            )
+        if int(getattr(encoder, "input_dim", 0)) != self.input_dim:
+            raise ValueError(
+                f"the node encoder reads {int(getattr(encoder, 'input_dim', 0))} inputs per sample but f takes "
+                f"{self.input_dim}: give them the same input_dim"
+            )
+        return history
 
     def _make_nodes(self, num_trajectories: int) -> None:
         # in the module's dtype (float64 under ``64-true``: setup converts the module before any checkpoint is
@@ -269,7 +331,7 @@ class MultipleShootingModule(pl.LightningModule):
                 # strategy.setup converts the precision), so f and g built in float32 by the CLI would round a
                 # float64 checkpoint's weights to float32 on resume: convert now, as Lightning will (.double())
                 self.double()
-        if self.nodes is None:
+        if self.nodes is None and self.node_encoder is None:
             n = getattr(dm, "num_train_trajectories", None)
             if n is None:
                 raise ValueError(
@@ -322,6 +384,11 @@ class MultipleShootingModule(pl.LightningModule):
         self._missing = bool(layout)
         if not layout:
             return
+        if self.node_encoder is not None:
+            raise ValueError(
+                "several sensors (missing samples) cannot be read by the node encoder: train amortised nodes on one "
+                "sensor, or several sensors with free nodes (remove node_encoder)"
+            )
         layout = SensorLayout.from_state_dict(layout) if not isinstance(layout, SensorLayout) else layout
         self.register_buffer("measurement_weights", layout.weights().to(self.alpha), persistent=False)
         shapes = getattr(self.g, "shapes", None)
@@ -370,11 +437,21 @@ class MultipleShootingModule(pl.LightningModule):
         from the checkpoint's settings), a disagreement means the checkpoint belongs to another model or data:
         the message says that first, then the detail, and points to the checkpoint's own config."""
         problem = None
-        if seq_len % self.n_nodes != 0:
-            divisors = [k for k in range(1, seq_len + 1) if seq_len % k == 0]
+        shot = seq_len - self.history  # the samples the pieces cover (amortised nodes: after the first's history)
+        if shot < self.n_nodes:
             problem = (
-                f"trajectory length T={seq_len} is not divisible by model.n_nodes={self.n_nodes}",
-                f"choose n_nodes among {divisors}",
+                f"trajectory length T={seq_len} leaves no sample to shoot over after the node encoder's history of "
+                f"{self.history}",
+                f"give windows of history + n_nodes * n samples (e.g. window: {self.history + self.n_nodes * 10})",
+            )
+        elif shot % self.n_nodes != 0:
+            divisors = [k for k in range(1, shot + 1) if shot % k == 0]
+            problem = (
+                f"trajectory length T={seq_len}"
+                + (f" less the node encoder's history of {self.history} = {shot}" if self.history else "")
+                + f" is not divisible by model.n_nodes={self.n_nodes}",
+                f"choose n_nodes among {divisors}"
+                + (f", or a window of {self.history} + a multiple of {self.n_nodes}" if self.history else ""),
             )
         elif tuple(out := self.obs_shape()) != tuple(obs_shape):
             problem = (
@@ -382,6 +459,17 @@ class MultipleShootingModule(pl.LightningModule):
                 f"{tuple(obs_shape)}",
                 "adapt g (e.g. ConvDecoder's image_size to the data's, a linear g's out_features to the "
                 "channel count, or the Projection indices to the measured components)",
+            )
+        elif self.node_encoder is not None and len(obs_shape) != 1 and isinstance(self.node_encoder, HistoryEncoder):
+            problem = (
+                f"the node encoder reads vector measurements, the data have samples of shape {tuple(obs_shape)}",
+                "give amortised nodes vector measurements, or an encoder of your own for these",
+            )
+        elif isinstance(self.node_encoder, HistoryEncoder) and self.node_encoder.obs_dim != obs_shape[0]:
+            problem = (
+                f"the node encoder reads {self.node_encoder.obs_dim} measurement components, the data have "
+                f"{obs_shape[0]}",
+                f"set the node encoder's obs_dim to {obs_shape[0]}",
             )
         elif num_train is not None and self.nodes is not None and self.nodes.num_embeddings != num_train:
             problem = (
@@ -440,10 +528,62 @@ class MultipleShootingModule(pl.LightningModule):
             raise ValueError("f takes no inputs (input_dim 0): give no u")
 
     def node_states(self, index: torch.Tensor) -> torch.Tensor:
-        """Shooting nodes ``[B, m, d]`` of the training trajectories ``index``."""
+        """Shooting nodes ``[B, m, d]`` of the training trajectories ``index`` (free nodes)."""
+        if self.node_encoder is not None:
+            raise ValueError(
+                "this SSM's shooting nodes come from its node encoder, not a table of training trajectories: this "
+                "use needs free nodes (an SSM trained without node_encoder)"
+            )
         if self.nodes is None:
             raise RuntimeError("the node table does not exist yet: set num_trajectories or call trainer.fit")
         return self.nodes(index).view(len(index), self.n_nodes, self.state_dim)
+
+    def encode_nodes(self, y: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
+        """Amortised nodes ``[B, m, d]`` of windows ``y [B, H + m n, *obs]`` (inputs ``u`` beside them): node ``i``, at
+        window time ``H + i n``, is the node encoder's reading of samples ``i n .. i n + H - 1``."""
+        h, m = self.history, self.n_nodes
+        b, t = y.shape[:2]
+        n = (t - h) // m
+        if n < 1 or t != h + m * n:
+            raise ValueError(f"windows of {t} samples do not hold a history of {h} and {m} pieces of equal length")
+        at = (torch.arange(m, device=y.device) * n)[:, None] + torch.arange(h, device=y.device)  # [m, H]
+        yh = y[:, at].reshape(b * m, h, *y.shape[2:])
+        uh = None if u is None or not self.input_dim else u[:, at].reshape(b * m, h, u.shape[-1])
+        return self.node_encoder(yh, uh).view(b, m, self.state_dim)
+
+    def batch_nodes(
+        self, batch: Mapping[str, torch.Tensor], rows: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """``(nodes [B, m, d], y, u)``: a batch's shooting nodes and the measurements and inputs their pieces cover:
+        free nodes (the table's rows of ``batch["index"]``, or ``rows`` where given: the sparse update's leaf) over
+        the whole windows, or amortised nodes over the windows after their first ``history`` samples."""
+        y, u = batch["y"], batch.get("u")
+        if self.node_encoder is None:
+            index = batch["index"]
+            nodes = self.node_states(index) if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
+            return nodes, y, u
+        h = self.history
+        return self.encode_nodes(y, u), y[:, h:], None if u is None else u[:, h:]
+
+    def training_states(self) -> torch.Tensor:
+        """``[N, d]`` states of the training data (detached): the free nodes, or the last :data:`STATE_SAMPLE`
+        states the node encoder gave in training. Where the filters' prior and the stability report come from."""
+        if self.node_encoder is None:
+            if self.nodes is None:
+                raise RuntimeError("the node table does not exist yet: set num_trajectories or call trainer.fit")
+            return self.nodes.weight.detach().view(-1, self.state_dim)
+        seen = int(self.states_seen)
+        if seen == 0:
+            raise ValueError("the node encoder has given no training states yet: train the model first")
+        return self.state_sample[: min(seen, STATE_SAMPLE)].detach()
+
+    @torch.no_grad()
+    def _record_states(self, nodes: torch.Tensor) -> None:
+        """Keep the newest amortised nodes in the ring ``state_sample`` (no host sync)."""
+        flat = nodes.detach().reshape(-1, self.state_dim)[-STATE_SAMPLE:]
+        at = (self.states_seen + torch.arange(len(flat), device=flat.device)) % STATE_SAMPLE
+        self.state_sample[at] = flat.to(self.state_sample)
+        self.states_seen += len(flat)
 
     @torch.no_grad()
     def shooting_predictions(
@@ -463,19 +603,36 @@ class MultipleShootingModule(pl.LightningModule):
         Returns:
             ``[B, m, n + 1, *obs_shape]`` with ``n = T / m`` (entry ``k = n`` is where sub-trajectory ``i``
             ends up at the time node ``i + 1`` starts). Computed without gradients, in eval mode, on the
-            model's device (what :class:`ssm_ms.viz.ShootingPictureLogger` draws).
+            model's device (what :class:`ssm_ms.viz.ShootingPictureLogger` draws). Amortised nodes read their
+            history from ``y`` (required), and the pieces cover ``y[:, history:]``: ``n = (T - history) / m``.
         """
         if (y is None) == (seq_len is None):
             raise ValueError("give either y [B, T, ...] or seq_len to shooting_predictions")
+        if self.node_encoder is not None:
+            if y is None:
+                raise ValueError("amortised nodes are read from the measurements: give y to shooting_predictions")
+            was_training = self.training
+            self.eval()
+            try:
+                device = self.alpha.device
+                nodes, y_shot, u_shot = self.batch_nodes({"y": y.to(device), "u": None if u is None else u.to(device)})
+            finally:
+                self.train(was_training)
+            return self._piece_predictions(nodes, y_shot.shape[1], u_shot)
         t = int(y.shape[1]) if y is not None else int(seq_len)
         m = self.n_nodes
         if t % m != 0:
             raise ValueError(f"trajectory length T={t} is not a multiple of model.n_nodes={m}")
+        return self._piece_predictions(self.node_states(index.to(self.nodes.weight.device)), t, u)
+
+    @torch.no_grad()
+    def _piece_predictions(self, nodes: torch.Tensor, t: int, u: torch.Tensor | None) -> torch.Tensor:
+        """``g(f^k(s_i))``, ``k = 0..n``, of nodes ``[B, m, d]`` over pieces of ``n = t / m`` (inputs ``u [B, t, m_u]``)."""
+        m = self.n_nodes
         n = t // m
         was_training = self.training
         self.eval()
         try:
-            nodes = self.node_states(index.to(self.nodes.weight.device))  # [B, m, d]
             b, _, d = nodes.shape
             self._need_inputs(None if u is None else u[:, :n], n)
             pieces = None if u is None else u.to(nodes).reshape(b * m, n, -1)
@@ -486,15 +643,16 @@ class MultipleShootingModule(pl.LightningModule):
         return out.reshape(b, m, n + 1, *out.shape[2:])
 
     def shooting_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        nodes, y, u = self.batch_nodes(batch)
         return multiple_shooting_loss(
             self.f,
             self.g,
-            self.node_states(batch["index"]),
-            batch["y"],
+            nodes,
+            y,
             self.hparams.loss,
             self.hparams.decode_chunk,
             self._rollout_fn,
-            batch.get("u"),
+            u,
             **self.fit_options(),
         )
 
@@ -504,11 +662,12 @@ class MultipleShootingModule(pl.LightningModule):
         rows = None
         if self.hparams.node_optimizer == "sparse":  # the batch's rows as a leaf: their gradient alone
             rows = self.nodes.weight.detach()[index].requires_grad_()
-        nodes = self.node_states(index) if rows is None else rows.view(len(index), self.n_nodes, self.state_dim)
-        u = batch.get("u")
-        self._need_inputs(u, 1)
+        self._need_inputs(batch.get("u"), 1)
+        nodes, y, u = self.batch_nodes(batch, rows)
+        if self.node_encoder is not None:
+            self._record_states(nodes)
         # the same arguments to the plain loss and to the residuals of the augmented Lagrangian
-        args = (self.f, self.g, nodes, batch["y"], self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn, u)
+        args = (self.f, self.g, nodes, y, self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn, u)
         if self.al_options is None:
             fit, gap = multiple_shooting_loss(*args, **self.fit_options())
             loss = fit + self.alpha * gap
@@ -545,16 +704,17 @@ class MultipleShootingModule(pl.LightningModule):
 
     def validation_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> dict[str, torch.Tensor]:
         """Roll training trajectories out from their first node over ``val_horizon`` steps (default: their
-        whole length) and score the rollout against the measurements (and the clean signal, where given)."""
-        horizon = self.hparams.get("val_horizon") or batch["y"].shape[1]
-        y = batch["y"][:, :horizon]
-        x0 = self.node_states(batch["index"])[:, 0]
-        _, y_hat = self(x0, y.shape[1], batch["u"][:, :horizon] if "u" in batch else None)
+        whole length after the node encoder's history) and score the rollout against the measurements (and the clean
+        signal, where given)."""
+        nodes, y, u = self.batch_nodes(batch)
+        horizon = self.hparams.get("val_horizon") or y.shape[1]
+        y = y[:, :horizon]
+        _, y_hat = self(nodes[:, 0], y.shape[1], None if u is None else u[:, :horizon])
         bs = len(y)
         self.log("val/rollout_mse", _masked_mse(y_hat, y), batch_size=bs, prog_bar=True)
         out = {"index": batch["index"], "y": y, "y_hat": y_hat}
         if "y_clean" in batch:
-            y_clean = batch["y_clean"][:, :horizon]
+            y_clean = batch["y_clean"][:, self.history :][:, :horizon]
             self.log("val/rollout_mse_clean", _masked_mse(y_hat, y_clean), batch_size=bs)
             out["y_clean"] = y_clean
         return out
@@ -638,7 +798,7 @@ class MultipleShootingModule(pl.LightningModule):
             checkpoint[DATA_STATE_KEY] = self.data_state
         if "f" not in self.hparams:  # built in Python: keep the networks so the checkpoint reloads on its own
             buffer = io.BytesIO()  # as bytes: the checkpoint itself stays loadable with weights_only=True
-            torch.save({"f": self.f, "g": self.g}, buffer)
+            torch.save({name: getattr(self, name) for name in NETWORKS}, buffer)
             checkpoint["networks"] = buffer.getvalue()
 
     @classmethod
@@ -649,14 +809,14 @@ class MultipleShootingModule(pl.LightningModule):
         if "f" not in kwargs or "g" not in kwargs:
             if "networks" in checkpoint:
                 networks = torch.load(io.BytesIO(checkpoint["networks"]), map_location="cpu", weights_only=False)
-                kwargs.setdefault("f", networks["f"])
-                kwargs.setdefault("g", networks["g"])
+                for name in NETWORKS:
+                    kwargs.setdefault(name, networks.get(name))
         model = super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
         # Built by the CLI, f and g are in the saved config: keep it (Lightning rebuilds the module outside
         # the CLI, where they would be dropped), so that a re-saved checkpoint still describes them.
         saved = checkpoint.get("hyper_parameters", {})
         if "f" not in kwargs and "g" not in kwargs and isinstance(saved.get("f"), Mapping) and "f" not in model.hparams:
-            for key in ("_class_path", "_instantiator", "f", "g"):
+            for key in ("_class_path", "_instantiator", *NETWORKS):
                 if key in saved:
                     model.hparams[key] = saved[key]
         return model
@@ -719,7 +879,7 @@ def load_ssm(path: str | os.PathLike, map_location: str | torch.device = "cpu") 
             "configs/<experiment>.yaml) and set model.init_args.ssm_checkpoint to its checkpoints/last.ckpt"
         )
     checkpoint = read_checkpoint(path, "the SSM checkpoint")  # weights_only: a foreign file runs no code
-    if "state_dict" not in checkpoint or "nodes.weight" not in checkpoint["state_dict"]:
+    if not holds_ssm(checkpoint):
         kind = checkpoint.get("forecaster") if isinstance(checkpoint, dict) else None
         what = (
             f"a checkpoint of the {kind} baseline"
@@ -737,6 +897,13 @@ def load_ssm(path: str | os.PathLike, map_location: str | torch.device = "cpu") 
     )
     model.freeze()
     return model, checkpoint
+
+
+def holds_ssm(checkpoint: Mapping[str, Any]) -> bool:
+    """Whether a checkpoint holds a ``MultipleShootingModule``: its shooting nodes, free (a table) or amortised (an
+    encoder)."""
+    state = checkpoint.get("state_dict", {}) if isinstance(checkpoint, Mapping) else {}
+    return "nodes.weight" in state or any(k.startswith("node_encoder.") for k in state)
 
 
 def datamodule_state(checkpoint: Mapping[str, Any]) -> tuple[str, dict] | None:

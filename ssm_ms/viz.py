@@ -130,6 +130,7 @@ class ShootingPictureLogger(Callback):
         k = self.n_trajectories
         index, y = batch["index"][:k], batch["y"][:k]
         preds = pl_module.shooting_predictions(index, y=y, u=batch["u"][:k] if "u" in batch else None)
+        y = y[:, pl_module.history :]  # amortised nodes: the pieces cover the window after the history
         n = y.shape[1] // pl_module.n_nodes
         images = []
         for b in range(len(index)):

@@ -27,6 +27,7 @@ from ssm_ms.baselines.lstm import Seq2SeqLSTM
 from ssm_ms.baselines.rkn import RecurrentKalmanNetwork
 from ssm_ms.checkpointing import SSM_DIGEST_KEY
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
+from ssm_ms.module import holds_ssm
 from ssm_ms.runtime.memory import check_lstm_memory
 
 LOSSES = ("mse", "bce", "gaussian_nll")
@@ -227,7 +228,7 @@ class BaselineForecaster(ForecastModule):
         kind = checkpoint.get("forecaster")
         state = checkpoint.get("state_dict", {})
         if kind != type(self).__name__:
-            if "nodes.weight" in state or SSM_DIGEST_KEY in checkpoint or any(k.startswith("ssm.") for k in state):
+            if holds_ssm(checkpoint) or SSM_DIGEST_KEY in checkpoint or any(k.startswith("ssm.") for k in state):
                 what = "an SSM (or one of its encoder stages)"
             else:
                 what = f"a {kind}" if kind else "not a checkpoint of this project's baselines"

@@ -219,7 +219,7 @@ class ClosedLoop(pl.LightningModule):
         self.to_inputs = to_inputs = (lambda u: u) if inputs_norm is None else inputs_norm.normalize
         ssm_f = self.ssm.f
         self.f = lambda x, u: ssm_f(x, to_inputs(u))  # the planner and the filter think in N m
-        nodes = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim)
+        nodes = self.ssm.training_states()
         self.prior = nodes.mean(0)
         if self.encoder is None:  # the UKF's settings: only where it estimates
             est = self.estimator_settings

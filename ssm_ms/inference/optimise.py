@@ -174,8 +174,7 @@ class OptimisationForecaster(SSMForecaster):
         super().__init__(ssm_checkpoint, n_filter=n_filter, metrics=metrics, method_name=method_name, **kwargs)
         self.n_nodes, self.steps, self.lr, self.start = int(n_nodes), int(steps), float(lr), start
         self.alpha = float(self.ssm.alpha) if alpha is None else float(alpha)
-        d = self.ssm.state_dim
-        nodes = self.ssm.nodes.weight.detach().view(-1, d)
+        nodes = self.ssm.training_states()
         self.register_buffer("scale", step_scale(nodes), persistent=False)  # never saved: it moves with the module
         pick = torch.randperm(len(nodes), generator=torch.Generator().manual_seed(0))[:n_candidates]
         self.register_buffer("candidates", nodes[pick].clone(), persistent=False)

@@ -56,7 +56,8 @@ def estimate_states(
     ``method``: ``"ukf"`` (:class:`~ssm_ms.inference.UnscentedKalmanFilter`'s settings in ``options``; its measurement
     variance defaults to the model's fit residual at the end of training, ``fit_mse``, else the paper's 0.5),
     ``"fit"`` (:class:`~ssm_ms.inference.OptimisationForecaster`'s, one node by default) or ``"encoder"`` (a trained
-    :class:`~ssm_ms.inference.StateEncoderModule` given as ``encoder``)."""
+    :class:`~ssm_ms.inference.StateEncoderModule` given as ``encoder``; an SSM's own node encoder gives the state
+    after the samples, not along them: :func:`initial_state`)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {list(METHODS)}, got {method!r}")
     options = dict(options or {})
@@ -77,9 +78,49 @@ def estimate_states(
     except TypeError as err:
         raise ValueError(f"the UKF's options are UnscentedKalmanFilter's (process_var, init_var, ...): {err}") from None
     # the prior mean as FilterForecaster's: the mean shooting node, the components node_init_map reads from y[0]
-    prior = ssm.states_at_measurements(y[:, :1], ssm.nodes.weight.detach().view(-1, ssm.state_dim).mean(0))[:, 0]
+    prior = ssm.states_at_measurements(y[:, :1], ssm.training_states().mean(0))[:, 0]
     result = ukf.filter(y, prior, u=given)
     return result.means, result.covs
+
+
+def default_method(ssm: MultipleShootingModule) -> str:
+    """The state estimate a recording gets where none is named: the SSM's node encoder where it has one (it was
+    trained for it), else the UKF on its ``f`` and ``g``."""
+    return "encoder" if ssm.node_encoder is not None else "ukf"
+
+
+def initial_state(
+    ssm: MultipleShootingModule,
+    y: torch.Tensor,
+    u: torch.Tensor | None = None,
+    method: str | None = None,
+    options: Mapping[str, Any] | None = None,
+    encoder: Any = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The state at sample ``k`` of normalised measurements ``y [B, k, *obs]`` (inputs ``u [B, >= k, m]``), the
+    recording's first ``k`` samples: ``(x [B, d], estimates [B, k, *obs])``, ``estimates`` being ``g`` of the
+    states along the ``k`` samples (NaN where the method gives none).
+
+    ``method`` (``None``: :func:`default_method`): ``"encoder"`` with no ``encoder`` given and an SSM with amortised
+    nodes reads the last ``history`` of the ``k`` samples with its node encoder, as in training; every other
+    estimate is :func:`estimate_states` along the ``k`` samples, stepped once through ``f``."""
+    method = default_method(ssm) if method is None else method
+    k = y.shape[1]
+    if method == "encoder" and encoder is None and ssm.node_encoder is not None:
+        if options:
+            raise ValueError(f"the node encoder takes no options, got {sorted(options)}")
+        h = ssm.history
+        if k < h:
+            raise ValueError(
+                f"the node encoder reads the {h} samples before a state, but only {k} are given to estimate it from: "
+                f"give at least {h} (n_init), or train a node encoder of a shorter history"
+            )
+        uh = None if u is None or not ssm.input_dim else u[:, k - h : k]
+        x = ssm.node_encoder(y[:, k - h : k], uh)
+        return x, torch.full_like(y, float("nan"))
+    states, _ = estimate_states(ssm, y, u, method, options, encoder)
+    x = next_state(ssm.f, states[:, -1], None if u is None else u[:, k - 1])
+    return x, decode(ssm.g, states, ssm.hparams.decode_chunk)
 
 
 def next_state(f: nn.Module, x: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
@@ -96,15 +137,22 @@ def free_run(
     chunk: int = 10_000,
     decode_chunk: int | None = None,
     bound: float | None = None,
+    progress: str | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``g`` of ``x [B, d]`` and of its ``steps - 1`` successors under ``u [B, >= steps - 1, m]``: ``[B, steps, *obs]``,
     rolled out ``chunk`` steps at a time; and per sequence the first step at which a measurement left the finite
     range or, with ``bound``, exceeded it in magnitude (``-1``: never). The values are what ``f`` and ``g`` compute;
-    the caller reports a divergence (a score is not taken from a diverged run)."""
+    the caller reports a divergence (a score is not taken from a diverged run). ``progress``: a bar of that title
+    over the chunks, on a terminal (stderr)."""
     if chunk < 1 or steps < 1:
         raise ValueError(f"steps and chunk must be >= 1, got {steps} and {chunk}")
     out, diverged = [], torch.full((x.shape[0],), -1, dtype=torch.long, device=x.device)
-    for start in range(0, steps, chunk):
+    starts = range(0, steps, chunk)
+    if progress is not None and len(starts) > 1:
+        from tqdm import tqdm
+
+        starts = tqdm(starts, desc=progress, unit="chunk", leave=False, disable=None)
+    for start in starts:
         n = min(chunk, steps - start)
         states = rollout(f, x, n, None if u is None else u[:, start : start + n - 1])
         y = decode(g, states, decode_chunk)
@@ -122,25 +170,33 @@ def simulate_recording(
     y: torch.Tensor,
     u: torch.Tensor,
     n_init: int,
-    method: str = "ukf",
+    method: str | None = None,
     options: Mapping[str, Any] | None = None,
     encoder: Any = None,
     chunk: int = 10_000,
     bound: float | None = None,
+    progress: str | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The benchmark protocol on normalised recordings ``y [B, T, *obs]``, ``u [B, T, m]``: states from the first
-    ``n_init`` samples, then the free run of the other ``T - n_init`` from the inputs alone. Returns the model's
-    measurements ``[B, T, *obs]`` (the first ``n_init`` its estimates of them) and where the run diverged (``-1``:
-    never; else the sample, counted from the recording's start)."""
+    """The benchmark protocol on normalised recordings ``y [B, T, *obs]``, ``u [B, T, m]``: the state from the first
+    ``n_init`` samples (:func:`initial_state`), then the free run of the other ``T - n_init`` from the inputs alone.
+    Returns the model's measurements ``[B, T, *obs]`` (the first ``n_init`` its estimates of them, NaN where the
+    method gives none) and where the run diverged (``-1``: never; else the sample, counted from the recording's
+    start)."""
     t = y.shape[1]
     if not 0 < n_init < t:
         raise ValueError(f"n_init={n_init} must be between 1 and the recording's {t - 1} samples")
-    states, _ = estimate_states(ssm, y[:, :n_init], u, method, options, encoder)
-    x = next_state(ssm.f, states[:, -1], None if u is None else u[:, n_init - 1])
+    x, estimates = initial_state(ssm, y[:, :n_init], u, method, options, encoder)
     y_run, diverged = free_run(
-        ssm.f, ssm.g, x, t - n_init, None if u is None else u[:, n_init:], chunk, ssm.hparams.decode_chunk, bound
+        ssm.f,
+        ssm.g,
+        x,
+        t - n_init,
+        None if u is None else u[:, n_init:],
+        chunk,
+        ssm.hparams.decode_chunk,
+        bound,
+        progress,
     )
-    estimates = decode(ssm.g, states, ssm.hparams.decode_chunk)
     return torch.cat([estimates, y_run], 1), torch.where(diverged >= 0, diverged + n_init, diverged)
 
 
@@ -185,13 +241,12 @@ class SimulationValidation(pl.Callback):
     (``ModelCheckpoint(monitor="val/sim_rmse")``). The sanity check before training is not scored.
 
     Args:
-        method, options: the state estimate from the first ``n_init`` samples (:func:`estimate_states`).
+        method, options: the state estimate from the first ``n_init`` samples (:func:`initial_state`; ``None``: the
+            SSM's node encoder where it has amortised nodes, else the UKF).
     """
 
-    def __init__(self, method: str = "ukf", options: dict[str, Any] | None = None):
-        if method not in ("ukf", "fit"):
-            raise ValueError(f"method must be 'ukf' or 'fit' (no encoder is trained yet), got {method!r}")
-        self.method, self.options = method, dict(options or {})
+    def __init__(self, method: str | None = None, options: dict[str, Any] | None = None):
+        self.method, self.options = check_method(method), dict(options or {})
 
     def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if trainer.sanity_checking:
@@ -208,7 +263,13 @@ class SimulationValidation(pl.Callback):
                 y, u = batch["y"].to(pl_module.device), batch.get("u")
                 u = None if u is None else u.to(pl_module.device)
                 y_model, where = simulate_recording(
-                    pl_module, y, u, dm.n_init, self.method, self.options, bound=divergence_bound(pl_module)
+                    pl_module,
+                    y,
+                    u,
+                    dm.n_init,
+                    own_method(pl_module, self.method),
+                    self.options,
+                    bound=divergence_bound(pl_module),
                 )
                 for b in range(len(y)):
                     if int(where[b]) >= 0:
@@ -236,7 +297,8 @@ class SimulationTest(pl.LightningModule):
 
     Args:
         ssm_checkpoint: the trained SSM (its ``best.ckpt``: the epoch the validation chose), or the model itself.
-        method, options: the state estimate (:func:`estimate_states`).
+        method, options: the state estimate (:func:`initial_state`; ``None``: the SSM's node encoder where it has
+            amortised nodes, else the UKF).
         chunk: steps rolled out per call.
         experiment: the results files' name (default: the data's name); ``method_name``: this row's key.
         results_dir, figures_dir: where they go (``figures_dir`` ``None``: no figures).
@@ -247,7 +309,7 @@ class SimulationTest(pl.LightningModule):
     def __init__(
         self,
         ssm_checkpoint: str | nn.Module | None = None,
-        method: str = "ukf",
+        method: str | None = None,
         options: dict[str, Any] | None = None,
         chunk: int = 10_000,
         experiment: str | None = None,
@@ -259,10 +321,10 @@ class SimulationTest(pl.LightningModule):
         super().__init__()
         if ssm_checkpoint is None:
             raise ValueError("model.init_args.ssm_checkpoint is not set: give the SSM run's checkpoints/best.ckpt")
-        if method not in ("ukf", "fit"):
-            raise ValueError(f"method must be 'ukf' or 'fit', got {method!r}")
+        check_method(method)
         given = getattr(ssm_checkpoint, "module", ssm_checkpoint)
         self.ssm = given.eval() if isinstance(given, MultipleShootingModule) else load_ssm(given)[0]
+        method = own_method(self.ssm, method)
         self.ssm_checkpoint = None if isinstance(given, nn.Module) else str(given)
         self.save_hyperparameters(ignore=["ssm_checkpoint"])
         self.method, self.options, self.chunk = method, dict(options or {}), int(chunk)
@@ -288,7 +350,15 @@ class SimulationTest(pl.LightningModule):
         started = time.time()
         _log.info("test %s: %d samples, the state from the first %d", name, y.shape[1], dm.n_init)
         y_model, where = simulate_recording(
-            self.ssm, y, u, dm.n_init, self.method, self.options, chunk=self.chunk, bound=divergence_bound(self.ssm)
+            self.ssm,
+            y,
+            u,
+            dm.n_init,
+            self.method,
+            self.options,
+            chunk=self.chunk,
+            bound=divergence_bound(self.ssm),
+            progress=f"simulating {name}",
         )
         truth, model = _to_unit(dm, self.ssm, y[0]), _to_unit(dm, self.ssm, y_model[0])
         truth, model = truth.reshape(len(truth), -1), model.reshape(len(model), -1)
@@ -312,7 +382,7 @@ class SimulationTest(pl.LightningModule):
         dm = self.trainer.datamodule
         info = {
             "experiment": self.experiment or dm.name,
-            "method": self.method_name or f"{model_name(self.ssm)} + {INFERENCE_LABELS.get(self.method, self.method)}",
+            "method": self.method_name or f"{model_name(self.ssm)} + {method_label(self.ssm, self.method)}",
             "model": model_name(self.ssm),
             "state_dim": self.ssm.state_dim,
             "ssm_checkpoint": self.ssm_checkpoint,
@@ -329,6 +399,30 @@ class SimulationTest(pl.LightningModule):
         write_benchmark_results(Path(self.results_dir), info, self.rows, self.figures, self.figures_dir, dm.n_init)
 
 
+def check_method(method: str | None) -> str | None:
+    """A simulation's state estimate, checked (``"encoder"``: the SSM's node encoder, checked with the SSM)."""
+    if method not in (None, "ukf", "fit", "encoder"):
+        raise ValueError(f"method must be 'ukf', 'fit' or 'encoder' (or unset: the SSM's default), got {method!r}")
+    return method
+
+
+def own_method(ssm: MultipleShootingModule, method: str | None) -> str:
+    """``method`` for this SSM (``None``: :func:`default_method`); ``"encoder"`` needs its node encoder."""
+    if method == "encoder" and ssm.node_encoder is None:
+        raise ValueError(
+            "method 'encoder' reads the state with the SSM's node encoder, and this SSM has free nodes: use 'ukf' or "
+            "'fit' (or train it with amortised nodes, model.init_args.node_encoder)"
+        )
+    return default_method(ssm) if method is None else method
+
+
+def method_label(ssm: MultipleShootingModule, method: str) -> str:
+    """The state estimate's name in a results row."""
+    return (
+        "node encoder" if method == "encoder" and ssm.node_encoder is not None else INFERENCE_LABELS.get(method, method)
+    )
+
+
 def model_name(ssm: MultipleShootingModule) -> str:
     """``SSM-LL (d = 4)``: the transition's paper name and the latent dimension."""
     name = type(ssm.f).__name__
@@ -341,7 +435,7 @@ def local_stability(ssm: MultipleShootingModule, n: int = 256) -> dict[str, floa
     where it exceeds 1 (``f`` locally expanding)."""
     from ssm_ms.analysis import linearize
 
-    nodes = ssm.nodes.weight.detach().view(-1, ssm.state_dim)
+    nodes = ssm.training_states()
     x = nodes[torch.randperm(len(nodes), generator=torch.Generator().manual_seed(0))[:n]]
     u = torch.zeros(len(x), ssm.input_dim, dtype=x.dtype) if ssm.input_dim else None
     a = linearize(ssm.f, ssm.g, x, u).A

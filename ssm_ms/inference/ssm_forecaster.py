@@ -172,7 +172,7 @@ class SSMForecaster(ForecastModule):
         taken from ``y_at`` (Lorenz: the measured coordinate), as the SSM's own nodes start
         (:meth:`~ssm_ms.module.MultipleShootingModule.states_at_measurements`)."""
         if base is None:
-            base = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim).mean(0)
+            base = self.ssm.training_states().mean(0)
         return self.ssm.states_at_measurements(y_at, base)
 
     # ------------------------------------------------------------------ to implement
@@ -260,7 +260,7 @@ class SSMForecaster(ForecastModule):
             return out
         dm, norm = self.datamodule, self.normalizer()
         to_units = norm.denormalize if norm is not None else None
-        nodes = self.ssm.nodes.weight.detach().view(-1, self.ssm.state_dim)
+        nodes = self.ssm.training_states()
         generator = torch.Generator().manual_seed(settings.seed)
         free_runs = settings.free_runs or settings.runs
         if max(settings.runs, free_runs) > len(nodes):

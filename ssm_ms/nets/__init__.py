@@ -1,7 +1,8 @@
-"""Networks: residual transitions ``f``, observation models ``g``, state encoders."""
+"""Networks: residual transitions ``f``, observation models ``g``, state encoders, node encoders."""
 
 from ssm_ms.nets.decoder import ConvDecoder
 from ssm_ms.nets.encoder import FrameEncoder, StateEncoder
+from ssm_ms.nets.history import HistoryEncoder
 from ssm_ms.nets.readout import LinearReadout, Projection
 from ssm_ms.nets.sensors import SensorHeads
 from ssm_ms.nets.sprites import SpriteDecoder
@@ -11,6 +12,7 @@ __all__ = [
     "ConvDecoder",
     "FrameEncoder",
     "FullyConnectedTransition",
+    "HistoryEncoder",
     "LinearReadout",
     "LocallyLinearTransition",
     "Projection",
