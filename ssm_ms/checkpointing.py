@@ -104,3 +104,14 @@ def read_checkpoint(path: str | Path, what: str = "the checkpoint", restore: boo
             "of a run, e.g. runs/<name>/version_N/checkpoints/last.ckpt"
         )
     return restore_float_weights(checkpoint) if restore else checkpoint
+
+
+def kept_score(checkpoint: Mapping[str, Any]) -> float | None:
+    """The score a fit's ``ModelCheckpoint`` kept its best epoch by (e.g. ``val/sim_rmse``), read from a checkpoint it
+    wrote; ``None`` where there is none (a fit without such a checkpoint callback)."""
+    scores = [
+        float(state["best_model_score"])
+        for key, state in checkpoint.get("callbacks", {}).items()
+        if key.startswith("ModelCheckpoint") and state.get("best_model_score") is not None
+    ]
+    return min(scores, default=None)

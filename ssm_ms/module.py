@@ -51,6 +51,7 @@ from ssm_ms.units import ObservationInUnits, TransitionInUnits, Units
 # where a checkpoint holds the data state of a model saved without its DataModule, and the last epoch's fit term
 DATA_STATE_KEY = "data_state"
 FIT_MSE_KEY = "fit_mse"
+SEED_KEY = "seed"  # the seed its fit ran with (seed_everything; None: none set)
 # Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
 STRUCTURAL_HPARAMS = (
     "state_dim",
@@ -206,6 +207,7 @@ class MultipleShootingModule(pl.LightningModule):
         # the state of the data this model was trained on (DataModule.state_dict(): normalisation, shape, identity)
         self.data_state: dict[str, Any] | None = None
         self.fit_mse: float | None = None  # the last training epoch's mean fit term (normalised units)
+        self.seed: int | None = None  # the seed its fit ran with (seed_everything), kept in its checkpoints
         self._fit_sums = [0.0, 0]
         self.register_buffer("alpha", torch.tensor(float(alpha)))
         if node_optimizer not in NODE_OPTIMIZERS:
@@ -340,6 +342,10 @@ class MultipleShootingModule(pl.LightningModule):
                 )
             self._make_nodes(int(n))
         if dm is not None and hasattr(dm, "seq_len"):
+            if stage == "fit" and os.environ.get("PL_GLOBAL_SEED") is not None:
+                self.seed = int(
+                    os.environ["PL_GLOBAL_SEED"]
+                )  # Lightning's seed_everything (a resume: the checkpoint's)
             if stage == "fit" and callable(getattr(dm, "state_dict", None)):
                 self.data_state = dm.state_dict()  # the statistics f and g learn in (a resumed fit: the checkpoint's)
             self.check_inputs(int(getattr(dm, "input_dim", 0)))
@@ -794,6 +800,8 @@ class MultipleShootingModule(pl.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         if self.fit_mse is not None:
             checkpoint[FIT_MSE_KEY] = self.fit_mse
+        if self.seed is not None:
+            checkpoint[SEED_KEY] = self.seed
         if self.data_state is not None and datamodule_state(checkpoint) is None:  # saved without its DataModule
             checkpoint[DATA_STATE_KEY] = self.data_state
         if "f" not in self.hparams:  # built in Python: keep the networks so the checkpoint reloads on its own
@@ -829,6 +837,8 @@ class MultipleShootingModule(pl.LightningModule):
             self.data_state = saved_data[1]
         if checkpoint.get(FIT_MSE_KEY) is not None:
             self.fit_mse = float(checkpoint[FIT_MSE_KEY])
+        if checkpoint.get(SEED_KEY) is not None:
+            self.seed = int(checkpoint[SEED_KEY])
         if checkpoint.get("forecaster"):
             raise ValueError(
                 f"the checkpoint is a {checkpoint['forecaster']}'s (a baseline), not an SSM's: resume an SSM from "

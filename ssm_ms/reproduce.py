@@ -669,13 +669,10 @@ def validation_score(checkpoint: Path) -> float:
         return math.inf
     import torch  # the stage is done: reading its checkpoint costs the import once
 
-    saved = torch.load(path, map_location="cpu", weights_only=False)
-    scores = [
-        float(state["best_model_score"])
-        for key, state in saved.get("callbacks", {}).items()
-        if key.startswith("ModelCheckpoint") and state.get("best_model_score") is not None
-    ]
-    return min(scores, default=math.inf)
+    from ssm_ms.checkpointing import kept_score
+
+    score = kept_score(torch.load(path, map_location="cpu", weights_only=False))
+    return math.inf if score is None else score
 
 
 def open_pipeline(opts: argparse.Namespace, options: list[str], first: Path, version: str, command: str) -> Pipeline:
@@ -719,7 +716,7 @@ def run_benchmark(opts: argparse.Namespace, argv: list[str], config: Path) -> No
         chosen = min(scores, key=lambda d: scores[d])
     ran, run = fits[chosen]
     ssm = tested_checkpoint(logger_dir(config) / run / "checkpoints")
-    named = ["--model.init_args.method_name", f"SSM ({seeded})"] if seeded else []
+    named = []  # the results file keys the row by method and the seed the fit recorded
     if opts.orders:
         chosen_by = {"state_dim, by val/sim_rmse": {str(d): scores[d] for d in scores}, "chosen": chosen}
         named += ["--model.init_args.selection", json.dumps(chosen_by)]

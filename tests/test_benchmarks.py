@@ -191,3 +191,40 @@ def test_the_simulation_speed_bench_times_a_free_run(tmp_path):
     # the table's seconds are rounded to 1 ms: the rate lies between the steps over its bounds
     assert 500 / (seconds + 0.0005) - 1 <= per_second <= 500 / max(seconds - 0.0005, 1e-9) + 1
     assert row[3].strip(" |") == "1.00"
+
+
+def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_best(tmp_path):
+    """Runs of one method over seeds become one row, mean and sample std (statistics, here); the README's ssm-ms
+    column is the method of the lowest mean validation score, whatever the test scores say."""
+    import statistics
+
+    from ssm_ms.forecasting.benchmark_results import render, run_key
+    from ssm_ms.forecasting.readme import Results, benchmarks
+
+    def run(method, seed, val, rmse, diverged=None):
+        info = {"method": method, "seed": seed, "unit": "V", "model": "SSM-LL", "experiment": "toy"}
+        info["validation"] = {"val_sim_rmse": val, "epoch": 3}
+        row = {"samples": 100, "n_init": 10, "seconds": 0.1, "rmse": rmse, "nrmse": None, "fit_index": None}
+        row["diverged_at"] = diverged
+        return run_key(info), {"info": info, "tests": {"test": row}}
+
+    runs = dict(
+        [
+            run("A", 0, 1.0, 0.30),
+            run("A", 1, 1.2, 0.40),
+            run("A", 2, 1.1, 0.20),
+            run("B", 0, 0.9, 0.50),
+            run("B", 1, 0.95, None, diverged=42),
+        ]
+    )
+    assert list(runs) == ["A, seed 0", "A, seed 1", "A, seed 2", "B, seed 0", "B, seed 1"]
+    data = {"experiment": "toy", "runs": runs}
+    folder = tmp_path / "benchmarks"
+    folder.mkdir()
+    (folder / "toy.json").write_text(json.dumps(data))
+    md = render(data, folder)
+    a = f"{statistics.mean([0.3, 0.4, 0.2]):.4g} ± {statistics.stdev([0.3, 0.4, 0.2]):.2g}"
+    assert f"| A | 0, 1, 2 | {statistics.mean([1.0, 1.2, 1.1]):.4g} | {a} |" in md
+    assert "| B | 0, 1 | 0.925 | 0.5 (1 of 2 diverged) |" in md
+    (row,) = [line for line in benchmarks(Results(tmp_path)) if line.startswith("| toy")]
+    assert "0.5 (1 of 2 diverged) (B, 2 seeds)" in row

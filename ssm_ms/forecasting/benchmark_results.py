@@ -2,9 +2,12 @@
 of the scores) and ``<experiment>.md`` rendered from it with the published baselines beside ours, and a figure per
 test recording (measured and simulated output over a window, the error along the whole recording).
 
-A run is keyed by its method name (a later run of the same name replaces it); published rows come from
-``<experiment>.published.json`` beside it when that file exists (``{"source": ..., "rows": {name: {test: rmse}}}``),
-and a hand-written ``<experiment>.notes.md`` is appended as the Notes.
+A run is keyed by its method name and seed (``SSM-LL (d = 4) + UKF, seed 1``; a later run of the same key replaces
+it); the table has one row per method, its score over the seeds run as mean ± sample standard deviation, beside the
+validation score that kept each run's epoch (the held-out end of the training recording: what a choice between
+methods may use). Published rows come from ``<experiment>.published.json`` beside it when that file exists
+(``{"source": ..., "rows": {name: {test: rmse}}}``), and a hand-written ``<experiment>.notes.md`` is appended as the
+Notes.
 """
 
 from __future__ import annotations
@@ -30,20 +33,68 @@ def write_benchmark_results(
     name = info["experiment"]
     path = results_dir / f"{name}.json"
     data = json.loads(path.read_text()) if path.exists() else {"experiment": name, "runs": {}}
-    data["runs"][info["method"]] = {"info": info, "tests": rows}
+    data["runs"][run_key(info)] = {"info": info, "tests": rows}
     path.write_text(json.dumps(data, indent=2) + "\n")  # in order: the test recordings as the benchmark lists them
     if figures_dir is not None:
         for test, (truth, model) in figures.items():
-            draw(
-                Path(figures_dir) / f"{name}_{_slug(info['method'])}_{_slug(test)}.png",
-                truth,
-                model,
-                n_init,
-                test,
-                info,
-            )
+            figure = Path(figures_dir) / f"{name}_{_slug(info['method'])}_{_slug(test)}.png"
+            if info.get("seed") in (None, 0) or not figure.exists():  # a method's figure: its first seed's run
+                draw(figure, truth, model, n_init, test, info)
     (results_dir / f"{name}.md").write_text(render(data, results_dir))
     return path
+
+
+def run_key(info: dict[str, Any]) -> str:
+    """A run's key in the results file: its method, and its seed where the fit recorded one."""
+    seed = info.get("seed")
+    return info["method"] if seed is None else f"{info['method']}, seed {seed}"
+
+
+def methods(data: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
+    """The runs of a results file by method (their seeds), in the order the methods first appear."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    for run in data["runs"].values():
+        out.setdefault(run["info"]["method"], []).append(run)
+    return out
+
+
+def over_seeds(runs: list[dict[str, Any]], test: str) -> dict[str, Any] | None:
+    """One method's score on one test recording over its runs: ``{"n", "diverged", "mean", "std", "values"}``
+    (``std`` the sample standard deviation, ``None`` for one run; ``mean`` ``None`` where every run diverged), or
+    ``None`` where no run has that recording."""
+    rows = [run["tests"][test] for run in runs if test in run["tests"]]
+    if not rows:
+        return None
+    values = [row["rmse"] for row in rows if row.get("diverged_at") is None and row.get("rmse") is not None]
+    return {
+        "n": len(rows),
+        "diverged": len(rows) - len(values),
+        "mean": float(np.mean(values)) if values else None,
+        "std": float(np.std(values, ddof=1)) if len(values) > 1 else None,
+        "values": values,
+        "diverged_at": [row["diverged_at"] for row in rows if row.get("diverged_at") is not None],
+    }
+
+
+def validation_over_seeds(runs: list[dict[str, Any]]) -> float | None:
+    """The mean over a method's runs of the validation score that kept each run's epoch (``None``: not recorded)."""
+    scores = [(run["info"].get("validation") or {}).get("val_sim_rmse") for run in runs]
+    return float(np.mean(scores)) if scores and all(v is not None for v in scores) else None
+
+
+def summary_cell(summary: dict[str, Any] | None, digits: int = 4) -> str:
+    """``0.98``, ``0.98 ± 0.02`` over seeds, ``diverged at sample N``, ``... (1 of 3 diverged)``."""
+    if summary is None:
+        return ""
+    if summary["mean"] is None:
+        where = summary["diverged_at"]
+        return f"diverged at sample {where[0]}" if len(where) == 1 else f"all {summary['n']} diverged"
+    cell = f"{summary['mean']:.{digits}g}"
+    if summary["std"] is not None:
+        cell += f" ± {summary['std']:.2g}"
+    if summary["diverged"]:
+        cell += f" ({summary['diverged']} of {summary['n']} diverged)"
+    return cell
 
 
 def _slug(text: str) -> str:
@@ -62,28 +113,27 @@ def render(data: dict[str, Any], results_dir: Path) -> str:
     tests = list(dict.fromkeys(t for run in runs.values() for t in run["tests"]))
     unit = next((run["info"].get("unit") for run in runs.values() if run["info"].get("unit")), "")
     lines = [f"# {data['experiment']}: free-run simulation RMSE ({unit or 'data units'})", ""]
-    lines += ["| method | " + " | ".join(tests) + " |", "|---|" + "---|" * len(tests)]
-    for method, run in runs.items():
-        cells = []
-        for t in tests:
-            row = run["tests"].get(t)
-            if row is None:
-                cells.append("")
-            elif row.get("diverged_at") is not None:
-                cells.append(f"diverged at sample {row['diverged_at']}")
-            else:
-                cells.append(_cell(row["rmse"]))
-        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    lines += ["| method | seeds | validation | " + " | ".join(tests) + " |", "|---|---|---|" + "---|" * len(tests)]
+    for method, group in methods(data).items():
+        seeds = ", ".join(str(run["info"].get("seed", "—")) for run in group)
+        cells = [summary_cell(over_seeds(group, t)) for t in tests]
+        lines.append(f"| {method} | {seeds} | {_cell(validation_over_seeds(group))} | " + " | ".join(cells) + " |")
     published = results_dir / f"{data['experiment']}.published.json"
     if published.exists():
         pub = json.loads(published.read_text())
         for method, values in pub["rows"].items():
-            lines.append(f"| {method} (published) | " + " | ".join(_cell(values.get(t)) for t in tests) + " |")
+            lines.append(f"| {method} (published) | | | " + " | ".join(_cell(values.get(t)) for t in tests) + " |")
         lines += ["", f"Published rows: {pub['source']}."]
+    lines += [
+        "",
+        "Over several seeds: mean ± sample standard deviation. Validation: the free-run RMSE of the held-out end of the "
+        "training recording at the epoch it kept (mean over the seeds; what a choice between methods may use).",
+    ]
     lines += ["", "## Runs", ""]
     for method, run in runs.items():
         info = run["info"]
         stability = info.get("stability") or {}
+        kept = info.get("validation") or {}
         lines += [
             f"### {method}",
             "",
@@ -92,6 +142,10 @@ def render(data: dict[str, Any], results_dir: Path) -> str:
             f"- machine: {info.get('machine')}; date {info.get('date')}; test {info.get('test_seconds')} s",
             f"- command: `{info.get('command')}`",
         ]
+        if kept.get("val_sim_rmse") is not None:
+            lines.append(
+                f"- validation: {_cell(kept['val_sim_rmse'])} {unit} at epoch {kept.get('epoch')}, the epoch kept"
+            )
         if info.get("selection"):
             lines.append(f"- chosen on validation (the held-out end of the training recording): {info['selection']}")
         if stability:

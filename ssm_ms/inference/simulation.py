@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ssm_ms.checkpointing import kept_score
 from ssm_ms.forecasting.metrics import DIVERGENCE_BOUND, first_divergence
 from ssm_ms.inference.optimise import OptimisationForecaster
 from ssm_ms.inference.ssm_forecaster import INFERENCE_LABELS, MODEL_NAMES
@@ -323,7 +324,13 @@ class SimulationTest(pl.LightningModule):
             raise ValueError("model.init_args.ssm_checkpoint is not set: give the SSM run's checkpoints/best.ckpt")
         check_method(method)
         given = getattr(ssm_checkpoint, "module", ssm_checkpoint)
-        self.ssm = given.eval() if isinstance(given, MultipleShootingModule) else load_ssm(given)[0]
+        saved: dict[str, Any] = {}
+        if isinstance(given, MultipleShootingModule):
+            self.ssm = given.eval()
+        else:
+            self.ssm, saved = load_ssm(given)
+        # what the fit's validation kept this epoch by, and the epoch (the results file says both)
+        self.kept = {"val_sim_rmse": kept_score(saved), "epoch": saved.get("epoch")}
         method = own_method(self.ssm, method)
         self.ssm_checkpoint = None if isinstance(given, nn.Module) else str(given)
         self.save_hyperparameters(ignore=["ssm_checkpoint"])
@@ -385,6 +392,8 @@ class SimulationTest(pl.LightningModule):
             "method": self.method_name or f"{model_name(self.ssm)} + {method_label(self.ssm, self.method)}",
             "model": model_name(self.ssm),
             "state_dim": self.ssm.state_dim,
+            "seed": self.ssm.seed,
+            "validation": {"unit": getattr(dm, "unit", ""), **self.kept},
             "ssm_checkpoint": self.ssm_checkpoint,
             "inference": {"method": self.method, **self.options},
             "benchmark": getattr(dm, "benchmark", dm.name),
