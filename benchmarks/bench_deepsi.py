@@ -314,36 +314,48 @@ def run_benchmark(name: str, args, deepSI, work: Path) -> None:
     settings = {"na": min(20, dm.n_init), "nb": min(20, dm.n_init)}
     system = {"deepsi": settings}
     budget = BENCHMARK_BUDGET if args.tiny is False and args.deepsi_seconds is None else args.deepsi_seconds or 30.0
-    log = work / f"{name}-deepsi.log"
+    seeded = "" if args.seed is None else f"-seed{args.seed}"
+    log = work / f"{name}{seeded}-deepsi.log"
+    if args.seed is not None:
+        torch.manual_seed(args.seed)
+        np.random.seed(args.seed)  # deepSI draws its batches with numpy
     last, best, iterations, seconds, curve = train_deepsi(deepSI, as_io, val_io, budget, system, args.val_freq, log)
     for label, model in (("last", last), ("best", best)):  # for benchmarks/bench_simulation.py --deepsi
-        torch.save(model, work / f"{name}-subnet-{label}.pt")
+        torch.save(model, work / f"{name}{seeded}-subnet-{label}.pt")
     results_dir = (
         Path(args.results_dir) if args.results_dir else ROOT / test_config["model"]["init_args"]["results_dir"]
     )
     n_init, k = dm.n_init, max(settings["na"], settings["nb"])
+
+    def protocol(model, y: np.ndarray, u: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:
+        """A recording by the benchmark protocol: its row of scores, the measured and simulated output."""
+        started = time.perf_counter()
+        with torch.no_grad():
+            model.eval()
+            y_t, u_t = torch.as_tensor(y[None]), torch.as_tensor(u[None])
+            sim = model(u_t[:, n_init - k : n_init], y_t[:, n_init - k : n_init], u_t[:, n_init:])[0].numpy()
+        truth = y * dm.unit_scale
+        simulated = np.concatenate([np.full((n_init, y.shape[1]), np.nan), sim.reshape(len(sim), -1)]) * dm.unit_scale
+        finite = bool(np.isfinite(simulated[n_init:]).all())
+        row = {"samples": len(y), "n_init": n_init, "seconds": round(time.perf_counter() - started, 2)}
+        row.update(scores(truth, simulated, n_init) if finite else {"rmse": None, "nrmse": None, "fit_index": None})
+        row["diverged_at"] = None if finite else int(n_init + np.argmax(~np.isfinite(simulated[n_init:]).all(1)))
+        return row, truth, simulated
+
     for label, model in (("last model", last), ("best on validation", best)):
         rows, figures = {}, {}
         for test_name, (y, u) in zip(dm.test_names, dm.raw_recordings("test")):
-            started = time.perf_counter()
-            with torch.no_grad():
-                model.eval()
-                y_t, u_t = torch.as_tensor(y[None]), torch.as_tensor(u[None])
-                sim = model(u_t[:, n_init - k : n_init], y_t[:, n_init - k : n_init], u_t[:, n_init:])[0].numpy()
-            truth = y * dm.unit_scale
-            simulated = (
-                np.concatenate([np.full((n_init, y.shape[1]), np.nan), sim.reshape(len(sim), -1)]) * dm.unit_scale
-            )
-            finite = bool(np.isfinite(simulated[n_init:]).all())
-            row = {"samples": len(y), "n_init": n_init, "seconds": round(time.perf_counter() - started, 2)}
-            row.update(scores(truth, simulated, n_init) if finite else {"rmse": None, "nrmse": None, "fit_index": None})
-            row["diverged_at"] = None if finite else int(n_init + np.argmax(~np.isfinite(simulated[n_init:]).all(1)))
+            row, truth, simulated = protocol(model, y, u)
             rows[test_name], figures[test_name] = row, (truth, np.nan_to_num(simulated, nan=0.0))
+        # the held-out end of the training recording by the same protocol: the validation ssm-ms's rows record
+        val_row = protocol(model, *dm.raw_recordings("val")[0])[0]
         info = {
             "experiment": test_config["model"]["init_args"].get("experiment", name),
             "method": f"deepSI SUBNET, {label}",
             "model": "SUBNET",
             "state_dim": 10,
+            "seed": args.seed,
+            "validation": {"unit": dm.unit, "val_sim_rmse": val_row["rmse"], "epoch": None},
             "ssm_checkpoint": None,
             "inference": {"method": f"SUBNET's encoder of the last {k} of the first {n_init} samples"},
             "benchmark": dm.benchmark,
@@ -381,6 +393,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--val-freq", type=int, default=250, help="deepSI iterations between validations")
     parser.add_argument("--deepsi-seconds", type=float, default=None, help="deepSI's budget (default: ssm-ms's time)")
     parser.add_argument("--work", default="runs/bench_deepsi", help="logs, checkpoints, deepSI's own files")
+    parser.add_argument(
+        "--seed", type=int, default=None, help="the benchmarks: torch's and numpy's seed (rows keyed by it)"
+    )
     parser.add_argument(
         "--out-dir", default=None, help="where deepsi_<system>.md go (default benchmarks/results; --tiny: --work)"
     )
