@@ -15,14 +15,16 @@ state with a network instead of holding it as a free parameter.
 Each system:
 
 1. the data are generated (or read from the cache) by ssm-ms's data module of the system's config;
-2. ssm-ms trains with ``python cli.py fit --config benchmarks/configs/deepsi_<system>.yaml`` (fixed epochs);
-   the wall time of that command is the budget;
+2. ssm-ms trains with ``python cli.py fit --config benchmarks/configs/deepsi_<system>.yaml`` (fixed epochs), then
+   each config of ``--ssm-configs`` likewise (variants side by side: ``deepsi_pendulum_amortised.yaml``, amortised
+   nodes); the longest wall time of those commands is the budget;
 3. deepSI trains a SUBNET (its defaults: ``nx = 10``, residual MLPs of 2 x 64 units, Adam at 1e-3, batches of
    256 windows, ``T = 50``) on the same training sequences for the same wall time, in chunks of ``--val-freq``
    iterations with one optimizer; its validation simulates 16 training sequences over the test's horizon;
    both its last and its best-on-validation models are scored;
 4. both forecast every test sequence ``n_predict`` steps after ``n_filter`` given measurements (and, for the
-   pendulum, the torques of all steps): ssm-ms's states from its UKF with the learned ``f`` and ``g``, deepSI's
+   pendulum, the torques of all steps): ssm-ms's states from its UKF with the learned ``f`` and ``g`` (an SSM with
+   amortised nodes: its node encoder on the last given samples, as in its training), deepSI's
    from its encoder on the last ``na`` / ``nb`` given samples; the score is the MSE against the noiseless
    measurement in original units (the encoder's sine and cosine; Lorenz's x), the same code for both.
 
@@ -52,6 +54,8 @@ import torch  # noqa: E402
 
 from benchmarks.report import provenance  # noqa: E402
 from ssm_ms.inference.filter_module import FilterForecaster  # noqa: E402
+from ssm_ms.inference.simulation import free_run, initial_state  # noqa: E402
+from ssm_ms.inference.ssm_forecaster import MODEL_NAMES  # noqa: E402
 from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
 from ssm_ms.reproduce import build_datamodule, load_config  # noqa: E402
 from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
@@ -87,14 +91,14 @@ def cli_overrides(overrides: dict) -> list[str]:
     return [f"--data.init_args.{k}={json.dumps(v)}" for k, v in overrides.items()]
 
 
-def train_ssm_ms(system: dict, data_overrides: dict, epochs: int | None, save_dir: Path, version: str, log: Path):
-    """``cli.py fit`` of the system's config; returns (checkpoint, wall seconds, epochs)."""
+def train_ssm_ms(config: str, data_overrides: dict, epochs: int | None, save_dir: Path, version: str, log: Path):
+    """``cli.py fit`` of an ssm-ms config; returns (checkpoint, wall seconds, epochs)."""
     cmd = [
         sys.executable,
         "cli.py",
         "fit",
         "--config",
-        system["config"],
+        config,
         f"--trainer.logger.init_args.save_dir={save_dir}",
         f"--trainer.logger.init_args.version={version}",
         "--trainer.enable_progress_bar=false",
@@ -109,7 +113,7 @@ def train_ssm_ms(system: dict, data_overrides: dict, epochs: int | None, save_di
     seconds = time.perf_counter() - start
     if done.returncode:
         sys.exit(f"ssm-ms training failed (exit {done.returncode}): see {log}")
-    name = load_config(ROOT / system["config"])["trainer"]["logger"]["init_args"]["name"]
+    name = load_config(ROOT / config)["trainer"]["logger"]["init_args"]["name"]
     ckpt = save_dir / name / version / "checkpoints" / "last.ckpt"
     epochs_done = torch.load(ckpt, map_location="cpu", weights_only=False)["epoch"] + 1
     return ckpt, seconds, epochs_done
@@ -117,15 +121,28 @@ def train_ssm_ms(system: dict, data_overrides: dict, epochs: int | None, save_di
 
 @torch.inference_mode()
 def forecast_ssm_ms(ckpt: Path, system: dict, dm, y: np.ndarray, u: np.ndarray | None) -> np.ndarray:
-    """ssm-ms's forecasts ``[N, n_predict, p]`` (original units): UKF over the given steps, then ``f`` and ``g``."""
+    """ssm-ms's forecasts ``[N, n_predict, p]`` (original units): the state from the given steps (the UKF; an SSM with
+    amortised nodes: its node encoder, as in training), then ``f`` and ``g``."""
     k, p = system["n_filter"], system["n_predict"]
+    ssm, checkpoint = load_ssm(ckpt)
+    if ssm.node_encoder is not None:
+        dm.load_state_dict(datamodule_state(checkpoint)[1])
+        out = []
+        for start in range(0, len(y), 100):
+            yb = dm.normalizer.normalize(torch.from_numpy(np.array(y[start : start + 100, :k])))
+            ub = None
+            if u is not None:
+                ub = dm.input_normalizer.normalize(torch.from_numpy(np.array(u[start : start + 100, : k + p])))
+            x, _ = initial_state(ssm, yb, ub)
+            predicted, _ = free_run(ssm.f, ssm.g, x, p, None if ub is None else ub[:, k:])
+            out.append(dm.normalizer.denormalize(predicted).numpy())
+        return np.concatenate(out)
     settings = system["ukf"]
     if isinstance(settings, str):  # a UKF stage's config
         stage = load_config(ROOT / settings)["model"]["init_args"]
         settings = {key: stage[key] for key in ("measurement_var", "process_var", "init_var")}
     forecaster = FilterForecaster(str(ckpt), n_filter=k, n_predict=p, method="ukf", **settings)
     forecaster.eval()
-    _, checkpoint = load_ssm(ckpt)
     dm.load_state_dict(datamodule_state(checkpoint)[1])  # the normalisation the SSM was trained with
     out = []
     for start in range(0, len(y), 100):
@@ -200,18 +217,31 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
     train, test = dm.load_arrays("train"), dm.load_arrays("test")
     k, p = system["n_filter"], system["n_predict"]
     version = f"{name}-{datetime.datetime.now(datetime.timezone.utc):%Y%m%d-%H%M%S}"
-    ckpt, ssm_seconds, epochs = train_ssm_ms(
-        system,
-        data_overrides,
-        system["tiny"]["epochs"] if args.tiny else None,
-        work,
-        version,
-        work / f"{version}-ssm_ms.log",
-    )
-    print(f"ssm-ms: {epochs} epochs in {ssm_seconds:.0f} s", flush=True)
     truth = np.asarray(test["y_clean"])[:, k : k + p]
     u_test = np.asarray(test["u"]) if "u" in test else None
-    ssm_pred = forecast_ssm_ms(ckpt, system, dm, test["y"], u_test)
+    ours = []  # the system's own config first (the ratios' reference), then --ssm-configs
+    for i, config_path in enumerate([system["config"], *(args.ssm_configs or [])]):
+        run = version if i == 0 else f"{version}-{i}"
+        ckpt, ssm_seconds, epochs = train_ssm_ms(
+            config_path,
+            data_overrides,
+            system["tiny"]["epochs"] if args.tiny else None,
+            work,
+            run,
+            work / f"{run}-ssm_ms.log",
+        )
+        print(f"ssm-ms ({config_path}): {epochs} epochs in {ssm_seconds:.0f} s", flush=True)
+        ssm = load_ssm(ckpt)[0]
+        how = "amortised nodes; node encoder" if ssm.node_encoder is not None else "multiple shooting; UKF"
+        label = f"ssm-ms ({MODEL_NAMES.get(type(ssm.f).__name__, 'SSM')}, {how}; `{config_path}`)"
+        ours.append(
+            {
+                "method": label,
+                "seconds": ssm_seconds,
+                "steps": f"{epochs} epochs",
+                **scores(forecast_ssm_ms(ckpt, system, dm, test["y"], u_test), truth),
+            }
+        )
 
     dt = float(dm.sample_period)
     u_train = np.asarray(train["u"]) if "u" in train else None
@@ -220,17 +250,12 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
     val_y = np.asarray(train["y"][:VAL_SEQUENCES, :horizon])
     val_u = None if u_train is None else u_train[:VAL_SEQUENCES, :horizon]
     val_seqs = io_data(deepSI, val_y, val_u, dt)
-    budget = args.deepsi_seconds or ssm_seconds
+    budget = args.deepsi_seconds or max(row["seconds"] for row in ours)  # the longest of ssm-ms's fits
     last, best, iterations, deepsi_seconds, curve = train_deepsi(
         deepSI, train_seqs, val_seqs, budget, system, args.val_freq, work / f"{version}-deepsi.log"
     )
     rows = [
-        {
-            "method": "ssm-ms (SSM-LL, multiple shooting; UKF)",
-            "seconds": ssm_seconds,
-            "steps": f"{epochs} epochs",
-            **scores(ssm_pred, truth),
-        },
+        *ours,
         {
             "method": "deepSI SUBNET, last model",
             "seconds": deepsi_seconds,
@@ -253,7 +278,7 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
         "train_shape": list(np.shape(train["y"])),
         "test_shape": list(np.shape(test["y"])),
         "truth_var": float(truth.var()),
-        "ssm_ms_config": system["config"],
+        "ssm_ms_config": ", ".join(f"`{c}`" for c in [system["config"], *(args.ssm_configs or [])]),
         "deepsi_settings": {**system["deepsi"], "nx": 10, "T": 50, "batch_size": 256, "lr": 1e-3},
         "deepsi_curve": curve,
         "rows": rows,
@@ -273,7 +298,7 @@ def write(r: dict, args, watch_note: str, out: Path) -> None:
         "steps (first / last: the first and last predicted step alone); `/ ssm-ms`: the ratio of the MSEs.",
         f"- Training sequences {r['train_shape']}, test sequences {r['test_shape']}; forecast {r['n_predict']} "
         f"steps after {r['n_filter']} given; variance of the true values forecast: {r['truth_var']:.4g} "
-        f"{r['units']}. ssm-ms: `{r['ssm_ms_config']}`; deepSI: {r['deepsi_settings']}.",
+        f"{r['units']}. ssm-ms: {r['ssm_ms_config']}; deepSI: {r['deepsi_settings']}.",
         "",
         f"| Method | training wall (s) | training | MSE ({r['units']}) | / ssm-ms | first step | last step |",
         "|---|---:|---|---:|---:|---:|---:|",
@@ -393,6 +418,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--val-freq", type=int, default=250, help="deepSI iterations between validations")
     parser.add_argument("--deepsi-seconds", type=float, default=None, help="deepSI's budget (default: ssm-ms's time)")
     parser.add_argument("--work", default="runs/bench_deepsi", help="logs, checkpoints, deepSI's own files")
+    parser.add_argument(
+        "--ssm-configs",
+        nargs="*",
+        default=None,
+        help="the systems: more ssm-ms configs trained and scored beside the system's own (e.g. amortised nodes)",
+    )
     parser.add_argument(
         "--seed", type=int, default=None, help="the benchmarks: torch's and numpy's seed (rows keyed by it)"
     )
