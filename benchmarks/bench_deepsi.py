@@ -380,7 +380,15 @@ def run_benchmark(name: str, args, deepSI, work: Path) -> None:
             "model": "SUBNET",
             "state_dim": 10,
             "seed": args.seed,
-            "validation": {"unit": dm.unit, "val_sim_rmse": val_row["rmse"], "epoch": None},
+            "validation": {
+                "unit": dm.unit,
+                "val_sim_rmse": val_row["rmse"],
+                "epoch": None,
+                # its time to the model scored: the best chunk's, or the whole budget for the last model
+                "seconds": [c for c in curve if c[2] == min(n for *_, n in curve)][-1][1]
+                if label == "best on validation"
+                else round(seconds, 1),
+            },
             "ssm_checkpoint": None,
             "inference": {"method": f"SUBNET's encoder of the last {k} of the first {n_init} samples"},
             "benchmark": dm.benchmark,

@@ -143,9 +143,9 @@ def render(data: dict[str, Any], results_dir: Path) -> str:
             f"- command: `{info.get('command')}`",
         ]
         if kept.get("val_sim_rmse") is not None:
-            lines.append(
-                f"- validation: {_cell(kept['val_sim_rmse'])} {unit} at epoch {kept.get('epoch')}, the epoch kept"
-            )
+            when = f" after {kept['seconds']:.0f} s of its fit" if kept.get("seconds") is not None else ""
+            at = f" at epoch {kept['epoch']}" if kept.get("epoch") is not None else ""
+            lines.append(f"- validation: {_cell(kept['val_sim_rmse'])} {unit}{at}{when}, the epoch kept")
         if info.get("selection"):
             lines.append(f"- chosen on validation (the held-out end of the training recording): {info['selection']}")
         if stability:

@@ -330,7 +330,13 @@ class SimulationTest(pl.LightningModule):
         else:
             self.ssm, saved = load_ssm(given)
         # what the fit's validation kept this epoch by, and the epoch (the results file says both)
-        self.kept = {"val_sim_rmse": kept_score(saved), "epoch": saved.get("epoch")}
+        timer = (saved.get("callbacks") or {}).get("Timer", {}).get("time_elapsed", {})
+        self.kept = {
+            "val_sim_rmse": kept_score(saved),
+            "epoch": saved.get("epoch"),
+            # the fit's time until then (training and validation; a time-budgeted fit's Timer)
+            "seconds": round(timer.get("train", 0.0) + timer.get("validate", 0.0), 1) if timer else None,
+        }
         method = own_method(self.ssm, method)
         self.ssm_checkpoint = None if isinstance(given, nn.Module) else str(given)
         self.save_hyperparameters(ignore=["ssm_checkpoint"])
