@@ -228,3 +228,41 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     assert "| B | 0, 1 | 0.925 | 0.5 (1 of 2 diverged) |" in md
     (row,) = [line for line in benchmarks(Results(tmp_path)) if line.startswith("| toy")]
     assert "0.5 (1 of 2 diverged) (B, 2 seeds)" in row
+
+
+def test_amortised_nodes_on_cascaded_tanks_end_to_end_and_their_score_by_hand(tmp_path):
+    """The benchmark's amortised-node config shrunk (windows at every sample), then ``cli.py test``: the results
+    file's RMSE equals the encoder's reading of samples 30..49 of the normalised test recording, f iterated under the
+    test inputs from sample 50, the statistics undone by hand."""
+    where = ["--data.init_args.dir_placement", str(DATA), "--trainer.logger.init_args.save_dir", str(tmp_path)]
+    small = [
+        "--trainer.max_time", "null", "--trainer.max_epochs", "2", "--trainer.enable_progress_bar", "false",
+    ]  # fmt: skip
+    cli_main(["fit", "--config", "configs/benchmarks/cascaded_tanks_amortised.yaml", *where, *small])
+    best = tmp_path / "cascaded_tanks_amortised" / "version_0" / "checkpoints" / "best.ckpt"
+    test = [
+        "test", "--config", "configs/benchmarks/cascaded_tanks_amortised_test.yaml", "--data.init_args.dir_placement",
+        str(DATA), "--model.init_args.ssm_checkpoint", str(best), "--model.init_args.results_dir", str(tmp_path),
+        "--model.init_args.figures_dir", "null", "--trainer.enable_progress_bar", "false",
+    ]  # fmt: skip
+    cli_main(test)
+    (run,) = json.loads((tmp_path / "cascaded_tanks.json").read_text())["runs"].values()
+    assert run["info"]["method"] == "SSM-LL (d = 4) + node encoder" and run["info"]["seed"] == 0
+    assert run["info"]["validation"]["val_sim_rmse"] > 0
+
+    model = MultipleShootingModule.load_from_checkpoint(best, weights_only=False).eval()
+    saved = torch.load(best, weights_only=False)
+    norm = next(v for v in saved.values() if isinstance(v, dict) and "normalizer" in v)
+    y_mean, y_std = norm["normalizer"]["mean"].item(), norm["normalizer"]["std"].item()
+    u_mean, u_std = norm["input_normalizer"]["mean"].item(), norm["input_normalizer"]["std"].item()
+    _, test_data = nb.Cascaded_Tanks(dir_placement=str(DATA))
+    y = torch.tensor((test_data.y - y_mean) / y_std, dtype=torch.float32).view(1, -1, 1)
+    u = torch.tensor((test_data.u - u_mean) / u_std, dtype=torch.float32).view(1, -1, 1)
+    with torch.no_grad():
+        x = model.node_encoder(y[:, 30:50], u[:, 30:50])
+        sim = []
+        for t in range(50, 1024):
+            sim.append(model.g(x)[0, 0].item() * y_std + y_mean)
+            x = model.f(x, u[:, t])
+    rmse = math.sqrt(np.mean((np.array(sim) - test_data.y[50:]) ** 2))
+    assert run["tests"]["test"]["rmse"] == pytest.approx(rmse, rel=1e-4)
