@@ -6,9 +6,11 @@
         --results-dir runs/pretrained --weights int8
 
 What is dropped: the optimizer states, the learning-rate schedulers, the loops' progress and the callbacks'
-states (a stripped checkpoint tests, predicts and exports; it does not resume training). What is kept: the
-weights (``state_dict``), the hyperparameters that rebuild the module, the DataModule's saved state (its
-generator parameters), Lightning's version, epoch and step.
+states but the record of how the file was chosen (a stripped checkpoint tests, predicts and exports; it does not
+resume training). What is kept: the weights (``state_dict``), the hyperparameters that rebuild the module, the
+DataModule's saved state (its generator parameters), Lightning's version, epoch and step, and of the callbacks the
+``ModelCheckpoint``'s score of the kept epoch and the ``Timer``'s elapsed time (:data:`KEPT_CALLBACKS`: what a
+benchmark's results file says of the fit).
 
 ``--ssm-checkpoint`` rewrites the path an encoder or filter checkpoint records for its SSM (a training
 run's ``runs/...`` path does not exist in a fresh clone), so ``--ckpt_path`` of the stripped file loads
@@ -42,6 +44,7 @@ import torch
 from ssm_ms.checkpointing import INT8_KEY, SSM_DIGEST_KEY, read_checkpoint, restore_float_weights, state_digest
 
 DROPPED = frozenset({"optimizer_states", "lr_schedulers", "loops", "callbacks"})
+KEPT_CALLBACKS = ("ModelCheckpoint", "Timer")  # callback states kept (their keys start so): the kept epoch's record
 NARROW_MIN_NUMEL = 1 << 16  # tensors this large or larger are stored as --weights says
 HALF_KEY = "ssm_ms_float16"  # names of the tensors stored in float16 (for whoever reads the file)
 WEIGHTS = ("float32", "float16", "int8")
@@ -108,6 +111,13 @@ def strip(
     if weights not in WEIGHTS:
         raise ValueError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
     out = restore_float_weights({key: value for key, value in ckpt.items() if key not in DROPPED | {HALF_KEY}})
+    kept = {
+        key: {k: v for k, v in value.items() if k in ("best_model_score", "time_elapsed")}
+        for key, value in (ckpt.get("callbacks") or {}).items()
+        if key.startswith(KEPT_CALLBACKS)
+    }
+    if kept:
+        out["callbacks"] = kept
     state = {
         key: value.to(torch.float32) if key in ckpt.get(HALF_KEY, ()) else value
         for key, value in out["state_dict"].items()

@@ -326,3 +326,22 @@ def test_every_pretrained_ssm_loads_in_the_python_api_and_computes_as_its_config
         frames = torch.from_numpy(np.stack(expected)).float().clamp(0, 1)  # four frames in the data's units
         states, _ = model.filter(frames, method="encoder")
         assert states.shape == (4, model.state_dim) and torch.isfinite(states).all()
+
+
+def test_strip_keeps_the_kept_epoch_s_score_and_time_alone():
+    """Of the callbacks' states only the ModelCheckpoint's score and the Timer's elapsed time stay (what a
+    benchmark's results file says of the fit), and kept_score reads the score back."""
+    from ssm_ms.checkpointing import kept_score
+
+    ckpt = fake_checkpoint()
+    ckpt["callbacks"] = {
+        "EpochCheckpoint": {"best_model_path": "runs/x/last.ckpt"},
+        "ModelCheckpoint{'monitor': 'val/sim_rmse'}": {"best_model_score": torch.tensor(0.5), "dirpath": "runs/x"},
+        "Timer": {"time_elapsed": {"train": 10.0, "validate": 2.0}},
+    }
+    out = strip(ckpt)
+    assert out["callbacks"] == {
+        "ModelCheckpoint{'monitor': 'val/sim_rmse'}": {"best_model_score": torch.tensor(0.5)},
+        "Timer": {"time_elapsed": {"train": 10.0, "validate": 2.0}},
+    }
+    assert kept_score(out) == 0.5
