@@ -222,3 +222,18 @@ def test_locally_linear_gradients_equal_those_of_a_plain_linear_beta(state_dim, 
         grads.append([x0.grad] + [p.grad for p in model.parameters()])
     for a, b in zip(*grads):
         torch.testing.assert_close(a, b)
+
+
+def test_fully_connected_transition_with_a_linear_part_and_tanh():
+    """f(x, u) = x + W [x, u] + MLP([x, u]) with tanh layers, computed here layer by layer; W starts at zero."""
+    torch.manual_seed(0)
+    f = FullyConnectedTransition(3, hidden=(5,), input_dim=2, activation="tanh", linear=True)
+    assert torch.count_nonzero(f.linear.weight) == 0
+    torch.nn.init.normal_(f.linear.weight)
+    x, u = torch.randn(4, 3), torch.randn(4, 2)
+    xu = torch.cat([x, u], 1)
+    hidden = torch.tanh(xu @ f.mlp[0].weight.T + f.mlp[0].bias)
+    expected = x + xu @ f.linear.weight.T + hidden @ f.mlp[2].weight.T + f.mlp[2].bias
+    torch.testing.assert_close(f(x, u), expected)
+    with pytest.raises(ValueError, match="activation must be one of"):
+        FullyConnectedTransition(3, activation="gelu")

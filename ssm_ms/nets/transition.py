@@ -93,25 +93,47 @@ class LocallyLinearTransition(nn.Module):
         return torch.einsum("nk,kij->nij", self._beta(x, u), b)
 
 
-class FullyConnectedTransition(nn.Module):
-    """SSM-FC: ``f(x) = x + MLP(x)``, ReLU hidden layers of the given widths; with inputs ``f(x, u) = x + MLP([x, u])``."""
+ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh}
 
-    def __init__(self, state_dim: int, hidden: Sequence[int] = (512, 512, 512), input_dim: int = 0):
+
+class FullyConnectedTransition(nn.Module):
+    """SSM-FC: ``f(x) = x + MLP(x)``, hidden layers of the given widths; with inputs ``f(x, u) = x + MLP([x, u])``.
+
+    ``activation``: ``"relu"`` (the paper's) or ``"tanh"``; ``linear``: add a linear map of ``[x, u]``, ``f = x +
+    W [x, u] + MLP([x, u])`` (``W`` starts at zero: the same function at initialisation), the form of deepSI's SUBNET
+    transition (a linear part beside the network, there without the identity)."""
+
+    def __init__(
+        self,
+        state_dim: int,
+        hidden: Sequence[int] = (512, 512, 512),
+        input_dim: int = 0,
+        activation: str = "relu",
+        linear: bool = False,
+    ):
         super().__init__()
         if state_dim < 1 or any(h < 1 for h in hidden) or input_dim < 0:
             raise ValueError(
                 f"state_dim and hidden widths must be >= 1 and input_dim >= 0, got {state_dim}, "
                 f"{list(hidden)}, {input_dim}"
             )
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
         self.state_dim, self.input_dim = state_dim, input_dim
         layers: list[nn.Module] = []
         width = state_dim + input_dim
         for h in hidden:
-            layers += [nn.Linear(width, h), nn.ReLU(inplace=True)]
+            layers += [nn.Linear(width, h), ACTIVATIONS[activation]()]
             width = h
         layers.append(nn.Linear(width, state_dim))
         self.mlp = nn.Sequential(*layers)
+        self.linear: nn.Linear | None = None
+        if linear:
+            self.linear = nn.Linear(state_dim + input_dim, state_dim, bias=False)
+            nn.init.zeros_(self.linear.weight)
 
     def forward(self, x: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
         _check_input(self, u, x)
-        return x + self.mlp(x if u is None else torch.cat([x, u], dim=-1))
+        xu = x if u is None else torch.cat([x, u], dim=-1)
+        out = x + self.mlp(xu)
+        return out if self.linear is None else out + self.linear(xu)
