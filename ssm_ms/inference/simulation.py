@@ -441,7 +441,10 @@ def method_label(ssm: MultipleShootingModule, method: str) -> str:
 def model_name(ssm: MultipleShootingModule) -> str:
     """``SSM-LL (d = 4)``: the transition's paper name and the latent dimension."""
     name = type(ssm.f).__name__
-    return f"{MODEL_NAMES.get(name, f'SSM ({name})')} (d = {ssm.state_dim})"
+    label = MODEL_NAMES.get(name, f"SSM ({name})")
+    if getattr(ssm.f, "linear", None) is not None:  # FullyConnectedTransition(linear=True): not the paper's SSM-FC
+        label += " with a linear part"
+    return f"{label} (d = {ssm.state_dim})"
 
 
 def local_stability(ssm: MultipleShootingModule, n: int = 256) -> dict[str, float]:
