@@ -236,7 +236,7 @@ def test_amortised_nodes_on_cascaded_tanks_end_to_end_and_their_score_by_hand(tm
     test inputs from sample 50, the statistics undone by hand."""
     where = ["--data.init_args.dir_placement", str(DATA), "--trainer.logger.init_args.save_dir", str(tmp_path)]
     small = [
-        "--trainer.max_time", "null", "--trainer.max_epochs", "2", "--trainer.enable_progress_bar", "false",
+        "--trainer.max_time", "null", "--trainer.max_epochs", "10", "--trainer.enable_progress_bar", "false",
     ]  # fmt: skip
     cli_main(["fit", "--config", "configs/benchmarks/cascaded_tanks_amortised.yaml", *where, *small])
     best = tmp_path / "cascaded_tanks_amortised" / "version_0" / "checkpoints" / "best.ckpt"
@@ -247,7 +247,7 @@ def test_amortised_nodes_on_cascaded_tanks_end_to_end_and_their_score_by_hand(tm
     ]  # fmt: skip
     cli_main(test)
     (run,) = json.loads((tmp_path / "cascaded_tanks.json").read_text())["runs"].values()
-    assert run["info"]["method"] == "SSM-LL (d = 4) + node encoder" and run["info"]["seed"] == 0
+    assert run["info"]["method"] == "SSM-FC with a linear part (d = 10) + node encoder" and run["info"]["seed"] == 0
     assert run["info"]["validation"]["val_sim_rmse"] > 0
 
     model = MultipleShootingModule.load_from_checkpoint(best, weights_only=False).eval()
@@ -260,9 +260,14 @@ def test_amortised_nodes_on_cascaded_tanks_end_to_end_and_their_score_by_hand(tm
     u = torch.tensor((test_data.u - u_mean) / u_std, dtype=torch.float32).view(1, -1, 1)
     with torch.no_grad():
         x = model.node_encoder(y[:, 30:50], u[:, 30:50])
-        sim = []
+        normalised = []
         for t in range(50, 1024):
-            sim.append(model.g(x)[0, 0].item() * y_std + y_mean)
+            normalised.append(model.g(x)[0, 0].item())
             x = model.f(x, u[:, t])
-    rmse = math.sqrt(np.mean((np.array(sim) - test_data.y[50:]) ** 2))
-    assert run["tests"]["test"]["rmse"] == pytest.approx(rmse, rel=1e-4)
+    row = run["tests"]["test"]
+    beyond = np.flatnonzero(~(np.abs(normalised) <= 100.0))  # 100 training stds: a run past them diverged
+    if len(beyond):  # a model this brief may grow: then the row says where, and gives no score
+        assert row["rmse"] is None and row["diverged_at"] == 50 + beyond[0]
+    else:
+        rmse = math.sqrt(np.mean((np.array(normalised) * y_std + y_mean - test_data.y[50:]) ** 2))
+        assert row["rmse"] == pytest.approx(rmse, rel=1e-4) and row["diverged_at"] is None
