@@ -113,9 +113,10 @@ def strip(
     out = restore_float_weights({key: value for key, value in ckpt.items() if key not in DROPPED | {HALF_KEY}})
     kept = {
         key: {k: v for k, v in value.items() if k in ("best_model_score", "time_elapsed")}
+        | ({"best_model_path": ""} if key.startswith("ModelCheckpoint") else {})
         for key, value in (ckpt.get("callbacks") or {}).items()
         if key.startswith(KEPT_CALLBACKS)
-    }
+    }  # ModelCheckpoint's restore (--ckpt_path) needs a best_model_path: the training run's path means nothing here
     if kept:
         out["callbacks"] = kept
     state = {

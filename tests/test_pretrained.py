@@ -330,7 +330,8 @@ def test_every_pretrained_ssm_loads_in_the_python_api_and_computes_as_its_config
 
 def test_strip_keeps_the_kept_epoch_s_score_and_time_alone():
     """Of the callbacks' states only the ModelCheckpoint's score and the Timer's elapsed time stay (what a
-    benchmark's results file says of the fit), and kept_score reads the score back."""
+    benchmark's results file says of the fit; with an empty best_model_path, which restoring needs), kept_score
+    reads the score back and Lightning's callbacks restore them."""
     from ssm_ms.checkpointing import kept_score
 
     ckpt = fake_checkpoint()
@@ -341,7 +342,12 @@ def test_strip_keeps_the_kept_epoch_s_score_and_time_alone():
     }
     out = strip(ckpt)
     assert out["callbacks"] == {
-        "ModelCheckpoint{'monitor': 'val/sim_rmse'}": {"best_model_score": torch.tensor(0.5)},
+        "ModelCheckpoint{'monitor': 'val/sim_rmse'}": {"best_model_score": torch.tensor(0.5), "best_model_path": ""},
         "Timer": {"time_elapsed": {"train": 10.0, "validate": 2.0}},
     }
     assert kept_score(out) == 0.5
+    from lightning.pytorch.callbacks import ModelCheckpoint, Timer
+
+    for callback, key in ((ModelCheckpoint(dirpath="elsewhere"), "ModelCheckpoint"), (Timer(), "Timer")):
+        (state,) = (value for name, value in out["callbacks"].items() if name.startswith(key))
+        callback.load_state_dict(state)  # what --ckpt_path does with them: it raised on a missing best_model_path
