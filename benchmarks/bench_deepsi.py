@@ -17,7 +17,9 @@ Each system:
 1. the data are generated (or read from the cache) by ssm-ms's data module of the system's config;
 2. ssm-ms trains with ``python cli.py fit --config benchmarks/configs/deepsi_<system>.yaml`` (fixed epochs), then
    each config of ``--ssm-configs`` likewise (variants side by side: ``deepsi_pendulum_amortised.yaml``, amortised
-   nodes); the longest wall time of those commands is the budget;
+   nodes; a config of ``FileDataModule``, as ``deepsi_pendulum_amortised_fc.yaml``, reads the same training
+   sequences from the ``.npz`` the bench writes, as ``train_path``, to cut them into windows at every sample); the
+   longest wall time of those commands is the budget;
 3. deepSI trains a SUBNET (its defaults: ``nx = 10``, residual MLPs of 2 x 64 units, Adam at 1e-3, batches of
    256 windows, ``T = 50``) on the same training sequences for the same wall time, in chunks of ``--val-freq``
    iterations with one optimizer; its validation simulates 16 training sequences over the test's horizon;
@@ -54,8 +56,7 @@ import torch  # noqa: E402
 
 from benchmarks.report import provenance  # noqa: E402
 from ssm_ms.inference.filter_module import FilterForecaster  # noqa: E402
-from ssm_ms.inference.simulation import free_run, initial_state  # noqa: E402
-from ssm_ms.inference.ssm_forecaster import MODEL_NAMES  # noqa: E402
+from ssm_ms.inference.simulation import free_run, initial_state, model_name  # noqa: E402
 from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
 from ssm_ms.reproduce import build_datamodule, load_config  # noqa: E402
 from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
@@ -88,7 +89,7 @@ VAL_SEQUENCES = 16  # deepSI's validation: simulations of as many training seque
 
 
 def cli_overrides(overrides: dict) -> list[str]:
-    return [f"--data.init_args.{k}={json.dumps(v)}" for k, v in overrides.items()]
+    return [f"--data.init_args.{k}={v if isinstance(v, str) else json.dumps(v)}" for k, v in overrides.items()]
 
 
 def train_ssm_ms(config: str, data_overrides: dict, epochs: int | None, save_dir: Path, version: str, log: Path):
@@ -219,12 +220,15 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
     version = f"{name}-{datetime.datetime.now(datetime.timezone.utc):%Y%m%d-%H%M%S}"
     truth = np.asarray(test["y_clean"])[:, k : k + p]
     u_test = np.asarray(test["u"]) if "u" in test else None
+    train_file = work / f"{version}-train.npz"  # the same training data for a config of a user's recordings
+    np.savez(train_file, y=np.asarray(train["y"]), **({"u": np.asarray(train["u"])} if "u" in train else {}))
     ours = []  # the system's own config first (the ratios' reference), then --ssm-configs
     for i, config_path in enumerate([system["config"], *(args.ssm_configs or [])]):
         run = version if i == 0 else f"{version}-{i}"
+        reads_files = load_config(ROOT / config_path)["data"]["class_path"].endswith(".FileDataModule")
         ckpt, ssm_seconds, epochs = train_ssm_ms(
             config_path,
-            data_overrides,
+            {"train_path": str(train_file)} if reads_files else data_overrides,
             system["tiny"]["epochs"] if args.tiny else None,
             work,
             run,
@@ -233,7 +237,7 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
         print(f"ssm-ms ({config_path}): {epochs} epochs in {ssm_seconds:.0f} s", flush=True)
         ssm = load_ssm(ckpt)[0]
         how = "amortised nodes; node encoder" if ssm.node_encoder is not None else "multiple shooting; UKF"
-        label = f"ssm-ms ({MODEL_NAMES.get(type(ssm.f).__name__, 'SSM')}, {how}; `{config_path}`)"
+        label = f"ssm-ms ({model_name(ssm)}, {how}; `{config_path}`)"
         ours.append(
             {
                 "method": label,

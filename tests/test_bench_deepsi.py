@@ -5,7 +5,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,6 +26,27 @@ def test_the_deepsi_comparison_runs_and_scores_both(tmp_path):
         assert methods[0].startswith("ssm-ms") and all(m.startswith("deepSI") for m in methods[1:])
         assert all(row["mse"] >= 0 and row["seconds"] > 0 for row in r["rows"])
         assert "| deepSI SUBNET, last model |" in out.read_text()
+
+
+@pytest.mark.slow
+def test_a_config_of_files_trains_on_the_same_sequences_cut_into_windows(tmp_path):
+    """``--ssm-configs deepsi_pendulum_amortised_fc.yaml`` (a FileDataModule config): trained on the .npz of the
+    bench's own training sequences, cut into windows at every sample, and scored beside the system's config."""
+    pytest.importorskip("deepSI")
+    config = "benchmarks/configs/deepsi_pendulum_amortised_fc.yaml"
+    cmd = [sys.executable, "benchmarks/bench_deepsi.py", "--systems", "pendulum", "--tiny", "--val-freq", "10"]
+    cmd += ["--deepsi-seconds", "5", "--ssm-configs", config, "--work", str(tmp_path), "--out-dir", str(tmp_path)]
+    subprocess.run(cmd, cwd=ROOT, check=True, timeout=900)
+    rows = json.loads((tmp_path / "deepsi_pendulum_tiny.json").read_text())["rows"]
+    assert config in rows[1]["method"] and "node encoder" in rows[1]["method"]
+    (data,) = tmp_path.glob("pendulum-*-train.npz")
+    with np.load(data) as arrays:
+        n, t = arrays["y"].shape[:2]
+        assert arrays["u"].shape[:2] == (n, t)
+    (ckpt,) = tmp_path.glob("*/pendulum-*-1/checkpoints/last.ckpt")
+    saved = torch.load(ckpt, map_location="cpu", weights_only=False)
+    # 2 epochs (--tiny) of windows of 70 starting at every sample, 256 a batch
+    assert saved["global_step"] == 2 * -(-(n * (t - 70 + 1)) // 256)
 
 
 @pytest.mark.slow
