@@ -201,18 +201,18 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     from ssm_ms.forecasting.benchmark_results import render, run_key
     from ssm_ms.forecasting.readme import Results, benchmarks
 
-    def run(method, seed, val, rmse, diverged=None):
+    def run(method, seed, val, rmse, diverged=None, seconds=None):
         info = {"method": method, "seed": seed, "unit": "V", "model": "SSM-LL", "experiment": "toy"}
-        info["validation"] = {"val_sim_rmse": val, "epoch": 3}
+        info["validation"] = {"val_sim_rmse": val, "epoch": 3, "seconds": seconds}
         row = {"samples": 100, "n_init": 10, "seconds": 0.1, "rmse": rmse, "nrmse": None, "fit_index": None}
         row["diverged_at"] = diverged
         return run_key(info), {"info": info, "tests": {"test": row}}
 
     runs = dict(
         [
-            run("A", 0, 1.0, 0.30),
-            run("A", 1, 1.2, 0.40),
-            run("A", 2, 1.1, 0.20),
+            run("A", 0, 1.0, 0.30, seconds=100.0),
+            run("A", 1, 1.2, 0.40, seconds=200.0),
+            run("A", 2, 1.1, 0.20, seconds=600.0),
             run("B", 0, 0.9, 0.50),
             run("B", 1, 0.95, None, diverged=42),
         ]
@@ -224,8 +224,8 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     (folder / "toy.json").write_text(json.dumps(data))
     md = render(data, folder)
     a = f"{statistics.mean([0.3, 0.4, 0.2]):.4g} ± {statistics.stdev([0.3, 0.4, 0.2]):.2g}"
-    assert f"| A | 0, 1, 2 | {statistics.mean([1.0, 1.2, 1.1]):.4g} | {a} |" in md
-    assert "| B | 0, 1 | 0.925 | 0.5 (1 of 2 diverged) |" in md
+    assert f"| A | 0, 1, 2 | {statistics.mean([1.0, 1.2, 1.1]):.4g} | 300 | {a} |" in md  # kept after 300 s on average
+    assert "| B | 0, 1 | 0.925 | — | 0.5 (1 of 2 diverged) |" in md
     (row,) = [line for line in benchmarks(Results(tmp_path)) if line.startswith("| toy")]
     assert "0.5 (1 of 2 diverged) (B, 2 seeds)" in row
 

@@ -78,8 +78,17 @@ def over_seeds(runs: list[dict[str, Any]], test: str) -> dict[str, Any] | None:
 
 def validation_over_seeds(runs: list[dict[str, Any]]) -> float | None:
     """The mean over a method's runs of the validation score that kept each run's epoch (``None``: not recorded)."""
-    scores = [(run["info"].get("validation") or {}).get("val_sim_rmse") for run in runs]
-    return float(np.mean(scores)) if scores and all(v is not None for v in scores) else None
+    return _mean_of_validation(runs, "val_sim_rmse")
+
+
+def seconds_to_kept(runs: list[dict[str, Any]]) -> float | None:
+    """The mean over a method's runs of the training seconds until the model it kept (``None``: not recorded)."""
+    return _mean_of_validation(runs, "seconds")
+
+
+def _mean_of_validation(runs: list[dict[str, Any]], key: str) -> float | None:
+    values = [(run["info"].get("validation") or {}).get(key) for run in runs]
+    return float(np.mean(values)) if values and all(v is not None for v in values) else None
 
 
 def summary_cell(summary: dict[str, Any] | None, digits: int = 4) -> str:
@@ -113,21 +122,29 @@ def render(data: dict[str, Any], results_dir: Path) -> str:
     tests = list(dict.fromkeys(t for run in runs.values() for t in run["tests"]))
     unit = next((run["info"].get("unit") for run in runs.values() if run["info"].get("unit")), "")
     lines = [f"# {data['experiment']}: free-run simulation RMSE ({unit or 'data units'})", ""]
-    lines += ["| method | seeds | validation | " + " | ".join(tests) + " |", "|---|---|---|" + "---|" * len(tests)]
+    lines += [
+        "| method | seeds | validation | kept after (s) | " + " | ".join(tests) + " |",
+        "|---|---|---|---|" + "---|" * len(tests),
+    ]
     for method, group in methods(data).items():
         seeds = ", ".join(str(run["info"].get("seed", "—")) for run in group)
         cells = [summary_cell(over_seeds(group, t)) for t in tests]
-        lines.append(f"| {method} | {seeds} | {_cell(validation_over_seeds(group))} | " + " | ".join(cells) + " |")
+        seconds = seconds_to_kept(group)
+        lines.append(
+            f"| {method} | {seeds} | {_cell(validation_over_seeds(group))} | "
+            f"{'—' if seconds is None else f'{seconds:.0f}'} | " + " | ".join(cells) + " |"
+        )
     published = results_dir / f"{data['experiment']}.published.json"
     if published.exists():
         pub = json.loads(published.read_text())
         for method, values in pub["rows"].items():
-            lines.append(f"| {method} (published) | | | " + " | ".join(_cell(values.get(t)) for t in tests) + " |")
+            lines.append(f"| {method} (published) | | | | " + " | ".join(_cell(values.get(t)) for t in tests) + " |")
         lines += ["", f"Published rows: {pub['source']}."]
     lines += [
         "",
         "Over several seeds: mean ± sample standard deviation. Validation: the free-run RMSE of the held-out end of the "
-        "training recording at the epoch it kept (mean over the seeds; what a choice between methods may use).",
+        "training recording at the epoch it kept (mean over the seeds; what a choice between methods may use); kept "
+        "after: the training seconds until that model (mean over the seeds).",
     ]
     lines += ["", "## Runs", ""]
     for method, run in runs.items():
