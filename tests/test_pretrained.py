@@ -12,11 +12,18 @@ import torch
 from ssm_ms.checkpointing import INT8_KEY, SSM_DIGEST_KEY, read_checkpoint
 from ssm_ms.cli import main as cli_main
 from ssm_ms.module import MultipleShootingModule
-from ssm_ms.pretrained import DROPPED, HALF_KEY, NARROW_MIN_NUMEL, main, strip
+from ssm_ms.pretrained import DROPPED, HALF_KEY, KEPT_CALLBACKS, NARROW_MIN_NUMEL, main, strip
 
 ROOT = Path(__file__).resolve().parent.parent
 # pretrained/<name>.ckpt was trained with configs/<name>.yaml (an encoder's records pretrained/<its SSM>.ckpt)
-COMMITTED = sorted((ROOT / "pretrained").glob("*.ckpt"))
+COMMITTED = sorted((ROOT / "pretrained").rglob("*.ckpt"))  # pretrained/benchmarks/: the identification benchmarks'
+BENCHMARK_DATA = ROOT.parent / "shared" / "data" / "nonlinear_benchmarks"
+
+
+def config_name(path: Path) -> str:
+    """``pretrained/benchmarks/silverbox_amortised.ckpt`` -> ``benchmarks/silverbox_amortised``: the file's config
+    under configs/."""
+    return path.relative_to(ROOT / "pretrained").with_suffix("").as_posix()
 
 
 def fake_checkpoint() -> dict:
@@ -220,6 +227,8 @@ def model_of_config(name: str, tmp_path: Path):
     config = ROOT / "configs" / f"{name}.yaml"
     assert config.exists(), f"pretrained/{name}.ckpt has no configs/{name}.yaml"
     args = ["--config", str(config), "--trainer.logger.init_args.save_dir", str(tmp_path)]
+    if name.startswith("benchmarks/"):
+        args += ["--data.init_args.dir_placement", str(BENCHMARK_DATA)]
     saved = torch.load(ROOT / "pretrained" / f"{name}.ckpt", weights_only=True, map_location="cpu")
     ssm = saved["hyper_parameters"].get("ssm_checkpoint")
     if ssm is not None:
@@ -234,13 +243,14 @@ def load_into(module: torch.nn.Module, saved: dict) -> None:
     module.load_state_dict(saved["state_dict"], strict=True)
 
 
-@pytest.mark.parametrize("path", COMMITTED, ids=lambda p: p.name)
+@pytest.mark.parametrize("path", COMMITTED, ids=config_name)
 def test_committed_checkpoint_matches_its_config(path, tmp_path):
     """Every tensor of the file has the shape the config's networks give it (strict load: no key missing or left
     over), the training run's structural settings equal the config's, the file is stripped, and a node table has
     one row per training trajectory of the config's data (Lorenz's: per piece of T steps)."""
-    cli, saved = model_of_config(path.stem, tmp_path)
-    assert not set(DROPPED) & set(saved)
+    cli, saved = model_of_config(config_name(path), tmp_path)
+    assert not set(DROPPED) - {"callbacks"} & set(saved)
+    assert all(key.startswith(KEPT_CALLBACKS) for key in saved.get("callbacks", {}))  # the kept epoch's record only
     load_into(cli.model, saved)
     if "nodes.weight" in saved["state_dict"]:
         assert cli.model.nodes.num_embeddings == cli.datamodule.num_train_trajectories  # Lorenz: its pieces
@@ -250,16 +260,16 @@ def test_committed_checkpoint_matches_its_config(path, tmp_path):
     assert path.stat().st_size < 10e6  # a few MB
 
 
-@pytest.mark.parametrize("path", COMMITTED[:1], ids=lambda p: p.name)
+@pytest.mark.parametrize("path", COMMITTED[:1], ids=config_name)
 def test_committed_checkpoint_check_fails_on_another_architecture(path, tmp_path):
     """The check above can fail: a tensor of another shape, or one missing, is refused."""
-    cli, saved = model_of_config(path.stem, tmp_path)
+    cli, saved = model_of_config(config_name(path), tmp_path)
     state = dict(saved["state_dict"])
     key = next(k for k, v in state.items() if v.ndim == 2 and k != "nodes.weight")
     bad = dict(saved, state_dict={**state, key: state[key][:, :-1]})
     with pytest.raises((RuntimeError, ValueError)):
         load_into(cli.model, bad)
-    cli, _ = model_of_config(path.stem, tmp_path)
+    cli, _ = model_of_config(config_name(path), tmp_path)
     missing = dict(saved, state_dict={k: v for k, v in state.items() if k != key})
     with pytest.raises((RuntimeError, ValueError), match="[Mm]issing"):
         load_into(cli.model, missing)
@@ -295,29 +305,36 @@ def test_the_pretrained_pendulum_forecasts_by_optimisation_as_documented(tmp_pat
 SSM_FILES = [p for p in COMMITTED if not p.stem.endswith("_encoder")]
 
 
-@pytest.mark.parametrize("path", SSM_FILES, ids=lambda p: p.name)
+@pytest.mark.parametrize("path", SSM_FILES, ids=config_name)
 def test_every_pretrained_ssm_loads_in_the_python_api_and_computes_as_its_config(path, tmp_path):
     """``SSM.load`` of each file (with its encoder where one is beside it) simulates what the network its config
-    builds computes from the same weights, a loop over f and g, decoded into the units of the file's data state by
-    hand; the encoder loaded beside it reads frames into states of the SSM's size."""
+    builds computes from the same weights, a loop over f and g (a driven f: under inputs normalised by hand), decoded
+    into the units of the file's data state by hand; the encoder loaded beside it reads frames into states of the
+    SSM's size."""
     from ssm_ms import SSM
     from ssm_ms.module import datamodule_state
 
     model = SSM.load(path)
-    cli, saved = model_of_config(path.stem, tmp_path)
+    cli, saved = model_of_config(config_name(path), tmp_path)
     load_into(cli.model, saved)
-    x0 = saved["state_dict"]["nodes.weight"][:1].float().view(-1, cli.model.state_dim)[:1]
-    got = model.simulate(steps=4, x0=x0[0].numpy())
-    norm = datamodule_state(saved)[1].get("normalizer")
+    states = saved["state_dict"].get("nodes.weight", saved["state_dict"].get("state_sample"))  # free / amortised
+    x0 = states[:1].float().view(-1, cli.model.state_dim)[:1]
+    data_state = datamodule_state(saved)[1]
+    norm, m = data_state.get("normalizer"), cli.model.input_dim
+    u = np.linspace(-1.0, 1.0, 4 * m).reshape(4, m) if m else None
+    got = model.simulate(steps=4, x0=x0[0].numpy()) if u is None else model.simulate(u, x0=x0[0].numpy())
+    if u is not None:
+        scale = data_state["input_normalizer"]
+        u_normalised = (torch.from_numpy(u).float() - scale["mean"].float()) / scale["std"].float()
     with torch.no_grad():
         x, expected = x0, []
-        for _ in range(4):
+        for t in range(4):
             y = cli.model.g(x)[0].double()
             if norm is not None:  # per channel, the first observation axis
                 view = (-1, *[1] * (y.dim() - 1))
                 y = y * norm["std"].double().view(view) + norm["mean"].double().view(view)
             expected.append(y.numpy())
-            x = cli.model.f(x)
+            x = cli.model.f(x) if u is None else cli.model.f(x, u_normalised[t : t + 1])
     np.testing.assert_allclose(got, np.stack(expected), rtol=1e-4, atol=1e-4)
     encoder = ROOT / "pretrained" / f"{path.stem}_encoder.ckpt"
     assert (model.encoder is not None) == encoder.exists()

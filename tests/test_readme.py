@@ -81,6 +81,10 @@ STEPS: dict[str, Step] = {
     "make reproduce EXP=pendulum SIZE=cpu": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
     "make reproduce EXP=pendulum_control": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=3600),
     # the controller on the true model: make test runs one episode of 1 s
+    # an identification benchmark's pretrained model by the benchmark's protocol (seconds)
+    "python cli.py test --config configs/benchmarks/silverbox_test.yaml --model.init_args.ssm_checkpoint "
+    "pretrained/benchmarks/silverbox_amortised.ckpt --data.init_args.dir_placement ../shared/data/nonlinear_benchmarks "
+    "--model.init_args.results_dir runs/pretrained --model.init_args.figures_dir null": Step(),
     "python cli.py test --config configs/pendulum_true_control.yaml": Step(
         "--data.init_args.n_test 1 --model.init_args.seconds 1 --model.init_args.success_seconds 1 "
         "--model.init_args.timing_steps 2",
@@ -153,6 +157,8 @@ def clean_copy(tmp: Path) -> tuple[Path, dict[str, str]]:
             (repo / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(source, repo / name)
     (repo / ".venv").symlink_to(VENV)
+    if (ROOT.parent / "shared").is_dir():  # ../shared beside the clone, as on CI (the benchmarks' files)
+        (tmp / "shared").symlink_to(ROOT.parent / "shared")
     stamp = VENV / ".installed"
     if stamp.exists():  # installed: make must not install again (into this environment, from the copy)
         installed = stamp.stat().st_mtime - 1
