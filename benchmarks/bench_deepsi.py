@@ -220,15 +220,17 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
     version = f"{name}-{datetime.datetime.now(datetime.timezone.utc):%Y%m%d-%H%M%S}"
     truth = np.asarray(test["y_clean"])[:, k : k + p]
     u_test = np.asarray(test["u"]) if "u" in test else None
+    configs = [system["config"], *(args.ssm_configs or [])]
+    reads_files = [load_config(ROOT / c)["data"]["class_path"].endswith(".FileDataModule") for c in configs]
     train_file = work / f"{version}-train.npz"  # the same training data for a config of a user's recordings
-    np.savez(train_file, y=np.asarray(train["y"]), **({"u": np.asarray(train["u"])} if "u" in train else {}))
+    if any(reads_files):
+        np.savez(train_file, y=np.asarray(train["y"]), **({"u": np.asarray(train["u"])} if "u" in train else {}))
     ours = []  # the system's own config first (the ratios' reference), then --ssm-configs
-    for i, config_path in enumerate([system["config"], *(args.ssm_configs or [])]):
+    for i, config_path in enumerate(configs):
         run = version if i == 0 else f"{version}-{i}"
-        reads_files = load_config(ROOT / config_path)["data"]["class_path"].endswith(".FileDataModule")
         ckpt, ssm_seconds, epochs = train_ssm_ms(
             config_path,
-            {"train_path": str(train_file)} if reads_files else data_overrides,
+            {"train_path": str(train_file)} if reads_files[i] else data_overrides,
             system["tiny"]["epochs"] if args.tiny else None,
             work,
             run,
@@ -282,7 +284,7 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
         "train_shape": list(np.shape(train["y"])),
         "test_shape": list(np.shape(test["y"])),
         "truth_var": float(truth.var()),
-        "ssm_ms_config": ", ".join(f"`{c}`" for c in [system["config"], *(args.ssm_configs or [])]),
+        "ssm_ms_config": ", ".join(f"`{c}`" for c in configs),
         "deepsi_settings": {**system["deepsi"], "nx": 10, "T": 50, "batch_size": 256, "lr": 1e-3},
         "deepsi_curve": curve,
         "rows": rows,
