@@ -6,7 +6,8 @@ benchmarks/results/simulation_<experiment>.md.
     python benchmarks/bench_simulation.py --checkpoint runs/silverbox/version_0/checkpoints/best.ckpt [--steps 100000]
 
 The inputs: the benchmark's test recordings' inputs repeated to ``--steps`` (normalised as the model was trained);
-the state: the mean shooting node. Each timing is the median of ``--rounds`` runs after one warm-up, 2 torch threads.
+the state: the mean shooting node (zero for a model whose nodes come from its node encoder: the speed does not depend on
+it). Each timing is the median of ``--rounds`` runs after one warm-up, 2 torch threads.
 """
 
 from __future__ import annotations
@@ -58,7 +59,10 @@ def main(argv: list[str] | None = None) -> None:
     name = (ssm.data_state or {}).get("name", "benchmark")
     generator = torch.Generator().manual_seed(0)
     u = torch.randn(1, args.steps, ssm.input_dim, generator=generator) if ssm.input_dim else None
-    x = ssm.nodes.weight.detach().view(-1, ssm.state_dim).mean(0, keepdim=True)
+    if ssm.nodes is not None:
+        x = ssm.nodes.weight.detach().view(-1, ssm.state_dim).mean(0, keepdim=True)
+    else:  # amortised nodes: no free node to start from
+        x = torch.zeros(1, ssm.state_dim, dtype=ssm.alpha.dtype)
 
     def ours() -> None:
         with torch.no_grad():

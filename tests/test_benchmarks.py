@@ -170,8 +170,10 @@ def test_the_committed_results_are_rendered_from_their_json(path):
     assert path.with_suffix(".md").read_text() == render(data, path.parent)
 
 
-def test_the_simulation_speed_bench_times_a_free_run(tmp_path):
-    """benchmarks/bench_simulation.py on a tiny driven SSM: one row, its steps per second the steps over its seconds."""
+@pytest.mark.parametrize("amortised", [False, True], ids=["free-nodes", "amortised"])
+def test_the_simulation_speed_bench_times_a_free_run(tmp_path, amortised):
+    """benchmarks/bench_simulation.py on a tiny driven SSM (free nodes, or nodes from a node encoder): one row, its
+    steps per second the steps over its seconds."""
     import sys
 
     sys.path.insert(0, str(ROOT))
@@ -180,7 +182,12 @@ def test_the_simulation_speed_bench_times_a_free_run(tmp_path):
 
     rng = np.random.default_rng(0)
     data = Recordings(y=rng.normal(size=(300, 1)), u=rng.normal(size=(300, 1)), batch_size=2)
-    model = SSM(data, state_dim=2, f_options={"n_matrices": 2, "hidden": 8})
+    options = {}
+    if amortised:
+        from ssm_ms.nets.history import HistoryEncoder
+
+        options = {"node_encoder": HistoryEncoder(2, 1, 1, history=5), "n_nodes": 5}
+    model = SSM(data, state_dim=2, f_options={"n_matrices": 2, "hidden": 8}, **options)
     fit(model, data, epochs=1, save_dir=tmp_path, logger=False, enable_progress_bar=False)
     out = tmp_path / "speed.md"
     bench_simulation.main(
