@@ -27,16 +27,14 @@ from ssm_ms.schedule import ShootingSchedule
 ROOT = Path(__file__).resolve().parents[1]
 # what the project commits as results: a test writes its own into tmp_path, never here
 COMMITTED_OUTPUTS = ("results", "benchmarks/results", "pretrained")
+STUDY_RESULTS = ("*.md", "*.png", "*.json")  # studies/<question>/: its results files (its script may be edited)
 
 
 def committed_outputs() -> dict[str, tuple[int, int]]:
-    """``{path: (size, mtime_ns)}`` of every file under :data:`COMMITTED_OUTPUTS`."""
-    return {
-        str(p.relative_to(ROOT)): (p.stat().st_size, p.stat().st_mtime_ns)
-        for folder in COMMITTED_OUTPUTS
-        for p in (ROOT / folder).rglob("*")
-        if p.is_file()
-    }
+    """``{path: (size, mtime_ns)}`` of every file under :data:`COMMITTED_OUTPUTS`, and of the studies' results."""
+    files = [p for folder in COMMITTED_OUTPUTS for p in (ROOT / folder).rglob("*")]
+    files += [p for pattern in STUDY_RESULTS for p in (ROOT / "studies").glob(f"*/{pattern}")]
+    return {str(p.relative_to(ROOT)): (p.stat().st_size, p.stat().st_mtime_ns) for p in files if p.is_file()}
 
 
 @pytest.fixture(scope="session", autouse=True)

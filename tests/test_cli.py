@@ -229,28 +229,6 @@ def test_ukf_stage_from_the_cli(tmp_path):
         "SSM-LL + UKF",
         "SSM-LL + UKF (ukf_other)",
     )
-    # the study script of benchmarks/results/lorenz_cpu_study.md, on this checkpoint at a small size
-    spec = importlib.util.spec_from_file_location("study", ROOT / "benchmarks" / "lorenz_cpu_study.py")
-    study = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(study)
-    row = study.main(
-        [
-            str(ssm_ckpt),
-            "--results",
-            str(tmp_path / "results" / "lorenz_T1000_cpu.json"),
-            "--ukf",
-            "ukf",
-            "--out",
-            str(tmp_path / "rows.jsonl"),
-        ]
-    )
-    ckpt = torch.load(ssm_ckpt, weights_only=False)
-    assert (row["epochs"], row["steps"]) == (ckpt["epoch"] + 1, ckpt["global_step"])
-    assert row["data"] == {"n_train": 4, "train_steps": 10000, "noise_std": 2.5}  # the TINY data of this test
-    assert row["ukf_mse"] == saved["summary"]["ukf/clean/mse"]["mean"]
-    assert row["largest"] == saved["analysis"]["dynamics"]["lyapunov"]["largest"] and len(row["exponents"]) == 3
-    assert row["largest_true"] == saved["analysis"]["true_system"]["largest"]
-    assert json.loads((tmp_path / "rows.jsonl").read_text()) == row
 
 
 # The Lorenz T-sweep's baselines (T = 10, 100, 10,000) differ from lorenz_T1000's only in the data's piece length,

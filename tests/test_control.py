@@ -281,3 +281,71 @@ def test_an_episode_succeeds_when_every_angle_of_its_final_window_is_within_tole
     naive = [all(abs((a - np.pi + np.pi) % (2 * np.pi) - np.pi) < 0.3 for a in row[-3:]) for row in angles]
     assert window == 3 and final.shape == (4, 3)
     assert success.tolist() == naive == [True, False, True, True]
+
+
+def test_closed_loop_episodes_plan_on_the_true_state_or_on_the_estimate():
+    """ClosedLoop.episodes: the true model's controller sees the simulator's state; a learned model's sees its
+    estimator's output after each measurement; measurements, torques (exploration noise included) and true angles
+    are recorded per period, and the planner is told the torque applied (a scalar system stepped by hand)."""
+    from types import SimpleNamespace
+
+    from ssm_ms.control.module import ClosedLoop
+
+    class Env:  # x+ = x + u, measured as y = 10 x
+        params = {"n_links": 1}
+
+        def reset(self, q, v):
+            self.q = q.copy()
+            return 10 * self.q
+
+        @property
+        def state(self):
+            return np.concatenate([self.q, np.zeros_like(self.q)], 1)
+
+        def step(self, u):
+            self.q = self.q + u
+            return 10 * self.q
+
+    class Estimator:  # reads y / 10, biased by +1
+        def start(self, y):
+            return y.float() / 10 + 1
+
+        def next(self, u, y):
+            return y.float() / 10 + 1
+
+    start = np.array([[2.0, 0.0], [-1.0, 0.0]])  # angles, then velocities
+    for learned, exploration in ((False, 0.0), (True, 0.0), (True, 0.3)):
+        seen, told = [], []
+
+        def controller(x, applied=None, seen=seen, told=told):
+            seen.append(x[:, :1].clone())
+            told.append(applied)
+            return -0.5 * x[:, :1]
+
+        loop = SimpleNamespace(
+            seconds=0.3,
+            frame_dt=0.1,
+            env=Env(),
+            controller=lambda b, c=controller: c,
+            ssm=object() if learned else None,
+            estimator=Estimator,
+            seed=0,
+            exploration=exploration,
+            settings=SimpleNamespace(u_min=-10.0, u_max=10.0),
+        )
+        loop.episodes = lambda start, loop=loop, **k: ClosedLoop.episodes(loop, start, **k)
+        run = loop.episodes(start)
+        frames, inputs, angles = run["measurements"], run["inputs"], run["states"][..., 0].double().numpy()
+        q, bias = np.array([[2.0], [-1.0]]), 1.0 if learned else 0.0
+        assert told[0] is None
+        for t in range(3):
+            np.testing.assert_allclose(seen[t].numpy(), q + bias, rtol=1e-6)
+            np.testing.assert_allclose(angles[:, t], q[:, 0], rtol=1e-6)
+            np.testing.assert_allclose(frames[t].numpy(), 10 * q, rtol=1e-6)
+            u = inputs[:, t].numpy()
+            planned = -0.5 * (q + bias)
+            assert np.allclose(u, planned, rtol=1e-6) == (exploration == 0)
+            if t:
+                np.testing.assert_allclose(told[t].numpy(), inputs[:, t - 1].numpy())
+            q = q + u
+        np.testing.assert_allclose(angles[:, 3], q[:, 0], rtol=1e-6)

@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
 
 # What the CPU-sized Lorenz twin must reach (docs/results.md states the targets). (With 16 free runs W1 moved between
-# 0.70 and 1.14 from one snapshot to the next, benchmarks/results/lorenz_cpu_study.md; the stage configs now
+# 0.70 and 1.14 from one snapshot to the next, studies/lorenz_cpu_study/lorenz_cpu_study.md; the stage configs now
 # draw 64 free runs, analysis.dynamics.free_runs, and results/lorenz_T1000_cpu.md has 0.68.)
 WINGS_SHARE = 1.0  # share of the 64 free runs that visit both wings: every one
 MAX_W1 = 1.0  # 1-Wasserstein distance of the free runs' x to the training set's noiseless x
