@@ -1,4 +1,5 @@
-"""The README and docs/: every relative link resolves, and no internal work-item numbers leak into them."""
+"""The README, docs/, studies/ and the benchmarks' results: every relative link resolves, and no internal work-item
+numbers leak into the README, docs/ or the code."""
 
 from __future__ import annotations
 
@@ -48,10 +49,27 @@ def test_relative_links_resolve(path: Path):
     assert broken_links(path) == [], f"{path.relative_to(ROOT)}: links to missing files"
 
 
+# the studies' pages (studies/README.md, each study's README.md) and the results files they hold or link
+STUDY_PAGES = sorted((ROOT / "studies").rglob("*.md")) + sorted((ROOT / "benchmarks" / "results").glob("*.md"))
+
+
+def test_study_pages_exist():
+    assert (ROOT / "studies" / "README.md").is_file()
+    studies = sorted(p for p in (ROOT / "studies").iterdir() if p.is_dir() and not p.name.startswith((".", "_")))
+    missing = [p.name for p in studies if not (p / "README.md").is_file()]
+    assert studies and missing == [], f"studies without a README.md: {missing}"
+
+
+@pytest.mark.parametrize("path", STUDY_PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_study_and_benchmark_links_resolve(path: Path):
+    assert broken_links(path) == [], f"{path.relative_to(ROOT)}: links to missing files"
+
+
 def test_no_work_item_numbers_in_code_or_tests():
     """Tests and code say what they check, not which ticket asked for it."""
     files = sorted((ROOT / "tests").glob("*.py")) + sorted((ROOT / "ssm_ms").rglob("*.py"))
     files += sorted((ROOT / "datamodules").glob("*.py")) + sorted((ROOT / "benchmarks").glob("*.py"))
+    files += sorted((ROOT / "studies").glob("*/*.py"))
     hits = {
         str(p.relative_to(ROOT)): WORK_ITEM.findall(p.read_text(encoding="utf-8"))
         for p in files
