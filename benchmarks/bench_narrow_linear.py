@@ -11,7 +11,8 @@ steps, 50 steps per node: 800 rows at T = 1000, 8000 at T = 10,000), the simple 
 quadruple pendulum (state 40) (40 pieces x 4 nodes, 25 steps), and widths between, which place the threshold
 ``NARROW_MAX`` under which ``LocallyLinearTransition`` uses ``NarrowLinear`` (``ssm_ms/nets/transition.py``).
 A second table times the weight gradient of a layer from 3 inputs alone, in the two forms autograd takes for them.
-Writes benchmarks/results/narrow_linear.md with the machine, command and date.
+Writes benchmarks/results/narrow_linear.md, a row per machine (this run's replace this machine's earlier ones), with
+the machine, command and date of each machine's run.
 """
 
 from __future__ import annotations
@@ -99,7 +100,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.rounds < 1 or args.threads < 1:
         parser.error(f"--rounds and --threads must be at least 1, got {args.rounds} and {args.threads}")
 
-    from benchmarks.report import provenance, write
+    from benchmarks.report import provenance, write_by_machine
     from ssm_ms.nets.linear import NarrowLinear
     from ssm_ms.nets.transition import NARROW_MAX, LocallyLinearTransition
     from ssm_ms.runtime.machine import CpuWatch, quiet_note
@@ -160,7 +161,7 @@ def main(argv: list[str] | None = None) -> None:
         "|---:|---:|---:|---:|",
         *products,
     ]
-    write(args.out, lines)
+    write_by_machine(args.out, lines)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,8 @@ On the paper's pendulum step sizes (4000 frames of 24x24 = batch 40 x m 4 x n 25
   and the path an ``auto`` decoder actually ran for each preset, beside the native / torch time ratio measured in
   this run, so that each machine's results file says whether the rule picks the faster path there.
 
-Writes benchmarks/results/decoder_profile.md with the machine, command and date.
+Writes benchmarks/results/decoder_profile.md, a row per machine (this run's replace this machine's earlier ones), with
+the machine, command and date of each machine's run.
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ def main(argv: list[str] | None = None) -> None:
     import torch
     import torch.nn.functional as F
 
-    from benchmarks.report import provenance, write
+    from benchmarks.report import provenance, write_by_machine
     from ssm_ms.nets import ConvDecoder, LocallyLinearTransition, native
     from ssm_ms.runtime.machine import CpuWatch, quiet_note
     from ssm_ms.training.shooting import rollout
@@ -158,7 +159,7 @@ def main(argv: list[str] | None = None) -> None:
         lines.append(f"| {preset} | {size[preset]} | {res['native']:.1f} | {res['torch']:.1f} |")
     measured = {"pendulum": {"native": ms["decoder, native kernels"], "torch": ms["decoder, torch-only"]}, **others}
     lines += auto_check(size, measured, lib is not None, args.cflags)
-    write(args.out, lines)
+    write_by_machine(args.out, lines)
 
 
 def auto_check(size: dict, measured: dict[str, dict[str, float]], built: bool, cflags: str | None) -> list[str]:
@@ -170,7 +171,7 @@ def auto_check(size: dict, measured: dict[str, dict[str, float]], built: bool, c
     rule = auto_path("cpu", simd)
     lines = [
         "",
-        "## Backend `auto` on this machine",
+        "## Backend `auto` on each machine (its CPU and the rule's pick: the list of runs above)",
         "",
         f"- this CPU: {cpu_family_model()}; its vector unit (`ssm_ms.nets.native.build.cpu_simd()`, "
         f"/proc/cpuinfo): {SIMD_NAMES[simd]}",

@@ -1,7 +1,7 @@
 """Where a training epoch's time goes: steps, validation, data, checkpoints, logging (Lightning's SimpleProfiler).
 
     python benchmarks/profile_epoch.py                                   # configs/pendulum.yaml, 20 epochs
-    python benchmarks/profile_epoch.py --config configs/quad.yaml --epochs 10 --out benchmarks/results/epoch_profile_quad.md
+    python benchmarks/profile_epoch.py --config configs/quad.yaml --epochs 10    # -> benchmarks/results/epoch_profile_quad.md
     python benchmarks/profile_epoch.py --config configs/cpu/pendulum.yaml --epochs 1 --out /tmp/x.md   # seconds
 
 Runs ``python cli.py fit --config CONFIG --trainer.max_epochs N`` with ``SimpleProfiler`` in its own process
@@ -9,7 +9,8 @@ Runs ``python cli.py fit --config CONFIG --trainer.max_epochs N`` with ``SimpleP
 shares of the whole fit: the data set's generation (only where it is not cached yet), the training steps (forward, backward, optimizer), the wait for the next batch, the
 validation loop, the end-of-epoch callbacks (``last.ckpt`` every epoch, figures), the rest (logging, set-up,
 the progress bar). ``--epochs`` should cover a validation epoch (``check_val_every_n_epoch``: 10 for the paper
-configs) for its share to be right. Writes the machine, command and date with the table.
+configs) for its share to be right. Writes benchmarks/results/epoch_profile_<config>.md, a row per machine (this
+run's replace this machine's earlier ones), with the machine, command and date of each machine's run.
 """
 
 from __future__ import annotations
@@ -68,9 +69,11 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", default="configs/pendulum.yaml")
     parser.add_argument("--epochs", type=int, default=20)
-    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "epoch_profile_pendulum.md"))
+    parser.add_argument(
+        "--out", help="default: benchmarks/results/epoch_profile_<the config's path under configs/, / as _>.md"
+    )
     args = parser.parse_args(argv)
-    from benchmarks.report import provenance, write
+    from benchmarks.report import provenance, write_by_machine
     from ssm_ms.runtime.machine import CpuWatch, quiet_note
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -104,10 +107,10 @@ def main(argv: list[str] | None = None) -> None:
     rows = parse_profile(text)
     total, groups = shares(rows)
     lines = [
-        f"# Where a training epoch goes: `{args.config}`, {args.epochs} epochs",
+        f"# Where a training epoch goes: `{args.config}`",
         "",
         *provenance("benchmarks/profile_epoch.py", argv, quiet_note(others)),
-        f"- the fit took {seconds:.1f} s wall-clock ({seconds / args.epochs:.2f} s per epoch, start-up included); "
+        f"- {args.epochs} epochs: the fit took {seconds:.1f} s wall-clock ({seconds / args.epochs:.2f} s per epoch, start-up included); "
         f"the profiler's total: {total:.1f} s",
         "",
         "| share | seconds | % of the fit | per epoch (s) |",
@@ -117,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
         lines.append(f"| {name} | {t:.2f} | {100 * t / max(total, 1e-9):.1f} | {t / args.epochs:.3f} |")
     steps = rows.get("run_training_batch")
     if steps:
-        lines += ["", f"Training steps: {steps[0]} calls, {1000 * steps[1] / max(steps[0], 1):.1f} ms each."]
+        lines.insert(6, f"- training steps: {steps[0]} calls, {1000 * steps[1] / max(steps[0], 1):.1f} ms each")
     top = sorted(((a, c, t) for a, (c, t) in rows.items() if a != "Total"), key=lambda r: -r[2])[:15]
     lines += [
         "",
@@ -127,7 +130,8 @@ def main(argv: list[str] | None = None) -> None:
         "|---|---|---|",
     ]
     lines += [f"| `{a.split('{')[0]}` | {c} | {t:.2f} |" for a, c, t in top]
-    write(args.out, lines)
+    name = Path(args.config).with_suffix("").as_posix().removeprefix("configs/").replace("/", "_")
+    write_by_machine(args.out or ROOT / "benchmarks" / "results" / f"epoch_profile_{name}.md", lines)
 
 
 if __name__ == "__main__":

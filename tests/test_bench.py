@@ -299,3 +299,37 @@ def test_benchmark_provenance_names_the_date_machine_and_the_command_given(tmp_p
     assert noted.startswith(machine) and noted.endswith("; 2 torch threads"), (noted, machine)
     write(tmp_path / "sub" / "r.md", ["# r", "", command])
     assert (tmp_path / "sub" / "r.md").read_text() == "# r\n\n- Command: `python benchmarks/x.py`\n"
+
+
+def test_results_by_machine_keep_the_other_machines_rows_and_notes():
+    """benchmarks/report.py: a run's rows, with a machine column, replace its machine's earlier rows; the other
+    machines' stay, in the order of their runs; the run's ``- `` lines become its machine's entry in the list of
+    runs; the file's hand-written ``## Notes`` stay."""
+    from benchmarks.report import RUNS_INTRO, merge_by_machine
+
+    def run(date: str, x: int, y: int) -> list[str]:
+        return ["# t", "", f"- Date: {date}", "- set-up: s", "", "| case | ms |", "|---|---:|", f"| x | {x} |"] + [
+            f"| y | {y} |",
+            "",
+            "prose",
+        ]
+
+    first = merge_by_machine(None, run("d1", 1, 2), "A")
+    assert first == ["# t", "", RUNS_INTRO, "", "- **A**", "  - Date: d1", "  - set-up: s", ""] + [
+        "| machine | case | ms |",
+        "|---|---|---:|",
+        "| A | x | 1 |",
+        "| A | y | 2 |",
+        "",
+        "prose",
+    ]
+    second = merge_by_machine("\n".join(first) + "\n\n## Notes\n\nby hand\n", run("d2", 3, 4), "B")
+    again = merge_by_machine("\n".join(second) + "\n", run("d3", 5, 6), "A")
+    assert [line for line in again if line.startswith(("| A", "| B"))] == [
+        "| A | x | 5 |",
+        "| A | y | 6 |",
+        "| B | x | 3 |",
+        "| B | y | 4 |",
+    ]
+    assert again[again.index("- **A**") + 1] == "  - Date: d3" and again[again.index("- **B**") + 1] == "  - Date: d2"
+    assert "  - Date: d1" not in again and again[-3:] == ["## Notes", "", "by hand"]

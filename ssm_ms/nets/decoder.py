@@ -55,13 +55,13 @@ class ConvDecoder(nn.Module):
               tracing. The figures behind the rule (decoder forward + backward, native kernels against the torch
               path, same run, 2 threads; ``make bench`` writes the table for the machine it runs on): AVX-512 Intel
               Xeon, pendulum 91 against 195 ms and quadruple pendulum 94 against 199 ms
-              (``benchmarks/results/decoder_profile.md``); AVX-512 AMD Zen 4, 313 against 850 ms and 344 against
+              (``benchmarks/results/decoder_profile.md``, a row per machine); AVX-512 AMD Zen 4, 313 against 850 ms and 344 against
               920 ms, the kernels 0.37x the torch path's time on a machine shared with a training job
-              (``benchmarks/results/decoder_profile_zen4.md``); AVX-512 AMD Zen 5, 7.3 against 17.5 ms per 455
-              pendulum frames (``benchmarks/results/pendulum_epoch_profile_zen5.md``); AVX2-only AMD Zen 3, 381
-              against 475 ms and 340 against 441 ms (``benchmarks/results/decoder_profile_zen3.md``); AVX2-only AMD
+              (the same file); AVX-512 AMD Zen 5, 7.3 against 17.5 ms per 455 pendulum frames
+              (``benchmarks/results/epoch_profile_pendulum.md``, its notes); AVX2-only AMD Zen 3, 381
+              against 475 ms and 340 against 441 ms (``decoder_profile.md``); AVX2-only AMD
               Zen 1 (AVX2 as two 128-bit halves), 873 against 508 ms and 799 against 468 ms: the kernels lose there
-              (``benchmarks/results/decoder_profile_zen1.md``). Zen 2 (full-width AVX2, like Zen 3) and Intel CPUs
+              (``decoder_profile.md``). Zen 2 (full-width AVX2, like Zen 3) and Intel CPUs
               with AVX2 only are not measured: the rule takes the kernels there, as on Zen 3; give ``"torch"`` if
               ``python benchmarks/profile_decoder.py`` says it is faster.
             * ``"native"``: the native kernels of :mod:`ssm_ms.nets.native` wherever they can run (AVX2 CPUs included):

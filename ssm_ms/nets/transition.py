@@ -17,8 +17,7 @@ from ssm_ms.nets.linear import NarrowLinear
 
 # SSM-LL's first beta layer is a NarrowLinear (same parameters and values, its weight gradient formed as x^T dy) where
 # its input width is at most this: faster at the widths measured up to 10 (Lorenz's 3, the pendulum's 10), slower from
-# 12 on (benchmarks/results/narrow_linear.md on an AMD EPYC, narrow_linear_xeon.md on an Intel Xeon;
-# docs/performance.md).
+# 12 on (benchmarks/results/narrow_linear.md: an AMD EPYC and an Intel Xeon; docs/performance.md).
 NARROW_MAX = 10
 
 
