@@ -54,8 +54,6 @@ STEPS: dict[str, Step] = {
     "make test": Step(quick=False, extra="SKIP"),
     # README: fit, look, test, predict, Python
     "python cli.py fit --config configs/pendulum.yaml": Step(f"{TINY} {FEW_TRAIN}", slow_extra=TINY),
-    "python cli.py fit --config configs/pendulum.yaml --print_config": Step(),
-    "python cli.py fit --help": Step(),
     "python cli.py fit --config configs/pendulum_encoder.yaml --model.init_args.ssm_checkpoint "
     "runs/pendulum/version_0/checkpoints/last.ckpt": Step(f"{TINY} {FEW_TRAIN}", slow_extra=TINY),
     "python cli.py test --config configs/pendulum_encoder.yaml --model.init_args.ssm_checkpoint "

@@ -1,5 +1,6 @@
-"""The README's results tables are generated from ``results/*.json`` (``python -m ssm_ms.forecasting.readme``): they
-fail here when the README and the results files disagree, regenerated in memory and compared."""
+"""The results tables of the README and docs/results.md are generated from ``results/*.json`` (``python -m
+ssm_ms.forecasting.readme``): they fail here when a document and the results files disagree, regenerated in memory
+and compared."""
 
 from __future__ import annotations
 
@@ -17,23 +18,24 @@ README = ROOT / "README.md"
 RESULTS = ROOT / "results"
 
 
-def test_the_readme_tables_are_those_the_results_files_give():
-    stale = readme.stale(README.read_text(encoding="utf-8"), RESULTS)
+@pytest.mark.parametrize("document", readme.DOCUMENTS, ids=lambda p: p.name)
+def test_the_tables_are_those_the_results_files_give(document):
+    stale = readme.stale(document.read_text(encoding="utf-8"), RESULTS)
     assert stale == [], (
-        f"README.md's tables {stale} differ from results/*.json: run "
-        "`python -m ssm_ms.forecasting.readme` and commit README.md"
+        f"{document.name}'s tables {stale} differ from results/*.json: run "
+        f"`python -m ssm_ms.forecasting.readme` and commit {document.name}"
     )
 
 
-def test_every_table_has_its_markers_in_the_readme():
-    text = README.read_text(encoding="utf-8")
-    assert [m.group("name") for m in readme.MARKER.finditer(text)] == list(readme.TABLES)
+def test_every_table_has_its_markers_in_exactly_one_document():
+    names = [m.group("name") for d in readme.DOCUMENTS for m in readme.MARKER.finditer(d.read_text(encoding="utf-8"))]
+    assert sorted(names) == sorted(readme.TABLES)
 
 
 def test_every_row_is_produced_by_a_command_a_clean_clone_can_run():
     """A README row's command is a promise (DEVELOPERS.md): none may need a run folder of this machine (``runs/``), as
     a row tested by hand from a local checkpoint would; such a row is produced through ``make reproduce`` instead."""
-    text = README.read_text(encoding="utf-8")
+    text = "\n".join(d.read_text(encoding="utf-8") for d in readme.DOCUMENTS)
     rows = [line for m in readme.MARKER.finditer(text) for line in m.group("body").splitlines()]
     local = [next(c.strip() for c in row.split("|")[1:] if c.strip()) for row in rows if "runs/" in row]
     assert not local, f"README rows produced by a command that needs a local run: {local}"
@@ -54,7 +56,7 @@ def _edit(path: Path, change) -> None:
 
 
 def test_a_changed_score_makes_its_table_stale(results_copy):
-    text = README.read_text(encoding="utf-8")
+    text = (ROOT / "docs" / "results.md").read_text(encoding="utf-8")  # the page of the full-size table
     assert readme.stale(text, results_copy) == []
 
     def change(data):
@@ -78,17 +80,22 @@ def test_a_row_names_the_pipeline_that_produced_it_and_its_budget(results_copy):
     assert "--baseline-epochs 1000" in lstm and "LSTM 1000 epochs" in lstm and "in 5 runs" in lstm
 
 
-def test_the_check_command_exits_1_on_a_stale_readme(tmp_path, results_copy, capsys):
-    page = tmp_path / "README.md"
-    page.write_text(README.read_text(encoding="utf-8"))
-    assert readme.main(["--readme", str(page), "--results-dir", str(results_copy), "--check"]) == 0
-    text = page.read_text()
-    sweep = text.index(readme.BEGIN.format(name="lorenz-sweep"))  # a cell of that table edited by hand
-    page.write_text(text[:sweep] + text[sweep:].replace("| SSM-LL + UKF | ", "| SSM-LL + UKF | 1 ", 1))
-    assert readme.main(["--readme", str(page), "--results-dir", str(results_copy), "--check"]) == 1
-    assert "lorenz-sweep" in capsys.readouterr().err
-    assert readme.main(["--readme", str(page), "--results-dir", str(results_copy)]) == 0
-    assert page.read_text() == README.read_text(encoding="utf-8")
+def test_the_check_command_exits_1_on_a_stale_document(tmp_path, results_copy, capsys):
+    """Both documents are checked; a table edited by hand in one of them (the Lorenz sweep, docs/results.md's) is
+    named, and the rewrite restores it."""
+    readme_copy, page = tmp_path / "README.md", tmp_path / "results.md"
+    readme_copy.write_text(README.read_text(encoding="utf-8"))
+    original = (ROOT / "docs" / "results.md").read_text(encoding="utf-8")
+    page.write_text(original)
+    both = [str(readme_copy), str(page), "--results-dir", str(results_copy)]
+    assert readme.main([*both, "--check"]) == 0
+    sweep = original.index(readme.BEGIN.format(name="lorenz-sweep"))  # a cell of that table edited by hand
+    page.write_text(original[:sweep] + original[sweep:].replace("| SSM-LL + UKF | ", "| SSM-LL + UKF | 1 ", 1))
+    assert readme.main([*both, "--check"]) == 1
+    err = capsys.readouterr().err
+    assert "lorenz-sweep" in err and "results.md" in err and "README.md" not in err
+    assert readme.main(both) == 0
+    assert page.read_text() == original and readme_copy.read_text() == README.read_text(encoding="utf-8")
 
 
 def test_markers_that_name_no_table_or_are_not_closed_are_refused(results_copy):

@@ -1,16 +1,17 @@
-"""The README's results tables, generated from the results files (``results/*.json``): one source for every score.
+"""The results tables of the README and of docs/results.md, generated from the results files (``results/*.json``):
+one source for every score.
 
-    python -m ssm_ms.forecasting.readme            # rewrite the tables between the README's markers
-    python -m ssm_ms.forecasting.readme --check    # exit status 1 (naming the tables) where the README is stale
+    python -m ssm_ms.forecasting.readme            # rewrite the tables between the documents' markers
+    python -m ssm_ms.forecasting.readme --check    # exit status 1 (naming the tables) where a document is stale
 
-Each table sits in README.md between ``<!-- results:begin NAME -->`` and ``<!-- results:end -->`` (NAME one of
-:data:`TABLES`); everything outside the markers is prose a person writes. A table is built from the runs of the
-results files (``runs``: each method's scores and analysis) and the pipelines that produced them (``pipelines``:
-the ``make reproduce`` command, each stage's command and seconds): ours ``mean ± std`` over the test sequences, the
-paper's cell beside it (:data:`~ssm_ms.forecasting.results.PAPER`), the mean valid prediction time, and the command
-that produced the row with each training stage's epoch budget (its ``--trainer.max_epochs``, where the pipeline set
-one) and duration. ``tests/test_readme_tables.py`` regenerates the tables in memory and fails where the README
-differs: after a new result, run this command.
+Each table sits in one of :data:`DOCUMENTS` between ``<!-- results:begin NAME -->`` and ``<!-- results:end -->``
+(NAME one of :data:`TABLES`, each in exactly one document); everything outside the markers is prose a person writes.
+A table is built from the runs of the results files (``runs``: each method's scores and analysis) and the pipelines
+that produced them (``pipelines``: the ``make reproduce`` command, each stage's command and seconds): ours ``mean ±
+std`` over the test sequences, the paper's cell beside it (:data:`~ssm_ms.forecasting.results.PAPER`), the mean valid
+prediction time, and the command that produced the row with each training stage's epoch budget (its
+``--trainer.max_epochs``, where the pipeline set one) and duration. ``tests/test_readme_tables.py`` regenerates the
+tables in memory and fails where a document differs: after a new result, run this command.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from typing import Any
 from ssm_ms.forecasting.results import PAPER, paper_cell, paper_key, paper_row, score_cell, sig
 
 ROOT = Path(__file__).resolve().parents[2]
+DOCUMENTS = (ROOT / "README.md", ROOT / "docs" / "results.md")  # the documents whose tables are generated
 BEGIN = "<!-- results:begin {name} -->"
 END = "<!-- results:end -->"
 MARKER = re.compile(r"^<!-- results:begin (?P<name>[\w-]+) -->\n(?P<body>.*?)^<!-- results:end -->$", re.M | re.S)
@@ -384,22 +386,22 @@ TABLES: dict[str, Callable[[Results], list[str]]] = {
 }
 
 
-# ------------------------------------------------------------------------------------------------- the README
+# ------------------------------------------------------------------------------------------------- the documents
 def render(text: str, results_dir: Path = ROOT / "results") -> str:
-    """``text`` (a README) with every marked table generated anew from the results files."""
+    """``text`` (one of :data:`DOCUMENTS`) with every marked table generated anew from the results files."""
     results = Results(results_dir)
     seen = []
 
     def fill(match: re.Match) -> str:
         name = match.group("name")
         if name not in TABLES:
-            raise KeyError(f"README marker {BEGIN.format(name=name)}: no such table (known: {sorted(TABLES)})")
+            raise KeyError(f"marker {BEGIN.format(name=name)}: no such table (known: {sorted(TABLES)})")
         seen.append(name)
         return "\n".join([BEGIN.format(name=name), *TABLES[name](results), END])
 
     out = MARKER.sub(fill, text)
-    if text.count("<!-- results:begin") != len(seen):
-        raise ValueError("a README marker <!-- results:begin NAME --> without its <!-- results:end -->")
+    if len(re.findall(r"^<!-- results:begin", text, re.M)) != len(seen):  # markers open a line; prose may quote one
+        raise ValueError("a marker <!-- results:begin NAME --> without its <!-- results:end -->")
     return out
 
 
@@ -411,28 +413,31 @@ def stale(text: str, results_dir: Path = ROOT / "results") -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--readme", type=Path, default=ROOT / "README.md")
+    parser.add_argument("documents", nargs="*", type=Path, default=list(DOCUMENTS), help="default: DOCUMENTS")
     parser.add_argument("--results-dir", type=Path, default=ROOT / "results")
     parser.add_argument("--check", action="store_true", help="change nothing; exit status 1 where a table is stale")
     opts = parser.parse_args(argv)
-    text = opts.readme.read_text(encoding="utf-8")
-    if opts.check:
-        names = stale(text, opts.results_dir)
-        if names:
-            print(
-                f"{opts.readme}: tables differ from {opts.results_dir}/*.json: {', '.join(names)} "
-                "(python -m ssm_ms.forecasting.readme rewrites them)",
-                file=sys.stderr,
-            )
-        return 1 if names else 0
-    new = render(text, opts.results_dir)
-    if new != text:
-        opts.readme.write_text(new, encoding="utf-8")
-    print(
-        f"{opts.readme}: {len(MARKER.findall(new))} tables from {opts.results_dir}/*.json"
-        + ("" if new != text else " (unchanged)")
-    )
-    return 0
+    status = 0
+    for document in opts.documents:
+        text = document.read_text(encoding="utf-8")
+        if opts.check:
+            names = stale(text, opts.results_dir)
+            if names:
+                print(
+                    f"{document}: tables differ from {opts.results_dir}/*.json: {', '.join(names)} "
+                    "(python -m ssm_ms.forecasting.readme rewrites them)",
+                    file=sys.stderr,
+                )
+                status = 1
+            continue
+        new = render(text, opts.results_dir)
+        if new != text:
+            document.write_text(new, encoding="utf-8")
+        print(
+            f"{document}: {len(MARKER.findall(new))} tables from {opts.results_dir}/*.json"
+            + ("" if new != text else " (unchanged)")
+        )
+    return status
 
 
 if __name__ == "__main__":
