@@ -4,7 +4,7 @@ estimating the state), then every baseline of the experiment (fit -> test); or o
 come first: they train nothing (seconds to minutes), and their rows land even where a long encoder stage then stops or
 fails.
 
-    python -m ssm_ms.reproduce pendulum            # configs/pendulum*.yaml + configs/baselines/pendulum_*.yaml
+    python -m ssm_ms.reproduce pendulum            # the stages configs/experiments.yaml names for pendulum
     python -m ssm_ms.reproduce pendulum --size cpu # the CPU-sized twins under configs/cpu/
     python -m ssm_ms.reproduce pendulum_lstm       # configs/baselines/pendulum_lstm.yaml alone
     python -m ssm_ms.reproduce pendulum --no-baselines
@@ -68,6 +68,7 @@ from ssm_ms.forecasting.results import write_pipeline
 from ssm_ms.runtime.machine import describe
 
 ROOT = Path(__file__).resolve().parents[1]
+REGISTRY = ROOT / "configs" / "experiments.yaml"  # each experiment's stages and their configs, per size
 WAIT_TICK = 30.0  # seconds between the records of a running stage's time (Pipeline)
 
 
@@ -78,6 +79,20 @@ STAGE_CHOICES = ("no_encoder",)
 
 
 SECTION_FILES = ("data", "model")  # sections a config may give as the path of a file holding them
+
+
+def read_registry() -> dict:
+    """The experiment registry (:data:`REGISTRY`): ``experiments`` (name -> size -> stage -> config path),
+    ``benchmarks`` (name -> ``fit`` and ``test`` configs), ``suites`` (name -> experiments)."""
+    return OmegaConf.to_container(OmegaConf.load(REGISTRY))
+
+
+def known_experiments(registry: dict, size: str) -> list[str]:
+    """Every name ``make reproduce EXP=...`` takes at ``size``: experiments, baselines alone, suites, benchmarks."""
+    experiments = registry.get("experiments", {})
+    known = [name for name, sizes in experiments.items() if size in sizes]
+    known += [Path(p).stem for sizes in experiments.values() for p in sizes.get(size, {}).get("baselines", [])]
+    return sorted({*known, *registry.get("suites", {}), *registry.get("benchmarks", {})})
 
 
 def load_config(config: Path | str, _including: tuple[Path, ...] = ()) -> dict:
@@ -531,57 +546,56 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(opts, name)}")
     if opts.seed is not None and opts.seed < 0:
         parser.error(f"--seed must be >= 0, got {opts.seed}")
-    if opts.orders is not None and not (ROOT / "configs" / "benchmarks" / f"{opts.experiment}.yaml").is_file():
+    if opts.orders is not None and opts.experiment not in read_registry().get("benchmarks", {}):
         parser.error("--orders chooses a benchmark's latent dimension (configs/benchmarks/): not for this experiment")
     if opts.no_encoder and opts.encoder_epochs is not None:
         parser.error("--encoder-epochs budgets the encoder stage that --no-encoder leaves out: give one of the two")
-    suite = ROOT / "configs" / "suites" / f"{opts.experiment}.yaml"
-    if suite.is_file():  # several experiments into one results file, one after the other
+    registry = read_registry()
+    suite = registry.get("suites", {}).get(opts.experiment)
+    if suite is not None:  # several experiments into one results file, one after the other
         if opts.resume:
             parser.error(f"{opts.experiment} is a suite of experiments: resume each with its own reproduce command")
         if opts.no_encoder:  # a suite's experiments may train on what an earlier one's encoder-driven control records
             parser.error(
                 f"--no-encoder: {opts.experiment} is a suite of experiments: give it to one experiment at a time"
             )
-        for experiment in load_config(suite).get("experiments", []):
+        for experiment in suite:
             main([experiment, *argv[1:]])
         return
-    benchmark = ROOT / "configs" / "benchmarks" / f"{opts.experiment}.yaml"
-    if benchmark.is_file():
-        run_benchmark(opts, argv, benchmark)
+    benchmark = registry.get("benchmarks", {}).get(opts.experiment)
+    if benchmark is not None:
+        run_benchmark(opts, argv, ROOT / benchmark["fit"], ROOT / benchmark["test"])
         return
-    folder = ROOT / "configs" / ("cpu" if opts.size == "cpu" else "")
-    ssm_cfg = folder / f"{opts.experiment}.yaml"
-    enc_cfg = folder / f"{opts.experiment}_encoder.yaml"
-    ukf_cfg = folder / f"{opts.experiment}_ukf.yaml"
-    optimise_cfg = folder / f"{opts.experiment}_optimise.yaml"
-    control_cfg = folder / f"{opts.experiment}_control.yaml"
-    record_cfg = folder / f"{opts.experiment}_record.yaml"
-    alone = folder / "baselines" / f"{opts.experiment}.yaml"
-    if alone.exists():
-        baselines, ssm_stages = [alone], False
-    elif ssm_cfg.exists() and any(c.exists() for c in (enc_cfg, ukf_cfg, optimise_cfg, control_cfg)):
-        baselines = [] if opts.no_baselines else sorted((folder / "baselines").glob(f"{opts.experiment}_*.yaml"))
+    stages = {
+        kind: [ROOT / p for p in paths] if kind == "baselines" else ROOT / paths
+        for kind, paths in registry.get("experiments", {}).get(opts.experiment, {}).get(opts.size, {}).items()
+    }
+    ssm_cfg, enc_cfg, control_cfg, record_cfg = (stages.get(k) for k in ("ssm", "encoder", "control", "record"))
+    alone = [
+        ROOT / path
+        for experiment in registry.get("experiments", {}).values()
+        for path in experiment.get(opts.size, {}).get("baselines", [])
+        if Path(path).stem == opts.experiment
+    ]
+    if alone:
+        baselines, ssm_stages = alone[:1], False
+    elif ssm_cfg is not None:
+        baselines = [] if opts.no_baselines else stages.get("baselines", [])
         ssm_stages = True
-    elif control_cfg.exists():  # a controller without a learned model (the true one): its test alone
+    elif control_cfg is not None:  # a controller without a learned model (the true one): its test alone
         baselines, ssm_stages = [], False
     else:
-        known = sorted(p.stem.rsplit("_", 1)[0] for p in folder.glob("*_encoder.yaml"))
-        known += sorted(p.stem[: -len("_control")] for p in folder.glob("*_control.yaml"))
-        known += sorted(p.stem for p in (folder / "baselines").glob("*.yaml"))
-        known += sorted(p.stem for p in (ROOT / "configs" / "suites").glob("*.yaml"))
-        known += sorted(p.stem[: -len("_test")] for p in (ROOT / "configs" / "benchmarks").glob("*_test.yaml"))
         raise SystemExit(
-            f"no configs for experiment {opts.experiment!r} in {folder.relative_to(ROOT)}: choose among {sorted(set(known))}"
+            f"no {opts.size}-size experiment {opts.experiment!r} in {REGISTRY.relative_to(ROOT)}: choose among "
+            f"{known_experiments(registry, opts.size)}"
         )
-    ssm_tests = [cfg for cfg in (ukf_cfg, optimise_cfg, control_cfg) if cfg.exists()]  # of the SSM, nothing to train
+    ssm_tests = [stages[k] for k in ("ukf", "optimise", "control") if k in stages]  # of the SSM, nothing to train
     if opts.no_encoder and ssm_stages and not ssm_tests:
         parser.error(
-            f"--no-encoder: {opts.experiment} has no test of its SSM alone (no {ukf_cfg.relative_to(ROOT)}, "
-            f"{optimise_cfg.name} or {control_cfg.name} beside it): without its encoder nothing would score it; "
-            "drop --no-encoder"
+            f"--no-encoder: {opts.experiment} has no test of its SSM alone (no ukf, optimise or control stage in "
+            f"{REGISTRY.relative_to(ROOT)}): without its encoder nothing would score it; drop --no-encoder"
         )
-    use_encoder = enc_cfg.exists() and not opts.no_encoder
+    use_encoder = enc_cfg is not None and not opts.no_encoder
     seeded = "" if opts.seed is None else f"seed{opts.seed}"
     version = opts.resume or "reproduce-" + (seeded + "-" if seeded else "") + datetime.now().strftime("%Y%m%d-%H%M%S")
     if "/" in version or not version.startswith("reproduce-"):
@@ -630,14 +644,14 @@ def main(argv: list[str] | None = None) -> None:
             pipeline.stage([*enc_test, *named(enc_cfg), *v], again=ssm_ran or enc_ran)
             configs.append(enc_cfg)
         configs += ssm_tests  # the results files listed in the order they always were: encoder first
-        if control_cfg.exists() and use_encoder:  # the control again, the encoder estimating the state
+        if control_cfg is not None and use_encoder:  # the control again, the encoder estimating the state
             with_encoder = ["--model.init_args.encoder_checkpoint", str(enc_ckpt)]
             test = ["test", "--config", str(control_cfg.relative_to(ROOT)), *with_ssm, *with_encoder]
             pipeline.stage([*test, *named(control_cfg), *v], again=ssm_ran or enc_ran)
-            if record_cfg.exists():  # the learned controller's own episodes: training data of a later experiment
+            if record_cfg is not None:  # the learned controller's own episodes: training data of a later experiment
                 record = ["test", "--config", str(record_cfg.relative_to(ROOT)), *with_ssm, *with_encoder]
                 pipeline.stage([*record, *v], again=ssm_ran or enc_ran)
-    elif control_cfg.exists() and not baselines:
+    elif control_cfg is not None and not baselines:
         pipeline.stage(["test", "--config", str(control_cfg.relative_to(ROOT)), *named(control_cfg), *v])
         configs.append(control_cfg)
     baseline_budget = [] if opts.baseline_epochs is None else ["--trainer.max_epochs", str(opts.baseline_epochs)]
@@ -688,12 +702,11 @@ def open_pipeline(opts: argparse.Namespace, options: list[str], first: Path, ver
     return pipeline
 
 
-def run_benchmark(opts: argparse.Namespace, argv: list[str], config: Path) -> None:
+def run_benchmark(opts: argparse.Namespace, argv: list[str], config: Path, test_cfg: Path) -> None:
     """An identification benchmark (``configs/benchmarks/<experiment>.yaml``): the SSM's fit, then the benchmark's
-    protocol on the test recordings (``<experiment>_test.yaml``) from the epoch its validation chose (``best.ckpt``);
+    protocol on the test recordings (``test_cfg``) from the epoch its validation chose (``best.ckpt``);
     its results file is the test's (``results/benchmarks/<experiment>.md``, the commands and durations in this run's
     record)."""
-    test_cfg = config.with_name(f"{opts.experiment}_test.yaml")
     if opts.size != "paper" or opts.no_encoder or opts.encoder_epochs or opts.baseline_epochs:
         raise SystemExit(f"error: {opts.experiment} is a benchmark: one size, no encoder or baselines to choose")
     seeded = "" if opts.seed is None else f"seed{opts.seed}"

@@ -15,9 +15,11 @@ from ssm_ms.reproduce import config_value, experiment_name, load_config, logger_
 
 ROOT = Path(__file__).resolve().parents[1]
 # every runnable config: not the shared sections (configs/data/, configs/cpu/data/, configs/benchmarks/parts/), not
-# the examples added after one
+# the examples added after one, not the experiment registry (configs/experiments.yaml)
 CONFIGS = sorted(
-    p for p in (ROOT / "configs").rglob("*.yaml") if p.parent.name not in ("data", "examples", "suites", "parts")
+    p
+    for p in (ROOT / "configs").rglob("*.yaml")
+    if p.parent.name not in ("data", "examples", "parts") and p != ROOT / "configs" / "experiments.yaml"
 )
 
 

@@ -142,7 +142,8 @@ def test_no_encoder_runs_the_ssm_and_its_own_tests_only(recorded, capsys):
     for argv, message in [
         (
             ["quad", "--no-encoder"],
-            "--no-encoder: quad has no test of its SSM alone (no configs/quad_ukf.yaml, quad_opt",
+            "--no-encoder: quad has no test of its SSM alone (no ukf, optimise or control stage in "
+            "configs/experiments.yaml)",
         ),
         (["lorenz_T1000", "--no-encoder", "--encoder-epochs", "5"], "--encoder-epochs budgets the encoder stage"),
         (["pendulum_control", "--no-encoder"], "--no-encoder: pendulum_control is a suite of experiments"),
@@ -211,8 +212,10 @@ def test_options_after_a_double_dash_go_to_every_stage_last(recorded, tmp_path):
 
 
 def test_unknown_experiment_lists_the_known_ones(recorded):
-    with pytest.raises(SystemExit, match=r"no configs for experiment 'pendulm'.*'pendulum'.*'pendulum_lstm'"):
+    with pytest.raises(SystemExit, match=r"no paper-size experiment 'pendulm'.*'pendulum'.*'pendulum_lstm'"):
         reproduce.main(["pendulm"])
+    with pytest.raises(SystemExit, match=r"no cpu-size experiment 'pendulum_torque'.*'pendulum_fc'"):
+        reproduce.main(["pendulum_torque", "--size", "cpu"])  # a paper-size experiment only
 
 
 # ---------------------------------------------------------------------------- a stage interrupted or failing
