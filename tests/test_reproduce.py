@@ -692,7 +692,7 @@ def test_a_fit_extended_on_resume_ends_as_a_fit_given_that_budget_from_the_start
 def test_control_stages_and_a_suite_of_experiments(recorded):
     """An SSM's control test runs before its encoder stages, with the SSM's checkpoint, then again after them with the
     encoder estimating the state (the SSM has one); a controller without an SSM
-    (the true model) is one test stage; a suite (configs/suites/) runs its experiments one after the other."""
+    (the true model) is one test stage; a suite (configs/experiments.yaml) runs its experiments one after the other."""
     calls, written = recorded
     reproduce.main(["pendulum_control"])
     stages = [(a[0], option(a, "--config")) for a in calls]
