@@ -29,8 +29,10 @@ import pinocchio as pin
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.report import provenance, write  # noqa: E402
-from datamodules import pendulum as P  # noqa: E402
 from datamodules.pendulum import PendulumDataModule  # noqa: E402
+from datamodules.pendulum_generation import CHUNK_SIZE, available_cores  # noqa: E402
+from datamodules.pendulum_render import quantize, render  # noqa: E402
+from datamodules.pendulum_sim import GRAVITY, pendulum_model, simulate  # noqa: E402
 
 CONFIGS = {
     "simple (1 link, 24x24)": dict(n_links=1, image_size=24, n_train=1000, n_test=1000),
@@ -44,7 +46,7 @@ def chain_energy(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Energy of unit point masses on unit links (relative angles ``[..., n]``)."""
     phi, dphi = np.cumsum(q, -1), np.cumsum(v, -1)
     vx, vz = np.cumsum(dphi * np.cos(phi), -1), np.cumsum(dphi * np.sin(phi), -1)
-    return 0.5 * (vx**2 + vz**2).sum(-1) - P.GRAVITY * np.cumsum(np.cos(phi), -1).sum(-1)
+    return 0.5 * (vx**2 + vz**2).sum(-1) - GRAVITY * np.cumsum(np.cos(phi), -1).sum(-1)
 
 
 def energy_drift(n: int, max_velocity: float, step: float, count: int = 48) -> tuple[float, float]:
@@ -52,18 +54,18 @@ def energy_drift(n: int, max_velocity: float, step: float, count: int = 48) -> t
     rng = np.random.default_rng(12345)
     q0 = rng.uniform(-math.pi, math.pi, (count, n))
     v0 = rng.uniform(-max_velocity, max_velocity, (count, n))
-    model = P.pendulum_model(n)
-    q, v, _ = P.simulate(model, model.createData(), q0, v0, 101, int(round(0.1 / step)), step)
+    model = pendulum_model(n)
+    q, v, _ = simulate(model, model.createData(), q0, v0, 101, int(round(0.1 / step)), step)
     e = chain_energy(q, v)
-    drift = np.abs(e - e[:, :1]).max(1) / (P.GRAVITY * n * (n + 1) / 2)
+    drift = np.abs(e - e[:, :1]).max(1) / (GRAVITY * n * (n + 1) / 2)
     return float(np.median(drift)), float(drift.max())
 
 
-def cost_split(cfg: dict, count: int = P.CHUNK_SIZE, repeats: int = 3) -> dict[str, float]:
+def cost_split(cfg: dict, count: int = CHUNK_SIZE, repeats: int = 3) -> dict[str, float]:
     """Milliseconds per trajectory of dynamics, rendering and noise in one process (median of repeats)."""
     dm = PendulumDataModule(**cfg)
     params = dm.generator_params()
-    model = P.pendulum_model(dm.n_links)
+    model = pendulum_model(dm.n_links)
     data = model.createData()
     rng = np.random.default_rng(0)
     times: dict[str, list[float]] = {"dynamics": [], "rendering": [], "noise + quantisation": []}
@@ -71,16 +73,16 @@ def cost_split(cfg: dict, count: int = P.CHUNK_SIZE, repeats: int = 3) -> dict[s
         q0 = rng.uniform(-dm.max_angle, dm.max_angle, (count, dm.n_links))
         v0 = rng.uniform(-dm.max_velocity, dm.max_velocity, (count, dm.n_links))
         t = time.perf_counter()
-        q, _, _ = P.simulate(model, data, q0, v0, dm.n_frames, int(round(dm.frame_dt / dm.dt)), dm.dt, dm.damping)
+        q, _, _ = simulate(model, data, q0, v0, dm.n_frames, int(round(dm.frame_dt / dm.dt)), dm.dt, dm.damping)
         times["dynamics"].append(time.perf_counter() - t)
         t = time.perf_counter()
-        clean = [P.render(q[j], dm.image_size, dm.line_width, dm.rendering) for j in range(count)]
+        clean = [render(q[j], dm.image_size, dm.line_width, dm.rendering) for j in range(count)]
         times["rendering"].append(time.perf_counter() - t)
         t = time.perf_counter()
         for c in clean:
             noise = rng.standard_normal(c.shape, dtype=np.float32) * np.float32(params["noise_std"]) + c
-            P.quantize(np.clip(noise, 0, 1))
-            P.quantize(c)
+            quantize(np.clip(noise, 0, 1))
+            quantize(c)
         times["noise + quantisation"].append(time.perf_counter() - t)
     return {k: 1e3 * statistics.median(v) / count for k, v in times.items()}
 
@@ -119,11 +121,11 @@ def main() -> None:
         *provenance(
             "benchmarks/bench_pendulum_data.py",
             None,
-            f"{P.available_cores()} available cores; Python {platform.python_version()}, numpy {np.__version__}, "
+            f"{available_cores()} available cores; Python {platform.python_version()}, numpy {np.__version__}, "
             f"pinocchio {pin.__version__}",
         ),
         f"- integrator: RK4, dt = {step} s, frames every 0.1 s, 100 frames; trajectories simulated in chunks of "
-        f"{P.CHUNK_SIZE} per worker task",
+        f"{CHUNK_SIZE} per worker task",
         "",
         "## Generation (prepare_data: simulate, render, noise, write the cache)",
         "",
@@ -146,7 +148,7 @@ def main() -> None:
 
     lines += [
         "",
-        f"## Cost per trajectory in one process (ms, median of 3 batches of {P.CHUNK_SIZE} trajectories)",
+        f"## Cost per trajectory in one process (ms, median of 3 batches of {CHUNK_SIZE} trajectories)",
         "",
         "| data set | dynamics | rendering | noise + quantisation |",
         "|---|---|---|---|",

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from datamodules import pendulum as P
+from datamodules.pendulum import PendulumDataModule
+from datamodules.pendulum_render import quantize, render_paper
+from datamodules.pendulum_sim import pendulum_model, simulate
 from ssm_ms.control.cost import SwingUpCost, upright_error
 from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
 from ssm_ms.control.module import TruePendulum
@@ -20,10 +22,10 @@ from ssm_ms.control.mppi import MPPISettings, RecedingHorizon, mppi
 
 def test_true_pendulum_is_the_simulators_frame():
     """The planner's true model over one 0.1 s frame against Pinocchio's simulation of the data (RK4, 5 ms)."""
-    model = P.pendulum_model(1)
+    model = pendulum_model(1)
     q0, v0 = np.array([[0.3], [2.5], [-1.0]]), np.array([[0.0], [1.0], [-3.0]])
     torque = np.array([[[2.0]], [[-3.0]], [[0.5]]])
-    q, v, _ = P.simulate(model, model.createData(), q0, v0, 2, 20, 5e-3, 0.0, torque)
+    q, v, _ = simulate(model, model.createData(), q0, v0, 2, 20, 5e-3, 0.0, torque)
     x = torch.tensor(np.concatenate([q0, v0], 1))
     exact = TruePendulum(0.1, substeps=20)(x, torch.tensor(torque[:, 0]))
     torch.testing.assert_close(exact, torch.tensor(np.concatenate([q[:, 1], v[:, 1]], 1)), rtol=0, atol=1e-9)
@@ -35,7 +37,7 @@ def test_the_angle_read_from_rendered_frames():
     """The ink's centroid about the frame's centre gives the pendulum's angle: rendered at known angles, clean and
     noisy as the data's."""
     angles = np.linspace(-math.pi, math.pi, 37)[:-1]
-    frames = torch.from_numpy(P.render_paper(angles[:, None], 24)).clamp(0, 1)
+    frames = torch.from_numpy(render_paper(angles[:, None], 24)).clamp(0, 1)
     sc = ink_angle_features(frames, (12.0, 12.0))
     read = torch.atan2(sc[:, 0], sc[:, 1]).numpy()
     error = np.angle(np.exp(1j * (read - angles)))
@@ -245,24 +247,24 @@ def test_recorded_episodes_become_training_data(tmp_path):
         *("--model.init_args.figures_dir", "null", "--model.init_args.timing_steps", "1"),
     )
     args = dict(n_train=2, n_test=1, duration=1.0, max_energy=22.0, torque_limit=3.0, data_dir=str(tmp_path / "data"))
-    dm = P.PendulumDataModule(**args, recorded=[str(record)])
+    dm = PendulumDataModule(**args, recorded=[str(record)])
     assert dm.num_train_trajectories == 5
     dm.setup("fit")
     train = dm.datasets["train"].arrays
-    plain = P.PendulumDataModule(**args)
+    plain = PendulumDataModule(**args)
     plain.setup("fit")
     np.testing.assert_array_equal(train["y"][:2], plain.datasets["train"].arrays["y"])  # generated ones unchanged
     state, u = np.asarray(train["state"][2:], np.float64), np.asarray(train["u"][2:], np.float64)
     assert np.abs(u).max() <= 3.0 and len(np.unique(u.round(6))) > 10
-    model = P.pendulum_model(1)
-    q, v, _ = P.simulate(model, model.createData(), state[:, 0, :1], state[:, 0, 1:], 10, 20, 5e-3, 0.0, u)
+    model = pendulum_model(1)
+    q, v, _ = simulate(model, model.createData(), state[:, 0, :1], state[:, 0, 1:], 10, 20, 5e-3, 0.0, u)
     np.testing.assert_allclose(np.concatenate([q, v], -1), state, atol=2e-4)  # recorded as float32
-    clean = np.stack([P.quantize(P.render_paper(np.asarray(a, np.float32), 24)) for a in state[..., :1]])
+    clean = np.stack([quantize(render_paper(np.asarray(a, np.float32), 24)) for a in state[..., :1]])
     assert np.abs(clean.astype(int) - np.asarray(train["y_clean"][2:]).astype(int)).max() <= 1
     with pytest.raises(ValueError, match=r"recorded on another system: image_size 24 \(data: 32\)"):
-        P.PendulumDataModule(**{**args, "image_size": 32}, recorded=[str(record)]).recorded_info()
+        PendulumDataModule(**{**args, "image_size": 32}, recorded=[str(record)]).recorded_info()
     with pytest.raises(ValueError, match="the data need"):
-        P.PendulumDataModule(**{**args, "duration": 2.0}, recorded=[str(record)]).recorded_info()
+        PendulumDataModule(**{**args, "duration": 2.0}, recorded=[str(record)]).recorded_info()
 
 
 def test_an_episode_succeeds_when_every_angle_of_its_final_window_is_within_tolerance():

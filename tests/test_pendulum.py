@@ -10,7 +10,10 @@ import torch
 from scipy.integrate import solve_ivp
 from scipy.stats import norm
 
-from datamodules import pendulum as P
+from datamodules import pendulum_excitation as drive
+from datamodules import pendulum_generation as gen
+from datamodules import pendulum_render as camera
+from datamodules import pendulum_sim as sim
 from datamodules.pendulum import PendulumDataModule
 
 G = 9.81
@@ -45,9 +48,9 @@ def lagrangian_rhs(n: int, damping: float):
 
 
 def simulate(n, q0, v0, duration=10.0, frame_dt=0.1, dt=5e-3, damping=0.0):
-    model = P.pendulum_model(n)
+    model = sim.pendulum_model(n)
     frames = int(round(duration / frame_dt))
-    return P.simulate(model, model.createData(), q0, v0, frames, int(round(frame_dt / dt)), dt, damping)[:2]
+    return sim.simulate(model, model.createData(), q0, v0, frames, int(round(frame_dt / dt)), dt, damping)[:2]
 
 
 def small_module(tmp_path, **kw) -> PendulumDataModule:
@@ -156,7 +159,7 @@ def naive_render(angles: np.ndarray, size: int, width: float) -> np.ndarray:
 @pytest.mark.parametrize("n,size,width", [(1, 24, 2.0), (4, 48, 2.0), (3, 20, 1.0), (2, 17, 3.5)])
 def test_render_matches_naive_loop(n, size, width):
     angles = np.random.default_rng(n).uniform(-4, 4, (3, n))
-    img = P.render_analytic(angles, size, width)
+    img = camera.render_analytic(angles, size, width)
     assert img.shape == (3, 1, size, size) and img.dtype == np.float32
     assert img.min() >= 0 and img.max() <= 1
     np.testing.assert_allclose(img, naive_render(angles, size, width), atol=1e-5)
@@ -175,13 +178,13 @@ def test_render_geometry(n, size):
     for theta, direction in [(0.0, (0, 1)), (math.pi / 2, (1, 0)), (-math.pi / 2, (-1, 0)), (math.pi, (0, -1))]:
         angles = np.zeros((1, n))
         angles[0, 0] = theta  # straight chain: mid-chain point at half the length
-        img = P.render_analytic(angles, size, 2.0)[0]
+        img = camera.render_analytic(angles, size, 2.0)[0]
         assert img.shape == (1, size, size)
         expected = size / 2 + 0.5 * length * np.array(direction)
         np.testing.assert_allclose(centroid(img), expected, atol=0.15)
     # a bent chain: the first link straight right, the others down again, the mean of link midpoints
     if n == 4:
-        img = P.render_analytic(np.array([[math.pi / 2, -math.pi / 2, 0, 0]]), size, 2.0)[0]
+        img = camera.render_analytic(np.array([[math.pi / 2, -math.pi / 2, 0, 0]]), size, 2.0)[0]
         link = length / 4
         mids = np.array([[0.5, 0], [1, 0.5], [1, 1.5], [1, 2.5]]) * link + size / 2
         np.testing.assert_allclose(centroid(img), mids.mean(0), atol=0.5)
@@ -251,7 +254,7 @@ def test_paper_rendering_is_the_reference_generators(n, size):
     angles = np.random.default_rng(n).uniform(-math.pi, math.pi, (60, n))
     theirs = -angles
     theirs[:, 0] += math.pi
-    ours = P.render_paper(angles, size)
+    ours = camera.render_paper(angles, size)
     expected = np.stack([reference_image(t, size) for t in theirs])[:, None]
     assert ours.shape == expected.shape == (60, 1, size, size) and ours.dtype == np.float32
     np.testing.assert_array_equal(ours, expected)
@@ -271,7 +274,7 @@ def test_paper_pivot_pixel_convention(angle):
         canvas = canvas.T
     resize = lanczos_matrix(24, 128)
     expected = resize @ canvas @ resize.T
-    got = P.render_paper(np.array([[angle]]), 24)[0, 0]
+    got = camera.render_paper(np.array([[angle]]), 24)[0, 0]
     np.testing.assert_allclose(got, expected, atol=1e-5)
     assert got[12, 12] == pytest.approx(expected[12, 12], abs=1e-5)
     assert abs(expected[12, 12] - expected[12, 11]) > 0.1  # the pixel the convention decides
@@ -284,7 +287,7 @@ def test_paper_geometry(n, size):
     for PIL's pivot at pixel 64's centre, half for its 3-and-4 split of the width)."""
     angles = np.zeros((1, n))
     angles[0, 0] = math.pi / 2
-    img = P.render_paper(angles, size)[0, 0].astype(np.float64)
+    img = camera.render_paper(angles, size)[0, 0].astype(np.float64)
     width, length = size / 16, size / 2
     assert img.sum() == pytest.approx(width * length, rel=0.02)
     below = size / 128  # one canvas pixel, in output pixels
@@ -294,7 +297,7 @@ def test_paper_geometry(n, size):
     rows = slice(size // 2 - 1, size // 2 + 1)
     assert img[rows, -1].min() > 0.3  # the tip reaches the last column
     assert np.abs(img[:, : size // 2 - 3]).max() < 1e-6  # nothing behind the pivot beyond the filter's reach
-    assert P.render(angles, size)[0, 0].tolist() == img.astype(np.float32).tolist()  # the default rendering
+    assert camera.render(angles, size)[0, 0].tolist() == img.astype(np.float32).tolist()  # the default rendering
 
 
 def test_paper_noise_is_clipped_after_it_is_added(paper_data):
@@ -302,7 +305,7 @@ def test_paper_noise_is_clipped_after_it_is_added(paper_data):
     clip(clip(c) + Z): checked against the closed form of E[clip(c + Z, 0, 1)] on the re-rendered frames."""
     _, train, test = paper_data
     state = np.concatenate([train["state"], test["state"]]).astype(np.float64)
-    clean = np.stack([P.render_paper(s[:, :1], 24)[:, 0] for s in state]).astype(np.float64)
+    clean = np.stack([camera.render_paper(s[:, :1], 24)[:, 0] for s in state]).astype(np.float64)
     y = np.concatenate([train["y"], test["y"]])[:, :, 0].astype(np.float64) / 255.0
 
     def expected_mean(c):
@@ -349,7 +352,7 @@ def test_deterministic_across_workers_and_seeds(tmp_path, monkeypatch):
     kw = dict(n_links=2, image_size=16, duration=1.0, n_train=5, n_test=3)
     a = small_module(tmp_path / "a", workers=1, **kw)
     ga = a.generate("train")
-    monkeypatch.setattr(P, "CHUNK_SIZE", 2)  # several tasks spread over two processes
+    monkeypatch.setattr(gen, "CHUNK_SIZE", 2)  # several tasks spread over two processes
     b = small_module(tmp_path / "b", workers=2, **kw)
     gb = b.generate("train")
     for key in ("y", "y_clean", "state"):
@@ -449,7 +452,7 @@ def test_true_measurements_continue_the_stored_trajectories(simple_data):
     s0 = np.asarray(train["state"], dtype=np.float64)[0, 0]
     t = np.arange(150) * 0.1
     ref = solve_ivp(lambda _t, x: [x[1], -G * np.sin(x[0])], (0, t[-1]), s0, t_eval=t, rtol=1e-11, atol=1e-11)
-    expected = P.quantize(P.render(ref.y[0][:, None], 24, rendering=dm.rendering)) / 255.0
+    expected = camera.quantize(camera.render(ref.y[0][:, None], 24, rendering=dm.rendering)) / 255.0
     # float32 initial state: the angle agrees to ~1e-6 rad, a pixel to a grey level at most
     assert np.abs(frames[1].numpy() - expected).max() <= 1.5 / 255
     assert dm.known_largest_exponent == 0.0 and dm.sample_period == 0.1
@@ -480,16 +483,16 @@ def test_excitation_is_a_smoothed_process_within_its_limit():
     clipped normal's standard deviation in closed form, lag-one correlation near ``exp(-dt/tau)``; a longer
     horizon extends the same torques."""
     rngs = [np.random.default_rng([0, i]) for i in range(400)]
-    u = P.excitation(rngs, 200, 2, limit=100.0, correlation=0.5, frame_dt=0.1)
+    u = drive.excitation(rngs, 200, 2, limit=100.0, correlation=0.5, frame_dt=0.1)
     assert u.shape == (400, 200, 2)
     c = 2.0  # E[min(X^2, c^2)] for X ~ N(0, 1)
     clipped_var = (2 * norm.cdf(c) - 1) - 2 * c * norm.pdf(c) + 2 * c * c * norm.sf(c)
     assert u.std() == pytest.approx(50.0 * math.sqrt(clipped_var), rel=0.01)
     lag1 = (u[:, 1:] * u[:, :-1]).mean() / u.var()
     assert lag1 == pytest.approx(math.exp(-0.2), abs=0.03)
-    clipped = P.excitation([np.random.default_rng([0, i]) for i in range(50)], 100, 1, 3.0, 0.5, 0.1)
+    clipped = drive.excitation([np.random.default_rng([0, i]) for i in range(50)], 100, 1, 3.0, 0.5, 0.1)
     assert np.abs(clipped).max() == 3.0
-    longer = P.excitation([np.random.default_rng([0, i]) for i in range(400)], 300, 2, 100.0, 0.5, 0.1)
+    longer = drive.excitation([np.random.default_rng([0, i]) for i in range(400)], 300, 2, 100.0, 0.5, 0.1)
     np.testing.assert_array_equal(longer[:, :200], u)
 
 
@@ -517,10 +520,10 @@ def test_energy_bound_stops_only_the_torques_that_pump_above_it(tmp_path):
     arrays = dm.generate("train")
     q, v = arrays["state"][..., :1].astype(np.float64), arrays["state"][..., 1:].astype(np.float64)
     energy = chain_energy(q, v) + G  # above hanging at rest
-    np.testing.assert_allclose(P.chain_energy(q, v), energy, atol=1e-9)
+    np.testing.assert_allclose(sim.chain_energy(q, v), energy, atol=1e-9)
     params = dm.generator_params()
-    rngs, _, _ = P.initial_states(params, 0, range(8))
-    raw = P.excitation(rngs, 100, 1, 3.0, 0.5, 0.1)
+    rngs, _, _ = gen.initial_states(params, 0, range(8))
+    raw = drive.excitation(rngs, 100, 1, 3.0, 0.5, 0.1)
     u = arrays["u"].astype(np.float64)
     pumping = (energy > bound) & (raw[..., 0] * v[..., 0] > 0)
     # float32 states: a frame within 1e-4 J of the bound may be judged either way
@@ -553,15 +556,15 @@ def test_closed_loop_identification_drives_its_share_by_the_swing_up_controller(
         n_train=6, n_test=2, torque_limit=limit, closed_loop_share=share, closed_loop_noise=noise,
         closed_loop_override=override, closed_loop_balance=balance, data_dir=str(tmp_path), workers=1,
     )  # fmt: skip
-    picked = P.closed_loop(range(1000), 0.3)
+    picked = drive.closed_loop(range(1000), 0.3)
     assert picked.sum() == 300 and picked[:10].sum() == 3
     arrays = dm.generate("train")
     params = dm.generator_params()
-    rngs, q0, v0 = P.initial_states(params, 0, range(6))
-    raw = P.excitation(rngs, 100, 1, limit, 0.5, 0.1)
-    closed = P.closed_loop(range(6), share)
+    rngs, q0, v0 = gen.initial_states(params, 0, range(6))
+    raw = drive.excitation(rngs, 100, 1, limit, 0.5, 0.1)
+    closed = drive.closed_loop(range(6), share)
     assert closed.sum() == 3
-    model = P.pendulum_model(1)
+    model = sim.pendulum_model(1)
     for i in range(6):
         if not closed[i]:
             np.testing.assert_array_equal(arrays["u"][i], raw[i].astype(np.float32))
@@ -577,7 +580,7 @@ def test_closed_loop_identification_drives_its_share_by_the_swing_up_controller(
                 u, overridden = float(raw[i, t, 0]), overridden + 1
             np.testing.assert_allclose(arrays["u"][i, t, 0], u, rtol=1e-5, atol=1e-6)
             upright.append(abs(d) < 0.3)
-            qs, vs, _ = P.simulate(model, model.createData(), [[q]], [[v]], 2, 20, 5e-3, 0.0, np.full((1, 1, 1), u))
+            qs, vs, _ = sim.simulate(model, model.createData(), [[q]], [[v]], 2, 20, 5e-3, 0.0, np.full((1, 1, 1), u))
             q, v = float(qs[0, 1, 0]), float(vs[0, 1, 0])
         if override is None and balance:
             assert all(upright[80:])  # swung up and held: upright over the last 2 s (the control task's success)

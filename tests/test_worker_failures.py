@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from datamodules import pendulum as P
+from datamodules import pendulum_generation as gen
+from datamodules.pendulum import PendulumDataModule
 
 pytestmark = pytest.mark.skipif("fork" not in mp.get_all_start_methods(), reason="the cases run in forked children")
 
@@ -61,18 +62,18 @@ def run_isolated(scenario, tmp_path: Path):
     return outcome, err.read_text()
 
 
-def tiny_module(tmp_path: Path, workers: int) -> P.PendulumDataModule:
-    return P.PendulumDataModule(
+def tiny_module(tmp_path: Path, workers: int) -> PendulumDataModule:
+    return PendulumDataModule(
         n_train=6, n_test=2, duration=0.5, image_size=8, workers=workers, data_dir=str(tmp_path / "data")
     )
 
 
-def generate_and_report(dm: P.PendulumDataModule) -> dict:
+def generate_and_report(dm: PendulumDataModule) -> dict:
     """Generate the training split; report its error, its time, the workers left and the CLI's line."""
     from ssm_ms.cli import user_error
 
-    P.CHUNK_SIZE = 1  # one task per trajectory: several tasks per worker
-    P._WORKER.clear()  # no model inherited from the test process: every process builds its own
+    gen.CHUNK_SIZE = 1  # one task per trajectory: several tasks per worker
+    gen._WORKER.clear()  # no model inherited from the test process: every process builds its own
     start = time.perf_counter()
     try:
         dm.generate("train")
@@ -109,12 +110,12 @@ def test_worker_setup_failure_stops_with_one_message(tmp_path, workers):
     """A process that cannot build its model (pinocchio missing): before, a Pool respawned workers forever."""
 
     def scenario():
-        P._init_worker = _missing_pinocchio
+        gen._init_worker = _missing_pinocchio
         return generate_and_report(tiny_module(tmp_path, workers))
 
     outcome, stderr = run_isolated(scenario, tmp_path)
-    check_failure(outcome, stderr, f"ModuleNotFoundError: {MISSING} ({P.PINOCCHIO_HINT})")
-    assert "pip install 'pin" in P.PINOCCHIO_HINT
+    check_failure(outcome, stderr, f"ModuleNotFoundError: {MISSING} ({gen.PINOCCHIO_HINT})")
+    assert "pip install 'pin" in gen.PINOCCHIO_HINT
 
 
 @pytest.mark.parametrize("workers", [2, 1], ids=["pool", "single-process"])
@@ -122,7 +123,7 @@ def test_task_failure_stops_at_once_with_one_message(tmp_path, workers):
     """A task raising in a worker: the same message as in one process, and the tasks not started are dropped."""
     ran = tmp_path / "ran"
     ran.mkdir()
-    original = P.generate_chunk
+    original = gen.generate_chunk
 
     def failing_chunk(params, split_id, start, stop):
         (ran / str(start)).touch()
@@ -132,7 +133,7 @@ def test_task_failure_stops_at_once_with_one_message(tmp_path, workers):
         return original(params, split_id, start, stop)
 
     def scenario():
-        P.generate_chunk = failing_chunk
+        gen.generate_chunk = failing_chunk
         dm = tiny_module(tmp_path, workers)
         dm.n_train = 40
         return generate_and_report(dm)
@@ -144,7 +145,7 @@ def test_task_failure_stops_at_once_with_one_message(tmp_path, workers):
 
 def test_worker_death_stops_with_one_message(tmp_path):
     """A worker killed (the out-of-memory killer) or crashed: before, a Pool lost its task and waited forever."""
-    original = P.generate_chunk
+    original = gen.generate_chunk
 
     def dying_chunk(params, split_id, start, stop):
         if start == 2:
@@ -152,7 +153,7 @@ def test_worker_death_stops_with_one_message(tmp_path):
         return original(params, split_id, start, stop)
 
     def scenario():
-        P.generate_chunk = dying_chunk
+        gen.generate_chunk = dying_chunk
         return generate_and_report(tiny_module(tmp_path, 2))
 
     outcome, stderr = run_isolated(scenario, tmp_path)
@@ -168,7 +169,7 @@ def test_pool_still_generates_the_single_process_arrays(tmp_path):
     """The pool's arrays do not depend on the number of workers (the determinism the pool must keep)."""
 
     def scenario():
-        P.CHUNK_SIZE = 2
+        gen.CHUNK_SIZE = 2
         return [tiny_module(tmp_path, w).generate("train") for w in (1, 2)]
 
     outcome, stderr = run_isolated(scenario, tmp_path)

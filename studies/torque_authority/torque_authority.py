@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> None:
     generated = (index < dm.n_train).numpy()  # the rest: recorded episodes
     closed = np.zeros(len(index), dtype=bool)
     if dm.closed_loop_share:
-        from datamodules.pendulum import closed_loop
+        from datamodules.pendulum_excitation import closed_loop
 
         closed = closed_loop(index.tolist(), dm.closed_loop_share) & generated
     closed, opened = np.repeat(closed, m), np.repeat(generated & ~closed, m)
