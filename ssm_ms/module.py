@@ -30,21 +30,14 @@ from ssm_ms.runtime.perf import check_precision
 from ssm_ms.runtime.private import built_by_lightning_cli
 from ssm_ms.schedule import ShootingSchedule
 from ssm_ms.training import distributed
-from ssm_ms.training.constraints import (
-    AugmentedLagrangianOptions,
-    augmented_lagrangian,
-    check_constraint,
-    raised_factor,
-    update_multipliers,
-)
-from ssm_ms.training.nodes import node_group, row_adam_
+from ssm_ms.training.constraints import Penalty, make_constraint
+from ssm_ms.training.nodes import NODE_UPDATES, DenseNodes
 from ssm_ms.training.shooting import (
     CompiledRollout,
     decode,
     loss_function,
     multiple_shooting_loss,
     rollout,
-    shooting_residuals,
 )
 from ssm_ms.units import ObservationInUnits, TransitionInUnits, Units
 
@@ -63,7 +56,6 @@ STRUCTURAL_HPARAMS = (
     "constraint",
     "node_encoder",
 )
-NODE_OPTIMIZERS = ("dense", "sparse")
 NETWORKS = ("f", "g", "node_encoder")  # the modules a model built in Python carries in its checkpoints
 STATE_SAMPLE = 256  # training states an amortised-node model keeps (training_states: priors, stability reports)
 
@@ -132,6 +124,10 @@ class MultipleShootingModule(pl.LightningModule):
         node_lr: learning rate of the nodes (``None``: ``lr``); the schedule scales it like ``lr``.
         constraint: ``"penalty"`` (the paper's ``fit + alpha * gap``) or ``"augmented_lagrangian"``
             (multipliers per gap, in the buffer ``multipliers``; see :mod:`ssm_ms.training.constraints`).
+            The two choices are strategy objects: ``self.node_update`` (:class:`~ssm_ms.training.nodes.DenseNodes`,
+            :class:`~ssm_ms.training.nodes.SparseNodes`) and ``self.constraint``
+            (:class:`~ssm_ms.training.constraints.Penalty`, :class:`~ssm_ms.training.constraints.AugmentedLagrangian`);
+            their state stays in this module's buffers and the optimizer's.
         constraint_options: settings of the augmented Lagrangian
             (:class:`ssm_ms.training.constraints.AugmentedLagrangianOptions`: ``every_n_epochs``, ``growth``,
             ``shrink``, ``max_factor``).
@@ -210,20 +206,15 @@ class MultipleShootingModule(pl.LightningModule):
         self.seed: int | None = None  # the seed its fit ran with (seed_everything), kept in its checkpoints
         self._fit_sums = [0.0, 0]
         self.register_buffer("alpha", torch.tensor(float(alpha)))
-        if node_optimizer not in NODE_OPTIMIZERS:
-            raise ValueError(f"unknown node_optimizer {node_optimizer!r}: choose one of {list(NODE_OPTIMIZERS)}")
+        if node_optimizer not in NODE_UPDATES:
+            raise ValueError(f"unknown node_optimizer {node_optimizer!r}: choose one of {list(NODE_UPDATES)}")
+        self.node_update: DenseNodes = NODE_UPDATES[node_optimizer]()
         if node_lr is not None and node_lr <= 0:
             raise ValueError(f"node_lr must be > 0 (or unset to use lr), got {node_lr}")
-        check_constraint(constraint, n_nodes)
-        self.al_options: AugmentedLagrangianOptions | None = None
-        if constraint == "augmented_lagrangian":
-            self.al_options = AugmentedLagrangianOptions.from_mapping(constraint_options)
-            self.register_buffer("alpha_factor", torch.tensor(1.0))  # raised when the gaps stop shrinking
-            self.register_buffer("last_gap_rms", torch.tensor(float("inf")))
-        elif constraint_options:
-            raise ValueError("constraint_options apply to constraint: augmented_lagrangian only: remove them")
+        self.constraint: Penalty = make_constraint(constraint, n_nodes, constraint_options)
+        self.constraint.attach(self)
+        # each step's (index, rows updated outside autograd, residuals kept): the updates before the optimizer step
         self._pending: list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]] = []
-        self._gap_sums = [0.0, 0]
         self._check_transition()
         self._rollout_fn: CompiledRollout | None = None
         if compile_rollout is not None:
@@ -304,13 +295,8 @@ class MultipleShootingModule(pl.LightningModule):
         self.nodes = nn.Embedding(num_trajectories, self.n_nodes * self.state_dim, dtype=self.alpha.dtype)
         nn.init.zeros_(self.nodes.weight)
         self.hparams["num_trajectories"] = num_trajectories
-        if self.hparams.get("node_optimizer") == "sparse":  # updated row by row, outside autograd and DDP
-            self.nodes.weight.requires_grad_(False)
-        if self.al_options is not None:
-            gaps = (self.n_nodes - 1) * self.state_dim
-            self.register_buffer("multipliers", self.nodes.weight.new_zeros(num_trajectories, gaps))
-            # identical on every rank (updated from the gathered batch): DDP need not broadcast them
-            self._ddp_params_and_buffers_to_ignore = ["multipliers"]
+        self.node_update.prepare(self.nodes.weight)
+        self.constraint.attach_table(self, num_trajectories, (self.n_nodes - 1) * self.state_dim)
 
     def obs_shape(self) -> tuple[int, ...]:
         """The shape of one measurement produced by g."""
@@ -664,26 +650,17 @@ class MultipleShootingModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ training
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        """The paper's objective ``mean fit(g(f^k(s_i)), y) + alpha * mean ||s_{i+1} - f^n(s_i)||^2`` on the batch's
+        trajectories (or its augmented Lagrangian: :attr:`constraint`), their nodes as :attr:`node_update` keeps
+        them."""
         index = batch["index"]
-        rows = None
-        if self.hparams.node_optimizer == "sparse":  # the batch's rows as a leaf: their gradient alone
-            rows = self.nodes.weight.detach()[index].requires_grad_()
+        rows = None if self.nodes is None else self.node_update.rows(self.nodes.weight, index)
         self._need_inputs(batch.get("u"), 1)
         nodes, y, u = self.batch_nodes(batch, rows)
         if self.node_encoder is not None:
             self._record_states(nodes)
-        # the same arguments to the plain loss and to the residuals of the augmented Lagrangian
         args = (self.f, self.g, nodes, y, self.hparams.loss, self.hparams.decode_chunk, self._rollout_fn, u)
-        if self.al_options is None:
-            fit, gap = multiple_shooting_loss(*args, **self.fit_options())
-            loss = fit + self.alpha * gap
-            residual = None
-        else:
-            fit, residual = shooting_residuals(*args, **self.fit_options())
-            gap = residual.pow(2).mean()
-            lam = self.multipliers[index].view_as(residual)
-            loss = augmented_lagrangian(fit, residual, lam, self.alpha * self.alpha_factor)
-            residual = residual.detach().flatten(1)
+        loss, fit, gap, residual = self.constraint.loss(self, args, self.fit_options(), index)
         if not torch.isfinite(loss):
             raise NonFiniteLossError(self._nan_message(fit, gap))
         if rows is not None or residual is not None:
@@ -694,7 +671,7 @@ class MultipleShootingModule(pl.LightningModule):
         self._fit_sums[0] = self._fit_sums[0] + fit.detach() * bs  # a tensor: no device sync in the step
         self._fit_sums[1] += bs
         self.log_dict({"train/fit": fit, "train/gap": gap, "train/loss": loss}, batch_size=bs, prog_bar=True)
-        self.log("alpha", self.alpha if self.al_options is None else self.alpha * self.alpha_factor, batch_size=bs)
+        self.log("alpha", self.constraint.weight(self), batch_size=bs)
         self.log("lr", self.optimizers().param_groups[0]["lr"], batch_size=bs)
         return loss
 
@@ -727,7 +704,7 @@ class MultipleShootingModule(pl.LightningModule):
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         node_lr = self.hparams.get("node_lr")
-        if self.hparams.get("node_optimizer", "dense") == "dense" and node_lr is None:
+        if not self.node_update.own_group and node_lr is None:
             return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
         # the nodes in a group of their own (their lr; in sparse mode Adam skips them: no .grad)
         others = [p for p in self.parameters() if p is not self.nodes.weight]
@@ -736,9 +713,8 @@ class MultipleShootingModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ sparse nodes, multipliers, DDP
     def on_fit_start(self) -> None:
-        if self.hparams.node_optimizer == "sparse":
-            for optimizer in self.trainer.optimizers:
-                node_group(optimizer, self.nodes.weight)  # a clear error for an optimizer replaced by the config
+        if self.nodes is not None:
+            self.node_update.check(self.trainer.optimizers, self.nodes.weight)
 
     def _check_replicated_tables(self) -> None:
         """Under DDP every rank must hold the same node table, sized for the same data set."""
@@ -752,11 +728,8 @@ class MultipleShootingModule(pl.LightningModule):
 
     def on_train_epoch_start(self) -> None:
         self._pending.clear()
-        self._gap_sums = [0.0, 0]
+        self.constraint.start_epoch()
         self._fit_sums = [0.0, 0]
-
-    def _multiplier_epoch(self) -> bool:
-        return self.al_options is not None and (self.current_epoch + 1) % self.al_options.every_n_epochs == 0
 
     @torch.no_grad()
     def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
@@ -764,37 +737,22 @@ class MultipleShootingModule(pl.LightningModule):
         if not self._pending:
             return
         index = torch.cat([p[0] for p in self._pending])
-        sparse = self.hparams.node_optimizer == "sparse"
+        sparse = self._pending[0][1] is not None
         grads = torch.cat([p[1].grad.flatten(1) for p in self._pending]) if sparse else index.new_zeros(len(index), 0)
-        residual = torch.cat([p[2] for p in self._pending]) if self.al_options is not None else grads[:, :0]
+        kept = self._pending[0][2] is not None
+        residual = torch.cat([p[2] for p in self._pending]) if kept else grads[:, :0]
         self._pending.clear()
         w = distributed.world_size()
         index, grads, residual = distributed.all_gather_rows(index, grads, residual)
         if sparse:
-            group = node_group(optimizer, self.nodes.weight)
-            row_adam_(
-                self.nodes.weight,
-                optimizer.state[self.nodes.weight],
-                index,
-                grads / w if w > 1 else grads,
-                group["lr"],
-                group["betas"],
-                group["eps"],
-            )
-        if self._multiplier_epoch():
-            alpha = self.alpha * self.alpha_factor
-            self.multipliers[index] = update_multipliers(self.multipliers[index], residual, alpha)
-            self._gap_sums[0] += float(residual.pow(2).sum())
-            self._gap_sums[1] += residual.numel()
+            self.node_update.step(optimizer, self.nodes.weight, index, grads / w if w > 1 else grads)
+        if kept:
+            self.constraint.update(self, index, residual)
 
     def on_train_epoch_end(self) -> None:
         if self._fit_sums[1]:
             self.fit_mse = float(self._fit_sums[0]) / self._fit_sums[1]
-        if self._multiplier_epoch() and self._gap_sums[1] > 0 and self.al_options.growth > 1:
-            rms = (self._gap_sums[0] / self._gap_sums[1]) ** 0.5
-            factor = raised_factor(float(self.alpha_factor), rms, float(self.last_gap_rms), self.al_options)
-            self.alpha_factor.fill_(factor)
-            self.last_gap_rms.fill_(rms)
+        self.constraint.end_epoch(self)
 
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:

@@ -31,6 +31,8 @@ from typing import Any
 
 import torch
 
+from ssm_ms.training.shooting import multiple_shooting_loss, shooting_residuals
+
 CONSTRAINTS = ("penalty", "augmented_lagrangian")
 
 
@@ -97,3 +99,100 @@ def raised_factor(factor: float, gap_rms: float, previous_rms: float, options: A
     if math.isfinite(previous_rms) and gap_rms > options.shrink * previous_rms:
         return min(factor * options.growth, options.max_factor)
     return factor
+
+
+# ------------------------------------------------------------------------------------------------- the strategies
+# A model's constraint is one of these objects (:func:`make_constraint`). They keep their state in the model's buffers
+# (``alpha``; the augmented Lagrangian's ``alpha_factor``, ``last_gap_rms`` and ``multipliers``), so checkpoints and
+# DDP see them as before; the objects hold the options and an epoch's running sums only.
+class Penalty:
+    """The paper's objective, ``fit + alpha * mean(c^2)``: nothing kept between steps."""
+
+    def attach(self, model: torch.nn.Module) -> None:
+        """Register the buffers this constraint keeps on ``model`` (none)."""
+
+    def attach_table(self, model: torch.nn.Module, num_trajectories: int, gaps: int) -> None:
+        """Register the per-trajectory state beside ``model``'s node table (none)."""
+
+    def weight(self, model: torch.nn.Module) -> torch.Tensor:
+        """The gap term's weight now: the schedule's ``alpha``."""
+        return model.alpha
+
+    def loss(
+        self, model: torch.nn.Module, args: tuple, options: Mapping[str, Any], index: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """``(loss, fit, mean gap^2, residuals to keep)`` of a batch (``args`` as :func:`multiple_shooting_loss`'s)."""
+        fit, gap = multiple_shooting_loss(*args, **options)
+        return fit + self.weight(model) * gap, fit, gap, None
+
+    def start_epoch(self) -> None:
+        """A training epoch begins."""
+
+    def update(self, model: torch.nn.Module, index: torch.Tensor, residual: torch.Tensor) -> None:
+        """After a step's backward, with every rank's trajectories ``index`` and their kept residuals (none here)."""
+
+    def end_epoch(self, model: torch.nn.Module) -> None:
+        """A training epoch ends."""
+
+
+class AugmentedLagrangian(Penalty):
+    """``fit + mean(lambda * c) + alpha * factor * mean(c^2)``, the multipliers ``lambda`` per gap element and
+    trajectory (the buffer ``multipliers``), updated every ``every_n_epochs``-th epoch; ``factor`` (``alpha_factor``)
+    raised when the gaps stop shrinking."""
+
+    def __init__(self, options: AugmentedLagrangianOptions):
+        self.options = options
+        self._sums = [0.0, 0]  # an update epoch's sum of squared residuals, and their count
+
+    def attach(self, model: torch.nn.Module) -> None:
+        model.register_buffer("alpha_factor", torch.tensor(1.0))  # raised when the gaps stop shrinking
+        model.register_buffer("last_gap_rms", torch.tensor(float("inf")))
+
+    def attach_table(self, model: torch.nn.Module, num_trajectories: int, gaps: int) -> None:
+        model.register_buffer("multipliers", model.nodes.weight.new_zeros(num_trajectories, gaps))
+        # identical on every rank (updated from the gathered batch): DDP need not broadcast them
+        model._ddp_params_and_buffers_to_ignore = ["multipliers"]
+
+    def weight(self, model: torch.nn.Module) -> torch.Tensor:
+        return model.alpha * model.alpha_factor
+
+    def loss(
+        self, model: torch.nn.Module, args: tuple, options: Mapping[str, Any], index: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        fit, residual = shooting_residuals(*args, **options)
+        lam = model.multipliers[index].view_as(residual)
+        loss = augmented_lagrangian(fit, residual, lam, self.weight(model))
+        return loss, fit, residual.pow(2).mean(), residual.detach().flatten(1)
+
+    def updating(self, epoch: int) -> bool:
+        """Whether the multipliers are updated during ``epoch``."""
+        return (epoch + 1) % self.options.every_n_epochs == 0
+
+    def start_epoch(self) -> None:
+        self._sums = [0.0, 0]
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module, index: torch.Tensor, residual: torch.Tensor) -> None:
+        if not self.updating(model.current_epoch):
+            return
+        model.multipliers[index] = update_multipliers(model.multipliers[index], residual, self.weight(model))
+        self._sums[0] += float(residual.pow(2).sum())
+        self._sums[1] += residual.numel()
+
+    def end_epoch(self, model: torch.nn.Module) -> None:
+        if self.updating(model.current_epoch) and self._sums[1] > 0 and self.options.growth > 1:
+            rms = (self._sums[0] / self._sums[1]) ** 0.5
+            factor = raised_factor(float(model.alpha_factor), rms, float(model.last_gap_rms), self.options)
+            model.alpha_factor.fill_(factor)
+            model.last_gap_rms.fill_(rms)
+
+
+def make_constraint(constraint: str, n_nodes: int, options: Mapping[str, Any] | None) -> Penalty:
+    """The strategy of ``model.constraint`` (checked: :func:`check_constraint`; options for the augmented Lagrangian
+    only)."""
+    check_constraint(constraint, n_nodes)
+    if constraint == "augmented_lagrangian":
+        return AugmentedLagrangian(AugmentedLagrangianOptions.from_mapping(options))
+    if options:
+        raise ValueError("constraint_options apply to constraint: augmented_lagrangian only: remove them")
+    return Penalty()

@@ -68,3 +68,48 @@ def node_group(optimizer: torch.optim.Optimizer, weight: torch.Tensor) -> dict[s
             "section, or use node_optimizer: dense"
         )
     return groups[0]
+
+
+# ------------------------------------------------------------------------------------------------- the strategies
+class DenseNodes:
+    """The paper's node update: the node table is a parameter like any other, in the model's one Adam (momentum moves
+    every row at every step)."""
+
+    own_group = False  # the nodes need no parameter group of their own (unless given their own learning rate)
+
+    def prepare(self, weight: torch.Tensor) -> None:
+        """The node table ``weight`` just made."""
+
+    def rows(self, weight: torch.Tensor, index: torch.Tensor) -> torch.Tensor | None:
+        """The rows ``index`` as a leaf of their own, where they are updated outside autograd (else None)."""
+        return None
+
+    def check(self, optimizers: list[torch.optim.Optimizer], weight: torch.Tensor) -> None:
+        """At the fit's start: the optimizers can update the table this way."""
+
+    def step(self, optimizer: torch.optim.Optimizer, weight: torch.Tensor, index: torch.Tensor, grads: torch.Tensor):
+        """Before the optimizer's step: update the rows ``index`` from their gradients ``grads`` (nothing here)."""
+
+
+class SparseNodes(DenseNodes):
+    """Only the batch's rows change, each by its own Adam (:func:`row_adam_`), outside autograd and DDP."""
+
+    own_group = True
+
+    def prepare(self, weight: torch.Tensor) -> None:
+        weight.requires_grad_(False)  # updated row by row, outside autograd and DDP
+
+    def rows(self, weight: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        return weight.detach()[index].requires_grad_()  # the batch's rows as a leaf: their gradient alone
+
+    def check(self, optimizers: list[torch.optim.Optimizer], weight: torch.Tensor) -> None:
+        for optimizer in optimizers:
+            node_group(optimizer, weight)  # a clear error for an optimizer replaced by the config
+
+    @torch.no_grad()
+    def step(self, optimizer: torch.optim.Optimizer, weight: torch.Tensor, index: torch.Tensor, grads: torch.Tensor):
+        group = node_group(optimizer, weight)
+        row_adam_(weight, optimizer.state[weight], index, grads, group["lr"], group["betas"], group["eps"])
+
+
+NODE_UPDATES = {"dense": DenseNodes, "sparse": SparseNodes}  # model.node_optimizer -> its strategy
