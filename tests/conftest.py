@@ -50,6 +50,19 @@ def committed_outputs_untouched():
 
 if "OMP_NUM_THREADS" not in os.environ:  # the CI machine's 2 cores; OMP_NUM_THREADS=1 on a shared machine
     torch.set_num_threads(2)
+
+
+@pytest.fixture(autouse=True)
+def torch_threads_restored():
+    """Each test leaves torch's thread count as it found it: a benchmark script run in a test sets its own (2), and
+    under ``make test``'s two workers of one thread each that would put four threads on two cores for every later
+    test of that worker (OpenMP's spinning then made a 2-s test take two minutes)."""
+    threads = torch.get_num_threads()
+    yield
+    if torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+
+
 warnings.filterwarnings("ignore", ".*does not have many workers.*")
 warnings.filterwarnings("ignore", ".*GPU available but not used.*")
 warnings.filterwarnings("ignore", ".*LeafSpec.*")
