@@ -11,7 +11,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from ssm_ms.cli import SSMCLI, main
-from ssm_ms.reproduce import config_value, experiment_name, load_config, logger_dir
+from ssm_ms.reproduce import config_value, experiment_name, load_config, logger_dir, read_registry
 
 ROOT = Path(__file__).resolve().parents[1]
 # every runnable config: not the shared sections (configs/data/, configs/cpu/data/, configs/benchmarks/parts/), not
@@ -24,7 +24,16 @@ CONFIGS = sorted(
 
 
 def is_stage(config: Path) -> bool:
-    return config.stem.endswith(("_encoder", "_ukf", "_optimise"))
+    """A stage the registry runs on a trained SSM's checkpoint (an encoder, the UKF, fitted states)."""
+    if not config.is_relative_to(ROOT):  # a test's own config, outside the repository
+        return False
+    name = str(config.relative_to(ROOT))
+    return any(
+        stages.get(kind) == name
+        for sizes in read_registry()["experiments"].values()
+        for stages in sizes.values()
+        for kind in ("encoder", "ukf", "optimise")
+    )
 
 
 @pytest.fixture(scope="module")
