@@ -546,11 +546,11 @@ def main(argv: list[str] | None = None) -> None:
             parser.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(opts, name)}")
     if opts.seed is not None and opts.seed < 0:
         parser.error(f"--seed must be >= 0, got {opts.seed}")
-    if opts.orders is not None and opts.experiment not in read_registry().get("benchmarks", {}):
+    registry = read_registry()
+    if opts.orders is not None and opts.experiment not in registry.get("benchmarks", {}):
         parser.error("--orders chooses a benchmark's latent dimension (configs/benchmarks/): not for this experiment")
     if opts.no_encoder and opts.encoder_epochs is not None:
         parser.error("--encoder-epochs budgets the encoder stage that --no-encoder leaves out: give one of the two")
-    registry = read_registry()
     suite = registry.get("suites", {}).get(opts.experiment)
     if suite is not None:  # several experiments into one results file, one after the other
         if opts.resume:
