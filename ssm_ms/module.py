@@ -113,6 +113,8 @@ class MultipleShootingModule(pl.LightningModule):
         n_nodes: shooting nodes per trajectory ``m``; the trajectory length must be a multiple of it.
         loss: ``"mse"`` or ``"bce"`` (then ``g`` must output values in [0, 1]).
         lr: Adam learning rate (the schedule lowers it at its milestones).
+        weight_decay: decoupled weight decay of ``f``, ``g`` and the node encoder (AdamW; the nodes never decay);
+            0, the paper's plain Adam, by default. A regulariser for short recordings (docs/benchmarks.md).
         alpha: initial weight of the continuity gap (the schedule raises it).
         node_init_map: ``None`` to start all nodes at zero, or ``{state_index: measurement_index}`` to
             start those state components at the (flattened) measurement at each node's time, the
@@ -168,6 +170,7 @@ class MultipleShootingModule(pl.LightningModule):
         compile_rollout: str | None = None,
         val_horizon: int | None = None,
         node_encoder: nn.Module | None = None,
+        weight_decay: float = 0.0,
     ):
         super().__init__()
         # Built by LightningCLI, f, g and the node encoder are recorded as their config (class_path + init_args), so
@@ -184,6 +187,10 @@ class MultipleShootingModule(pl.LightningModule):
             )
         if not lr > 0:
             raise ValueError(f"the learning rate must be > 0, got {lr}: set model.init_args.lr (the paper: 1e-3)")
+        if not weight_decay >= 0:
+            raise ValueError(
+                f"weight_decay must be >= 0, got {weight_decay}: set model.init_args.weight_decay (0: the paper's Adam)"
+            )
         if num_trajectories is not None and num_trajectories < 1:
             raise ValueError(f"num_trajectories must be >= 1, got {num_trajectories}")
         if val_horizon is not None and (int(val_horizon) != val_horizon or val_horizon < 1):
@@ -703,13 +710,19 @@ class MultipleShootingModule(pl.LightningModule):
         return out
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
-        node_lr = self.hparams.get("node_lr")
-        if not self.node_update.own_group and node_lr is None:
-            return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
-        # the nodes in a group of their own (their lr; in sparse mode Adam skips them: no .grad)
-        others = [p for p in self.parameters() if p is not self.nodes.weight]
-        groups = [{"params": others}, {"params": [self.nodes.weight], "lr": node_lr or self.hparams.lr}]
-        return torch.optim.Adam(groups, lr=self.hparams.lr)
+        node_lr, decay = self.hparams.get("node_lr"), float(self.hparams.get("weight_decay", 0.0))
+        # weight decay shrinks the networks' weights only: the nodes are states, not weights
+        if self.nodes is None or not (self.node_update.own_group or node_lr is not None or decay):
+            groups = [{"params": list(self.parameters())}]
+        else:
+            others = [p for p in self.parameters() if p is not self.nodes.weight]
+            # the nodes in a group of their own (their lr; in sparse mode Adam skips them: no .grad)
+            groups = [{"params": others}, {"params": [self.nodes.weight], "lr": node_lr or self.hparams.lr}]
+            if decay:
+                groups[1]["weight_decay"] = 0.0
+        if not decay:
+            return torch.optim.Adam(groups, lr=self.hparams.lr)
+        return torch.optim.AdamW(groups, lr=self.hparams.lr, weight_decay=decay)
 
     # ------------------------------------------------------------------ sparse nodes, multipliers, DDP
     def on_fit_start(self) -> None:

@@ -250,3 +250,23 @@ def test_reconstructions_are_drawn_at_validations_every_n_epochs_apart(tmp_path,
     )
     trainer.fit(rotation_model(), rotation_dm)
     assert drawn == [2, 5, 11]
+
+
+def test_weight_decay_shrinks_the_networks_and_never_the_nodes():
+    """With zero gradients an AdamW step is the decay alone: every weight of f and g times (1 - lr * wd),
+    the node table unchanged; without weight_decay the optimizer is the paper's plain Adam."""
+    assert type(rotation_model().configure_optimizers()) is torch.optim.Adam
+    model = rotation_model(lr=0.1, weight_decay=0.5)
+    model._make_nodes(3)
+    with torch.no_grad():
+        model.nodes.weight.normal_()
+    before = {n: p.detach().clone() for n, p in model.named_parameters()}
+    optimizer = model.configure_optimizers()
+    for p in model.parameters():
+        p.grad = torch.zeros_like(p)
+    optimizer.step()
+    for name, p in model.named_parameters():
+        expected = before[name] if name == "nodes.weight" else before[name] * (1 - 0.1 * 0.5)
+        torch.testing.assert_close(p.detach(), expected, rtol=0, atol=1e-7)
+    with pytest.raises(ValueError, match="weight_decay must be >= 0"):
+        rotation_model(weight_decay=-1e-3)
