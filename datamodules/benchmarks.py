@@ -127,7 +127,8 @@ class BenchmarkDataModule(Recordings):
         self.n_init = int(n_init) if n_init is not None else (max(given) if given else 0)
         if self.n_init < 1:
             raise ValueError(
-                f"benchmark {benchmark}: the loader gives no n_init: give n_init, the samples to estimate the state from"
+                f"benchmark {benchmark}: the loader gives no n_init: "
+                "give n_init, the samples to estimate the state from"
             )
         self._sequences = {
             "train": [_sequence(np.asarray(train.y)[:cut], np.asarray(train.u)[:cut])],

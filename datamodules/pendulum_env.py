@@ -22,9 +22,10 @@ class PendulumEnvironment:
     returns the next. Measurements are made as the data's: frames rendered and noised (``noise_std``, clipped,
     quantised to 8 bits), float32 ``[B, 1, H, W]`` in [0, 1]; with the data's ``sensors`` the encoders' reading too
     (``angle_noise_std``; NaN between samples every ``angle_every`` periods), packed as a batch's ``y`` is
-    (``[B, P]``; the reading alone ``[B, 2 n]``, :func:`angle_reading` of the angles noised). :attr:`state` ``[B, 2 n]`` (angles, then velocities) is the truth, for
-    scoring only. The noise of episode ``i`` comes from ``numpy.random.default_rng([seed, 2, i])`` (split id 2:
-    neither the training nor the test data's streams).
+    (``[B, P]``; the reading alone ``[B, 2 n]``, :func:`angle_reading` of the angles noised).
+    :attr:`state` ``[B, 2 n]`` (angles, then velocities) is the truth, for scoring only. The noise of episode
+    ``i`` comes from ``numpy.random.default_rng([seed, 2, i])`` (split id 2: neither the training nor the test data's
+    streams).
     """
 
     def __init__(self, params: dict[str, Any], seed: int = 0):

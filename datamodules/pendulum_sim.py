@@ -21,8 +21,8 @@ undamped, relative to the potential-energy scale ``g * sum of mass heights`` (``
 
 (the reference implementation's scheme, semi-implicit Euler at ``dt = 1e-3``, is symplectic: its energy
 error stays bounded, at most 0.26 % of ``m g l`` over 10 s, median 0.17 %, over 2000 simple-pendulum initial
-states drawn like the paper's; measured 2026-11-26, an earlier text here said it lost 40 %). Cost: ~7 ms (1 link) and ~16 ms (4 links) of dynamics per
-trajectory, ~1 ms rendering, 1-2 ms noise, on one core of this project's machine.
+states drawn like the paper's). Cost: ~7 ms (1 link) and ~16 ms (4 links) of dynamics per trajectory, ~1 ms
+rendering, 1-2 ms noise, on one core.
 """
 
 from __future__ import annotations

@@ -393,8 +393,8 @@ class SSM:
         for b, at in enumerate(diverged.tolist()):
             if at >= 0:
                 warnings.warn(
-                    f"the simulation{f' of sequence {b}' if len(diverged) > 1 else ''} diverged at sample {at} (it left "
-                    "the finite range, or 100 training standard deviations from the data's mean)",
+                    f"the simulation{f' of sequence {b}' if len(diverged) > 1 else ''} diverged at sample {at} "
+                    "(it left the finite range, or 100 training standard deviations from the data's mean)",
                     stacklevel=3,
                 )
         return y

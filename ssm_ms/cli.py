@@ -20,9 +20,9 @@ What the command line adds to Lightning's:
   line (:data:`REPORTING`: which metrics, where results and figures go, the analysis, the experiment and method
   names; a config file's values do not count, so a pretrained model tested with its config writes where its
   checkpoint says): they change what is written about the model, not what it computes, so a trained model can be
-  scored again with another metric into another folder. A checkpoint whose model does not fit this command's data (another experiment's)
-  is refused naming that first (``the checkpoint ... was trained for another model or data ...``), then
-  the detail (g's output shape against the data's, the trajectory length, the trajectory count).
+  scored again with another metric into another folder. A checkpoint whose model does not fit this command's data
+  (another experiment's) is refused naming that first (``the checkpoint ... was trained for another model or
+  data ...``), then the detail (g's output shape against the data's, the trajectory length, the trajectory count).
 - **Trainer settings.** An invalid ``trainer`` value that Lightning refuses when it builds the Trainer
   (a ``MisconfigurationException`` or ``ValueError``, e.g. ``--trainer.max_epochs -5``) is a user's
   mistake: one ``error: trainer: ...`` line, status 1.

@@ -626,7 +626,8 @@ class MultipleShootingModule(pl.LightningModule):
 
     @torch.no_grad()
     def _piece_predictions(self, nodes: torch.Tensor, t: int, u: torch.Tensor | None) -> torch.Tensor:
-        """``g(f^k(s_i))``, ``k = 0..n``, of nodes ``[B, m, d]`` over pieces of ``n = t / m`` (inputs ``u [B, t, m_u]``)."""
+        """``g(f^k(s_i))``, ``k = 0..n``, of nodes ``[B, m, d]`` over pieces of ``n = t / m``
+        (inputs ``u [B, t, m_u]``)."""
         m = self.n_nodes
         n = t // m
         was_training = self.training

@@ -24,10 +24,10 @@ the networks' and shooting nodes' initial values change; the data and their orde
 section's own ``seed``). Its results go to ``results/<experiment>_seed<N>.md``; ``python -m ssm_ms.forecasting.seeds
 <experiment>`` gathers the seeds' scores as mean and std.
 
-Each stage is ``python cli.py ...`` in its own process, logged under ``runs/<name>/reproduce-<stamp>/``, so the checkpoints each stage hands to the next are
-known: an SSM's ``last.ckpt``; an encoder's or a baseline's ``best.ckpt`` where its config keeps its best epoch
-(:func:`tested_checkpoint`), else its ``last.ckpt``. Every method lands in the same ``results/<experiment>.md``, which ends with the commands and
-their durations.
+Each stage is ``python cli.py ...`` in its own process, logged under ``runs/<name>/reproduce-<stamp>/``, so the
+checkpoints each stage hands to the next are known: an SSM's ``last.ckpt``; an encoder's or a baseline's
+``best.ckpt`` where its config keeps its best epoch (:func:`tested_checkpoint`), else its ``last.ckpt``. Every
+method lands in the same ``results/<experiment>.md``, which ends with the commands and their durations.
 
 Ctrl-C (or ``kill <pid>``, SIGTERM or SIGINT) during a stage stops the stage as ``fit`` stops (its last completed epoch
 kept); this process waits for it, prints which stage was interrupted, the command that resumes that stage alone

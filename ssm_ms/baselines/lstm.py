@@ -78,7 +78,8 @@ class Seq2SeqLSTM(nn.Module):
         return torch.cat([self.frames(y), observed.unsqueeze(-1).to(y.dtype)], dim=-1)
 
     def forward(self, y: Tensor, observed: Tensor | None = None) -> SequenceOutput:
-        """``y [B, T, *obs_shape]``, ``observed [B, T]`` (default: all) -> ``SequenceOutput(mean [B, T, *obs_shape])``."""
+        """``y [B, T, *obs_shape]``, ``observed [B, T]`` (default: all) ->
+        ``SequenceOutput(mean [B, T, *obs_shape])``."""
         if observed is None:
             observed = torch.ones(y.shape[:2], dtype=torch.bool, device=y.device)
         out, _ = self.lstm(self.inputs(y, observed))

@@ -401,8 +401,8 @@ class ForecastModule(pl.LightningModule):
         restore_float_weights(checkpoint)
 
     def configure_callbacks(self):
-        """``predict`` without a :class:`~ssm_ms.forecasting.writer.ForecastWriter` among the trainer's callbacks gets one
-        writing ``predictions/<experiment>_<method>.npz``."""
+        """``predict`` without a :class:`~ssm_ms.forecasting.writer.ForecastWriter` among the trainer's callbacks gets
+        one writing ``predictions/<experiment>_<method>.npz``."""
         from ssm_ms.forecasting.writer import ForecastWriter
 
         if self.trainer.state.fn != "predict" or any(isinstance(c, ForecastWriter) for c in self.trainer.callbacks):

@@ -27,8 +27,8 @@ FLOOR_FRAMES = 10  # images: the valid time counts errors above the reconstructi
 def valid_time_split(
     settings: ValidTimeSettings, n_filter: int, n_predict: int | None, seq_len: int
 ) -> tuple[int, int]:
-    """``(k, h)``: steps given and steps forecast for the valid time, the protocol's ``n_filter`` and ``n_predict`` (else
-    the rest of each sequence) where ``settings`` leave them unset."""
+    """``(k, h)``: steps given and steps forecast for the valid time, the protocol's ``n_filter`` and ``n_predict``
+    (else the rest of each sequence) where ``settings`` leave them unset."""
     k = settings.n_filter or n_filter
     return k, settings.horizon or n_predict or seq_len - k
 

@@ -52,17 +52,9 @@ class ConvDecoder(nn.Module):
               nothing is written. Where the native path cannot run it is the ``"torch"`` path anyway, as for
               ``"native"`` (below), and also where the kernels are not built, where one sample does not fit them
               (:attr:`native_fits`: Moving MNIST's decoder), and under ``torch.compile`` and ``torch.export``
-              tracing. The figures behind the rule (decoder forward + backward, native kernels against the torch
-              path, same run, 2 threads; ``make bench`` writes the table for the machine it runs on): AVX-512 Intel
-              Xeon, pendulum 91 against 195 ms and quadruple pendulum 94 against 199 ms
-              (``benchmarks/results/decoder_profile.md``, a row per machine); AVX-512 AMD Zen 4, 313 against 850 ms and 344 against
-              920 ms, the kernels 0.37x the torch path's time on a machine shared with a training job
-              (the same file); AVX-512 AMD Zen 5, 7.3 against 17.5 ms per 455 pendulum frames
-              (``benchmarks/results/epoch_profile_pendulum.md``, its notes); AVX2-only AMD Zen 3, 381
-              against 475 ms and 340 against 441 ms (``decoder_profile.md``); AVX2-only AMD
-              Zen 1 (AVX2 as two 128-bit halves), 873 against 508 ms and 799 against 468 ms: the kernels lose there
-              (``decoder_profile.md``). Zen 2 (full-width AVX2, like Zen 3) and Intel CPUs
-              with AVX2 only are not measured: the rule takes the kernels there, as on Zen 3; give ``"torch"`` if
+              tracing. The rule follows the measured ratio of the two paths (decoder forward + backward, per
+              machine: ``benchmarks/results/decoder_profile.md``, written by ``make bench``): the kernels win on
+              AVX-512 and full-width AVX2 and lose on Zen 1's split AVX2. Give ``"torch"`` where
               ``python benchmarks/profile_decoder.py`` says it is faster.
             * ``"native"``: the native kernels of :mod:`ssm_ms.nets.native` wherever they can run (AVX2 CPUs included):
               the whole stack after the stem (every transposed convolution, LayerNorm and ReLU) one sample at a time

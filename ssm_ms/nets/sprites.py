@@ -30,8 +30,9 @@ from ssm_ms.nets.decoder import ConvDecoder
 
 
 class SpriteDecoder(nn.Module):
-    """``[N, state_dim]`` -> ``[N, channels, image_size, image_size]``: ``n_sprites`` sprites, each drawn from its content
-    code by one shared :class:`~ssm_ms.nets.ConvDecoder` and translated to its position, composed by the maximum.
+    """``[N, state_dim]`` -> ``[N, channels, image_size, image_size]``: ``n_sprites`` sprites, each drawn from its
+    content code by one shared :class:`~ssm_ms.nets.ConvDecoder` and translated to its position, composed by the
+    maximum.
 
     Args:
         state_dim: the state's size, at least ``n_sprites * (2 + what_dim)`` (the module doc: the layout).

@@ -128,7 +128,7 @@ def decode(g: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, chunk: in
 
 
 def check_shapes(nodes: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None = None) -> int:
-    """Validate ``nodes [B, m, d]`` against ``y [B, T, ...]`` (and inputs ``u [B, T, m_u]``) and return ``n = T / m``."""
+    """Validate ``nodes [B, m, d]`` against ``y [B, T, ...]`` (and inputs ``u [B, T, m_u]``); return ``n = T / m``."""
     if nodes.dim() != 3:
         raise ValueError(f"nodes must be [batch, n_nodes, state_dim], got shape {tuple(nodes.shape)}")
     if y.dim() < 3:
