@@ -374,6 +374,53 @@ def counts_before_fractions() -> None:
             annotations[name] = functools.reduce(operator.or_, [int, *(m for m in members if m is not int)])
 
 
+def _parsing_settings() -> None:
+    """What every parse of a config needs, by :func:`main` or :func:`config_parser`: interpolation paths written from
+    the config's root (the subcommand's level), the int before the float in the Trainer's counts."""
+    set_parsing_settings(omegaconf_absolute_to_relative_paths=True)
+    counts_before_fractions()
+
+
+def _cli(cls: type[SSMCLI], args: list[str] | None, run: bool) -> SSMCLI:
+    return cls(
+        pl.LightningModule,
+        pl.LightningDataModule,
+        subclass_mode_model=True,
+        subclass_mode_data=True,
+        parser_class=_Parser,
+        parser_kwargs={"parser_mode": "omegaconf+"},
+        save_config_kwargs={"overwrite": True},
+        argv=args,
+        run=run,
+    )
+
+
+class _ParserBuilt(Exception):
+    def __init__(self, parser: LightningArgumentParser):
+        super().__init__("parser built")
+        self.parser = parser
+
+
+class _ParserOnly(SSMCLI):
+    """Stops once the parser is built, before anything is parsed, seeded or instantiated."""
+
+    def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
+        raise _ParserBuilt(parser)
+
+
+@functools.cache
+def config_parser() -> LightningArgumentParser:
+    """The parser of ``python cli.py`` without a subcommand (``trainer``, ``model``, ``data``, ``seed_everything``),
+    built as :func:`main` builds it, once per process: a config read through it composes exactly as the command
+    line composes it (includes, section files, dotted keys, interpolations)."""
+    _parsing_settings()
+    try:
+        _cli(_ParserOnly, [], run=False)
+    except _ParserBuilt as built:
+        return built.parser
+    raise RuntimeError("LightningCLI parsed without calling parse_arguments")  # pragma: no cover
+
+
 def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     """Parse ``args`` (default: ``sys.argv``) and run the subcommand.
 
@@ -384,22 +431,10 @@ def main(args: list[str] | None = None, run: bool = True) -> LightningCLI:
     configure_allocator()  # large CPU tensors: reuse freed memory instead of page-faulting it back
     show_package_log()
     quiet_lightning()  # Lightning's advertisements and a deprecation warning it triggers: nothing to act on
-    # interpolation paths are written from the config's root (the subcommand's level)
-    set_parsing_settings(omegaconf_absolute_to_relative_paths=True)
-    counts_before_fractions()
+    _parsing_settings()
     sigint = signal.getsignal(signal.SIGINT)  # Lightning ignores SIGINT after a Ctrl-C: restore it after
     try:
-        return SSMCLI(
-            pl.LightningModule,
-            pl.LightningDataModule,
-            subclass_mode_model=True,
-            subclass_mode_data=True,
-            parser_class=_Parser,
-            parser_kwargs={"parser_mode": "omegaconf+"},
-            save_config_kwargs={"overwrite": True},
-            argv=args,
-            run=run,
-        )
+        return _cli(SSMCLI, args, run)
     except (Exception, KeyboardInterrupt) as exc:
         if os.environ.get(TRACEBACK_ENV, "") not in ("", "0"):
             raise

@@ -53,6 +53,7 @@ import argparse
 import importlib
 import json
 import math
+import os
 import shlex
 import signal
 import subprocess
@@ -78,9 +79,6 @@ BUDGETS = ("encoder_epochs", "baseline_epochs")  # options a resumed run may rai
 STAGE_CHOICES = ("no_encoder",)
 
 
-SECTION_FILES = ("data", "model")  # sections a config may give as the path of a file holding them
-
-
 def read_registry() -> dict:
     """The experiment registry (:data:`REGISTRY`): ``experiments`` (name -> size -> stage -> config path),
     ``benchmarks`` (name -> ``fit`` and ``test`` configs), ``suites`` (name -> experiments)."""
@@ -95,59 +93,41 @@ def known_experiments(registry: dict, size: str) -> list[str]:
     return sorted({*known, *registry.get("suites", {}), *registry.get("benchmarks", {})})
 
 
-def load_config(config: Path | str, _including: tuple[Path, ...] = ()) -> dict:
-    """The config file ``config`` composed as ``cli.py`` (jsonargparse) composes it, as a dict: the values it and the
-    configs it includes state (not the defaults they leave out), interpolations (``${...}``) as written.
+def load_config(config: Path | str) -> dict:
+    """The config file ``config`` as ``python cli.py`` composes it (:func:`ssm_ms.cli.config_parser`: its includes,
+    section files, dotted keys and interpolations, the defaults it leaves out filled in), as a dict.
 
-    - ``config: <path>`` (relative to the file; its first key) loads that config first, itself composed;
-    - then the file's other keys in order: a dotted key (``trainer.max_epochs: 5``) sets that one value (a dict or
-      list given there replaces the value whole), a plain key (``trainer:``) replaces the whole section;
-    - ``data`` or ``model`` given as a path (``data: data/pendulum.yaml``, relative to the file) is that file's
-      content (``class_path`` and ``init_args``; its interpolations, written within the section, from the root).
-
-    tests/test_configs.py checks it against ``cli.py --print_config`` on every shipped config."""
+    Read, not checked: a required value that a stage receives on the command line (an encoder's
+    ``ssm_checkpoint``) may be missing. A file that is not a whole config (a data config: ``class_path`` and
+    ``init_args``) is its YAML as written."""
     path = Path(config)
-    if path.resolve() in _including:
-        raise ValueError(f"{path} includes itself: {' -> '.join(str(p) for p in (*_including, path.resolve()))}")
     raw = OmegaConf.to_container(OmegaConf.load(path), resolve=False) or {}
     if not isinstance(raw, dict):
         raise ValueError(f"{path} is not a config (a YAML mapping of options)")
-    out: dict = {}
-    for key, value in raw.items():
-        key = str(key)
-        if key == "config":  # an include after other keys (jsonargparse): they stay where it does not set them
-            out = _merged(out, load_config(path.parent / str(value), (*_including, path.resolve())))
-            continue
-        if key in SECTION_FILES and isinstance(value, str):
-            value = _from_root(OmegaConf.to_container(OmegaConf.load(path.parent / value), resolve=False), key)
-        *parents, leaf = key.split(".")
-        node = out
-        for part in parents:
-            if not isinstance(node.get(part), dict):
-                node[part] = {}
-            node = node[part]
-        node[leaf] = value
-    return out
+    if "class_path" in raw:  # a section file of its own (configs/data/*.yaml)
+        return raw
+    from ssm_ms.cli import CommandLineError, config_parser
+
+    # jsonargparse parses in the config's folder: the working directory's place on sys.path ("" under python -c)
+    # must name the folder the process started in, for the classes the config names
+    saved = list(sys.path)
+    sys.path[:] = [p or os.getcwd() for p in sys.path]
+    try:  # jsonargparse's parse without its check of required values (the stage's checkpoint comes with the command)
+        parsed = config_parser().parse_args(["--config", str(path)], _skip_validation=True).as_dict()
+    except CommandLineError as e:
+        raise ValueError(f"{path}: {e.message}") from None
+    finally:
+        sys.path[:] = saved
+    return _values(parsed)
 
 
-def _from_root(value, section: str):
-    """A section file's interpolations written from the config's root: ``${init_args.x}`` in the ``model`` file is
-    ``${model.init_args.x}`` (jsonargparse resolves a section file's interpolations within the section)."""
-    if isinstance(value, dict):
-        return {k: _from_root(v, section) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_from_root(v, section) for v in value]
-    if isinstance(value, str):
-        return value.replace("${init_args.", "${" + section + ".init_args.")
-    return value
-
-
-def _merged(under: dict, over: dict) -> dict:
-    """``under`` with ``over``'s values, dicts merged key by key."""
-    out = dict(under)
-    for key, value in over.items():
-        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
-    return out
+def _values(node):
+    """A parsed config less jsonargparse's records of the files read (``config``, ``__path__``)."""
+    if isinstance(node, dict):
+        return {k: _values(v) for k, v in node.items() if k not in ("config", "__path__")}
+    if isinstance(node, list):
+        return [_values(v) for v in node]
+    return node
 
 
 def build_datamodule(config: dict | Path | str, **overrides):

@@ -21,11 +21,12 @@ from lightning.pytorch.callbacks import Callback
 from omegaconf import OmegaConf
 
 from ssm_ms.baselines import BaselineForecaster
-from ssm_ms.cli import main, show_package_log
+from ssm_ms.cli import config_parser, main, show_package_log
 from ssm_ms.control import ClosedLoop
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.reproduce import load_config
 from tests.conftest import RotationDataModule, fast_trainer, rotation_model
+from tests.test_configs import CONFIGS
 
 ROOT = Path(__file__).resolve().parents[1]
 CPU = ROOT / "configs" / "cpu"
@@ -473,11 +474,11 @@ def test_checkpoint_every_epoch_with_rare_validation(rotation):
 
 
 def test_every_shipped_training_config_checkpoints_every_epoch():
-    configs = sorted((ROOT / "configs").rglob("*.yaml"))
-    trained = [c for c in configs if "max_epochs" in load_config(c).get("trainer", {})]
+    trainers = {c: load_config(c)["trainer"] for c in CONFIGS}
+    trained = [c for c, t in trainers.items() if t.get("max_epochs") is not None or t.get("max_time") is not None]
     assert len(trained) > 40
     for config in trained:
-        callbacks = load_config(config)["trainer"].get("callbacks", [])
+        callbacks = trainers[config].get("callbacks") or []
         assert "ssm_ms.checkpointing.EpochCheckpoint" in [c["class_path"] for c in callbacks], config
         for c in callbacks:  # Lightning's own only to keep a best epoch (best.ckpt), never a second last.ckpt
             if c["class_path"] == "lightning.pytorch.callbacks.ModelCheckpoint":
@@ -553,15 +554,19 @@ def test_state_dim_override_reaches_f_and_print_config(rotation, capsys):
         ]
     )
     assert cli.model.f.matrices.shape[-1] == 5 and cli.model.nodes.weight.shape[1] == 3 * 5
-    # the shipped configs interpolate every f/g state size from model.init_args.state_dim (as composed: includes,
-    # overlays; configs/data/ hold data sections)
-    for config in sorted((ROOT / "configs").rglob("*.yaml")):
-        model = load_config(config).get("model") or {}
+    # in every shipped config, f's and g's state sizes follow model.init_args.state_dim (interpolated, through
+    # includes and overlays): the command line's value reaches both
+    parser = config_parser()
+    for config in CONFIGS:
+        if "state_dim" not in (load_config(config)["model"].get("init_args") or {}):
+            continue
+        args = ["--config", str(config), "--model.init_args.state_dim", "7"]
+        model = parser.parse_args(args, _skip_validation=True).as_dict()["model"]["init_args"]
         for network in ("f", "g"):
-            args = ((model.get("init_args") or {}).get(network) or {}).get("init_args") or {}
+            sizes = (model.get(network) or {}).get("init_args") or {}
             for key in ("state_dim", "in_features"):
-                if key in args:
-                    assert args[key] == "${model.init_args.state_dim}", (config, network, args)
+                if key in sizes:
+                    assert sizes[key] == 7, (config, network, sizes)
 
 
 def test_cli_model_reloads_in_python_with_its_config(rotation):
