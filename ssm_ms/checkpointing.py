@@ -10,6 +10,7 @@ uninterrupted). Every shipped config that trains uses it.
 from __future__ import annotations
 
 import hashlib
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -106,12 +107,16 @@ def read_checkpoint(path: str | Path, what: str = "the checkpoint", restore: boo
     return restore_float_weights(checkpoint) if restore else checkpoint
 
 
-def kept_score(checkpoint: Mapping[str, Any]) -> float | None:
+def kept_score(checkpoint: Mapping[str, Any], path: str | os.PathLike | None = None) -> float | None:
     """The score a fit's ``ModelCheckpoint`` kept its best epoch by (e.g. ``val/sim_rmse``), read from a checkpoint it
-    wrote; ``None`` where there is none (a fit without such a checkpoint callback)."""
+    wrote; ``None`` where there is none (a fit without such a checkpoint callback), or where ``path`` (the file the
+    checkpoint was read from) is not the best epoch's file that callback names (a ``last.ckpt``: the score is
+    another epoch's). A stripped file (no best path recorded) keeps its score."""
     scores = [
         float(state["best_model_score"])
         for key, state in checkpoint.get("callbacks", {}).items()
-        if key.startswith("ModelCheckpoint") and state.get("best_model_score") is not None
+        if key.startswith("ModelCheckpoint")
+        and state.get("best_model_score") is not None
+        and (path is None or not state.get("best_model_path") or Path(state["best_model_path"]).name == Path(path).name)
     ]
     return min(scores, default=None)

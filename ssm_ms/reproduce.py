@@ -665,7 +665,7 @@ def validation_score(checkpoint: Path) -> float:
 
     from ssm_ms.checkpointing import kept_score
 
-    score = kept_score(torch.load(path, map_location="cpu", weights_only=False))
+    score = kept_score(torch.load(path, map_location="cpu", weights_only=False), path)
     return math.inf if score is None else score
 
 

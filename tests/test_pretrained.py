@@ -384,3 +384,16 @@ def test_each_pretrained_pendulum_says_which_rendering_it_was_trained_on(name):
         params = read_checkpoint(path)["PendulumDataModule"]["generator_params"]
         assert (params["rendering"], params["version"]) == ("paper", TRAINED_ON[name]), path.name
     assert GENERATOR_VERSION == 2  # a new version: the files above were trained on an older one, say so here
+
+
+def test_the_kept_score_belongs_to_the_best_epochs_file_only():
+    """A fit's last.ckpt carries its ModelCheckpoint's best score, another epoch's: read from last.ckpt it is no
+    score of that model; read from the best file, or from a stripped file (no best path recorded), it is."""
+    from ssm_ms.checkpointing import kept_score
+
+    state = {"best_model_score": torch.tensor(0.4), "best_model_path": "runs/x/v/checkpoints/best.ckpt"}
+    ckpt = {"callbacks": {"ModelCheckpoint{'monitor': 'val/sim_rmse'}": state}}
+    assert kept_score(ckpt, "elsewhere/best.ckpt") == pytest.approx(0.4)
+    assert kept_score(ckpt, "runs/x/v/checkpoints/last.ckpt") is None
+    state["best_model_path"] = ""
+    assert kept_score(ckpt, "pretrained/benchmarks/x.ckpt") == pytest.approx(0.4)

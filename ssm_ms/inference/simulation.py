@@ -332,7 +332,7 @@ class SimulationTest(pl.LightningModule):
         # what the fit's validation kept this epoch by, and the epoch (the results file says both)
         timer = (saved.get("callbacks") or {}).get("Timer", {}).get("time_elapsed", {})
         self.kept = {
-            "val_sim_rmse": kept_score(saved),
+            "val_sim_rmse": kept_score(saved, None if isinstance(given, nn.Module) else given),
             "epoch": saved.get("epoch"),
             # the fit's time until then (training and validation; a time-budgeted fit's Timer)
             "seconds": round(timer.get("train", 0.0) + timer.get("validate", 0.0), 1) if timer else None,
