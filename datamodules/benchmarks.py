@@ -81,6 +81,10 @@ class BenchmarkDataModule(Recordings):
         dir_placement: the folder of the benchmark files in the loader's layout (``None``: the loader's own cache,
             downloading them where the internet is reachable; the tests use ``../shared/data/nonlinear_benchmarks``).
         val_fraction: the end of the training recording held out for validation (default 0.2: a fifth).
+        val_run_in: samples of the training recording before its held-out end that each validation simulation runs
+            through first, the state estimated from their first ``n_init``, scored on the held-out end only (0, the
+            default: the held-out end alone, its first ``n_init`` samples given; ``"all"``: the whole training part,
+            so that the validation simulates as many steps as a test recording of the training recording's length).
         window, stride: the training windows cut from the rest (:class:`~datamodules.recordings.Recordings`).
         n_init: samples of each recording given to estimate its initial state (default: the loader's
             ``state_initialization_window_length`` of the test recordings).
@@ -95,6 +99,7 @@ class BenchmarkDataModule(Recordings):
         benchmark: str,
         dir_placement: str | None = None,
         val_fraction: float = 0.2,
+        val_run_in: int | str = 0,
         window: int | None = None,
         stride: int | None = None,
         n_init: int | None = None,
@@ -111,6 +116,13 @@ class BenchmarkDataModule(Recordings):
             raise ValueError(f"unit_scale must be > 0 (the files' units to the reported one), got {unit_scale}")
         train, tests = load_benchmark(benchmark, dir_placement)
         cut = int(round(len(train.y) * (1.0 - val_fraction)))
+        if val_run_in == "all":
+            val_run_in = cut
+        if not isinstance(val_run_in, int) or not 0 <= val_run_in <= cut:
+            raise ValueError(
+                f"val_run_in must be 'all' or a number of samples in [0, {cut}] (the training part before the "
+                f"held-out end), got {val_run_in!r}"
+            )
         dt = getattr(train, "sampling_time", None)
         super().__init__(
             y=np.asarray(train.y)[:cut],
@@ -121,6 +133,7 @@ class BenchmarkDataModule(Recordings):
             **kwargs,
         )
         self.benchmark, self.dir_placement, self.val_fraction = benchmark, dir_placement, float(val_fraction)
+        self.val_run_in = val_run_in
         self.name = benchmark.lower()
         self.unit, self.unit_scale = unit, float(unit_scale)
         given = {int(t.state_initialization_window_length) for t in tests if t.state_initialization_window_length}
@@ -132,12 +145,13 @@ class BenchmarkDataModule(Recordings):
             )
         self._sequences = {
             "train": [_sequence(np.asarray(train.y)[:cut], np.asarray(train.u)[:cut])],
-            "val": [_sequence(np.asarray(train.y)[cut:], np.asarray(train.u)[cut:])],
+            "val": [_sequence(np.asarray(train.y)[cut - val_run_in :], np.asarray(train.u)[cut - val_run_in :])],
             "test": [_sequence(t.y, t.u) for t in tests],
         }
-        if len(self._sequences["val"][0]["y"][0]) <= self.n_init:
+        if val_run_in + self.val_length <= self.val_scored_from:
             raise ValueError(
-                f"val_fraction={val_fraction} holds out no more than n_init={self.n_init} samples: raise it"
+                f"val_fraction={val_fraction} leaves no held-out sample to score after the n_init={self.n_init} "
+                "given: raise it (or val_run_in)"
             )
         names = list(test_names) if test_names is not None else _unique([str(t.name) for t in tests])
         if len(names) != len(tests):
@@ -151,7 +165,12 @@ class BenchmarkDataModule(Recordings):
         return ("train",) if stage in (None, "fit", "validate") else ()
 
     def generator_params(self) -> dict[str, Any]:
-        return {"benchmark": self.benchmark, "val_fraction": self.val_fraction, **super().generator_params()}
+        return {
+            "benchmark": self.benchmark,
+            "val_fraction": self.val_fraction,
+            "val_run_in": self.val_run_in,
+            **super().generator_params(),
+        }
 
     # ------------------------------------------------------------------ the held-out recordings
     def load_split(self, split: str) -> TrajectoryDataset:
@@ -162,7 +181,7 @@ class BenchmarkDataModule(Recordings):
         raise ValueError(f"the benchmark's test recordings are served one loader each: test_dataloader(), not {split}")
 
     def sequences(self, split: str) -> list[TrajectoryDataset]:
-        """The whole recordings of ``split`` (``"val"``: the held-out end; ``"test"``: the test recordings; ``"train"``:
+        """The whole recordings of ``split`` (``"val"``: the held-out end after its ``val_run_in``; ``"test"``: the test recordings; ``"train"``:
         the part the windows are cut from), each a data set of one sequence, normalised with the training
         statistics."""
         out = [TrajectoryDataset(arrays) for arrays in self._sequences[split]]
@@ -172,8 +191,10 @@ class BenchmarkDataModule(Recordings):
 
     def raw_recordings(self, split: str) -> list[tuple[np.ndarray, np.ndarray]]:
         """``[(y [T, p], u [T, m]), ...]`` of ``split`` in the files' units, whole (``"train"``: the training
-        recording less its held-out end, the part the windows are cut from): for a peer trained on the same data."""
-        return [(arrays["y"][0], arrays["u"][0]) for arrays in self._sequences[split]]
+        recording less its held-out end, the part the windows are cut from; ``"val"``: the held-out end, without
+        ``val_run_in``): for a peer trained on the same data."""
+        start = self.val_run_in if split == "val" else 0
+        return [(arrays["y"][0, start:], arrays["u"][0, start:]) for arrays in self._sequences[split]]
 
     def test_dataloader(self) -> list[DataLoader]:
         return [self._loader(ds, 1) for ds in self.sequences("test")]
@@ -185,7 +206,14 @@ class BenchmarkDataModule(Recordings):
 
     @property
     def val_length(self) -> int:
-        return int(self._sequences["val"][0]["y"].shape[1])
+        """Samples held out at the end of the training recording (``val_run_in`` not counted)."""
+        return int(self._sequences["val"][0]["y"].shape[1]) - self.val_run_in
+
+    @property
+    def val_scored_from(self) -> int:
+        """The first sample of the validation simulation that is scored: the held-out end's first after the run-in,
+        and never one of the ``n_init`` given to estimate the state."""
+        return max(self.n_init, self.val_run_in)
 
 
 def _unique(names: list[str]) -> list[str]:

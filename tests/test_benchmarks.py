@@ -278,3 +278,40 @@ def test_amortised_nodes_on_cascaded_tanks_end_to_end_and_their_score_by_hand(tm
     else:
         rmse = math.sqrt(np.mean((np.array(normalised) * y_std + y_mean - test_data.y[50:]) ** 2))
         assert row["rmse"] == pytest.approx(rmse, rel=1e-4) and row["diverged_at"] is None
+
+    # the config validates with val_run_in: all: the kept epoch's score is the free run of the whole training
+    # recording from its first 50 samples, the RMSE of its held-out end (the last 205 samples) alone
+    train_data, _ = nb.Cascaded_Tanks(dir_placement=str(DATA))
+    y = torch.tensor((train_data.y - y_mean) / y_std, dtype=torch.float32).view(1, -1, 1)
+    u = torch.tensor((train_data.u - u_mean) / u_std, dtype=torch.float32).view(1, -1, 1)
+    with torch.no_grad():
+        x = model.node_encoder(y[:, 30:50], u[:, 30:50])
+        normalised = []
+        for t in range(50, 1024):
+            normalised.append(model.g(x)[0, 0].item())
+            x = model.f(x, u[:, t])
+    held = np.array(normalised[819 - 50 :]) * y_std + y_mean
+    validation = run["info"]["validation"]["val_sim_rmse"]
+    if np.all(np.abs(normalised) <= 100.0):
+        assert validation == pytest.approx(math.sqrt(np.mean((held - train_data.y[819:]) ** 2)), rel=1e-4)
+    else:  # a run past 100 training stds diverged: no finite score
+        assert validation == math.inf
+
+
+def test_the_validation_may_run_in_through_the_training_recording():
+    """``val_run_in``: the validation recording is the held-out end behind that many training samples, scored from
+    the first held-out sample; ``raw_recordings("val")`` (a peer's validation) stays the held-out end."""
+    train, _ = nb.Cascaded_Tanks(dir_placement=str(DATA))
+    cut = round(1024 * 0.8)
+    for run_in, scored_from in ((0, 50), (30, 50), (300, 300), ("all", cut)):
+        dm = tanks(window=100, batch_size=4, val_run_in=run_in)
+        dm.setup("fit")
+        start = cut - (cut if run_in == "all" else run_in)
+        val = next(iter(dm.split_dataloader("val")))["y"][0, :, 0].numpy()
+        expected = (np.asarray(train.y[start:]) - dm.normalizer.mean.item()) / dm.normalizer.std.item()
+        np.testing.assert_allclose(val, expected, rtol=1e-4, atol=1e-5)
+        assert dm.val_length == 1024 - cut and dm.val_scored_from == scored_from
+        np.testing.assert_array_equal(dm.raw_recordings("val")[0][0][:, 0], np.asarray(train.y[cut:], np.float32))
+    for wrong in (-1, cut + 1, "some"):
+        with pytest.raises(ValueError, match="val_run_in must be 'all' or a number of samples in \\[0, 819\\]"):
+            tanks(val_run_in=wrong)

@@ -234,10 +234,33 @@ def _to_unit(dm: Any, ssm: MultipleShootingModule, y: torch.Tensor) -> np.ndarra
 
 
 # ---------------------------------------------------------------------------- validation during training
+def held_out_score(
+    ssm: MultipleShootingModule, dm: Any, method: str | None = None, options: dict[str, Any] | None = None
+) -> tuple[float, list[int]]:
+    """The protocol on the data's held-out recordings (``dm.split_dataloader("val")``): the mean RMSE (the data's
+    reported unit) over them, scored from ``dm.val_scored_from`` (default ``dm.n_init``), and for each recording the
+    sample where its simulation diverged (-1: it did not); the RMSE is infinite where one diverged."""
+    scored_from = int(getattr(dm, "val_scored_from", dm.n_init))
+    total, where = 0.0, []
+    with torch.no_grad():
+        for batch in dm.split_dataloader("val"):
+            y, u = batch["y"].to(ssm.device), batch.get("u")
+            u = None if u is None else u.to(ssm.device)
+            y_model, diverged = simulate_recording(
+                ssm, y, u, dm.n_init, own_method(ssm, method), dict(options or {}), bound=divergence_bound(ssm)
+            )
+            for b in range(len(y)):
+                where.append(int(diverged[b]))
+                if where[-1] < 0:
+                    truth, model = _to_unit(dm, ssm, y[b]), _to_unit(dm, ssm, y_model[b])
+                    total += scores(truth.reshape(len(truth), -1), model.reshape(len(model), -1), scored_from)["rmse"]
+    return (math.inf if max(where, default=-1) >= 0 else total / max(len(where), 1)), where
+
+
 class SimulationValidation(pl.Callback):
     """Score the data module's held-out recordings (``split_dataloader("val")``, e.g. the end of a benchmark's
     training recording) by the protocol at every validation (``trainer.check_val_every_n_epoch``):
-    ``val/sim_rmse`` (the data's reported unit) and ``val/sim_diverged`` (1 where a run diverged: its RMSE is then
+    ``val/sim_rmse`` (:func:`held_out_score`) and ``val/sim_diverged`` (1 where a run diverged: its RMSE is then
     infinite, and the log says at which sample), for the checkpoint that keeps the best epoch
     (``ModelCheckpoint(monitor="val/sim_rmse")``). The sanity check before training is not scored.
 
@@ -258,36 +281,17 @@ class SimulationValidation(pl.Callback):
                 "SimulationValidation scores held-out recordings: the data need a 'val' split of whole recordings and "
                 "n_init (datamodules.benchmarks.BenchmarkDataModule)"
             )
-        total, count, diverged = 0.0, 0, 0
-        with torch.no_grad():
-            for batch in dm.split_dataloader("val"):
-                y, u = batch["y"].to(pl_module.device), batch.get("u")
-                u = None if u is None else u.to(pl_module.device)
-                y_model, where = simulate_recording(
-                    pl_module,
-                    y,
-                    u,
-                    dm.n_init,
-                    own_method(pl_module, self.method),
-                    self.options,
-                    bound=divergence_bound(pl_module),
+        rmse, where = held_out_score(pl_module, dm, self.method, self.options)
+        for k, sample in enumerate(where):
+            if sample >= 0:
+                _log.warning(
+                    "validation: the simulation of held-out recording %d diverged at sample %d (epoch %d)",
+                    k,
+                    sample,
+                    trainer.current_epoch,
                 )
-                for b in range(len(y)):
-                    if int(where[b]) >= 0:
-                        diverged += 1
-                        _log.warning(
-                            "validation: the simulation of held-out recording %d diverged at sample %d (epoch %d)",
-                            count,
-                            int(where[b]),
-                            trainer.current_epoch,
-                        )
-                    else:
-                        truth, model = _to_unit(dm, pl_module, y[b]), _to_unit(dm, pl_module, y_model[b])
-                        total += scores(truth.reshape(len(truth), -1), model.reshape(len(model), -1), dm.n_init)["rmse"]
-                    count += 1
-        rmse = math.inf if diverged else total / max(count, 1)
         pl_module.log("val/sim_rmse", rmse, prog_bar=True)
-        pl_module.log("val/sim_diverged", float(diverged > 0))
+        pl_module.log("val/sim_diverged", float(max(where, default=-1) >= 0))
 
 
 # ---------------------------------------------------------------------------- the test stage
