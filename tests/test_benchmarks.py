@@ -205,8 +205,8 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     column is the method of the lowest mean validation score, whatever the test scores say."""
     import statistics
 
+    from experiments.readme import Results, benchmarks
     from ssm_ms.forecasting.benchmark_results import render, run_key
-    from ssm_ms.forecasting.readme import Results, benchmarks
 
     def run(method, seed, val, rmse, diverged=None, seconds=None):
         info = {"method": method, "seed": seed, "unit": "V", "model": "SSM-LL", "experiment": "toy"}

@@ -1,5 +1,5 @@
 """The results tables of the README and docs/results.md are generated from ``results/*.json`` (``python -m
-ssm_ms.forecasting.readme``): they fail here when a document and the results files disagree, regenerated in memory
+experiments.readme``): they fail here when a document and the results files disagree, regenerated in memory
 and compared."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from ssm_ms.forecasting import readme
-from ssm_ms.forecasting.results import score_cell
+from experiments import readme
+from experiments.results import score_cell
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -23,7 +23,7 @@ def test_the_tables_are_those_the_results_files_give(document):
     stale = readme.stale(document.read_text(encoding="utf-8"), RESULTS)
     assert stale == [], (
         f"{document.name}'s tables {stale} differ from results/*.json: run "
-        f"`python -m ssm_ms.forecasting.readme` and commit {document.name}"
+        f"`python -m experiments.readme` and commit {document.name}"
     )
 
 

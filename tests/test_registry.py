@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from ssm_ms.reproduce import REGISTRY, known_experiments, read_registry
+from experiments.reproduce import REGISTRY, known_experiments, read_registry
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = {"ssm", "ukf", "optimise", "control", "record", "encoder", "baselines"}

@@ -1,4 +1,4 @@
-"""The paper's tables in ssm_ms.forecasting.results, against the transcription beside the paper (../shared/paper/tables.md,
+"""The paper's tables in experiments.results, against the transcription beside the paper (../shared/paper/tables.md,
 read by this test only: the project itself never reads ../shared), and the table a results file renders."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from ssm_ms.forecasting.results import PAPER, paper_key, paper_row, render_markdown
+from experiments.results import PAPER, paper_key, paper_row, render_file, render_markdown
 
 TABLES = Path(__file__).resolve().parents[2] / "shared" / "paper" / "tables.md"
 NUMBER = r"-?\d+(?:\.\d+)?"
@@ -101,7 +101,7 @@ def test_rendered_table_puts_the_paper_beside_each_method():
 
 
 def test_analysis_numbers_read_as_steps_not_exponents():
-    from ssm_ms.forecasting.results import _num
+    from experiments.results import _num
 
     assert [_num(1000.0), _num(285.4, 2), _num(811.25), _num(0.0123), _num(3.5613), _num(float("inf")), _num(None)] == [
         "1000",
@@ -147,15 +147,18 @@ def test_valid_time_row_after_a_json_round_trip():
 def test_hand_written_notes_survive_every_rewrite(tmp_path):
     """``<experiment>.notes.md`` beside a results file is appended to ``<experiment>.md`` each time a run or a
     pipeline rewrites it (a note written into the .md itself would be lost)."""
-    from ssm_ms.forecasting.results import write_pipeline, write_results
+    from experiments.results import write_pipeline
+    from ssm_ms.forecasting.results import write_results
 
     info = {"experiment": "toy_cpu", "method": "encoder", "model": "SSM-LL", "inference": "encoder"}
-    md = write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}})
+    md = render_file(write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}}))
     assert "## Notes" not in md.read_text()
     (tmp_path / "toy_cpu.notes.md").write_text("The SSM stage was paused 70 minutes.\n")
     write_pipeline(tmp_path, "toy_cpu", "make reproduce EXP=toy SIZE=cpu", {"stages": [], "total_seconds": 1.0})
     info2 = {**info, "method": "lstm", "model": "LSTM", "inference": None}
-    text = write_results(tmp_path, info2, {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}}).read_text()
+    text = render_file(
+        write_results(tmp_path, info2, {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}})
+    ).read_text()
     assert text.count("The SSM stage was paused 70 minutes.") == 1
     assert text.index("| 0.5 ± 0.1 |") < text.index("| 0.7 ± 0.1 |") < text.index("## Notes")
 
@@ -210,7 +213,7 @@ def test_an_unreadable_results_file_is_moved_aside_not_overwritten(tmp_path):
 
 
 def test_a_resumed_stage_says_so_in_the_pipeline_table(tmp_path):
-    from ssm_ms.forecasting.results import write_pipeline
+    from experiments.results import write_pipeline
 
     md = write_pipeline(
         tmp_path,
@@ -232,7 +235,7 @@ def test_a_record_replaces_the_one_its_run_was_started_with_and_keeps_the_others
     """Each command keeps its own record; a run resumed with a larger budget replaces its first command's."""
     import json
 
-    from ssm_ms.forecasting.results import write_pipeline
+    from experiments.results import write_pipeline
 
     def pipeline(seconds):
         return {
@@ -271,7 +274,7 @@ def _markdown_table(lines: list[str], first_header: str) -> list[dict[str, str]]
 def test_analysis_tables_leave_out_columns_no_method_fills():
     """An image experiment's f has no x statistics (W1, both wings) and its system no known exponent in Lyapunov
     times: those columns go; in a file where one SSM has them, they stay, "—" where another has not."""
-    from ssm_ms.forecasting.results import render_analysis
+    from experiments.results import render_analysis
 
     def run(label, free_run, lyap_times=None):
         vt = {
@@ -319,13 +322,14 @@ def test_analysis_tables_leave_out_columns_no_method_fills():
 
 
 def test_edited_notes_make_the_md_stale_until_re_rendered(tmp_path, capsys):
-    """`python -m ssm_ms.forecasting.results --check` names an experiment whose notes changed after its .md was
+    """`python -m experiments.results --check` names an experiment whose notes changed after its .md was
     written (and only it), and exits 1; re-rendering it puts the new note in its .md and the check passes."""
-    from ssm_ms.forecasting.results import main, write_results
+    from experiments.results import main
+    from ssm_ms.forecasting.results import write_results
 
     for name in ("toy_cpu", "other_cpu"):
         info = {"experiment": name, "method": "encoder", "model": "SSM-LL", "inference": "encoder"}
-        write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}})
+        render_file(write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}}))
     (tmp_path / "summary_seeds.json").write_text('{"rows": []}')  # not a results file: left alone
     assert main(["--results-dir", str(tmp_path), "--check"]) == 0
     (tmp_path / "toy_cpu.notes.md").write_text("Paused 70 minutes.\n")
@@ -340,7 +344,7 @@ def test_edited_notes_make_the_md_stale_until_re_rendered(tmp_path, capsys):
 
 def test_committed_results_md_match_their_json_and_notes():
     """Every results/<experiment>.md is what its .json and hand-written notes render (a notes edit left
-    un-rendered fails here: `python -m ssm_ms.forecasting.results` re-renders)."""
-    from ssm_ms.forecasting.results import stale
+    un-rendered fails here: `python -m experiments.results` re-renders)."""
+    from experiments.results import stale
 
     assert stale(Path(__file__).resolve().parents[1] / "results") == []

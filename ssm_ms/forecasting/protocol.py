@@ -80,9 +80,9 @@ class ForecastModule(pl.LightningModule):
     in original units, written by :class:`ssm_ms.forecasting.writer.ForecastWriter` (see :meth:`predict_step`).
 
     Subclasses implement :meth:`forecast` (and :meth:`describe` to say what they are). Results go to
-    TensorBoard (``test/...``), to ``<results_dir>/<experiment>.json`` and to a markdown table
-    ``<results_dir>/<experiment>.md`` with the paper's values beside ours; figures to TensorBoard and,
-    with ``figures_dir``, to PNG/GIF.
+    TensorBoard (``test/...``) and to ``<results_dir>/<experiment>.json`` (:mod:`ssm_ms.forecasting.results`; the
+    repository's ``python cli.py`` renders its markdown report beside it); figures to TensorBoard and, with
+    ``figures_dir``, to PNG/GIF.
 
     Args:
         n_filter: measurements given to the forecaster (pendulum 50, Moving MNIST 10, Lorenz 1990).
@@ -462,9 +462,7 @@ class ForecastModule(pl.LightningModule):
         return getattr(dm, "name", "experiment")
 
     def write_results(self, summary: dict[str, dict[str, float]], analysis: dict[str, Any] | None = None) -> None:
-        from ssm_ms.forecasting.results import (
-            write_results,  # the tables of the paper live there
-        )
+        from ssm_ms.forecasting.results import write_results
 
         info = {
             "experiment": self.experiment_name(),

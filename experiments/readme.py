@@ -1,14 +1,14 @@
 """The results tables of the README and of docs/results.md, generated from the results files (``results/*.json``):
 one source for every score.
 
-    python -m ssm_ms.forecasting.readme            # rewrite the tables between the documents' markers
-    python -m ssm_ms.forecasting.readme --check    # exit status 1 (naming the tables) where a document is stale
+    python -m experiments.readme            # rewrite the tables between the documents' markers
+    python -m experiments.readme --check    # exit status 1 (naming the tables) where a document is stale
 
 Each table sits in one of :data:`DOCUMENTS` between ``<!-- results:begin NAME -->`` and ``<!-- results:end -->``
 (NAME one of :data:`TABLES`, each in exactly one document); everything outside the markers is prose a person writes.
 A table is built from the runs of the results files (``runs``: each method's scores and analysis) and the pipelines
 that produced them (``pipelines``: the ``make reproduce`` command, each stage's command and seconds): ours ``mean ±
-std`` over the test sequences, the paper's cell beside it (:data:`~ssm_ms.forecasting.results.PAPER`), the mean valid
+std`` over the test sequences, the paper's cell beside it (:data:`~experiments.results.PAPER`), the mean valid
 prediction time, and the command that produced the row with each training stage's epoch budget (its
 ``--trainer.max_epochs``, where the pipeline set one) and duration. ``tests/test_readme_tables.py`` regenerates the
 tables in memory and fails where a document differs: after a new result, run this command.
@@ -28,9 +28,9 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from ssm_ms.forecasting.results import PAPER, paper_cell, paper_key, paper_row, score_cell, sig
+from experiments.results import PAPER, paper_cell, paper_key, paper_row, score_cell, sig
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 DOCUMENTS = (ROOT / "README.md", ROOT / "docs" / "results.md")  # the documents whose tables are generated
 BEGIN = "<!-- results:begin {name} -->"
 END = "<!-- results:end -->"
@@ -425,7 +425,7 @@ def main(argv: list[str] | None = None) -> int:
             if names:
                 print(
                     f"{document}: tables differ from {opts.results_dir}/*.json: {', '.join(names)} "
-                    "(python -m ssm_ms.forecasting.readme rewrites them)",
+                    "(python -m experiments.readme rewrites them)",
                     file=sys.stderr,
                 )
                 status = 1
