@@ -65,11 +65,11 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from experiments.registry import REGISTRY, read_registry
 from experiments.results import write_pipeline
 from ssm_ms.runtime.machine import describe
 
 ROOT = Path(__file__).resolve().parents[1]
-REGISTRY = ROOT / "configs" / "experiments.yaml"  # each experiment's stages and their configs, per size
 WAIT_TICK = 30.0  # seconds between the records of a running stage's time (Pipeline)
 
 
@@ -77,12 +77,6 @@ BUDGETS = ("encoder_epochs", "baseline_epochs")  # options a resumed run may rai
 # options a resumed run may give or drop: dropping --no-encoder adds the encoder's stages to a finished run, giving it
 # ends a run whose encoder cannot finish (its last.ckpt kept, for a resume without it)
 STAGE_CHOICES = ("no_encoder",)
-
-
-def read_registry() -> dict:
-    """The experiment registry (:data:`REGISTRY`): ``experiments`` (name -> size -> stage -> config path),
-    ``benchmarks`` (name -> ``fit`` and ``test`` configs), ``suites`` (name -> experiments)."""
-    return OmegaConf.to_container(OmegaConf.load(REGISTRY))
 
 
 def known_experiments(registry: dict, size: str) -> list[str]:

@@ -5,11 +5,11 @@ Every forecaster of one experiment (SSM + encoder, SSM + UKF, the LSTM and RKN b
 the same files: each test run replaces its own method's entry and the table is rebuilt from all
 (``python cli.py test`` renders the ``.md`` of each results file it wrote: :mod:`experiments.cli`).
 
-``PAPER`` holds the paper's tables (Jordana et al. 2021, Tables 1-4, transcribed from its LaTeX
-source): for each experiment, rows of ``{column: value}`` where a value is ``(mean, std)`` (``std``
-``None`` where the paper gives none) or a string ("did not converge"). Columns are
-``"<target>/<metric>"`` as the protocol produces them, so each of our rows shows the paper's row of the
-same method beside it (:func:`paper_row`).
+The paper's tables (Jordana et al. 2021, Tables 1-4) are in the experiment registry, ``configs/experiments.yaml``
+(``paper_tables``), each naming the experiments scored against it: rows of ``{column: value}`` where a value is
+``(mean, std)`` (``std`` ``None`` where the paper gives none) or a string ("did not converge"). Columns are
+``"<target>/<metric>"`` as the protocol produces them, so each of our rows shows the paper's row of the same method
+beside it (:func:`paper_row`); a results file of an experiment no table names has no paper rows.
 
 The ``.md`` is rendered from the ``.json`` and the hand-written ``<experiment>.notes.md``; after editing notes:
 
@@ -20,117 +20,28 @@ The ``.md`` is rendered from the ``.json`` and the hand-written ``<experiment>.n
 from __future__ import annotations
 
 import json
-import re
 import sys
 from pathlib import Path
-from typing import Any, Union
+from typing import Any
 
+from experiments.registry import paper_cell, paper_table
 from ssm_ms.forecasting.results import load, replace_text, update_results
 
-Cell = Union[tuple[float, float | None], str]  # noqa: UP007 (a run-time alias)
 
+def paper_row(paper: dict[str, Any], info: dict[str, Any]) -> str | None:
+    """The paper's row for one of our runs (``paper``: its table, :func:`experiments.registry.paper_table`): the same
+    model with the same kind of inference.
 
-def paper_cell(cell: Cell | None) -> str:
-    """A paper cell: ``mean ± std``, ``mean`` or its words."""
-    if cell is None:
-        return "—"
-    if isinstance(cell, str):
-        return cell
-    mean, std = cell
-    return f"{mean}" if std is None else f"{mean} ± {std}"
-
-
-_IMAGES = "per-pixel scores vs the noisy frames, mean ± std over {n} test trajectories"
-_LORENZ = (
-    "Table 4 (Lorenz, x measured with noise std 2.5; filter 1990 steps, predict 10; MSE vs the noiseless x "
-    "in original units, 1000 test trajectories of 2000 steps; training pieces of T = {t} steps)"
-)
-_LORENZ_ROWS: dict[str, dict[int, Cell]] = {
-    "SSM-RNN": {10: (3592.273, None), 100: (10.284, None), 1000: (0.391, None), 10000: (0.154, None)},
-    "SSM-UKF": {10: (46.702, None), 100: (10.999, None), 1000: (0.670, None), 10000: (0.335, None)},
-    "LSTM": {10: (35.630, None), 100: (34.852, None), 1000: (6.867, None), 10000: (0.314, None)},
-    "RKN": {10: "did not converge", 100: "did not converge", 1000: (67.76, None), 10000: "out of memory"},
-}
-
-PAPER: dict[str, dict[str, Any]] = {
-    "pendulum": {
-        "table": "Table 1 (simple pendulum, 24x24, filter 50 frames, predict 50; " + _IMAGES.format(n=1000) + ")",
-        "rows": {
-            "SSM-FC": {"noisy/mse": (0.0154, 0.0026), "noisy/bce": (0.2902, 0.0075)},
-            "SSM-LL": {"noisy/mse": (0.0152, 0.0022), "noisy/bce": (0.2895, 0.0064)},
-            "LSTM": {"noisy/mse": (0.0158, 0.0034), "noisy/bce": (0.2913, 0.0098)},
-            "RKN": {"noisy/mse": (0.0155, 0.0021), "noisy/bce": (0.2902, 0.0058)},
-        },
-        "notes": ["In the text: SSM-LL with a 3-D latent state, MSE 0.0177 ± 0.0043, BCE 0.2968 ± 0.0120."],
-    },
-    "quad": {
-        "table": "Table 2 (quadruple pendulum, 48x48, filter 50, predict 50; " + _IMAGES.format(n=2000) + ")",
-        "rows": {
-            "SSM-FC": {"noisy/mse": (0.0250, 0.0053), "noisy/bce": (0.3119, 0.0140)},
-            "SSM-LL": {"noisy/mse": (0.0245, 0.0055), "noisy/bce": (0.3109, 0.0146)},
-            "LSTM": {"noisy/mse": (0.0252, 0.0073), "noisy/bce": (0.3161, 0.0219)},
-            "RKN": {"noisy/mse": (0.0243, 0.0059), "noisy/bce": (0.3108, 0.0160)},
-        },
-    },
-    "mnist": {
-        "table": "Table 3 (Moving MNIST, filter 10, predict 10; BCE summed over the 64x64 pixels of a frame)",
-        "rows": {
-            "ConvLSTM (Shi et al. 2015)": {"noisy/bce": (367.2, None)},
-            "SSM-LL": {"noisy/bce": (353.3, None)},
-            "LSTM encoder-decoder (Srivastava et al. 2015)": {"noisy/bce": (341.2, None)},
-            "Video Pixel Networks (Kalchbrenner et al. 2017)": {"noisy/bce": (87.6, None)},
-        },
-        "notes": ["The paper reports no RKN on Moving MNIST; the other rows are the figures it quotes."],
-    },
-    **{
-        f"lorenz_T{t}": {
-            "table": _LORENZ.format(t=t),
-            "rows": {method: {"clean/mse": cells[t]} for method, cells in _LORENZ_ROWS.items()},
-            "notes": [
-                'SSM-FC "performs poorly" on Lorenz and is not reported. The whole of Table 4 (MSE):',
-                "",
-                "| method | T=10 | T=100 | T=1000 | T=10,000 |",
-                "|---|---|---|---|---|",
-            ]
-            + [
-                f"| {method} | " + " | ".join(paper_cell(cells[tt]) for tt in (10, 100, 1000, 10000)) + " |"
-                for method, cells in _LORENZ_ROWS.items()
-            ],
-        }
-        for t in (10, 100, 1000, 10000)
-    },
-}
-
-
-# what may follow a paper table's key in an experiment's name and keep it the paper's setting: the other
-# transition model, the CPU-sized twin, another seed (seed<N>: reproduce --seed); a variant such as
-# lorenz_T1000_noiseless has no table in the paper
-SAME_SETTING = {"fc", "cpu"}
-
-
-def paper_key(experiment: str) -> str | None:
-    """Which paper table an experiment belongs to (``pendulum_fc_cpu`` -> ``pendulum``, ``lorenz_T1000`` ->
-    ``lorenz_T1000``, ``lorenz_T1000_noiseless_cpu`` -> None)."""
-    for key in sorted(PAPER, key=len, reverse=True):
-        if experiment == key or experiment.startswith(key + "_"):
-            rest = experiment[len(key) + 1 :]
-            same = all(part in SAME_SETTING or re.fullmatch(r"seed\d+", part) for part in rest.split("_"))
-            return key if not rest or same else None
-    return None
-
-
-def paper_row(key: str, info: dict[str, Any]) -> str | None:
-    """The paper's row for one of our runs: the same model with the same kind of inference.
-
-    Image tables name the SSM by its transition (``SSM-LL``, ``SSM-FC``, state inferred by the CNN-LSTM);
-    Table 4 names it by its inference (``SSM-RNN``: the encoder, ``SSM-UKF``); baselines by their name.
+    Image tables name the SSM by its transition (``SSM-LL``, ``SSM-FC``, state inferred by the CNN-LSTM); a table
+    with ``inference_rows`` (Table 4) names it by its inference (``SSM-RNN``: the encoder, ``SSM-UKF``); baselines by
+    their name.
     """
-    rows = PAPER[key]["rows"]
+    rows = paper["rows"]
     model, inference = info.get("model"), info.get("inference")
     if model in ("LSTM", "RKN"):
         name = model
-    elif key.startswith("lorenz"):
-        name = {"encoder": "SSM-RNN", "ukf": "SSM-UKF"}.get(inference)
+    elif paper["inference_rows"]:
+        name = paper["inference_rows"].get(inference)
     else:
         name = model if inference == "encoder" else None
     return name if name in rows else None
@@ -170,8 +81,7 @@ def render_markdown(
         "`mean`: the mean training frame (references, computed by the same code).",
     }
     lines = [f"# {heading['title']}: {experiment}", ""]
-    key = paper_key(experiment)
-    paper = PAPER[key] if key is not None else None
+    paper = paper_table(experiment)
     columns = sorted({k.split("/", 1)[1] for run in runs.values() for k in run["summary"]})
     pcols = sorted({c for r in paper["rows"].values() for c in r}) if paper else []
     lines.append(heading["intro"])
@@ -205,7 +115,7 @@ def render_markdown(
             cells = [label if own else f"{row} (reference, with {label})"]
             cells += [score_cell(per_row[row].get(c)) for c in columns]
             if paper:
-                name = paper_row(key, info) if own else None
+                name = paper_row(paper, info) if own else None
                 cells.append(name or "")
                 cells += [paper_cell(paper["rows"][name].get(c)) if name else "" for c in pcols]
             lines.append("| " + " | ".join(cells) + " |")

@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from experiments.reproduce import config_value, experiment_name, load_config, logger_dir, read_registry
+from experiments.registry import read_registry
+from experiments.reproduce import config_value, experiment_name, load_config, logger_dir
 from ssm_ms.cli import config_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]

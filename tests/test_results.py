@@ -1,4 +1,4 @@
-"""The paper's tables in experiments.results, against the transcription beside the paper (../shared/paper/tables.md,
+"""The paper's tables of the experiment registry (configs/experiments.yaml, as experiments.registry reads them), against the transcription beside the paper (../shared/paper/tables.md,
 read by this test only: the project itself never reads ../shared), and the table a results file renders."""
 
 from __future__ import annotations
@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from experiments.results import PAPER, paper_key, paper_row, render_file, render_markdown
+from experiments.registry import paper_table
+from experiments.results import paper_row, render_file, render_markdown
 
 TABLES = Path(__file__).resolve().parents[2] / "shared" / "paper" / "tables.md"
 NUMBER = r"-?\d+(?:\.\d+)?"
@@ -49,15 +50,16 @@ def test_image_tables_match_the_transcription(table, key):
     rows = transcribed_tables()[table]
     assert len(rows) == 4
     for name, mse, bce in rows:
-        ours = PAPER[key]["rows"][short(name)]
+        ours = paper_table(key)["rows"][short(name)]
         assert ours == {"noisy/mse": cell(mse), "noisy/bce": cell(bce)}, name
 
 
 def test_moving_mnist_table_matches_the_transcription():
     rows = transcribed_tables()["Table 3"]
-    assert sorted(cell(bce)[0] for _, bce in rows) == sorted(v["noisy/bce"][0] for v in PAPER["mnist"]["rows"].values())
+    paper = paper_table("mnist")["rows"]
+    assert sorted(cell(bce)[0] for _, bce in rows) == sorted(v["noisy/bce"][0] for v in paper.values())
     ssm = next(bce for name, bce in rows if name.startswith("SSM-LL"))
-    assert PAPER["mnist"]["rows"]["SSM-LL"]["noisy/bce"] == cell(ssm)
+    assert paper["SSM-LL"]["noisy/bce"] == cell(ssm)
 
 
 def test_lorenz_table_matches_the_transcription():
@@ -65,19 +67,21 @@ def test_lorenz_table_matches_the_transcription():
     assert [short(r[0]) for r in rows] == ["SSM-RNN", "SSM-UKF", "LSTM", "RKN"]
     for name, *values in rows:
         for t, text in zip((10, 100, 1000, 10000), values):
-            assert PAPER[f"lorenz_T{t}"]["rows"][short(name)]["clean/mse"] == cell(text), (name, t)
+            assert paper_table(f"lorenz_T{t}")["rows"][short(name)]["clean/mse"] == cell(text), (name, t)
 
 
 def test_each_run_meets_the_paper_row_of_its_method():
-    assert paper_key("pendulum_fc_cpu") == "pendulum" and paper_key("lorenz_T1000_cpu") == "lorenz_T1000"
-    assert paper_key("lorenz_T10") == "lorenz_T10" and paper_key("oscillator") is None
-    assert paper_key("lorenz_T1000_noiseless_cpu") is None  # a variant the paper has no table for
-    assert paper_row("pendulum", {"model": "SSM-FC", "inference": "encoder"}) == "SSM-FC"
-    assert paper_row("pendulum", {"model": "SSM-LL", "inference": "pf"}) is None  # the paper has no such row
-    assert paper_row("lorenz_T1000", {"model": "SSM-LL", "inference": "encoder"}) == "SSM-RNN"
-    assert paper_row("lorenz_T1000", {"model": "SSM-LL", "inference": "ukf"}) == "SSM-UKF"
-    assert paper_row("quad", {"model": "RKN", "inference": None}) == "RKN"
-    assert paper_row("mnist", {"model": "RKN", "inference": None}) is None
+    assert paper_table("pendulum_fc_cpu") == paper_table("pendulum") is not None
+    assert paper_table("lorenz_T1000_cpu")["table"].endswith("T = 1000 steps)")
+    assert paper_table("lorenz_T10")["table"].endswith("T = 10 steps)") and paper_table("oscillator") is None
+    assert paper_table("lorenz_T1000_noiseless_cpu") is None  # a variant the paper has no table for
+    pendulum, lorenz = paper_table("pendulum"), paper_table("lorenz_T1000")
+    assert paper_row(pendulum, {"model": "SSM-FC", "inference": "encoder"}) == "SSM-FC"
+    assert paper_row(pendulum, {"model": "SSM-LL", "inference": "pf"}) is None  # the paper has no such row
+    assert paper_row(lorenz, {"model": "SSM-LL", "inference": "encoder"}) == "SSM-RNN"
+    assert paper_row(lorenz, {"model": "SSM-LL", "inference": "ukf"}) == "SSM-UKF"
+    assert paper_row(paper_table("quad"), {"model": "RKN", "inference": None}) == "RKN"
+    assert paper_row(paper_table("mnist"), {"model": "RKN", "inference": None}) is None
 
 
 def test_rendered_table_puts_the_paper_beside_each_method():
