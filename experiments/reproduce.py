@@ -165,6 +165,13 @@ def logger_dir(config: Path) -> Path:
     return Path(str(args["save_dir"])) / str(args["name"])
 
 
+def results_dir(config: Path, version: str) -> Path:
+    """The folder a test stage of ``config`` writes its results file to: its ``results_dir``, or where it names none,
+    the stage's own run folder (``save_dir/name/version`` of its logger), as the library does."""
+    value = config_value(config, "model.init_args.results_dir")
+    return _absolute(Path(str(value)) if value is not None else logger_dir(config) / version)
+
+
 def experiment_name(config: Path) -> str:
     return str(config_value(config, "model.init_args.experiment", default=config.stem))
 
@@ -639,7 +646,7 @@ def main(argv: list[str] | None = None) -> None:
     files = []  # every results file the stages wrote (an SSM's stages may write to several, e.g. control)
     for cfg in configs:
         entry = (
-            ROOT / str(config_value(cfg, "model.init_args.results_dir", default="results")),
+            results_dir(cfg, version),
             experiment_name(cfg) + (f"_{seeded}" if seeded else ""),
         )
         if entry not in files:
@@ -709,8 +716,7 @@ def run_benchmark(opts: argparse.Namespace, argv: list[str], config: Path, test_
         named += ["--model.init_args.selection", json.dumps(chosen_by)]
     test = ["test", "--config", str(test_cfg.relative_to(ROOT)), "--model.init_args.ssm_checkpoint", str(ssm)]
     pipeline.stage([*test, *named, *opts.stage_args], again=any(r for r, _ in fits.values()))
-    results = ROOT / str(config_value(test_cfg, "model.init_args.results_dir", default="results"))
-    md = results / f"{experiment_name(test_cfg)}.md"
+    md = results_dir(test_cfg, version) / f"{experiment_name(test_cfg)}.md"
     if md.is_file():
         print(f"\nresults: {md.relative_to(ROOT)}\n\n{md.read_text()}")
 

@@ -5,6 +5,7 @@ tests/test_valid_time.py; the analysis options: tests/test_analysis_settings.py.
 
 import json
 import math
+from pathlib import Path
 
 import lightning.pytorch as pl
 import numpy as np
@@ -82,6 +83,18 @@ def test_protocol_bookkeeping_with_the_exact_model(exact_ssm):
         "| SSM (ExactRotation) + oracle |" in report
         and "| last (reference, with SSM (ExactRotation) + oracle) |" in report
     )
+
+
+def test_results_go_to_the_run_folder_unless_a_results_dir_is_given(exact_ssm):
+    """The library writes the results file (JSON only) into the run's own folder by default (the trainer's log_dir;
+    here, without a logger, its default_root_dir), never into the repository's results/."""
+    tmp, ckpt = exact_ssm
+    oracle = Oracle(str(ckpt), n_filter=8, metrics=["mse"], experiment="rot_here")
+    trainer = fast_trainer(tmp / "run", max_epochs=1)
+    trainer.test(oracle, rotation_dm(tmp))
+    assert Path(trainer.log_dir) == tmp / "run"
+    assert sorted(p.name for p in (tmp / "run").glob("rot_here.*")) == ["rot_here.json"]
+    assert not (tmp / "results" / "rot_here.json").exists()
 
 
 class DivergingOracle(Oracle):

@@ -131,3 +131,19 @@ def test_the_readme_tables_name_results_files_that_exist():
             files += [experiment for experiment, _ in group["rows"]] + [group["reference"]["file"]]
         files += list(spec.get("files", {}).values()) + ([spec["noise_free"]["file"]] if "noise_free" in spec else [])
     assert files and [f for f in files if not (ROOT / "results" / f"{f}.json").is_file()] == []
+
+
+def test_every_scoring_stage_names_its_results_folder():
+    """A forecaster or controller without ``results_dir`` writes into its run's own folder: every registered stage
+    that scores states where its results go (results/, results/benchmarks/, a run folder), so that make reproduce
+    and the README's commands write where the committed results are."""
+    from experiments.reproduce import config_value
+
+    registry = read_registry()
+    configs = [b["test"] for b in registry["benchmarks"].values()]
+    for sizes in registry["experiments"].values():
+        for stages in sizes.values():
+            for kind, value in stages.items():
+                configs += [] if kind == "ssm" else value if kind == "baselines" else [value]
+    unnamed = [c for c in configs if config_value(ROOT / c, "model.init_args.results_dir") is None]
+    assert unnamed == []

@@ -19,6 +19,14 @@ from typing import Any
 WRITTEN: list[Path] = []
 
 
+def results_folder(results_dir: str | Path | None, trainer: Any) -> Path:
+    """Where a test run's results file goes: ``results_dir`` where given, else the run's own folder (the trainer's
+    ``log_dir``: the logger's version folder, or ``default_root_dir`` without a logger)."""
+    if results_dir is not None:
+        return Path(results_dir)
+    return Path(trainer.log_dir or trainer.default_root_dir)
+
+
 def load(json_path: Path) -> dict[str, Any]:
     """The results file's content; ``{}`` where there is none yet. A file that is not a results file (not a JSON
     object: written by hand, or cut short by an older version's interrupted write) is moved aside to
