@@ -81,7 +81,7 @@ bench: $(STAMP)
 ## silverbox wiener_hammerstein emps cascaded_tanks (configs/benchmarks/; offline: ARGS="--data.init_args.dir_placement
 ## ../shared/data/nonlinear_benchmarks")
 reproduce: $(STAMP) $(if $(filter oscillator,$(EXP)),data/oscillator.npz)
-	$(PY) -m ssm_ms.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(RESUME),--resume $(RESUME)) $(if $(ARGS),-- $(ARGS))
+	$(PY) -m experiments.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(RESUME),--resume $(RESUME)) $(if $(ARGS),-- $(ARGS))
 
 data/oscillator.npz: examples/make_oscillator_data.py
 	$(PY) examples/make_oscillator_data.py --out $@

@@ -1,6 +1,6 @@
-"""The command line: ``ssm-ms {fit,validate,test,predict} --config configs/<experiment>.yaml`` (the console script),
-``python -m ssm_ms ...`` and ``python cli.py ...`` (the repository's script) are the same program, the LightningCLI of
-:mod:`ssm_ms.cli`.
+"""The library's command line: ``python -m ssm_ms {fit,validate,test,predict} --config configs/<experiment>.yaml``,
+the LightningCLI of :mod:`ssm_ms.cli`. The repository's ``python cli.py ...`` (and the console script ``ssm-ms``) is
+this program followed by the application's reports (``experiments/cli.py``: the ``.md`` beside each results file).
 
 A ``--config`` file that does not exist is refused here, before Lightning is imported (~10 s on a slow CPU).
 """

@@ -9,6 +9,7 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from experiments.results import render_file
 from ssm_ms import pretrained
 from ssm_ms.baselines import LSTMBaseline, RKNBaseline, Seq2SeqLSTM
 from ssm_ms.baselines.rkn import RecurrentKalmanNetwork
@@ -159,7 +160,7 @@ def test_the_protocol_scores_a_baseline_like_any_forecaster(trained):
     assert vt["mean_seconds"] == pytest.approx(0.1 * sum(steps) / len(steps))
     label = {"lstm": "LSTM", "rkn": "RKN"}[name]
     assert saved["info"]["model"] == label and saved["info"]["inference"] is None
-    assert f"| {label} |" in (tmp / "results" / "rot.md").read_text()
+    assert f"| {label} |" in render_file(tmp / "results" / "rot.json").read_text()
 
 
 def test_baseline_checkpoint_reloads_on_its_own(trained):

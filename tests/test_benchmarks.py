@@ -205,8 +205,8 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     column is the method of the lowest mean validation score, whatever the test scores say."""
     import statistics
 
+    from experiments.readme import Results, benchmarks
     from ssm_ms.forecasting.benchmark_results import render, run_key
-    from ssm_ms.forecasting.readme import Results, benchmarks
 
     def run(method, seed, val, rmse, diverged=None, seconds=None):
         info = {"method": method, "seed": seed, "unit": "V", "model": "SSM-LL", "experiment": "toy"}
@@ -233,7 +233,7 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     a = f"{statistics.mean([0.3, 0.4, 0.2]):.4g} ± {statistics.stdev([0.3, 0.4, 0.2]):.2g}"
     assert f"| A | 0, 1, 2 | {statistics.mean([1.0, 1.2, 1.1]):.4g} | 300 | {a} |" in md  # kept after 300 s on average
     assert "| B | 0, 1 | 0.925 | — | 0.5 (1 of 2 diverged) |" in md
-    (row,) = [line for line in benchmarks(Results(tmp_path)) if line.startswith("| toy")]
+    (row,) = [line for line in benchmarks(Results(tmp_path), {"kind": "benchmarks"}) if line.startswith("| toy")]
     assert "0.5 (1 of 2 diverged) (B, 2 seeds)" in row
 
 

@@ -20,11 +20,12 @@ import torch
 from lightning.pytorch.callbacks import Callback
 from omegaconf import OmegaConf
 
+from experiments.cli import reports
+from experiments.reproduce import load_config
 from ssm_ms.baselines import BaselineForecaster
 from ssm_ms.cli import config_parser, main, show_package_log
 from ssm_ms.control import ClosedLoop
 from ssm_ms.module import MultipleShootingModule
-from ssm_ms.reproduce import load_config
 from tests.conftest import RotationDataModule, fast_trainer, rotation_model
 from tests.test_configs import CONFIGS
 
@@ -85,7 +86,8 @@ def run(tmp: Path, subcommand: str, config: Path, *extra: str):
     ]
     if "--data.init_args.data_dir" not in extra and load_config(config)["data"]["class_path"] != FILES:
         args += ["--data.init_args.data_dir", str(tmp / "data")]
-    return main(args + list(extra))
+    with reports():  # the results files' reports, as `python cli.py` renders them
+        return main(args + list(extra))
 
 
 def fit_tiny(tmp: Path, config: Path, *extra: str):

@@ -167,12 +167,14 @@ def test_distilled_features_fit_a_known_map():
 def true_control(tmp_path: Path, *args: str) -> None:
     """``cli.py test`` of configs/pendulum_true_control.yaml with its data, results and logs under ``tmp_path`` (3
     timing steps, no progress bar), then ``args``."""
+    from experiments.cli import reports
     from ssm_ms.cli import main
 
     where = ["--data.init_args.data_dir", str(tmp_path / "data"), "--model.init_args.results_dir", str(tmp_path)]
     quiet = ["--trainer.logger", "false", "--trainer.default_root_dir", str(tmp_path)]
     quiet += ["--trainer.enable_progress_bar", "false", "--model.init_args.timing_steps", "3"]
-    main(["test", "--config", "configs/pendulum_true_control.yaml", *where, *quiet, *args])
+    with reports():  # the report beside the results file, as `python cli.py test` renders it
+        main(["test", "--config", "configs/pendulum_true_control.yaml", *where, *quiet, *args])
 
 
 def test_the_closed_loop_swings_the_true_pendulum_up(tmp_path):

@@ -1,5 +1,6 @@
 """The house's import rules, read from the source (imports inside functions count too): the data layer never
-imports the method, and the data layer's modules import each other without a circle."""
+imports the method, and the data layer's modules import each other without a circle; the application
+(``experiments/``) sits above both, and neither imports it."""
 
 from __future__ import annotations
 
@@ -100,13 +101,13 @@ def test_drawing_is_apart_from_the_callbacks():
 
 
 def test_the_pipeline_and_the_results_files_start_without_lightning_or_torch():
-    """``python -m ssm_ms.reproduce`` only runs stages, and the results and README tools only read JSON: none of them
-    pays Lightning's and torch's imports (~10 s on a slow 2-core CPU) before its first line of work."""
+    """``python -m experiments.reproduce`` only runs stages, and the results and README tools only read JSON: none
+    of them pays Lightning's and torch's imports (~10 s on a slow 2-core CPU) before its first line of work."""
     import subprocess
     import sys
 
     script = (
-        "import sys, ssm_ms.reproduce, ssm_ms.forecasting.results, ssm_ms.forecasting.readme\n"
+        "import sys, experiments.reproduce, experiments.results, experiments.readme, experiments.cli, experiments.registry\n"
         "print(sorted({m.split('.')[0] for m in sys.modules} & {'lightning', 'torch', 'torchmetrics'}))"
     )
     out = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, check=True)
@@ -119,7 +120,7 @@ LAYERS = {
     0: ("ssm_ms.runtime", "ssm_ms.training", "ssm_ms.nets", "ssm_ms.checkpointing", "ssm_ms.drawing", "ssm_ms.units"),
     1: ("ssm_ms.module", "ssm_ms.schedule", "ssm_ms.progress", "ssm_ms.viz", "ssm_ms.analysis", "ssm_ms.export"),
     2: ("ssm_ms.inference", "ssm_ms.forecasting", "ssm_ms.baselines", "ssm_ms.control"),
-    3: ("ssm_ms.cli", "ssm_ms.reproduce", "ssm_ms.pretrained", "ssm_ms.api", "ssm_ms.__main__"),
+    3: ("ssm_ms.cli", "ssm_ms.pretrained", "ssm_ms.api", "ssm_ms.__main__"),
 }
 
 
@@ -164,3 +165,33 @@ def test_the_layer_check_sees_an_upward_import(monkeypatch):
 
     with pytest.raises(AssertionError, match="ssm_ms.training.shooting -> ssm_ms.module"):
         test_no_module_imports_a_higher_layer()
+
+
+# The application (experiments/: the registry's experiments, make reproduce, the reports and README tables) is the
+# layer above the method and the data: it may import both; neither imports it.
+def application_modules() -> dict[str, Path]:
+    files = {}
+    for p in (ROOT / "experiments").rglob("*.py"):
+        parts = p.relative_to(ROOT).with_suffix("").parts
+        files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = p
+    return files
+
+
+def test_neither_the_method_nor_the_data_import_the_application():
+    files = sorted((ROOT / "ssm_ms").rglob("*.py")) + sorted((ROOT / "datamodules").rglob("*.py"))
+    upward = {
+        str(p.relative_to(ROOT)): sorted(m for m in imported_modules(p) if m.split(".")[0] == "experiments")
+        for p in files
+    }
+    assert {k: v for k, v in upward.items() if v} == {}, "the library imports the application (experiments/)"
+
+
+def test_the_application_imports_without_a_circle():
+    files = application_modules()
+    assert {"experiments.reproduce", "experiments.results", "experiments.readme", "experiments.cli"} <= set(files)
+    graph = {
+        name: {d for d in imported_modules(path) if d in files and d != name and not name.startswith(d + ".")}
+        for name, path in files.items()
+    }
+    assert "experiments.results" in graph["experiments.readme"]  # the graph is read
+    assert_no_circle(graph)

@@ -5,6 +5,7 @@ tests/test_valid_time.py; the analysis options: tests/test_analysis_settings.py.
 
 import json
 import math
+from pathlib import Path
 
 import lightning.pytorch as pl
 import numpy as np
@@ -12,6 +13,7 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from experiments.results import render_file
 from ssm_ms.inference.encoder_module import StateEncoderModule
 from ssm_ms.inference.filter_module import FilterForecaster
 from ssm_ms.inference.optimise import OptimisationForecaster
@@ -76,11 +78,23 @@ def test_protocol_bookkeeping_with_the_exact_model(exact_ssm):
     noisy = torch.from_numpy(test["y"].copy()).double()
     expected_noisy = (noisy[:, 8:] - clean[:, 8:]).pow(2).mean((1, 2))
     assert saved["oracle/noisy/mse"]["mean"] == pytest.approx(expected_noisy.mean().item(), rel=1e-4)
-    report = (tmp / "results" / "rot.md").read_text()
+    report = render_file(tmp / "results" / "rot.json").read_text()
     assert (
         "| SSM (ExactRotation) + oracle |" in report
         and "| last (reference, with SSM (ExactRotation) + oracle) |" in report
     )
+
+
+def test_results_go_to_the_run_folder_unless_a_results_dir_is_given(exact_ssm):
+    """The library writes the results file (JSON only) into the run's own folder by default (the trainer's log_dir;
+    here, without a logger, its default_root_dir), never into the repository's results/."""
+    tmp, ckpt = exact_ssm
+    oracle = Oracle(str(ckpt), n_filter=8, metrics=["mse"], experiment="rot_here")
+    trainer = fast_trainer(tmp / "run", max_epochs=1)
+    trainer.test(oracle, rotation_dm(tmp))
+    assert Path(trainer.log_dir) == tmp / "run"
+    assert sorted(p.name for p in (tmp / "run").glob("rot_here.*")) == ["rot_here.json"]
+    assert not (tmp / "results" / "rot_here.json").exists()
 
 
 class DivergingOracle(Oracle):
@@ -119,7 +133,7 @@ def test_a_forecast_that_diverges_is_reported_not_averaged(exact_ssm, diverged):
     assert (entry["n"], entry["non_finite"]) == (4, len(diverged))
     assert saved["last/clean/mse"]["non_finite"] == len(diverged)  # the reference uses the method's last estimate
     assert saved["mean/clean/mse"]["non_finite"] == 0
-    report = (tmp / "results" / f"{name}.md").read_text()
+    report = render_file(tmp / "results" / f"{name}.json").read_text()
     if len(diverged) == 4:
         assert "non-finite on all 4" in report
     else:
@@ -159,7 +173,7 @@ def test_analysis_of_the_exact_model(exact_ssm):
     assert dyn["lyapunov"]["runs"] == 4 and free["runs"] == 6
     assert free["model_std"][0] == pytest.approx(math.sqrt(0.5), rel=0.05)  # nodes trained briefly: radius ~1
     assert free["reference_std"][0] == pytest.approx(math.sqrt(0.5), rel=0.1)
-    assert "## Analysis" in (tmp / "results" / "rot_an.md").read_text()
+    assert "## Analysis" in render_file(tmp / "results" / "rot_an.json").read_text()
 
 
 def test_encoder_stage_on_a_tiny_trained_checkpoint(exact_ssm):
@@ -268,7 +282,7 @@ def test_ukf_stage_tracks_the_exact_model(exact_ssm):
     assert runs["ukf_fast"]["info"]["inference_settings"].endswith(
         "alpha=1, beta=0, kappa=0; f and g under autocast(bfloat16)"
     )
-    assert "f and g under autocast(bfloat16)" in (tmp / "results" / "rot_ukf.md").read_text()
+    assert "f and g under autocast(bfloat16)" in render_file(tmp / "results" / "rot_ukf.json").read_text()
     with pytest.raises(ValueError, match=r"unscented takes alpha, beta and kappa, got \['gamma'\]"):
         FilterForecaster(str(ckpt), n_filter=8, unscented={"gamma": 1.0})
     with pytest.raises(ValueError, match="no effect with method 'pf'"):
@@ -458,7 +472,7 @@ def test_fewer_test_sequences_are_tested_and_said(exact_ssm):
     fast_trainer(tmp, max_epochs=1).test(enc, test_dm)
     assert test_dm.is_cached("test") and not test_dm.is_cached("train")  # the test read its own split only
     assert "train" not in test_dm.datasets
-    text = (tmp / "results" / "rot_fewer.md").read_text()
+    text = render_file(tmp / "results" / "rot_fewer.json").read_text()
     assert "test_sequences: 2" in text
     assert "'n_test': (4, 2)" in text
 

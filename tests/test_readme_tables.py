@@ -1,5 +1,5 @@
 """The results tables of the README and docs/results.md are generated from ``results/*.json`` (``python -m
-ssm_ms.forecasting.readme``): they fail here when a document and the results files disagree, regenerated in memory
+experiments.readme``): they fail here when a document and the results files disagree, regenerated in memory
 and compared."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from ssm_ms.forecasting import readme
-from ssm_ms.forecasting.results import score_cell
+from experiments import readme
+from experiments.results import score_cell
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -23,13 +23,13 @@ def test_the_tables_are_those_the_results_files_give(document):
     stale = readme.stale(document.read_text(encoding="utf-8"), RESULTS)
     assert stale == [], (
         f"{document.name}'s tables {stale} differ from results/*.json: run "
-        f"`python -m ssm_ms.forecasting.readme` and commit {document.name}"
+        f"`python -m experiments.readme` and commit {document.name}"
     )
 
 
 def test_every_table_has_its_markers_in_exactly_one_document():
     names = [m.group("name") for d in readme.DOCUMENTS for m in readme.MARKER.finditer(d.read_text(encoding="utf-8"))]
-    assert sorted(names) == sorted(readme.TABLES)
+    assert sorted(names) == sorted(readme.tables())
 
 
 def test_every_row_is_produced_by_a_command_a_clean_clone_can_run():
@@ -72,7 +72,7 @@ def test_a_changed_score_makes_its_table_stale(results_copy):
 def test_a_row_names_the_pipeline_that_produced_it_and_its_budget(results_copy):
     """quad_fc.json keeps two records of one run (encoder budget 25, then resumed to 100): the row's command is the one
     recorded with its test; the encoder's epochs and runs come from its stage command."""
-    table = "\n".join(readme.full_size(readme.Results(results_copy)))
+    table = "\n".join(readme.methods(readme.Results(results_copy), readme.tables()["full-size"]))
     quad_fc = next(line for line in table.splitlines() if "reproduce quad_fc" in line)
     assert "--encoder-epochs 100" in quad_fc and "encoder 100 epochs" in quad_fc and "in 5 runs" in quad_fc
     assert "--encoder-epochs 25" not in table

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from lightning.pytorch.callbacks import Callback
 
-from ssm_ms import reproduce
+from experiments import reproduce
 
 
 @pytest.fixture
@@ -87,7 +87,7 @@ def test_a_baseline_alone_and_without_baselines(recorded):
     version = option(calls[0], "--trainer.logger.init_args.version")
     assert option(calls[1], "--model.init_args.ssm_checkpoint") == f"runs/pendulum/{version}/checkpoints/last.ckpt"
     assert (
-        written["command"] == "python -m ssm_ms.reproduce pendulum --no-baselines"
+        written["command"] == "python -m experiments.reproduce pendulum --no-baselines"
     )  # not make's: it has no such option
 
 
@@ -103,7 +103,7 @@ def test_epoch_budgets_go_to_their_own_stages_only(recorded, capsys):
     }
     assert budget == {("fit", "pendulum_encoder"): "7", ("fit", "pendulum_lstm"): "5", ("fit", "pendulum_rkn"): "5"}
     assert len(calls) == 8
-    assert written["command"] == "python -m ssm_ms.reproduce pendulum --encoder-epochs 7 --baseline-epochs 5"
+    assert written["command"] == "python -m experiments.reproduce pendulum --encoder-epochs 7 --baseline-epochs 5"
     with pytest.raises(SystemExit):
         reproduce.main(["pendulum_lstm", "--baseline-epochs", "0"])
     assert "--baseline-epochs must be >= 1, got 0" in capsys.readouterr().err
@@ -124,7 +124,7 @@ def test_no_encoder_runs_the_ssm_and_its_own_tests_only(recorded, capsys):
         ("test", "configs/cpu/baselines/lorenz_T1000_rkn.yaml"),
     ]
     assert written["experiment"] == "lorenz_T1000_cpu" and len(written["pipeline"]["stages"]) == 6
-    assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-encoder"
+    assert written["command"] == "python -m experiments.reproduce lorenz_T1000 --size cpu --no-encoder"
     calls.clear()
     reproduce.main(["pendulum_torque", "--no-encoder", "--no-baselines"])
     assert [(a[0], option(a, "--config")) for a in calls] == [
@@ -170,8 +170,8 @@ def test_no_encoder_given_or_dropped_on_resume(recorded, tmp_path):
         ("fit", "configs/cpu/lorenz_T1000_encoder.yaml"),
         ("test", "configs/cpu/lorenz_T1000_encoder.yaml"),
     ]
-    assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines"
-    assert written["replaces"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --no-encoder"
+    assert written["command"] == "python -m experiments.reproduce lorenz_T1000 --size cpu --no-baselines"
+    assert written["replaces"] == "python -m experiments.reproduce lorenz_T1000 --size cpu --no-baselines --no-encoder"
     assert len(written["pipeline"]["stages"]) == 4
     # a new run, stopped during its encoder fit (the SSM fit and its UKF test finished), then given --no-encoder
     calls.clear()
@@ -186,7 +186,7 @@ def test_no_encoder_given_or_dropped_on_resume(recorded, tmp_path):
     reproduce.main([*base, "--no-encoder", "--resume", version])
     assert calls == []  # nothing left to run: the results file's record is written
     assert [s["command"] for s in written["pipeline"]["stages"]] == [ssm_fit["command"], ukf["command"]]
-    assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --no-encoder"
+    assert written["command"] == "python -m experiments.reproduce lorenz_T1000 --size cpu --no-baselines --no-encoder"
 
 
 def test_options_after_a_double_dash_go_to_every_stage_last(recorded, tmp_path):
@@ -201,7 +201,7 @@ def test_options_after_a_double_dash_go_to_every_stage_last(recorded, tmp_path):
     encoder_fit = calls[2]
     assert encoder_fit.index("7") < len(encoder_fit) - 3  # the budget first, the appended value last
     assert written["command"] == (
-        "python -m ssm_ms.reproduce pendulum --encoder-epochs 7 -- --trainer.max_epochs 1 --data.init_args.n_test 9"
+        "python -m experiments.reproduce pendulum --encoder-epochs 7 -- --trainer.max_epochs 1 --data.init_args.n_test 9"
     )
     calls.clear()
     reproduce.main(["pendulum", "--", "--trainer.max_epochs", "1"])
@@ -228,7 +228,7 @@ def _stage_in_own_group(tmp_path, args, sigint_ignored: bool = False):
     import subprocess
     import sys
 
-    script = f"from ssm_ms import reproduce; reproduce.run_stage({args!r}, 1)"
+    script = f"from experiments import reproduce; reproduce.run_stage({args!r}, 1)"
     out = open(tmp_path / "stage.log", "w")
     env = dict(__import__("os").environ, OMP_NUM_THREADS="1")
     return subprocess.Popen(
@@ -385,7 +385,7 @@ def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tm
     record = tmp_path / "runs" / "lorenz_T1000_cpu" / version / "reproduce.json"
     finished = json.loads(record.read_text())
     assert (
-        f"finish it with:\n  python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --resume {version}"
+        f"finish it with:\n  python -m experiments.reproduce lorenz_T1000 --size cpu --no-baselines --resume {version}"
         in capsys.readouterr().out
     )  # said at the start: a run killed outright prints nothing at its end
     assert finished["running"] is None and len(finished["stages"]) == 4
@@ -414,9 +414,9 @@ def test_resume_runs_what_is_left_and_continues_the_interrupted_fit(recorded, tm
     stages = written["pipeline"]["stages"]
     assert [s["seconds"] for s in stages] == [3000.0, 40.0, 100.0, 0.0] and stages[2]["runs"] == 2
     assert stages[2]["command"] == stage3["command"]  # the stage's command, without the --ckpt_path it resumed with
-    assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --no-baselines --size cpu"  # no --resume
+    assert written["command"] == "python -m experiments.reproduce lorenz_T1000 --no-baselines --size cpu"  # no --resume
     assert (
-        written["resume_pipeline"] == f"python -m ssm_ms.reproduce lorenz_T1000 --no-baselines --size cpu "
+        written["resume_pipeline"] == f"python -m experiments.reproduce lorenz_T1000 --no-baselines --size cpu "
         f"--resume {version}"
     )  # what an interrupted stage prints
     assert json.loads(record.read_text())["running"] is None
@@ -515,7 +515,7 @@ def test_a_pipeline_killed_mid_fit_resumes_to_the_same_model_as_an_uninterrupted
 
     record = tmp_path / "reproduce.json"
     script = (
-        f"from pathlib import Path; from ssm_ms import reproduce; "
+        f"from pathlib import Path; from experiments import reproduce; "
         f"reproduce.Pipeline(Path({str(record)!r}), {{}}, 'resume', resume=False).stage({args('cut')!r})"
     )
     env = dict(os.environ, OMP_NUM_THREADS="1", KILL_AT_EPOCH="3")
@@ -593,9 +593,15 @@ def test_a_budget_raised_on_resume_continues_that_fit_and_tests_again(recorded, 
     stages = written["pipeline"]["stages"]
     assert len(stages) == 4 and stages[2]["seconds"] == 500.0 and stages[2]["runs"] == 2
     assert "--trainer.max_epochs 9" in stages[2]["command"] and "--ckpt_path" not in stages[2]["command"]
-    assert written["command"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --encoder-epochs 9"
+    assert (
+        written["command"]
+        == "python -m experiments.reproduce lorenz_T1000 --size cpu --no-baselines --encoder-epochs 9"
+    )
     # the results file keeps one record of this run: the 9-epoch command's replaces the 7-epoch one's
-    assert written["replaces"] == "python -m ssm_ms.reproduce lorenz_T1000 --size cpu --no-baselines --encoder-epochs 7"
+    assert (
+        written["replaces"]
+        == "python -m experiments.reproduce lorenz_T1000 --size cpu --no-baselines --encoder-epochs 7"
+    )
     # the record now holds the raised budget: resuming it again with that budget runs nothing
     assert json.loads(record.read_text())["options"]["encoder_epochs"] == 9
     assert len(json.loads(record.read_text())["stages"]) == 4

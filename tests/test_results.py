@@ -1,4 +1,4 @@
-"""The paper's tables in ssm_ms.forecasting.results, against the transcription beside the paper (../shared/paper/tables.md,
+"""The paper's tables of the experiment registry (configs/experiments.yaml, as experiments.registry reads them), against the transcription beside the paper (../shared/paper/tables.md,
 read by this test only: the project itself never reads ../shared), and the table a results file renders."""
 
 from __future__ import annotations
@@ -8,7 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from ssm_ms.forecasting.results import PAPER, paper_key, paper_row, render_markdown
+from experiments.registry import paper_table
+from experiments.results import paper_row, render_file, render_markdown
 
 TABLES = Path(__file__).resolve().parents[2] / "shared" / "paper" / "tables.md"
 NUMBER = r"-?\d+(?:\.\d+)?"
@@ -49,15 +50,16 @@ def test_image_tables_match_the_transcription(table, key):
     rows = transcribed_tables()[table]
     assert len(rows) == 4
     for name, mse, bce in rows:
-        ours = PAPER[key]["rows"][short(name)]
+        ours = paper_table(key)["rows"][short(name)]
         assert ours == {"noisy/mse": cell(mse), "noisy/bce": cell(bce)}, name
 
 
 def test_moving_mnist_table_matches_the_transcription():
     rows = transcribed_tables()["Table 3"]
-    assert sorted(cell(bce)[0] for _, bce in rows) == sorted(v["noisy/bce"][0] for v in PAPER["mnist"]["rows"].values())
+    paper = paper_table("mnist")["rows"]
+    assert sorted(cell(bce)[0] for _, bce in rows) == sorted(v["noisy/bce"][0] for v in paper.values())
     ssm = next(bce for name, bce in rows if name.startswith("SSM-LL"))
-    assert PAPER["mnist"]["rows"]["SSM-LL"]["noisy/bce"] == cell(ssm)
+    assert paper["SSM-LL"]["noisy/bce"] == cell(ssm)
 
 
 def test_lorenz_table_matches_the_transcription():
@@ -65,19 +67,21 @@ def test_lorenz_table_matches_the_transcription():
     assert [short(r[0]) for r in rows] == ["SSM-RNN", "SSM-UKF", "LSTM", "RKN"]
     for name, *values in rows:
         for t, text in zip((10, 100, 1000, 10000), values):
-            assert PAPER[f"lorenz_T{t}"]["rows"][short(name)]["clean/mse"] == cell(text), (name, t)
+            assert paper_table(f"lorenz_T{t}")["rows"][short(name)]["clean/mse"] == cell(text), (name, t)
 
 
 def test_each_run_meets_the_paper_row_of_its_method():
-    assert paper_key("pendulum_fc_cpu") == "pendulum" and paper_key("lorenz_T1000_cpu") == "lorenz_T1000"
-    assert paper_key("lorenz_T10") == "lorenz_T10" and paper_key("oscillator") is None
-    assert paper_key("lorenz_T1000_noiseless_cpu") is None  # a variant the paper has no table for
-    assert paper_row("pendulum", {"model": "SSM-FC", "inference": "encoder"}) == "SSM-FC"
-    assert paper_row("pendulum", {"model": "SSM-LL", "inference": "pf"}) is None  # the paper has no such row
-    assert paper_row("lorenz_T1000", {"model": "SSM-LL", "inference": "encoder"}) == "SSM-RNN"
-    assert paper_row("lorenz_T1000", {"model": "SSM-LL", "inference": "ukf"}) == "SSM-UKF"
-    assert paper_row("quad", {"model": "RKN", "inference": None}) == "RKN"
-    assert paper_row("mnist", {"model": "RKN", "inference": None}) is None
+    assert paper_table("pendulum_fc_cpu") == paper_table("pendulum") is not None
+    assert paper_table("lorenz_T1000_cpu")["table"].endswith("T = 1000 steps)")
+    assert paper_table("lorenz_T10")["table"].endswith("T = 10 steps)") and paper_table("oscillator") is None
+    assert paper_table("lorenz_T1000_noiseless_cpu") is None  # a variant the paper has no table for
+    pendulum, lorenz = paper_table("pendulum"), paper_table("lorenz_T1000")
+    assert paper_row(pendulum, {"model": "SSM-FC", "inference": "encoder"}) == "SSM-FC"
+    assert paper_row(pendulum, {"model": "SSM-LL", "inference": "pf"}) is None  # the paper has no such row
+    assert paper_row(lorenz, {"model": "SSM-LL", "inference": "encoder"}) == "SSM-RNN"
+    assert paper_row(lorenz, {"model": "SSM-LL", "inference": "ukf"}) == "SSM-UKF"
+    assert paper_row(paper_table("quad"), {"model": "RKN", "inference": None}) == "RKN"
+    assert paper_row(paper_table("mnist"), {"model": "RKN", "inference": None}) is None
 
 
 def test_rendered_table_puts_the_paper_beside_each_method():
@@ -101,7 +105,7 @@ def test_rendered_table_puts_the_paper_beside_each_method():
 
 
 def test_analysis_numbers_read_as_steps_not_exponents():
-    from ssm_ms.forecasting.results import _num
+    from experiments.results import _num
 
     assert [_num(1000.0), _num(285.4, 2), _num(811.25), _num(0.0123), _num(3.5613), _num(float("inf")), _num(None)] == [
         "1000",
@@ -147,15 +151,18 @@ def test_valid_time_row_after_a_json_round_trip():
 def test_hand_written_notes_survive_every_rewrite(tmp_path):
     """``<experiment>.notes.md`` beside a results file is appended to ``<experiment>.md`` each time a run or a
     pipeline rewrites it (a note written into the .md itself would be lost)."""
-    from ssm_ms.forecasting.results import write_pipeline, write_results
+    from experiments.results import write_pipeline
+    from ssm_ms.forecasting.results import write_results
 
     info = {"experiment": "toy_cpu", "method": "encoder", "model": "SSM-LL", "inference": "encoder"}
-    md = write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}})
+    md = render_file(write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}}))
     assert "## Notes" not in md.read_text()
     (tmp_path / "toy_cpu.notes.md").write_text("The SSM stage was paused 70 minutes.\n")
     write_pipeline(tmp_path, "toy_cpu", "make reproduce EXP=toy SIZE=cpu", {"stages": [], "total_seconds": 1.0})
     info2 = {**info, "method": "lstm", "model": "LSTM", "inference": None}
-    text = write_results(tmp_path, info2, {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}}).read_text()
+    text = render_file(
+        write_results(tmp_path, info2, {"lstm/noisy/mse": {"mean": 0.7, "std": 0.1, "n": 4}})
+    ).read_text()
     assert text.count("The SSM stage was paused 70 minutes.") == 1
     assert text.index("| 0.5 ± 0.1 |") < text.index("| 0.7 ± 0.1 |") < text.index("## Notes")
 
@@ -210,7 +217,7 @@ def test_an_unreadable_results_file_is_moved_aside_not_overwritten(tmp_path):
 
 
 def test_a_resumed_stage_says_so_in_the_pipeline_table(tmp_path):
-    from ssm_ms.forecasting.results import write_pipeline
+    from experiments.results import write_pipeline
 
     md = write_pipeline(
         tmp_path,
@@ -232,7 +239,7 @@ def test_a_record_replaces_the_one_its_run_was_started_with_and_keeps_the_others
     """Each command keeps its own record; a run resumed with a larger budget replaces its first command's."""
     import json
 
-    from ssm_ms.forecasting.results import write_pipeline
+    from experiments.results import write_pipeline
 
     def pipeline(seconds):
         return {
@@ -271,7 +278,7 @@ def _markdown_table(lines: list[str], first_header: str) -> list[dict[str, str]]
 def test_analysis_tables_leave_out_columns_no_method_fills():
     """An image experiment's f has no x statistics (W1, both wings) and its system no known exponent in Lyapunov
     times: those columns go; in a file where one SSM has them, they stay, "—" where another has not."""
-    from ssm_ms.forecasting.results import render_analysis
+    from experiments.results import render_analysis
 
     def run(label, free_run, lyap_times=None):
         vt = {
@@ -319,13 +326,14 @@ def test_analysis_tables_leave_out_columns_no_method_fills():
 
 
 def test_edited_notes_make_the_md_stale_until_re_rendered(tmp_path, capsys):
-    """`python -m ssm_ms.forecasting.results --check` names an experiment whose notes changed after its .md was
+    """`python -m experiments.results --check` names an experiment whose notes changed after its .md was
     written (and only it), and exits 1; re-rendering it puts the new note in its .md and the check passes."""
-    from ssm_ms.forecasting.results import main, write_results
+    from experiments.results import main
+    from ssm_ms.forecasting.results import write_results
 
     for name in ("toy_cpu", "other_cpu"):
         info = {"experiment": name, "method": "encoder", "model": "SSM-LL", "inference": "encoder"}
-        write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}})
+        render_file(write_results(tmp_path, info, {"encoder/noisy/mse": {"mean": 0.5, "std": 0.1, "n": 4}}))
     (tmp_path / "summary_seeds.json").write_text('{"rows": []}')  # not a results file: left alone
     assert main(["--results-dir", str(tmp_path), "--check"]) == 0
     (tmp_path / "toy_cpu.notes.md").write_text("Paused 70 minutes.\n")
@@ -340,7 +348,7 @@ def test_edited_notes_make_the_md_stale_until_re_rendered(tmp_path, capsys):
 
 def test_committed_results_md_match_their_json_and_notes():
     """Every results/<experiment>.md is what its .json and hand-written notes render (a notes edit left
-    un-rendered fails here: `python -m ssm_ms.forecasting.results` re-renders)."""
-    from ssm_ms.forecasting.results import stale
+    un-rendered fails here: `python -m experiments.results` re-renders)."""
+    from experiments.results import stale
 
     assert stale(Path(__file__).resolve().parents[1] / "results") == []

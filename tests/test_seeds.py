@@ -1,4 +1,4 @@
-"""Scores over seeds (ssm_ms.forecasting.seeds), against means and standard deviations computed here."""
+"""Scores over seeds (experiments.seeds), against means and standard deviations computed here."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import statistics
 
 import pytest
 
-from ssm_ms.forecasting.seeds import main
+from experiments.seeds import main
 
 SCORES = {
     "config seed": (0.13, 0.50, 0.68, 0.82, 1.0),

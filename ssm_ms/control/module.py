@@ -117,7 +117,8 @@ class ClosedLoop(pl.LightningModule):
             (``recorded``, docs/control.md "Identification in closed loop"): the noisy frames seen, the clean ones,
             the true states and the torques applied, one row per period, and the system's parameters.
         experiment, results_dir, figures_dir, method_name: where the results go and the row's name
-            (``{estimator}`` in it names the estimator: ``UKF`` or ``CNN-LSTM encoder``).
+            (``{estimator}`` in it names the estimator: ``UKF`` or ``CNN-LSTM encoder``; ``results_dir`` unset: the
+            run's own folder, the trainer's ``log_dir``).
         seed: the episodes' camera noise and the planner's sampling.
     """
 
@@ -139,7 +140,7 @@ class ClosedLoop(pl.LightningModule):
         exploration: float = 0.0,
         record: str | None = None,
         experiment: str = "pendulum_control",
-        results_dir: str = "results",
+        results_dir: str | None = None,
         figures_dir: str | None = "results/figures",
         method_name: str | None = None,
         seed: int = 0,
@@ -363,7 +364,7 @@ class ClosedLoop(pl.LightningModule):
 
     # ------------------------------------------------------------------ results
     def on_test_epoch_end(self) -> None:
-        from ssm_ms.forecasting.results import write_results
+        from ssm_ms.forecasting.results import results_folder, write_results
 
         runs = self._episodes
         states = torch.cat([r["states"] for r in runs])  # [E, T+1, 2]
@@ -392,7 +393,7 @@ class ClosedLoop(pl.LightningModule):
             "inference_settings": self._settings_line(),
         }
         if self.trainer.is_global_zero:
-            write_results(Path(self.results_dir), info, summary, heading=CONTROL_HEADING)
+            write_results(results_folder(self.results_dir, self.trainer), info, summary, heading=CONTROL_HEADING)
             self._figures(runs[0], error)
             if self.record:
                 self._record(runs)

@@ -1,8 +1,7 @@
 """Forecasting, for every forecaster (an SSM with an inference method, a baseline): the paper's test protocol
 (:mod:`~ssm_ms.forecasting.protocol`: :class:`ForecastModule`; its metrics :mod:`~ssm_ms.forecasting.metrics`, its
 analysis options :mod:`~ssm_ms.forecasting.analysis_settings`, the valid time
-:mod:`~ssm_ms.forecasting.valid_time`), the results files beside the paper's tables
-(:mod:`~ssm_ms.forecasting.results`) and over seeds (:mod:`~ssm_ms.forecasting.seeds`), the ``predict`` writer
+:mod:`~ssm_ms.forecasting.valid_time`), the results files (:mod:`~ssm_ms.forecasting.results`, JSON), the ``predict`` writer
 (:mod:`~ssm_ms.forecasting.writer`) and the forecast figures (:mod:`~ssm_ms.forecasting.figures`)."""
 
 import importlib
@@ -10,7 +9,7 @@ import importlib
 __all__ = ["Forecast", "ForecastModule", "ForecastWriter"]
 
 # Imported when first asked for (``ssm_ms.forecasting.ForecastWriter`` in a config): the results files and
-# ``ssm_ms.reproduce`` use this package without Lightning (~10 s of imports on a slow 2-core CPU).
+# the application (``experiments/``) use this package without Lightning (~10 s of imports on a slow 2-core CPU).
 _HOMES = {"Forecast": "protocol", "ForecastModule": "protocol", "ForecastWriter": "writer"}
 
 

@@ -30,7 +30,6 @@ import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from datetime import datetime, timezone
-from pathlib import Path
 from typing import Any, NamedTuple
 
 import lightning.pytorch as pl
@@ -80,9 +79,9 @@ class ForecastModule(pl.LightningModule):
     in original units, written by :class:`ssm_ms.forecasting.writer.ForecastWriter` (see :meth:`predict_step`).
 
     Subclasses implement :meth:`forecast` (and :meth:`describe` to say what they are). Results go to
-    TensorBoard (``test/...``), to ``<results_dir>/<experiment>.json`` and to a markdown table
-    ``<results_dir>/<experiment>.md`` with the paper's values beside ours; figures to TensorBoard and,
-    with ``figures_dir``, to PNG/GIF.
+    TensorBoard (``test/...``) and to ``<results_dir>/<experiment>.json`` (:mod:`ssm_ms.forecasting.results`; the
+    repository's ``python cli.py`` renders its markdown report beside it); figures to TensorBoard and, with
+    ``figures_dir``, to PNG/GIF.
 
     Args:
         n_filter: measurements given to the forecaster (pendulum 50, Moving MNIST 10, Lorenz 1990).
@@ -91,7 +90,8 @@ class ForecastModule(pl.LightningModule):
         bce_reduction: ``"mean"`` over the pixels of a frame, or ``"sum"`` (Moving MNIST convention).
         original_units: undo the data normalisation before scoring (Lorenz: MSE in original units).
         experiment: name of the results files (default: the data set's name).
-        results_dir: where the results files go.
+        results_dir: where the results file goes (default: the run's own folder, the trainer's ``log_dir``; the
+            shipped configs name ``results``).
         figures_dir: if set, PNG / GIF figures are written there too.
         method_name: the key of this forecaster in the results files (default: :attr:`method_kind`).
         analysis: what to compute beyond the score (default: nothing): a mapping of ``valid_time`` (any
@@ -111,7 +111,7 @@ class ForecastModule(pl.LightningModule):
         bce_reduction: str = "mean",
         original_units: bool = False,
         experiment: str | None = None,
-        results_dir: str = "results",
+        results_dir: str | None = None,
         figures_dir: str | None = None,
         method_name: str | None = None,
         analysis: AnalysisOptions | None = None,
@@ -462,9 +462,7 @@ class ForecastModule(pl.LightningModule):
         return getattr(dm, "name", "experiment")
 
     def write_results(self, summary: dict[str, dict[str, float]], analysis: dict[str, Any] | None = None) -> None:
-        from ssm_ms.forecasting.results import (
-            write_results,  # the tables of the paper live there
-        )
+        from ssm_ms.forecasting.results import results_folder, write_results
 
         info = {
             "experiment": self.experiment_name(),
@@ -484,7 +482,7 @@ class ForecastModule(pl.LightningModule):
             "machine": describe(),
             "test_seconds": round(time.time() - getattr(self, "_start_time", time.time()), 1),
         }
-        write_results(Path(self.results_dir), info, summary, analysis or None)
+        write_results(results_folder(self.results_dir, self.trainer), info, summary, analysis or None)
 
     @staticmethod
     def _test_sequences(summary: dict[str, dict[str, float]]) -> int | None:

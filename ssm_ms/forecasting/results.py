@@ -1,411 +1,33 @@
-"""Results files of the forecasting protocol: ``results/<experiment>.json`` and a markdown table.
+"""The results file of a test run: ``<results_dir>/<experiment>.json``, the one source of every score.
 
-Every forecaster of one experiment (SSM + encoder, SSM + UKF, the LSTM and RKN baselines) lands in
-the same files: each test run replaces its own method's entry and the table is rebuilt from all.
-
-``PAPER`` holds the paper's tables (Jordana et al. 2021, Tables 1-4, transcribed from its LaTeX
-source): for each experiment, rows of ``{column: value}`` where a value is ``(mean, std)`` (``std``
-``None`` where the paper gives none) or a string ("did not converge"). Columns are
-``"<target>/<metric>"`` as the protocol produces them, so each of our rows shows the paper's row of the
-same method beside it (:func:`paper_row`).
-
-The ``.md`` is rendered from the ``.json`` and the hand-written ``<experiment>.notes.md``; after editing notes:
-
-    python -m ssm_ms.forecasting.results pendulum quad   # re-render those experiments' .md (none named: all)
-    python -m ssm_ms.forecasting.results --check         # exit status 1 (naming them) where an .md is stale
+Every forecaster of one experiment (SSM + encoder, SSM + UKF, the LSTM and RKN baselines) and the closed-loop control
+land in the same file: each test run replaces its own method's entry (``runs``), written whole or not at all. The
+library writes JSON only; what reads it (a markdown report, tables beside a paper's) is the application's
+(``experiments/``: ``python cli.py test`` renders ``<experiment>.md`` beside each file a run wrote).
 """
 
 from __future__ import annotations
 
 import json
 import os
-import re
-import sys
 import warnings
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Union
+from typing import Any
 
-Cell = Union[tuple[float, float | None], str]  # noqa: UP007 (a run-time alias)
-
-
-def paper_cell(cell: Cell | None) -> str:
-    """A paper cell: ``mean ± std``, ``mean`` or its words."""
-    if cell is None:
-        return "—"
-    if isinstance(cell, str):
-        return cell
-    mean, std = cell
-    return f"{mean}" if std is None else f"{mean} ± {std}"
+# the results files this process wrote, in order (an application renders them after the run: experiments/cli.py)
+WRITTEN: list[Path] = []
 
 
-_IMAGES = "per-pixel scores vs the noisy frames, mean ± std over {n} test trajectories"
-_LORENZ = (
-    "Table 4 (Lorenz, x measured with noise std 2.5; filter 1990 steps, predict 10; MSE vs the noiseless x "
-    "in original units, 1000 test trajectories of 2000 steps; training pieces of T = {t} steps)"
-)
-_LORENZ_ROWS: dict[str, dict[int, Cell]] = {
-    "SSM-RNN": {10: (3592.273, None), 100: (10.284, None), 1000: (0.391, None), 10000: (0.154, None)},
-    "SSM-UKF": {10: (46.702, None), 100: (10.999, None), 1000: (0.670, None), 10000: (0.335, None)},
-    "LSTM": {10: (35.630, None), 100: (34.852, None), 1000: (6.867, None), 10000: (0.314, None)},
-    "RKN": {10: "did not converge", 100: "did not converge", 1000: (67.76, None), 10000: "out of memory"},
-}
-
-PAPER: dict[str, dict[str, Any]] = {
-    "pendulum": {
-        "table": "Table 1 (simple pendulum, 24x24, filter 50 frames, predict 50; " + _IMAGES.format(n=1000) + ")",
-        "rows": {
-            "SSM-FC": {"noisy/mse": (0.0154, 0.0026), "noisy/bce": (0.2902, 0.0075)},
-            "SSM-LL": {"noisy/mse": (0.0152, 0.0022), "noisy/bce": (0.2895, 0.0064)},
-            "LSTM": {"noisy/mse": (0.0158, 0.0034), "noisy/bce": (0.2913, 0.0098)},
-            "RKN": {"noisy/mse": (0.0155, 0.0021), "noisy/bce": (0.2902, 0.0058)},
-        },
-        "notes": ["In the text: SSM-LL with a 3-D latent state, MSE 0.0177 ± 0.0043, BCE 0.2968 ± 0.0120."],
-    },
-    "quad": {
-        "table": "Table 2 (quadruple pendulum, 48x48, filter 50, predict 50; " + _IMAGES.format(n=2000) + ")",
-        "rows": {
-            "SSM-FC": {"noisy/mse": (0.0250, 0.0053), "noisy/bce": (0.3119, 0.0140)},
-            "SSM-LL": {"noisy/mse": (0.0245, 0.0055), "noisy/bce": (0.3109, 0.0146)},
-            "LSTM": {"noisy/mse": (0.0252, 0.0073), "noisy/bce": (0.3161, 0.0219)},
-            "RKN": {"noisy/mse": (0.0243, 0.0059), "noisy/bce": (0.3108, 0.0160)},
-        },
-    },
-    "mnist": {
-        "table": "Table 3 (Moving MNIST, filter 10, predict 10; BCE summed over the 64x64 pixels of a frame)",
-        "rows": {
-            "ConvLSTM (Shi et al. 2015)": {"noisy/bce": (367.2, None)},
-            "SSM-LL": {"noisy/bce": (353.3, None)},
-            "LSTM encoder-decoder (Srivastava et al. 2015)": {"noisy/bce": (341.2, None)},
-            "Video Pixel Networks (Kalchbrenner et al. 2017)": {"noisy/bce": (87.6, None)},
-        },
-        "notes": ["The paper reports no RKN on Moving MNIST; the other rows are the figures it quotes."],
-    },
-    **{
-        f"lorenz_T{t}": {
-            "table": _LORENZ.format(t=t),
-            "rows": {method: {"clean/mse": cells[t]} for method, cells in _LORENZ_ROWS.items()},
-            "notes": [
-                'SSM-FC "performs poorly" on Lorenz and is not reported. The whole of Table 4 (MSE):',
-                "",
-                "| method | T=10 | T=100 | T=1000 | T=10,000 |",
-                "|---|---|---|---|---|",
-            ]
-            + [
-                f"| {method} | " + " | ".join(paper_cell(cells[tt]) for tt in (10, 100, 1000, 10000)) + " |"
-                for method, cells in _LORENZ_ROWS.items()
-            ],
-        }
-        for t in (10, 100, 1000, 10000)
-    },
-}
+def results_folder(results_dir: str | Path | None, trainer: Any) -> Path:
+    """Where a test run's results file goes: ``results_dir`` where given, else the run's own folder (the trainer's
+    ``log_dir``: the logger's version folder, or ``default_root_dir`` without a logger)."""
+    if results_dir is not None:
+        return Path(results_dir)
+    return Path(trainer.log_dir or trainer.default_root_dir)
 
 
-# what may follow a paper table's key in an experiment's name and keep it the paper's setting: the other
-# transition model, the CPU-sized twin, another seed (seed<N>: reproduce --seed); a variant such as
-# lorenz_T1000_noiseless has no table in the paper
-SAME_SETTING = {"fc", "cpu"}
-
-
-def paper_key(experiment: str) -> str | None:
-    """Which paper table an experiment belongs to (``pendulum_fc_cpu`` -> ``pendulum``, ``lorenz_T1000`` ->
-    ``lorenz_T1000``, ``lorenz_T1000_noiseless_cpu`` -> None)."""
-    for key in sorted(PAPER, key=len, reverse=True):
-        if experiment == key or experiment.startswith(key + "_"):
-            rest = experiment[len(key) + 1 :]
-            same = all(part in SAME_SETTING or re.fullmatch(r"seed\d+", part) for part in rest.split("_"))
-            return key if not rest or same else None
-    return None
-
-
-def paper_row(key: str, info: dict[str, Any]) -> str | None:
-    """The paper's row for one of our runs: the same model with the same kind of inference.
-
-    Image tables name the SSM by its transition (``SSM-LL``, ``SSM-FC``, state inferred by the CNN-LSTM);
-    Table 4 names it by its inference (``SSM-RNN``: the encoder, ``SSM-UKF``); baselines by their name.
-    """
-    rows = PAPER[key]["rows"]
-    model, inference = info.get("model"), info.get("inference")
-    if model in ("LSTM", "RKN"):
-        name = model
-    elif key.startswith("lorenz"):
-        name = {"encoder": "SSM-RNN", "ukf": "SSM-UKF"}.get(inference)
-    else:
-        name = model if inference == "encoder" else None
-    return name if name in rows else None
-
-
-def sig(value: float, digits: int) -> str:
-    """``digits`` significant figures; plain digits up to 10,000 (``190``, not ``1.9e+02``)."""
-    text = f"{value:.{digits}g}"
-    if "e+" in text and abs(value) < 1e4:
-        text = f"{float(text):.0f}"
-    return text
-
-
-def score_cell(entry: dict[str, float] | None) -> str:
-    """A score over the test sequences, as results files and the README print it: ``mean ± std``, saying how many
-    diverged (a NaN or inf score) and were left out."""
-    if entry is None:
-        return "—"
-    bad, n = entry.get("non_finite", 0), entry.get("n")
-    if bad and bad == n:
-        return f"non-finite on all {n}"
-    cell = f"{sig(entry['mean'], 4)} ± {sig(entry['std'], 2)}"
-    return f"{cell} ({bad} of {n} non-finite, left out)" if bad else cell
-
-
-def render_markdown(
-    experiment: str,
-    runs: dict[str, dict[str, Any]],
-    pipelines: dict[str, dict[str, Any]] | None = None,
-    heading: dict[str, str] | None = None,
-) -> str:
-    """The markdown report of an experiment from its runs ``{method: {"info": ..., "summary": ...}}`` (``heading``:
-    ``{"title", "intro"}`` of a results file that is not the forecasting protocol's, e.g. closed-loop control)."""
-    heading = heading or {
-        "title": "Forecasting results",
-        "intro": "Mean ± std over test sequences. `last`: repeat the method's estimate of the last given frame; "
-        "`mean`: the mean training frame (references, computed by the same code).",
-    }
-    lines = [f"# {heading['title']}: {experiment}", ""]
-    key = paper_key(experiment)
-    paper = PAPER[key] if key is not None else None
-    columns = sorted({k.split("/", 1)[1] for run in runs.values() for k in run["summary"]})
-    pcols = sorted({c for r in paper["rows"].values() for c in r}) if paper else []
-    lines.append(heading["intro"])
-    if paper:
-        lines.append(
-            f"Beside each method, the paper's row for the same method ({paper['table'].split(' (')[0]}, below)."
-        )
-    if experiment.endswith("_cpu") or "_cpu_" in experiment:
-        lines.append(
-            "This is a CPU-sized twin (`configs/cpu/`: less data, smaller networks, fewer epochs than the "
-            "paper); the paper's figures are for its full-size setting."
-        )
-    lines.append("")
-    head = ["method", *columns] + (["paper row", *(f"paper {c}" for c in pcols)] if paper else [])
-    lines.append("| " + " | ".join(head) + " |")
-    lines.append("|---" * len(head) + "|")
-    # the SSMs first, then the baselines (the paper's order), each group by label
-    ordered = sorted(
-        runs.items(),
-        key=lambda item: (item[1]["info"].get("model") in ("LSTM", "RKN"), item[1]["info"].get("label", item[0])),
-    )
-    for method, run in ordered:
-        info = run["info"]
-        per_row: dict[str, dict[str, dict[str, float]]] = {}
-        for k, value in run["summary"].items():
-            row, col = k.split("/", 1)
-            per_row.setdefault(row, {})[col] = value
-        label = info.get("label", method)
-        for row in sorted(per_row, key=lambda r: (r in ("last", "mean"), r)):  # the method, then its references
-            own = row == method
-            cells = [label if own else f"{row} (reference, with {label})"]
-            cells += [score_cell(per_row[row].get(c)) for c in columns]
-            if paper:
-                name = paper_row(key, info) if own else None
-                cells.append(name or "")
-                cells += [paper_cell(paper["rows"][name].get(c)) if name else "" for c in pcols]
-            lines.append("| " + " | ".join(cells) + " |")
-    lines.append("")
-    if paper:
-        lines += [f"## The paper: {paper['table']}", ""]
-        lines.append("| method | " + " | ".join(pcols) + " |")
-        lines.append("|---" * (len(pcols) + 1) + "|")
-        for name, values in paper["rows"].items():
-            lines.append(f"| {name} | " + " | ".join(paper_cell(values.get(c)) for c in pcols) + " |")
-        lines.append("")
-        if paper.get("notes"):
-            lines += [*paper["notes"], ""]
-    lines += render_analysis(ordered)
-    lines += ["## Runs", ""]
-    for method, run in ordered:
-        info = run["info"]
-        lines.append(f"- **{info.get('label', method)}** (`{method}`): `{info.get('command', '')}`")
-        for field in (
-            "date",
-            "machine",
-            "ssm_checkpoint",
-            "checkpoint",
-            "test_sequences",
-            "data",
-            "n_filter",
-            "n_predict",
-            "bce_reduction",
-            "bce_clamp",
-            "original_units",
-            "inference_settings",
-            "test_seconds",
-        ):
-            if info.get(field) is not None:
-                lines.append(f"  - {field}: {info[field]}")
-    lines.append("")
-    if pipelines:
-        lines += ["## How this was produced", ""]
-        for pipeline in sorted(pipelines.values(), key=lambda p: p.get("date", "")):
-            lines += [
-                f"`{pipeline.get('command', '')}` on {pipeline.get('machine', '?')}, "
-                f"{pipeline.get('date', '?')}: {pipeline.get('total_seconds', '?')} s in all.",
-                "",
-            ]
-            lines += ["| stage | seconds |", "|---|---|"]
-            lines += [
-                f"| `{st['command']}` | {st['seconds']}"
-                + (f" (in {st['runs']} runs: resumed from its last completed epoch)" if st.get("runs", 1) > 1 else "")
-                + " |"
-                for st in pipeline.get("stages", [])
-            ]
-            lines.append("")
-    return "\n".join(lines)
-
-
-def _num(value: Any, digits: int = 3) -> str:
-    if value is None:
-        return "—"
-    if isinstance(value, float) and value == float("inf"):
-        return "inf"
-    if isinstance(value, (int, float)) and 10**digits <= abs(value) < 1e9:
-        return f"{value:.0f}"  # whole steps read better than 1e+03
-    return f"{value:.{digits}g}" if isinstance(value, (int, float)) else str(value)
-
-
-def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    """A markdown table less the columns after the first that read "—" on every row (a Lorenz-only statistic in an
-    image experiment's file, say)."""
-    keep = [0] + [j for j in range(1, len(header)) if any(row[j] != "—" for row in rows)]
-    return [
-        "| " + " | ".join(header[j] for j in keep) + " |",
-        "|" + "---|" * len(keep),
-        *("| " + " | ".join(row[j] for j in keep) + " |" for row in rows),
-    ]
-
-
-def render_analysis(ordered: list[tuple[str, dict[str, Any]]]) -> list[str]:
-    """The ``## Analysis`` section: valid prediction times of every method, then what each SSM's ``f`` does alone."""
-    runs = [(run["info"].get("label", method), run["analysis"]) for method, run in ordered if run.get("analysis")]
-    if not runs:
-        return []
-    lines = ["## Analysis", ""]
-    true = next((a["true_system"] for _, a in runs if a.get("true_system")), None)
-    timed = [(label, a["valid_time"]) for label, a in runs if a.get("valid_time")]
-    if timed:
-        vt0 = timed[0][1]
-        lines.append(
-            f"**Valid prediction time**: steps until the forecast's normalised error "
-            f"`sqrt(mean((pred - truth)^2 / std^2))` exceeds {vt0['threshold']} (the reservoir-computing convention), "
-            f"against the {vt0['truth']} measurements, after {vt0['n_filter']} given steps, over a horizon of "
-            f"{vt0['horizon']} steps; `censored`: share of sequences still valid at the horizon (their time is "
-            f"counted as the horizon: a lower bound). Lyapunov times use the true system's largest exponent"
-            + (f" ({true['largest']:.3g} per time unit, {true['source']})." if true else " (not known here).")
-        )
-        lines.append(
-            " `error at step`: the normalised error averaged over sequences at those forecast steps (how it grows)."
-        )
-        if any(vt.get("given_error") is not None for _, vt in timed):
-            lines.append(
-                " Images: the error counted is the part above the sequence's own reconstruction error on its last "
-                "10 given frames (`given`: that floor, normalised the same way), since a decoder's blur alone "
-                "would read as invalid from the first frame."
-            )
-        rows = []
-        for label, vt in timed:
-            steps = sorted((vt.get("error_at_step") or {}).items(), key=lambda kv: int(kv[0]))  # JSON keys are strings
-            growth = ", ".join(f"{k}: {_num(v, 2)}" for k, v in steps)
-            rows.append(
-                [
-                    label,
-                    f"{_num(vt['mean_steps'])} ± {_num(vt['std_steps'], 2)}",
-                    _num(vt["median_steps"]),
-                    _num(vt.get("mean_seconds")),
-                    _num(vt.get("mean_lyapunov_times")),
-                    _num(vt["censored_share"], 2),
-                    (growth or "—")
-                    + (f"; given: {_num(vt['given_error'], 2)}" if vt.get("given_error") is not None else ""),
-                ]
-            )
-        lines += [
-            "",
-            *_table(
-                [
-                    "method",
-                    "mean ± std (steps)",
-                    "median (steps)",
-                    "mean (s)",
-                    "mean (Lyapunov times)",
-                    "censored",
-                    "error at step",
-                ],
-                rows,
-            ),
-            "",
-        ]
-    dyn = [(label, a["dynamics"]) for label, a in runs if a.get("dynamics")]
-    if dyn:
-        lines.append(
-            "**The learned f on its own**, iterated from shooting nodes (the same for every inference method "
-            "of one SSM): Lyapunov exponents per time unit (Benettin QR on the Jacobians of f), and long free "
-            "runs decoded by g against the data's noiseless training measurements."
-        )
-        rows = []
-        for label, d in dyn:
-            ly, fr = d["lyapunov"], d.get("free_run", {})
-            truth = d.get("lyapunov_true", true) or {}
-            rows.append(
-                [
-                    label,
-                    ", ".join(_num(e) for e in ly["exponents"]),
-                    f"{_num(ly['largest'])} ({_num(truth.get('largest'))})",
-                    f"{fr.get('runs', '—')} x {fr.get('steps', '—')}",
-                    _num(fr["model_mean"][0]) + " ± " + _num(fr["model_std"][0]) if "model_mean" in fr else "—",
-                    _num(fr["reference_mean"][0]) + " ± " + _num(fr["reference_std"][0])
-                    if "reference_mean" in fr
-                    else "—",
-                    _num(fr["wasserstein"][0]) if "wasserstein" in fr else "—",
-                    _num(fr.get("both_wings_share"), 2),
-                ]
-            )
-        lines += [
-            "",
-            *_table(
-                [
-                    "SSM (via)",
-                    "Lyapunov exponents",
-                    "largest (true)",
-                    "free runs",
-                    "x: model mean ± std",
-                    "x: data mean ± std",
-                    "W1 (x)",
-                    "both wings",
-                ],
-                rows,
-            ),
-            "",
-        ]
-        periodic = [(label, d["oscillation"]) for label, d in dyn if d.get("oscillation")]
-        if periodic:
-            lines += [
-                "**Period and amplitude** of the free runs of f from the nodes of training trajectories, decoded, "
-                "against the data generator simulated from the same initial states over the same horizon "
-                "(amplitude ratio: std of the last window over the first; 1 = energy kept).",
-                "",
-                "| SSM (via) | runs | horizon (steps) | period error, median | within 5% | amplitude ratio, model "
-                "(median) | amplitude ratio, truth (median) | valid steps from the node (median) |",
-                "|---|---|---|---|---|---|---|---|",
-            ]
-            for label, o in periodic:
-                lines.append(
-                    f"| {label} | {o['runs']} | {o['horizon']} | {_num(o['median_period_error'])} | "
-                    f"{_num(o['share_within_5_percent'], 2)} | {_num(o['median_amplitude_ratio_model'])} | "
-                    f"{_num(o['median_amplitude_ratio_truth'])} | {_num(o['median_valid_steps'])} |"
-                )
-            lines.append("")
-    return lines
-
-
-NOTES_SUFFIX = ".notes.md"  # results/<experiment>.notes.md: hand-written notes appended to <experiment>.md
-
-
-def _load(json_path: Path) -> dict[str, Any]:
+def load(json_path: Path) -> dict[str, Any]:
     """The results file's content; ``{}`` where there is none yet. A file that is not a results file (not a JSON
     object: written by hand, or cut short by an older version's interrupted write) is moved aside to
     ``<name>.unreadable``, with a warning, rather than overwritten: the runs it held stay to be restored."""
@@ -431,7 +53,7 @@ def _load(json_path: Path) -> dict[str, Any]:
     return {}
 
 
-def _replace_text(path: Path, text: str) -> None:
+def replace_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` whole or not at all: an interrupted write (Ctrl-C, SIGTERM, a full disk) leaves
     the file as it was."""
     tmp = path.with_name(f".{path.name}.tmp")
@@ -442,52 +64,18 @@ def _replace_text(path: Path, text: str) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def _rendered(results_dir: Path, experiment: str, data: dict[str, Any]) -> str:
-    """The ``.md`` text of ``data`` with the experiment's notes appended."""
-    text = render_markdown(experiment, data.get("runs", {}), data.get("pipelines"), data.get("heading"))
-    notes = results_dir / f"{experiment}{NOTES_SUFFIX}"
-    if notes.is_file():  # what a person wrote about the runs (pauses, measurements beside them): kept on every rewrite
-        text += f"\n## Notes\n\n(from `{notes.name}`, written by hand)\n\n{notes.read_text().strip()}\n"
-    return text
-
-
-def _save(results_dir: Path, experiment: str, data: dict[str, Any]) -> Path:
+def update_results(results_dir: Path, experiment: str, change: Callable[[dict[str, Any]], None]) -> Path:
+    """Apply ``change`` to the content of ``<results_dir>/<experiment>.json`` (``{}`` where there is none yet) and
+    write it back whole; return its path (also recorded in :data:`WRITTEN`)."""
+    results_dir = Path(results_dir)
+    results_dir.mkdir(parents=True, exist_ok=True)
+    path = results_dir / f"{experiment}.json"
+    data = load(path)
+    change(data)
     data["experiment"] = experiment
-    _replace_text(results_dir / f"{experiment}.json", json.dumps(data, indent=2, sort_keys=True))
-    md_path = results_dir / f"{experiment}.md"
-    _replace_text(md_path, _rendered(results_dir, experiment, data))
-    return md_path
-
-
-def experiments(results_dir: Path) -> list[str]:
-    """The experiments with a results file in ``results_dir`` (``<name>.json`` holding ``runs``; not the seed
-    summaries of :mod:`ssm_ms.forecasting.seeds`)."""
-    names = []
-    for path in sorted(results_dir.glob("*.json")):
-        try:
-            data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            continue
-        if isinstance(data, dict) and "runs" in data:
-            names.append(path.stem)
-    return names
-
-
-def _stale_renders(results_dir: Path, names: list[str] | None = None) -> dict[str, str]:
-    """``{name: text}`` for those of ``names`` (all :func:`experiments`) whose ``.md`` differs from ``text``, what
-    their ``.json`` and notes render."""
-    out = {}
-    for name in experiments(results_dir) if names is None else names:
-        md = results_dir / f"{name}.md"
-        text = _rendered(results_dir, name, _load(results_dir / f"{name}.json"))
-        if not md.is_file() or md.read_text() != text:
-            out[name] = text
-    return out
-
-
-def stale(results_dir: Path, names: list[str] | None = None) -> list[str]:
-    """Those of ``names`` (all :func:`experiments`) whose ``.md`` differs from what their ``.json`` and notes render."""
-    return list(_stale_renders(results_dir, names))
+    replace_text(path, json.dumps(data, indent=2, sort_keys=True))
+    WRITTEN.append(path)
+    return path
 
 
 def write_results(
@@ -497,66 +85,16 @@ def write_results(
     analysis: dict[str, Any] | None = None,
     heading: dict[str, str] | None = None,
 ) -> Path:
-    """Merge one test run into ``<results_dir>/<experiment>.json`` and rewrite ``<experiment>.md`` (``heading``: see
-    :func:`render_markdown`, kept in the file)."""
-    results_dir.mkdir(parents=True, exist_ok=True)
-    experiment = info["experiment"]
-    data = _load(results_dir / f"{experiment}.json")
-    if heading is not None:
-        data["heading"] = heading
-    run: dict[str, Any] = {"info": info, "summary": summary}
-    if analysis:
-        run["analysis"] = analysis
-    data.setdefault("runs", {})[info["method"]] = run
-    return _save(results_dir, experiment, data)
+    """Merge one test run (``info``: what ran, its ``experiment`` and ``method``; ``summary``: its scores) into
+    ``<results_dir>/<experiment>.json``; return that file's path. ``heading`` (``{"title", "intro"}``) is kept in
+    the file for a report of a results file that is not the forecasting protocol's, e.g. closed-loop control."""
 
+    def merge(data: dict[str, Any]) -> None:
+        if heading is not None:
+            data["heading"] = heading
+        run: dict[str, Any] = {"info": info, "summary": summary}
+        if analysis:
+            run["analysis"] = analysis
+        data.setdefault("runs", {})[info["method"]] = run
 
-def write_pipeline(
-    results_dir: Path, experiment: str, command: str, pipeline: dict[str, Any], replaces: str | None = None
-) -> Path:
-    """Record how (part of) the experiment was produced -- the stages of one ``make reproduce`` command, their
-    durations, the machine -- and rewrite the table. Each command keeps its own record; ``replaces`` names the
-    command of a record this one supersedes (the same run, resumed with a larger epoch budget)."""
-    results_dir.mkdir(parents=True, exist_ok=True)
-    data = _load(results_dir / f"{experiment}.json")
-    data.pop("pipeline", None)  # the single record of earlier versions
-    if replaces is not None:
-        data.get("pipelines", {}).pop(replaces, None)
-    data.setdefault("pipelines", {})[command] = pipeline
-    return _save(results_dir, experiment, data)
-
-
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("experiments", nargs="*", help="names of results/<name>.json (default: every one)")
-    parser.add_argument("--results-dir", type=Path, default=Path(__file__).resolve().parents[2] / "results")
-    parser.add_argument("--check", action="store_true", help="change nothing; exit status 1 where an .md is stale")
-    opts = parser.parse_args(argv)
-    if not opts.results_dir.is_dir():
-        parser.error(f"no folder {opts.results_dir}: give the results folder with --results-dir")
-    known = experiments(opts.results_dir)
-    unknown = [name for name in opts.experiments if name not in known]
-    if unknown:
-        parser.error(f"no results file {', '.join(unknown)} in {opts.results_dir} (there: {', '.join(known)})")
-    renders = _stale_renders(opts.results_dir, opts.experiments or None)
-    names = list(renders)
-    if opts.check:
-        if names:
-            print(
-                f"{opts.results_dir}: stale .md beside its .json and notes: {', '.join(names)} "
-                "(python -m ssm_ms.forecasting.results re-renders them)",
-                file=sys.stderr,
-            )
-        return 1 if names else 0
-    for name, text in renders.items():
-        md = opts.results_dir / f"{name}.md"
-        _replace_text(md, text)
-        print(f"re-rendered {md}")
-    print(f"{len(names)} of {len(opts.experiments or known)} .md files re-rendered")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    return update_results(results_dir, info["experiment"], merge)

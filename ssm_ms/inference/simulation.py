@@ -22,7 +22,6 @@ import sys
 import time
 from collections.abc import Mapping
 from datetime import datetime, timezone
-from pathlib import Path
 from typing import Any
 
 import lightning.pytorch as pl
@@ -306,7 +305,8 @@ class SimulationTest(pl.LightningModule):
             amortised nodes, else the UKF).
         chunk: steps rolled out per call.
         experiment: the results files' name (default: the data's name); ``method_name``: this row's key.
-        results_dir, figures_dir: where they go (``figures_dir`` ``None``: no figures).
+        results_dir, figures_dir: where they go (``results_dir`` ``None``: the run's own folder, the trainer's
+            ``log_dir``; ``figures_dir`` ``None``: no figures).
         selection: how the model was chosen, recorded with the results (``make reproduce ... --orders``: each
             latent dimension's validation score and the one chosen).
     """
@@ -319,7 +319,7 @@ class SimulationTest(pl.LightningModule):
         chunk: int = 10_000,
         experiment: str | None = None,
         method_name: str | None = None,
-        results_dir: str = "results",
+        results_dir: str | None = None,
         figures_dir: str | None = None,
         selection: dict[str, Any] | None = None,
     ):
@@ -395,6 +395,7 @@ class SimulationTest(pl.LightningModule):
         if not self.trainer.is_global_zero:
             return
         from ssm_ms.forecasting.benchmark_results import write_benchmark_results
+        from ssm_ms.forecasting.results import results_folder
 
         dm = self.trainer.datamodule
         info = {
@@ -415,7 +416,9 @@ class SimulationTest(pl.LightningModule):
             "stability": local_stability(self.ssm),
             "selection": self.selection,
         }
-        write_benchmark_results(Path(self.results_dir), info, self.rows, self.figures, self.figures_dir, dm.n_init)
+        write_benchmark_results(
+            results_folder(self.results_dir, self.trainer), info, self.rows, self.figures, self.figures_dir, dm.n_init
+        )
 
 
 def check_method(method: str | None) -> str | None:

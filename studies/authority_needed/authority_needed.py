@@ -25,8 +25,8 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
+from experiments.reproduce import load_config  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
-from ssm_ms.reproduce import load_config  # noqa: E402
 from studies.control_diagnosis.control_diagnosis import closed_loop, episodes  # noqa: E402
 
 DEFAULT_SCALES = ("1,1", "0.3,0.6", "0.1,0.6", "0,0.6", "-0.27,0.9", "1,0.3")

@@ -30,9 +30,9 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
+from experiments.reproduce import build_datamodule, load_config  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.module import ClosedLoop  # noqa: E402
-from ssm_ms.reproduce import build_datamodule, load_config  # noqa: E402
 
 BANDS = ((0.0, 0.5), (0.5, 1.5), (1.5, 2.5), (2.5, np.pi + 1e-9))  # rad from upright
 STEPS = (1, 5, 10)

@@ -32,10 +32,10 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
 from datamodules.lorenz import LorenzDataModule  # noqa: E402
+from experiments.reproduce import build_datamodule  # noqa: E402
 from ssm_ms.forecasting.metrics import mse_per_sequence  # noqa: E402
 from ssm_ms.inference.particle import ParticleFilter  # noqa: E402
 from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402
-from ssm_ms.reproduce import build_datamodule  # noqa: E402
 
 DATA_CONFIGS = ["configs/cpu/data/lorenz_T1000.yaml", "configs/data/lorenz_T1000.yaml"]
 PROCESS_VARS = [0.0, 1e-5, 1e-4, 1e-3]  # UKF, original units squared per step: a deterministic f, then some slack

@@ -1,14 +1,14 @@
 """The results tables of the README and of docs/results.md, generated from the results files (``results/*.json``):
 one source for every score.
 
-    python -m ssm_ms.forecasting.readme            # rewrite the tables between the documents' markers
-    python -m ssm_ms.forecasting.readme --check    # exit status 1 (naming the tables) where a document is stale
+    python -m experiments.readme            # rewrite the tables between the documents' markers
+    python -m experiments.readme --check    # exit status 1 (naming the tables) where a document is stale
 
 Each table sits in one of :data:`DOCUMENTS` between ``<!-- results:begin NAME -->`` and ``<!-- results:end -->``
-(NAME one of :data:`TABLES`, each in exactly one document); everything outside the markers is prose a person writes.
+(NAME one of the registry's ``readme_tables``, configs/experiments.yaml, each in exactly one document); everything outside the markers is prose a person writes.
 A table is built from the runs of the results files (``runs``: each method's scores and analysis) and the pipelines
 that produced them (``pipelines``: the ``make reproduce`` command, each stage's command and seconds): ours ``mean ±
-std`` over the test sequences, the paper's cell beside it (:data:`~ssm_ms.forecasting.results.PAPER`), the mean valid
+std`` over the test sequences, the paper's cell beside it (the registry's ``paper_tables``), the mean valid
 prediction time, and the command that produced the row with each training stage's epoch budget (its
 ``--trainer.max_epochs``, where the pipeline set one) and duration. ``tests/test_readme_tables.py`` regenerates the
 tables in memory and fails where a document differs: after a new result, run this command.
@@ -28,9 +28,10 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from ssm_ms.forecasting.results import PAPER, paper_cell, paper_key, paper_row, score_cell, sig
+from experiments.registry import paper_cell, paper_table, read_registry
+from experiments.results import paper_row, score_cell, sig
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 DOCUMENTS = (ROOT / "README.md", ROOT / "docs" / "results.md")  # the documents whose tables are generated
 BEGIN = "<!-- results:begin {name} -->"
 END = "<!-- results:end -->"
@@ -141,11 +142,11 @@ def valid(run: dict[str, Any]) -> str:
 
 
 def paper_cells(experiment: str, run: dict[str, Any], metrics: tuple[str, ...]) -> str:
-    key = paper_key(experiment)
-    name = paper_row(key, run["info"]) if key else None
+    paper = paper_table(experiment)
+    name = paper_row(paper, run["info"]) if paper else None
     if name is None:
         return "not in the paper"
-    return " / ".join(paper_cell(PAPER[key]["rows"][name].get(m)) for m in metrics)
+    return " / ".join(paper_cell(paper["rows"][name].get(m)) for m in metrics)
 
 
 # ------------------------------------------------------------------------------------------------- the tables
@@ -195,74 +196,24 @@ def method_table(results: Results, groups: list[Group], with_valid: bool) -> lis
     return lines
 
 
-IMAGES = ("noisy/mse", "noisy/bce")
-
-
-def full_size(results: Results) -> list[str]:
-    """Tables 1 and 2 at the paper's size, and Table 4's runs at its data size."""
-    return method_table(
-        results,
-        [
-            Group(
-                "simple pendulum (Table 1), noisy per-pixel MSE / BCE",
-                IMAGES,
-                (("pendulum", "encoder"), ("pendulum_fc", "encoder"), ("pendulum", "lstm"), ("pendulum", "rkn")),
-                ("mean training frame", "pendulum", "encoder", "mean"),
+def methods(results: Results, spec: dict[str, Any]) -> list[str]:
+    """A ``kind: methods`` table of the registry's ``readme_tables`` (Tables 1 and 2 at the paper's size and Table
+    4's runs at its data size; the image experiments' CPU-sized twins): its groups of rows."""
+    groups = [
+        Group(
+            group["title"],
+            tuple(group["metrics"]),
+            tuple((experiment, method) for experiment, method in group["rows"]),
+            (
+                group["reference"]["label"],
+                group["reference"]["file"],
+                group["reference"]["method"],
+                group["reference"]["of"],
             ),
-            Group(
-                "quadruple pendulum (Table 2), noisy per-pixel MSE / BCE",
-                IMAGES,
-                (
-                    ("quad", "encoder"),
-                    ("quad", "encoder_ssm1000"),
-                    ("quad_fc", "encoder"),
-                    ("quad", "lstm"),
-                    ("quad", "rkn"),
-                ),
-                ("mean training frame", "quad", "encoder", "mean"),
-            ),
-            Group(
-                "Lorenz (Table 4), T = 1,000: 10-step MSE of x, original units",
-                (LORENZ,),
-                (("lorenz_T1000", "ukf"),),
-                ("repeat the last estimate", "lorenz_T1000", "ukf", "last"),
-            ),
-            Group(
-                "Lorenz (Table 4), T = 10,000: 10-step MSE of x, original units",
-                (LORENZ,),
-                (("lorenz_T10000", "ukf"),),
-                ("repeat the last estimate", "lorenz_T10000", "ukf", "last"),
-            ),
-        ],
-        with_valid=True,
-    )
-
-
-def cpu_twins(results: Results) -> list[str]:
-    """The image experiments' CPU-sized twins (Lorenz's: :func:`lorenz_sweep`)."""
-    return method_table(
-        results,
-        [
-            Group(
-                "simple pendulum, noisy MSE per pixel",
-                ("noisy/mse",),
-                (("pendulum_cpu", "encoder"), ("pendulum_cpu", "lstm"), ("pendulum_cpu", "rkn")),
-                ("mean training frame", "pendulum_cpu", "encoder", "mean"),
-            ),
-            Group(
-                "Moving MNIST (Table 3), BCE summed over a frame's 64x64 pixels",
-                ("noisy/bce",),
-                (("mnist_cpu", "encoder"), ("mnist_cpu", "lstm"), ("mnist_sprites_cpu", "encoder")),
-                ("mean training frame", "mnist_cpu", "encoder", "mean"),
-            ),
-        ],
-        with_valid=False,
-    )
-
-
-LORENZ_T = (10, 100, 1000, 10000)
-LORENZ = "clean/mse"  # the 10-step MSE of x against the noiseless x, in original units
-NOISE_FREE = ("lorenz_T1000_noiseless_cpu", "the paper's appendix: accurate for 1000 steps")
+        )
+        for group in spec["groups"]
+    ]
+    return method_table(results, groups, with_valid=bool(spec.get("valid")))
 
 
 def _f_alone(run: dict[str, Any]) -> str:
@@ -275,54 +226,56 @@ def _f_alone(run: dict[str, Any]) -> str:
     return exponent + (f"; {round(wings * free['runs'])} of {free['runs']}" if wings is not None else "")
 
 
-def lorenz_sweep(results: Results) -> list[str]:
-    """Table 4's sweep over the training piece length T at CPU size: ours / the paper's, then how each T ran."""
-    files = {t: f"lorenz_T{t}_cpu" for t in LORENZ_T}
-    true = results.run(files[1000], "ukf").get("analysis", {}).get("true_system", {}).get("largest")
-    head = ["method", *(f"T = {t:,}" for t in LORENZ_T)]
+def lorenz_sweep(results: Results, spec: dict[str, Any]) -> list[str]:
+    """Table 4's sweep over the training piece length T at CPU size (a ``kind: sweep`` table of the registry's
+    ``readme_tables``: its results file per T, its methods): ours / the paper's, then how each T ran."""
+    files, metric, (ukf_m, enc_m, lstm_m, rkn_m) = spec["files"], spec["metric"], spec["methods"]
+    columns, main = list(files), spec["main"]
+    true = results.run(files[main], ukf_m).get("analysis", {}).get("true_system", {}).get("largest")
+    head = ["method", *(f"T = {t:,}" for t in columns)]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
 
     def row(label: str, cell: Callable[[int], str]) -> None:
-        lines.append("| " + " | ".join([label, *(cell(t) for t in LORENZ_T)]) + " |")
+        lines.append("| " + " | ".join([label, *(cell(t) for t in columns)]) + " |")
 
     def versus(method: str) -> Callable[[int], str]:
         def cell(t: int) -> str:
             run = results.run(files[t], method)
-            return f"{score_cell(run['summary'].get(f'{method}/{LORENZ}'))} / {paper_cells(files[t], run, (LORENZ,))}"
+            return f"{score_cell(run['summary'].get(f'{method}/{metric}'))} / {paper_cells(files[t], run, (metric,))}"
 
         return cell
 
-    for method in ("ukf", "encoder"):
-        row(results.run(files[1000], method)["info"]["label"], versus(method))
+    for method in (ukf_m, enc_m):
+        row(results.run(files[main], method)["info"]["label"], versus(method))
     row(
         f"*the learned f alone: largest Lyapunov exponent (true {sig(true, 2)}); free runs on both wings*",
-        lambda t: _f_alone(results.run(files[t], "ukf")),
+        lambda t: _f_alone(results.run(files[t], ukf_m)),
     )
-    for method in ("lstm", "rkn"):
-        row(results.run(files[1000], method)["info"]["label"], versus(method))
+    for method in (lstm_m, rkn_m):
+        row(results.run(files[main], method)["info"]["label"], versus(method))
     row(
         "*repeat the last estimate (reference, with the UKF)*",
-        lambda t: reference(results.run(files[t], "ukf")["summary"].get(f"last/{LORENZ}")),
+        lambda t: reference(results.run(files[t], ukf_m)["summary"].get(f"last/{metric}")),
     )
     row(
         "*valid prediction time (steps): UKF / encoder / LSTM / RKN*",
-        lambda t: " / ".join(valid(results.run(files[t], m)) for m in ("ukf", "encoder", "lstm", "rkn")),
+        lambda t: " / ".join(valid(results.run(files[t], m)) for m in spec["methods"]),
     )
-    noise_free, words = NOISE_FREE
-    ukf = results.run(noise_free, "ukf")
+    noise_free, words = spec["noise_free"]["file"], spec["noise_free"]["paper"]
+    ukf = results.run(noise_free, ukf_m)
     row(
         "SSM-LL + UKF, noise-free measurements",
         lambda t: (
-            f"{score_cell(ukf['summary'].get(f'ukf/{LORENZ}'))}, valid {valid(ukf)} steps / {words} "
-            f"({produced(results.pipeline(noise_free, 'ukf'), ukf)})"
-            if t == 1000
+            f"{score_cell(ukf['summary'].get(f'{ukf_m}/{metric}'))}, valid {valid(ukf)} steps / {words} "
+            f"({produced(results.pipeline(noise_free, ukf_m), ukf)})"
+            if t == main
             else "—"
         ),
     )
 
     def commands(t: int) -> str:
         pipelines: list[dict[str, Any]] = []
-        for method in ("ukf", "encoder", "lstm", "rkn"):
+        for method in spec["methods"]:
             found = results.pipeline(files[t], method)
             if found is not None and all(found is not p for p in pipelines):
                 pipelines.append(found)
@@ -332,7 +285,7 @@ def lorenz_sweep(results: Results) -> list[str]:
     return lines
 
 
-def benchmarks(results: Results) -> list[str]:
+def benchmarks(results: Results, spec: dict[str, Any]) -> list[str]:
     """The identification benchmarks (``results/benchmarks/*.json``), one row per test recording: ssm-ms's method that
     validated best (the lowest mean validation RMSE over its seeds: the choice the test data do not make), deepSI's
     SUBNET (its model best on its own validation, and its last), the best published row; machine and date of ours."""
@@ -378,26 +331,35 @@ def benchmarks(results: Results) -> list[str]:
     return lines
 
 
-TABLES: dict[str, Callable[[Results], list[str]]] = {
-    "full-size": full_size,
-    "cpu-twins": cpu_twins,
-    "lorenz-sweep": lorenz_sweep,
+# the kinds of table of the registry's readme_tables (configs/experiments.yaml), each drawn from its entry there
+KINDS: dict[str, Callable[[Results, dict[str, Any]], list[str]]] = {
+    "methods": methods,
+    "sweep": lorenz_sweep,
     "benchmarks": benchmarks,
 }
+
+
+def tables() -> dict[str, dict[str, Any]]:
+    """The generated tables by name: the registry's ``readme_tables``."""
+    return read_registry().get("readme_tables") or {}
 
 
 # ------------------------------------------------------------------------------------------------- the documents
 def render(text: str, results_dir: Path = ROOT / "results") -> str:
     """``text`` (one of :data:`DOCUMENTS`) with every marked table generated anew from the results files."""
     results = Results(results_dir)
+    specs = tables()
     seen = []
 
     def fill(match: re.Match) -> str:
         name = match.group("name")
-        if name not in TABLES:
-            raise KeyError(f"marker {BEGIN.format(name=name)}: no such table (known: {sorted(TABLES)})")
+        if name not in specs:
+            raise KeyError(
+                f"marker {BEGIN.format(name=name)}: no such table in the registry's readme_tables (known: {sorted(specs)})"
+            )
         seen.append(name)
-        return "\n".join([BEGIN.format(name=name), *TABLES[name](results), END])
+        spec = specs[name]
+        return "\n".join([BEGIN.format(name=name), *KINDS[spec["kind"]](results, spec), END])
 
     out = MARKER.sub(fill, text)
     if len(re.findall(r"^<!-- results:begin", text, re.M)) != len(seen):  # markers open a line; prose may quote one
@@ -425,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
             if names:
                 print(
                     f"{document}: tables differ from {opts.results_dir}/*.json: {', '.join(names)} "
-                    "(python -m ssm_ms.forecasting.readme rewrites them)",
+                    "(python -m experiments.readme rewrites them)",
                     file=sys.stderr,
                 )
                 status = 1

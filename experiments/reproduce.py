@@ -4,16 +4,16 @@ estimating the state), then every baseline of the experiment (fit -> test); or o
 come first: they train nothing (seconds to minutes), and their rows land even where a long encoder stage then stops or
 fails.
 
-    python -m ssm_ms.reproduce pendulum            # the stages configs/experiments.yaml names for pendulum
-    python -m ssm_ms.reproduce pendulum --size cpu # the CPU-sized twins under configs/cpu/
-    python -m ssm_ms.reproduce pendulum_lstm       # configs/baselines/pendulum_lstm.yaml alone
-    python -m ssm_ms.reproduce pendulum --no-baselines
-    python -m ssm_ms.reproduce lorenz_T1000 --no-encoder --no-baselines   # the SSM and its UKF test only
-    python -m ssm_ms.reproduce pendulum --encoder-epochs 120   # the encoder stage on a stated epoch budget
-    python -m ssm_ms.reproduce pendulum_lstm --baseline-epochs 120   # a baseline on a stated epoch budget
-    python -m ssm_ms.reproduce lorenz_T1000 --size cpu --seed 1  # another seed: results/lorenz_T1000_cpu_seed1.md
-    python -m ssm_ms.reproduce pendulum -- --trainer.max_epochs 1   # options after -- go to every stage's cli.py
-    python -m ssm_ms.reproduce silverbox -- --data.init_args.dir_placement ../shared/data/nonlinear_benchmarks
+    python -m experiments.reproduce pendulum            # the stages configs/experiments.yaml names for pendulum
+    python -m experiments.reproduce pendulum --size cpu # the CPU-sized twins under configs/cpu/
+    python -m experiments.reproduce pendulum_lstm       # configs/baselines/pendulum_lstm.yaml alone
+    python -m experiments.reproduce pendulum --no-baselines
+    python -m experiments.reproduce lorenz_T1000 --no-encoder --no-baselines   # the SSM and its UKF test only
+    python -m experiments.reproduce pendulum --encoder-epochs 120   # the encoder stage on a stated epoch budget
+    python -m experiments.reproduce pendulum_lstm --baseline-epochs 120   # a baseline on a stated epoch budget
+    python -m experiments.reproduce lorenz_T1000 --size cpu --seed 1  # another seed: results/lorenz_T1000_cpu_seed1.md
+    python -m experiments.reproduce pendulum -- --trainer.max_epochs 1   # options after -- go to every stage's cli.py
+    python -m experiments.reproduce silverbox -- --data.init_args.dir_placement ../shared/data/nonlinear_benchmarks
                                                    # a benchmark: configs/benchmarks/silverbox{,_test}.yaml
 
 (``make reproduce EXP=pendulum [SIZE=cpu] [SEED=1] [ARGS="..."]``.) Options after ``--`` (make's ``ARGS``) are
@@ -21,7 +21,7 @@ appended to every stage's ``python cli.py`` command, after the stage's own: a sm
 (``-- --trainer.max_epochs 1 --trainer.limit_train_batches 2``), or another data directory; they are part of the
 recorded commands, and a resumed run must be given the same. ``--seed N`` runs every stage with ``--seed_everything N``:
 the networks' and shooting nodes' initial values change; the data and their order do not (they follow the data
-section's own ``seed``). Its results go to ``results/<experiment>_seed<N>.md``; ``python -m ssm_ms.forecasting.seeds
+section's own ``seed``). Its results go to ``results/<experiment>_seed<N>.md``; ``python -m experiments.seeds
 <experiment>`` gathers the seeds' scores as mean and std.
 
 Each stage is ``python cli.py ...`` in its own process, logged under ``runs/<name>/reproduce-<stamp>/``, so the
@@ -35,7 +35,7 @@ kept); this process waits for it, prints which stage was interrupted, the comman
 stage ends in one ``error:`` line naming it, with the stage's status. No traceback either way; the later stages do
 not run. See :func:`run_stage`.
 
-    python -m ssm_ms.reproduce pendulum --resume reproduce-20261125-040251   # finish that run (make: RESUME=...)
+    python -m experiments.reproduce pendulum --resume reproduce-20261125-040251   # finish that run (make: RESUME=...)
 
 ``--resume VERSION`` finishes a run that stopped, whatever stopped it (Ctrl-C, ``kill``, a crash, the machine going
 away while ``runs/`` stays): the stages it finished are not run again, its interrupted ``fit`` continues from its
@@ -65,11 +65,11 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from ssm_ms.forecasting.results import write_pipeline
+from experiments.registry import REGISTRY, read_registry
+from experiments.results import write_pipeline
 from ssm_ms.runtime.machine import describe
 
 ROOT = Path(__file__).resolve().parents[1]
-REGISTRY = ROOT / "configs" / "experiments.yaml"  # each experiment's stages and their configs, per size
 WAIT_TICK = 30.0  # seconds between the records of a running stage's time (Pipeline)
 
 
@@ -77,12 +77,6 @@ BUDGETS = ("encoder_epochs", "baseline_epochs")  # options a resumed run may rai
 # options a resumed run may give or drop: dropping --no-encoder adds the encoder's stages to a finished run, giving it
 # ends a run whose encoder cannot finish (its last.ckpt kept, for a resume without it)
 STAGE_CHOICES = ("no_encoder",)
-
-
-def read_registry() -> dict:
-    """The experiment registry (:data:`REGISTRY`): ``experiments`` (name -> size -> stage -> config path),
-    ``benchmarks`` (name -> ``fit`` and ``test`` configs), ``suites`` (name -> experiments)."""
-    return OmegaConf.to_container(OmegaConf.load(REGISTRY))
 
 
 def known_experiments(registry: dict, size: str) -> list[str]:
@@ -169,6 +163,13 @@ def logger_dir(config: Path) -> Path:
     if not isinstance(args, dict) or "save_dir" not in args or "name" not in args:
         raise ValueError(f"{config} declares no TensorBoardLogger with save_dir and name: reproduce needs them")
     return Path(str(args["save_dir"])) / str(args["name"])
+
+
+def results_dir(config: Path, version: str) -> Path:
+    """The folder a test stage of ``config`` writes its results file to: its ``results_dir``, or where it names none,
+    the stage's own run folder (``save_dir/name/version`` of its logger), as the library does."""
+    value = config_value(config, "model.init_args.results_dir")
+    return _absolute(Path(str(value)) if value is not None else logger_dir(config) / version)
 
 
 def experiment_name(config: Path) -> str:
@@ -584,7 +585,7 @@ def main(argv: list[str] | None = None) -> None:
     first = ssm_cfg if ssm_stages else baselines[0] if baselines else control_cfg
     # options make does not pass: the module's command
     if opts.no_baselines or opts.no_encoder or opts.encoder_epochs is not None or opts.baseline_epochs is not None:
-        command = shlex.join(["python", "-m", "ssm_ms.reproduce", *options])
+        command = shlex.join(["python", "-m", "experiments.reproduce", *options])
     else:
         command = (
             f"make reproduce EXP={opts.experiment}"
@@ -645,7 +646,7 @@ def main(argv: list[str] | None = None) -> None:
     files = []  # every results file the stages wrote (an SSM's stages may write to several, e.g. control)
     for cfg in configs:
         entry = (
-            ROOT / str(config_value(cfg, "model.init_args.results_dir", default="results")),
+            results_dir(cfg, version),
             experiment_name(cfg) + (f"_{seeded}" if seeded else ""),
         )
         if entry not in files:
@@ -674,7 +675,7 @@ def open_pipeline(opts: argparse.Namespace, options: list[str], first: Path, ver
     pipeline = Pipeline(
         _absolute(logger_dir(first)) / version / "reproduce.json",
         {k: v for k, v in vars(opts).items() if k != "resume"},
-        shlex.join(["python", "-m", "ssm_ms.reproduce", *options, "--resume", version]),
+        shlex.join(["python", "-m", "experiments.reproduce", *options, "--resume", version]),
         resume=opts.resume is not None,
         command=command,
     )
@@ -715,8 +716,7 @@ def run_benchmark(opts: argparse.Namespace, argv: list[str], config: Path, test_
         named += ["--model.init_args.selection", json.dumps(chosen_by)]
     test = ["test", "--config", str(test_cfg.relative_to(ROOT)), "--model.init_args.ssm_checkpoint", str(ssm)]
     pipeline.stage([*test, *named, *opts.stage_args], again=any(r for r, _ in fits.values()))
-    results = ROOT / str(config_value(test_cfg, "model.init_args.results_dir", default="results"))
-    md = results / f"{experiment_name(test_cfg)}.md"
+    md = results_dir(test_cfg, version) / f"{experiment_name(test_cfg)}.md"
     if md.is_file():
         print(f"\nresults: {md.relative_to(ROOT)}\n\n{md.read_text()}")
 

@@ -1,8 +1,8 @@
 """One experiment over several seeds: ``results/<experiment>.json`` (the configs' own seed) and every
 ``results/<experiment>_seed<N>.json`` (``make reproduce EXP=... SEED=N``), gathered as mean ± std over seeds.
 
-    python -m ssm_ms.forecasting.seeds lorenz_T1000_cpu            # -> results/lorenz_T1000_cpu_seeds.md / .json
-    python -m ssm_ms.forecasting.seeds lorenz_T1000_cpu --results-dir results
+    python -m experiments.seeds lorenz_T1000_cpu            # -> results/lorenz_T1000_cpu_seeds.md / .json
+    python -m experiments.seeds lorenz_T1000_cpu --results-dir results
 
 Per seed and method it reads the method's own scores (``<method>/<target>/<metric>``, the mean over the test
 sequences) and its valid prediction time; and, once per seed, what the SSM's ``f`` does alone (W1 of x over the
@@ -118,7 +118,7 @@ def render(table: dict[str, Any]) -> str:
         + ", ".join(f"{s}: `{f}`" for s, f in table["files"].items())
         + ". Scores are each run's mean over its test sequences (the finite ones: a row `..., non-finite sequences` "
         "counts, per seed, those whose forecast diverged, where any seed's did); the last column is the mean ± sample std over "
-        "seeds (`n`: seeds with a finite value). Made by `python -m ssm_ms.forecasting.seeds "
+        "seeds (`n`: seeds with a finite value). Made by `python -m experiments.seeds "
         f"{table['experiment']}`.",
         "",
         "| quantity | " + " | ".join(seeds) + " | mean ± std over seeds |",
