@@ -1,7 +1,8 @@
 """The results file of a test run: ``<results_dir>/<experiment>.json``, the one source of every score.
 
 Every forecaster of one experiment (SSM + encoder, SSM + UKF, the LSTM and RKN baselines) and the closed-loop control
-land in the same file: each test run replaces its own method's entry (``runs``), written whole or not at all. The
+land in the same file: each test run replaces its own method's entry (``runs``), written whole or not at all (the
+identification benchmarks' files go through the same writer: :mod:`ssm_ms.forecasting.benchmark_results`). The
 library writes JSON only; what reads it (a markdown report, tables beside a paper's) is the application's
 (``experiments/``: ``python cli.py test`` renders ``<experiment>.md`` beside each file a run wrote).
 """
@@ -64,16 +65,24 @@ def replace_text(path: Path, text: str) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def update_results(results_dir: Path, experiment: str, change: Callable[[dict[str, Any]], None]) -> Path:
+def update_results(
+    results_dir: Path,
+    experiment: str,
+    change: Callable[[dict[str, Any]], None],
+    *,
+    sort_keys: bool = True,
+    end: str = "",
+) -> Path:
     """Apply ``change`` to the content of ``<results_dir>/<experiment>.json`` (``{}`` where there is none yet) and
-    write it back whole; return its path (also recorded in :data:`WRITTEN`)."""
+    write it back whole (``sort_keys``: keys sorted, or in the order ``change`` leaves them; ``end``: the text after
+    the JSON); return its path (also recorded in :data:`WRITTEN`)."""
     results_dir = Path(results_dir)
     results_dir.mkdir(parents=True, exist_ok=True)
     path = results_dir / f"{experiment}.json"
     data = load(path)
     change(data)
     data["experiment"] = experiment
-    replace_text(path, json.dumps(data, indent=2, sort_keys=True))
+    replace_text(path, json.dumps(data, indent=2, sort_keys=sort_keys) + end)
     WRITTEN.append(path)
     return path
 
