@@ -330,8 +330,10 @@ def run_benchmark(name: str, args, deepSI, work: Path) -> None:
     recording (the training recording less its held-out end, on which its validation simulates), for ssm-ms's
     budget; each test recording simulated from its first ``n_init`` samples (the encoder reads the last ``na`` /
     ``nb`` of them); its last and its best-on-validation models scored by the loader's metrics into
-    ``results/benchmarks/<name>.json`` beside ssm-ms's rows; both models saved as ``<work>/<name>-subnet-{last,best}.pt``
+    ``results/benchmarks/<name>.json`` beside ssm-ms's rows (written by the library, its ``.md`` rendered by
+    :mod:`experiments.benchmark_results`); both models saved as ``<work>/<name>-subnet-{last,best}.pt``
     (``torch.save``: benchmarks/bench_simulation.py times them)."""
+    from experiments.benchmark_results import render_file
     from ssm_ms.forecasting.benchmark_results import write_benchmark_results
     from ssm_ms.inference.simulation import scores
 
@@ -412,7 +414,7 @@ def run_benchmark(name: str, args, deepSI, work: Path) -> None:
             },
         }
         figures_dir = test_config["model"]["init_args"].get("figures_dir") if not args.results_dir else None
-        write_benchmark_results(results_dir, info, rows, figures, figures_dir, n_init)
+        render_file(write_benchmark_results(results_dir, info, rows, figures, figures_dir, n_init))
     print(f"deepSI on {name}: {iterations} iterations in {seconds:.0f} s; results in {results_dir}", flush=True)
 
 

@@ -289,7 +289,7 @@ def benchmarks(results: Results, spec: dict[str, Any]) -> list[str]:
     """The identification benchmarks (``results/benchmarks/*.json``), one row per test recording: ssm-ms's method that
     validated best (the lowest mean validation RMSE over its seeds: the choice the test data do not make), deepSI's
     SUBNET (its model best on its own validation, and its last), the best published row; machine and date of ours."""
-    from ssm_ms.forecasting.benchmark_results import methods, over_seeds, summary_cell, validation_over_seeds
+    from experiments.benchmark_results import methods, over_seeds, published, summary_cell, validation_over_seeds
 
     folder = results.dir / "benchmarks"
     lines = [
@@ -301,8 +301,7 @@ def benchmarks(results: Results, spec: dict[str, Any]) -> list[str]:
         if path.name.endswith(".published.json"):
             continue
         data = json.loads(path.read_text())
-        published = folder / f"{path.stem}.published.json"
-        pub = json.loads(published.read_text())["rows"] if published.is_file() else {}
+        pub = (published(folder, path.stem) or {}).get("rows", {})
         groups = methods(data)
         runs = data["runs"]
         unit = next((r["info"].get("unit") for r in runs.values() if r["info"].get("unit")), "")

@@ -69,4 +69,5 @@ def test_subnet_runs_a_benchmark_by_its_protocol(tmp_path):
     runs = json.loads((tmp_path / "cascaded_tanks.json").read_text())["runs"]
     assert sorted(runs) == ["deepSI SUBNET, best on validation", "deepSI SUBNET, last model"]
     assert all(run["tests"]["test"]["n_init"] == 50 for run in runs.values())
+    assert (tmp_path / "cascaded_tanks.md").read_text().startswith("# cascaded_tanks")  # rendered by experiments/
     assert (tmp_path / "cascaded_tanks-subnet-best.pt").is_file()

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from experiments.cli import reports
 from ssm_ms.cli import main as cli_main
 from ssm_ms.inference import UnscentedKalmanFilter
 from ssm_ms.inference.simulation import free_run, local_stability
@@ -127,7 +128,8 @@ def test_cascaded_tanks_end_to_end_and_its_score_by_hand(tmp_path):
         "--model.init_args.ssm_checkpoint", str(best), "--model.init_args.results_dir", str(tmp_path / "results"),
         "--model.init_args.figures_dir", str(tmp_path / "figures"), "--trainer.enable_progress_bar", "false",
     ]  # fmt: skip
-    cli_main(test)
+    with reports():  # python cli.py test: the library writes the JSON, the application renders its .md
+        cli_main(test)
     results = json.loads((tmp_path / "results" / "cascaded_tanks.json").read_text())
     (run,) = results["runs"].values()
     row = run["tests"]["test"]
@@ -163,8 +165,8 @@ def test_cascaded_tanks_end_to_end_and_its_score_by_hand(tmp_path):
 )
 def test_the_committed_results_are_rendered_from_their_json(path):
     """Each results/benchmarks/<experiment>.md is what its JSON, published rows and notes render to (after an edit of
-    the notes: ``python -m ssm_ms.forecasting.benchmark_results``)."""
-    from ssm_ms.forecasting.benchmark_results import render
+    the notes: ``python -m experiments.benchmark_results``)."""
+    from experiments.benchmark_results import render
 
     data = json.loads(path.read_text())
     assert path.with_suffix(".md").read_text() == render(data, path.parent)
@@ -205,8 +207,9 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     column is the method of the lowest mean validation score, whatever the test scores say."""
     import statistics
 
+    from experiments.benchmark_results import render
     from experiments.readme import Results, benchmarks
-    from ssm_ms.forecasting.benchmark_results import render, run_key
+    from ssm_ms.forecasting.benchmark_results import run_key
 
     def run(method, seed, val, rmse, diverged=None, seconds=None):
         info = {"method": method, "seed": seed, "unit": "V", "model": "SSM-LL", "experiment": "toy"}

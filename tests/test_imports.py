@@ -107,7 +107,8 @@ def test_the_pipeline_and_the_results_files_start_without_lightning_or_torch():
     import sys
 
     script = (
-        "import sys, experiments.reproduce, experiments.results, experiments.readme, experiments.cli, experiments.registry\n"
+        "import sys, experiments.reproduce, experiments.results, experiments.readme, experiments.cli, "
+        "experiments.registry, experiments.benchmark_results\n"
         "print(sorted({m.split('.')[0] for m in sys.modules} & {'lightning', 'torch', 'torchmetrics'}))"
     )
     out = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, check=True)
