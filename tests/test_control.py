@@ -287,6 +287,13 @@ def test_an_episode_succeeds_when_every_angle_of_its_final_window_is_within_tole
     assert success.tolist() == naive == [True, False, True, True]
 
 
+def test_an_unknown_estimator_setting_is_named():
+    from ssm_ms.control.module import ClosedLoop
+
+    with pytest.raises(ValueError, match=r"estimator takes .* got \['measurement_std'\]"):
+        ClosedLoop(true_model=True, estimator={"measurement_std": 0.2}, figures_dir=None)
+
+
 def test_closed_loop_episodes_plan_on_the_true_state_or_on_the_estimate():
     """ClosedLoop.episodes: the true model's controller sees the simulator's state; a learned model's sees its
     estimator's output after each measurement; measurements, torques (exploration noise included) and true angles

@@ -105,6 +105,87 @@ def test_ukf_equals_kalman_filter_on_linear_gaussian_system(d, p, innovation, fu
     torch.testing.assert_close(c_next, A @ ref_c[:, -1] @ A.T + Q, rtol=0, atol=1e-9)
 
 
+def iterated_reference(g, m0, P0, y, R, iterations):
+    """The iterated posterior linearisation of one measurement, written plainly (dense p x p matrices, one
+    trajectory, the default sigma points alpha=1, beta=2, kappa=0): g linearised by regression over the sigma points
+    of the latest posterior, the prior updated with that line, its residual covariance added to R."""
+    d = len(m0)
+    wm = torch.tensor([0.0] + [0.5 / d] * (2 * d), dtype=F64)
+    wc = wm.clone()
+    wc[0] = 2.0
+    m, P = m0, P0
+    for _ in range(iterations):
+        L = torch.linalg.cholesky(P)
+        points = [m] + [m + math.sqrt(d) * L[:, i] for i in range(d)] + [m - math.sqrt(d) * L[:, i] for i in range(d)]
+        Y = torch.stack([g(x[None])[0].reshape(-1) for x in points])
+        ybar = (wm[:, None] * Y).sum(0)
+        Pxy = sum(wc[i] * torch.outer(points[i] - m, Y[i] - ybar) for i in range(len(points)))
+        Pyy = sum(wc[i] * torch.outer(Y[i] - ybar, Y[i] - ybar) for i in range(len(points)))
+        H = torch.linalg.solve(P, Pxy).T
+        c = ybar - H @ m
+        S = H @ P0 @ H.T + (Pyy - H @ P @ H.T) + R
+        K = torch.linalg.solve(S, H @ P0).T
+        m, P = m0 + K @ (y - H @ m0 - c), P0 - K @ S @ K.T
+    return m, P
+
+
+def bump_camera(x, pixels=24, width=0.8):
+    """A 1-D camera of a point at ``x [N, 1]`` (pixel units, 0 the middle): a Gaussian blot, ``[N, pixels]``."""
+    centres = torch.arange(pixels, dtype=x.dtype) - pixels / 2
+    return torch.exp(-0.5 * ((centres - x) / width) ** 2)
+
+
+@pytest.mark.parametrize("iterations", [1, 2, 4])
+def test_iterated_update_matches_the_plain_posterior_linearisation(iterations):
+    gen = torch.Generator().manual_seed(0)
+    W = torch.randn(16, 2, generator=gen, dtype=F64)
+
+    def g(x):
+        return torch.tanh(3 * x @ W.T + 0.1)  # 16 steep "pixels" of a 2-D state
+
+    m0, P0 = torch.tensor([0.2, -0.4], dtype=F64), torch.tensor([[0.5, 0.1], [0.1, 0.3]], dtype=F64)
+    y = g(torch.tensor([[0.9, -0.1]], dtype=F64))[0] + 0.05 * torch.randn(16, generator=gen, dtype=F64)
+    r = [0.01 * (1 + i % 3) for i in range(16)]
+    ukf = UnscentedKalmanFilter(lambda x: x, g, measurement_var=r, iterations=iterations)
+    mean, cov = ukf.update(m0[None], P0[None], y[None])
+    ref_m, ref_p = iterated_reference(g, m0, P0, y, torch.diag(torch.tensor(r, dtype=F64)), iterations)
+    torch.testing.assert_close(mean[0], ref_m, rtol=0, atol=1e-9)
+    torch.testing.assert_close(cov[0], ref_p, rtol=0, atol=1e-9)
+
+
+def test_iterated_update_of_a_linear_g_is_the_kalman_filter():
+    A, H, f, g = linear_system(2, 7)
+    Q, R = 0.01 * torch.eye(2, dtype=F64), 0.4 * torch.eye(7, dtype=F64)
+    x0, P0 = torch.tensor([0.5, -0.5], dtype=F64), 0.1 * torch.eye(2, dtype=F64)
+    y = simulate(A, H, Q, R, x0, P0, B=3, T=20)
+    ukf = UnscentedKalmanFilter(f, g.forward, process_var=0.01, measurement_var=0.4, init_var=0.1, iterations=3)
+    means, covs = ukf.filter(y, x0=x0)
+    ref_m, ref_c = kalman_filter(y, A, H, Q, R, x0, P0)
+    torch.testing.assert_close(means, ref_m, rtol=0, atol=1e-9)
+    torch.testing.assert_close(covs, ref_c, rtol=0, atol=1e-9)
+
+
+def test_iterating_follows_a_sharp_camera_to_the_posterior():
+    """A wide prior and a sharp, informative frame: the UKF's one update, linearised over the prior, lands far from
+    the posterior (a grid's); iterating the linearisation over the posterior reaches it."""
+    r = 0.01
+    x_true, prior_std = 3.0, 2.0
+    y = bump_camera(torch.tensor([[x_true]], dtype=F64))
+    grid = torch.linspace(-10, 10, 200001, dtype=F64)
+    log_post = -0.5 * ((bump_camera(grid[:, None]) - y) ** 2).sum(-1) / r - 0.5 * (grid / prior_std) ** 2
+    post = torch.softmax(log_post, 0)
+    post_mean = float((post * grid).sum())
+    post_std = float((post * (grid - post_mean) ** 2).sum().sqrt())
+    m0, P0 = torch.zeros(1, 1, dtype=F64), torch.full((1, 1, 1), prior_std**2, dtype=F64)
+    errors, stds = {}, {}
+    for k in (1, 8):
+        ukf = UnscentedKalmanFilter(lambda x: x, bump_camera, measurement_var=r, iterations=k)
+        mean, cov = ukf.update(m0, P0, y)
+        errors[k], stds[k] = abs(float(mean) - post_mean), float(cov.sqrt())
+    assert errors[1] > 10 * post_std  # the one update: lost
+    assert errors[8] < 0.2 * post_std and 0.8 < stds[8] / post_std < 1.25  # iterated: the posterior and its width
+
+
 @pytest.mark.parametrize("beta, points", [(2.0, 7), (0.0, 6)])
 def test_one_batched_call_of_f_and_g_per_step(beta, points):
     calls = {"f": [], "g": []}
@@ -385,6 +466,16 @@ def test_unrecoverable_covariance_warns_with_step():
 
 
 # ------------------------------------------------------------------------------------------------
+def test_iterations_bad_values_and_modes_raise_clear_errors():
+    with pytest.raises(ValueError, match="iterations must be a whole number >= 1"):
+        UnscentedKalmanFilter(lambda x: x, lambda x: x, iterations=0)
+    with pytest.raises(ValueError, match="iterations must be a whole number >= 1"):
+        UnscentedKalmanFilter(lambda x: x, lambda x: x, iterations=1.5)
+    ukf = UnscentedKalmanFilter(lambda x: x, lambda x: x[:, :1], iterations=2)  # p = 1: dense innovation
+    with pytest.raises(ValueError, match="iterations > 1 needs innovation='low_rank'"):
+        ukf.update(torch.zeros(1, 2, dtype=F64), torch.eye(2, dtype=F64)[None], torch.zeros(1, 1, dtype=F64))
+
+
 def test_ukf_bad_inputs_raise_clear_errors():
     f = lambda x: x  # noqa: E731
     g = lambda x: x[:, :2]  # noqa: E731

@@ -104,7 +104,8 @@ class ClosedLoop(pl.LightningModule):
         cost: the :class:`~ssm_ms.control.cost.SwingUpCost` weights ``w_velocity``, ``w_input``, and its energy
             bound ``max_energy`` (J; e.g. the data's) with its weight ``w_energy``.
         estimator: the UKF's ``process_var``, ``measurement_var`` (``None``: the data's sensor noise, per stream with
-            several sensors) and ``init_var`` (``None``: the spread of the SSM's shooting nodes); not used with
+            several sensors), ``init_var`` (``None``: the spread of the SSM's shooting nodes) and ``iterations``
+            (measurement updates per frame: :class:`~ssm_ms.inference.UnscentedKalmanFilter`'s); not used with
             ``encoder_checkpoint``.
         encoder_checkpoint: estimate the state with this CNN-LSTM encoder (the forecasting stage's, trained on
             ``ssm_checkpoint``'s latent trajectories) instead of the UKF.
@@ -148,7 +149,14 @@ class ClosedLoop(pl.LightningModule):
         super().__init__()
         self.settings = MPPISettings(**(planner or {}))
         self.cost_weights = dict(cost or {})
-        self.estimator_settings = {"process_var": 1e-4, "measurement_var": None, "init_var": None, **(estimator or {})}
+        self.estimator_settings = {
+            "process_var": 1e-4, "measurement_var": None, "init_var": None, "iterations": 1, **(estimator or {})
+        }  # fmt: skip
+        unknown = set(self.estimator_settings) - {"process_var", "measurement_var", "init_var", "iterations"}
+        if unknown:
+            raise ValueError(
+                f"estimator takes process_var, measurement_var, init_var and iterations, got {sorted(unknown)}"
+            )
         self.distill_settings = {"rollout_steps": 25, "steps": 2000, "pivot": None, **(distill or {})}
         if not (seconds > 0 and 0 < success_seconds <= seconds and tolerance > 0 and timing_steps >= 1):
             raise ValueError(
@@ -236,6 +244,7 @@ class ClosedLoop(pl.LightningModule):
                 process_var=est["process_var"],
                 measurement_var=measurement_var,
                 init_var=init_var,
+                iterations=est["iterations"],
                 state_dim=self.ssm.state_dim,
             )
         self.features, self.distill_error = self._distill(nodes)

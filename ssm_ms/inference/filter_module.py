@@ -39,7 +39,9 @@ class FilterForecaster(SSMForecaster):
             ``"nodes"`` (the default) the mean of the SSM's shooting nodes, ``"zero"`` zero, as the paper's filter
             (docs/method.md, "The UKF against the paper's": their measured effect on Lorenz).
         unscented: the UKF's sigma-point parameters, any of ``alpha``, ``beta``, ``kappa`` (default
-            ``{alpha: 1, beta: 2, kappa: 0}``); ``{beta: 0}`` is the cubature rule, 2d points instead of 2d+1.
+            ``{alpha: 1, beta: 2, kappa: 0}``; ``{beta: 0}`` is the cubature rule, 2d points instead of 2d+1), and
+            ``iterations``, its measurement updates per step (default 1; more: the iterated posterior linearisation,
+            :class:`~ssm_ms.inference.UnscentedKalmanFilter`).
         n_particles, likelihood, resample_threshold, likelihood_scale, seed: particle filter settings
             (``likelihood="bernoulli"`` for images in [0, 1]).
         autocast: ``None`` (full precision) or ``"bfloat16"`` / ``"float16"``: run ``f`` and ``g`` under
@@ -79,9 +81,9 @@ class FilterForecaster(SSMForecaster):
         if init_mean not in ("nodes", "zero"):
             raise ValueError(f"init_mean must be 'nodes' (the shooting nodes' mean) or 'zero', got {init_mean!r}")
         unscented = dict(unscented or {})
-        unknown = set(unscented) - {"alpha", "beta", "kappa"}
+        unknown = set(unscented) - {"alpha", "beta", "kappa", "iterations"}
         if unknown:
-            raise ValueError(f"unscented takes alpha, beta and kappa, got {sorted(unknown)}")
+            raise ValueError(f"unscented takes alpha, beta, kappa and iterations, got {sorted(unknown)}")
         if unscented and method != "ukf":
             raise ValueError("unscented sets the UKF's sigma points: it has no effect with method 'pf', remove it")
         super().__init__(

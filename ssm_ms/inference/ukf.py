@@ -142,6 +142,14 @@ class UnscentedKalmanFilter:
             such as :class:`~ssm_ms.nets.readout.Projection`) is not evaluated on sigma points: the
             unscented transform of a linear map is exact, so the update uses ``H P H^T`` and ``P H^T``
             directly (the same result, fewer operations). Wrap ``g`` in a function to force sigma points.
+        iterations: measurement updates per step (default 1: the UKF's own). With ``k > 1`` the update is the
+            iterated posterior linearisation (García-Fernández, Svensson, Morelande & Särkkä, "Posterior
+            Linearization Filter", IEEE TSP 2015): ``g`` is linearised statistically over the sigma points of the
+            latest posterior instead of the prior's, and the prior is updated again with that line (the part of
+            ``g`` the line does not explain added to ``R``), ``k - 1`` more times. An informative measurement of
+            a sharp ``g`` (a camera's frame: many pixels, each a steep function of the state) moves the
+            posterior far inside the prior's spread, where the prior's linearisation no longer holds; iterating
+            follows it there. Costs ``k`` calls of ``g`` per step; with ``innovation="low_rank"`` only.
         autocast: ``None`` (default: the dtype of ``y``), ``"bfloat16"`` or ``"float16"``: evaluate ``f``
             and ``g`` under ``torch.autocast`` with this dtype, so their matrix products run in reduced
             precision (``f`` is most of a step's time, see benchmarks/results/ukf.md); means,
@@ -165,9 +173,16 @@ class UnscentedKalmanFilter:
         max_jitter_tries: int = 6,
         state_dim: int | None = None,
         innovation: str = "auto",
+        iterations: int = 1,
         autocast: str | None = None,
     ):
         self.f, self.g = f, g
+        whole = (
+            isinstance(iterations, (int, float)) and not isinstance(iterations, bool) and float(iterations).is_integer()
+        )
+        if not whole or iterations < 1:
+            raise ValueError(f"iterations must be a whole number >= 1 (1: the UKF's own update), got {iterations!r}")
+        self.iterations = int(iterations)
         self.autocast = check_autocast(autocast)
         self.process_var = _check_variance(process_var, "process_var", allow_zero=True)
         self.measurement_var = _check_variance(measurement_var, "measurement_var", allow_zero=False)
@@ -230,6 +245,11 @@ class UnscentedKalmanFilter:
         mode = self.innovation
         if mode == "auto":
             mode = "low_rank" if nonneg and p > len(wc) else "dense"
+        if self.iterations > 1 and mode != "low_rank":
+            raise ValueError(
+                f"iterations > 1 needs innovation='low_rank' (measurements larger than the 2d+1 sigma points, "
+                f"non-negative weights), here {mode!r} with {p} components: use iterations: 1"
+            )
         if mode == "low_rank" and not nonneg:
             raise ValueError(
                 "innovation='low_rank' needs non-negative covariance weights: use alpha=1 and kappa>=0, or "
@@ -337,6 +357,72 @@ class UnscentedKalmanFilter:
         return mean, 0.5 * (cov + cov.transpose(-1, -2))
 
     def _update(self, mean: Tensor, cov: Tensor, y_flat: Tensor, setup: _Setup, step: int) -> tuple[Tensor, Tensor]:
+        post_mean, post_cov = self._ukf_update(mean, cov, y_flat, setup, step)
+        if self.iterations > 1:
+            prior_chol = self._cholesky(cov, "prior", step)
+            for _ in range(self.iterations - 1):
+                post_mean, post_cov = self._relinearised_update(
+                    mean, prior_chol, post_mean, post_cov, y_flat, setup, step
+                )
+        return post_mean, post_cov
+
+    def _whiten(self, v: Tensor, setup: _Setup) -> Tensor:
+        """``R^-1/2 v`` for ``v [B, p, k]`` (``low_rank`` mode's diagonal or Cholesky-factored ``R``)."""
+        if setup.r_chol is None:
+            return v / setup.r_std.unsqueeze(-1)
+        return torch.linalg.solve_triangular(setup.r_chol, v, upper=False)
+
+    def _relinearised_update(
+        self,
+        prior_mean: Tensor,
+        prior_chol: Tensor,
+        mean: Tensor,
+        cov: Tensor,
+        y_flat: Tensor,
+        setup: _Setup,
+        step: int,
+    ) -> tuple[Tensor, Tensor]:
+        """The prior ``N(prior_mean, L L^T)`` (``L = prior_chol``) updated with ``g`` linearised over the sigma points
+        of ``N(mean, cov)``: ``g(x) ~ H x + c + e``, ``e ~ N(0, Omega)`` (statistical linear regression), then the
+        Kalman update under ``y = H x + c + e + v``, ``v ~ N(0, R)``, written in the state space::
+
+            B = (H L)^T (Omega + R)^-1 (H L),   b = (H L)^T (Omega + R)^-1 (y - H prior_mean - c)
+            mean+ = prior_mean + L (I + B)^-1 b,   cov+ = L (I + B)^-1 L^T   (PSD by construction)
+
+        ``Omega = Y_r^T Y_r`` (``Y_r``: the sigma points' images less the line's, weighted) has rank ``<= 2d+1``, so
+        ``(Omega + R)^-1`` is a Woodbury product; nothing ``p x p`` is formed. At ``N(mean, cov)`` equal to the prior
+        this is the UKF's own update."""
+        b, d = mean.shape
+        sigma, x_dev = self._sigma_points(mean, cov, setup, "iterated posterior", step)
+        gy = call_model(self.g, sigma.reshape(-1, d), self.autocast).reshape(b, sigma.shape[1], -1)
+        y_pred = (gy * setup.wm_col).sum(-2)
+        xs, ys = x_dev * setup.sqrt_wc, (gy - y_pred.unsqueeze(-2)) * setup.sqrt_wc  # [B, n, d], [B, n, p]
+        chol = self._cholesky(xs.transpose(-1, -2) @ xs, "iterated posterior", step)  # the sigma points' covariance
+        # H^T = P^-1 X_s^T Y_s [B, d, p]; the residual Y_r = Y_s - X_s H^T [B, n, p]
+        h_t = torch.cholesky_solve(xs.transpose(-1, -2) @ ys, chol)
+        resid = ys - xs @ h_t
+        innov = y_flat - y_pred - ((prior_mean - mean).unsqueeze(-2) @ h_t).squeeze(-2)  # y - H prior_mean - c
+        observed = torch.isfinite(y_flat)
+        if not bool(observed.all()):  # components a sensor did not take: no information
+            h_t, resid = h_t * observed.unsqueeze(-2), resid * observed.unsqueeze(-2)
+            innov = torch.where(observed, innov, torch.zeros_like(innov))
+        hl_w = self._whiten((h_t.transpose(-1, -2) @ prior_chol), setup)  # R^-1/2 H L [B, p, d]
+        v_w = self._whiten(resid.transpose(-1, -2), setup)  # R^-1/2 Y_r^T [B, p, n]
+        e_w = self._whiten(innov.unsqueeze(-1), setup)  # [B, p, 1]
+        # (Omega + R)^-1 in whitened coordinates: I - V (I + V^T V)^-1 V^T
+        chol_a = self._cholesky(torch.baddbmm(setup.eye_n, v_w.transpose(-1, -2), v_w), "residual", step)
+        vt = v_w.transpose(-1, -2)
+        m, ve = torch.cholesky_solve(vt @ hl_w, chol_a), torch.cholesky_solve(vt @ e_w, chol_a)
+        hl_t = hl_w.transpose(-1, -2)
+        big_b = hl_t @ hl_w - (vt @ hl_w).transpose(-1, -2) @ m
+        small_b = hl_t @ e_w - (vt @ hl_w).transpose(-1, -2) @ ve
+        eye_d = torch.eye(d, dtype=mean.dtype, device=mean.device)
+        chol_k = self._cholesky(eye_d + 0.5 * (big_b + big_b.transpose(-1, -2)), "iterated information", step)
+        z = torch.linalg.solve_triangular(chol_k, torch.cat([prior_chol.transpose(-1, -2), small_b], -1), upper=False)
+        z_l, z_b = z[..., :d], z[..., d:]  # K^-1 = (chol_k chol_k^T)^-1: L K^-1 L^T = (z_l)^T z_l
+        return prior_mean + (z_l.transpose(-1, -2) @ z_b).squeeze(-1), z_l.transpose(-1, -2) @ z_l
+
+    def _ukf_update(self, mean: Tensor, cov: Tensor, y_flat: Tensor, setup: _Setup, step: int) -> tuple[Tensor, Tensor]:
         b, d = mean.shape
         p = y_flat.shape[-1]
         if setup.h is not None:  # linear g: the moments the unscented transform would give, exactly
