@@ -360,3 +360,23 @@ def test_encoder_of_two_sensors_trains_and_filters_through_missing_samples(tmp_p
     with torch.no_grad():
         z = module.encoder(y)
     assert z.shape == (8, 30, 3) and torch.isfinite(z).all()
+
+
+def test_the_angle_readout_draws_each_joints_sine_and_cosine_on_the_unit_circle():
+    """AngleReadout against its formula written out per joint: the linear map's (a_j, b_j) over their norm, in the
+    encoders' order (sines, then cosines); bounded for states far outside any data."""
+    from ssm_ms.nets import AngleReadout
+
+    torch.manual_seed(0)
+    g = AngleReadout(state_dim=5, joints=2)
+    x = torch.randn(7, 5) * torch.tensor([[1.0]] * 6 + [[1e6]])  # the last state far out
+    out = g(x)
+    lin = x @ g.linear.weight.T + g.linear.bias
+    for j in range(2):
+        a, b = lin[:, j], lin[:, 2 + j]
+        norm = (a**2 + b**2).sqrt()
+        torch.testing.assert_close(out[:, j], a / norm)
+        torch.testing.assert_close(out[:, 2 + j], b / norm)
+    torch.testing.assert_close(out[:, :2] ** 2 + out[:, 2:] ** 2, torch.ones(7, 2))
+    with pytest.raises(ValueError, match="at least one joint"):
+        AngleReadout(state_dim=5, joints=0)

@@ -3,12 +3,13 @@
 from ssm_ms.nets.decoder import ConvDecoder
 from ssm_ms.nets.encoder import FrameEncoder, StateEncoder
 from ssm_ms.nets.history import HistoryEncoder
-from ssm_ms.nets.readout import LinearReadout, Projection
+from ssm_ms.nets.readout import AngleReadout, LinearReadout, Projection
 from ssm_ms.nets.sensors import SensorHeads
 from ssm_ms.nets.sprites import SpriteDecoder
 from ssm_ms.nets.transition import FullyConnectedTransition, LocallyLinearTransition
 
 __all__ = [
+    "AngleReadout",
     "ConvDecoder",
     "FrameEncoder",
     "FullyConnectedTransition",

@@ -86,3 +86,29 @@ class LinearReadout(nn.Linear):
                 "DataModule, or give out_features"
             )
         return super().forward(x)
+
+
+class AngleReadout(nn.Module):
+    """``g(x)``: the ``(sin q, cos q)`` of ``joints`` angles, as joint encoders give them (``[sin q_1, ..., sin q_n,
+    cos q_1, ..., cos q_n]``: :func:`datamodules.pendulum_render.angle_reading`'s order): a linear map of the state to
+    one 2-vector per joint, each scaled onto the unit circle. Bounded whatever the state (a linear readout's
+    reading grows with a state that leaves the data's range), and every reading a possible one.
+
+    Not an ``nn.Linear``: the Kalman filters evaluate it on sigma points.
+
+    Args:
+        state_dim: input dimension.
+        joints: angles read (outputs ``2 * joints``).
+    """
+
+    def __init__(self, state_dim: int, joints: int = 1):
+        super().__init__()
+        if joints < 1:
+            raise ValueError(f"AngleReadout reads at least one joint, got joints={joints}")
+        self.joints = int(joints)
+        self.linear = nn.Linear(state_dim, 2 * self.joints)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        v = self.linear(x).unflatten(-1, (2, self.joints))  # [..., (sin, cos), joints]
+        v = v / v.norm(dim=-2, keepdim=True).clamp_min(1e-6)
+        return v.flatten(-2)
