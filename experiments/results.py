@@ -57,9 +57,13 @@ def sig(value: float, digits: int) -> str:
 
 def score_cell(entry: dict[str, float] | None) -> str:
     """A score over the test sequences, as results files and the README print it: ``mean ± std``, saying how many
-    diverged (a NaN or inf score) and were left out."""
+    diverged (a NaN or inf score) and were left out; a rate with its confidence interval (``ci95``: a share of
+    successes) as ``k/n = rate (95% CI lo-hi)``."""
     if entry is None:
         return "—"
+    if "ci95" in entry:
+        n, (lo, hi) = entry["n"], entry["ci95"]
+        return f"{round(entry['mean'] * n)}/{n} = {entry['mean']:.2f} (95% CI {lo:.2f}-{hi:.2f})"
     bad, n = entry.get("non_finite", 0), entry.get("n")
     if bad and bad == n:
         return f"non-finite on all {n}"

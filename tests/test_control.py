@@ -360,3 +360,17 @@ def test_closed_loop_episodes_plan_on_the_true_state_or_on_the_estimate():
                 np.testing.assert_allclose(told[t].numpy(), inputs[:, t - 1].numpy())
             q = q + u
         np.testing.assert_allclose(angles[:, 3], q[:, 0], rtol=1e-6)
+
+
+def test_success_rates_carry_their_wilson_interval():
+    """The interval at 0 and n successes in closed form (z^2 / (n + z^2) and n / (n + z^2)), 92 of 100 as tables give
+    it (0.850-0.959), and the results' cell that prints it."""
+    from experiments.results import score_cell
+    from ssm_ms.control.module import wilson_interval
+
+    z2 = 1.959964**2
+    assert wilson_interval(0, 20) == pytest.approx((0.0, z2 / (20 + z2)))
+    assert wilson_interval(20, 20) == pytest.approx((20 / (20 + z2), 1.0))
+    assert wilson_interval(92, 100) == pytest.approx((0.8501, 0.9589), abs=1e-4)
+    entry = {"mean": 0.9, "std": 0.3, "n": 20, "non_finite": 0, "ci95": [0.699, 0.972]}
+    assert score_cell(entry) == "18/20 = 0.90 (95% CI 0.70-0.97)"

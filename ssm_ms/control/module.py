@@ -47,7 +47,7 @@ CONTROL_HEADING = {
     "title": "Closed-loop control results",
     "intro": "Swing-up and balance of the simple pendulum from its camera frames (ssm_ms/control/module.py); mean ± "
     "std over episodes. `episodes/success`: 1 when the true angle stays within the tolerance of upright over the "
-    "final window; `episodes/upright_error_final`: the mean angle from upright over that window (rad); "
+    "final window (the episodes that succeeded, the rate and its 95% Wilson interval); `episodes/upright_error_final`: the mean angle from upright over that window (rad); "
     "`episodes/first_upright_s`: when the angle first stays up for a whole window (episodes that never do are "
     "left out); `planning/ms_per_step`: the planner's time per control step of one episode alone.",
 }
@@ -381,7 +381,10 @@ class ClosedLoop(pl.LightningModule):
         success = success.double()
         times = torch.tensor(self.planning_seconds(), dtype=torch.float64) * 1000
         summary = {
-            f"{self.method_name}/episodes/success": _stats(success),
+            f"{self.method_name}/episodes/success": {
+                **_stats(success),
+                "ci95": list(wilson_interval(int(success.sum()), len(success))),
+            },
             f"{self.method_name}/episodes/upright_error_final": _stats(final.mean(1)),
             f"{self.method_name}/episodes/first_upright_s": _stats(
                 _first_upright(error, self.tolerance, window) * self.frame_dt
@@ -492,6 +495,17 @@ class ClosedLoop(pl.LightningModule):
         fig.tight_layout()
         drawing.save_figure(fig, Path(self.figures_dir) / f"{name}_angles.png")
         plt.close(fig)
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """The Wilson score interval of a success rate from ``successes`` of ``n`` trials (95% for the default ``z``):
+    inside ``[0, 1]`` also at 0 or ``n`` successes, where the normal approximation's collapses to a point."""
+    if n < 1:
+        return float("nan"), float("nan")
+    p, z2 = successes / n, z * z
+    centre = (p + z2 / (2 * n)) / (1 + z2 / n)
+    half = z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 def _stats(values: torch.Tensor) -> dict[str, float]:
