@@ -283,7 +283,7 @@ def test_ukf_stage_tracks_the_exact_model(exact_ssm):
         "alpha=1, beta=0, kappa=0; f and g under autocast(bfloat16)"
     )
     assert "f and g under autocast(bfloat16)" in render_file(tmp / "results" / "rot_ukf.json").read_text()
-    with pytest.raises(ValueError, match=r"unscented takes alpha, beta and kappa, got \['gamma'\]"):
+    with pytest.raises(ValueError, match=r"unscented takes alpha, beta, kappa and iterations, got \['gamma'\]"):
         FilterForecaster(str(ckpt), n_filter=8, unscented={"gamma": 1.0})
     with pytest.raises(ValueError, match="no effect with method 'pf'"):
         FilterForecaster(str(ckpt), n_filter=8, method="pf", unscented={"beta": 0.0})
