@@ -11,7 +11,7 @@ SIZE   ?= paper
 CONSTRAINTS_PENDULUM ?= 0.3
 CONSTRAINTS_LORENZ   ?= 0.2
 
-.PHONY: install demo test format test-slow tensorboard bench reproduce peers
+.PHONY: install demo test format test-slow tensorboard bench reproduce peers control-pretrained
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -82,6 +82,16 @@ bench: $(STAMP)
 ## ../shared/data/nonlinear_benchmarks")
 reproduce: $(STAMP) $(if $(filter oscillator,$(EXP)),data/oscillator.npz)
 	$(PY) -m experiments.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(RESUME),--resume $(RESUME)) $(if $(ARGS),-- $(ARGS))
+
+## The closed-loop table's rows from pretrained/: the torque-driven pendulum's SSM with its UKF, then with its encoder,
+## and the true model (the bound), 100 episodes each (a few minutes on 2 cores), into runs/pretrained/pendulum_control.md.
+CONTROL_OUT = --model.init_args.results_dir runs/pretrained --model.init_args.figures_dir runs/pretrained/figures
+CONTROL_SSM = --config configs/pendulum_torque_control.yaml --model.init_args.ssm_checkpoint pretrained/pendulum_torque.ckpt
+control-pretrained: $(STAMP)
+	$(PY) cli.py test $(CONTROL_SSM) $(CONTROL_OUT) $(ARGS)
+	$(PY) cli.py test $(CONTROL_SSM) --model.init_args.encoder_checkpoint pretrained/pendulum_torque_encoder.ckpt \
+		$(CONTROL_OUT) $(ARGS)
+	$(PY) cli.py test --config configs/pendulum_true_control.yaml $(CONTROL_OUT) $(ARGS)
 
 data/oscillator.npz: examples/make_oscillator_data.py
 	$(PY) examples/make_oscillator_data.py --out $@

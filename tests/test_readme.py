@@ -78,15 +78,16 @@ STEPS: dict[str, Step] = {
     "make reproduce EXP=pendulum": Step(quick=False, extra=f'ARGS="{TINY} {FEW_TESTS}"', timeout=1800),
     "make reproduce EXP=pendulum SIZE=cpu": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
     "make reproduce EXP=pendulum_control": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=3600),
-    # the controller on the true model: make test runs one episode of 1 s
     # an identification benchmark's pretrained model by the benchmark's protocol (seconds)
     "python cli.py test --config configs/benchmarks/silverbox_test.yaml --model.init_args.ssm_checkpoint "
     "pretrained/benchmarks/silverbox_amortised.ckpt --data.init_args.dir_placement ../shared/data/nonlinear_benchmarks "
     "--model.init_args.results_dir runs/pretrained --model.init_args.figures_dir null": Step(),
-    "python cli.py test --config configs/pendulum_true_control.yaml": Step(
-        "--data.init_args.n_test 1 --model.init_args.seconds 1 --model.init_args.success_seconds 1 "
-        "--model.init_args.timing_steps 2",
-        slow_extra="",
+    # the closed-loop rows from the pretrained torque-driven pendulum: make test runs two episodes of 1 s per row
+    "make control-pretrained": Step(
+        'ARGS="--data.init_args.n_test 2 --data.init_args.eval_batch_size 2 --model.init_args.seconds 1 '
+        "--model.init_args.success_seconds 1 --model.init_args.timing_steps 2 --model.init_args.distill "
+        "'{steps: 50}'\"",
+        slow_extra='ARGS="--data.init_args.n_test 20"',
     ),
     "make reproduce EXP=pendulum RESUME=reproduce-<date>-<time>": Step(quick=False, extra=f'ARGS="{TINY} {FEW_TESTS}"'),
     "make reproduce EXP=oscillator": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
