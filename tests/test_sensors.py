@@ -31,6 +31,9 @@ def test_layout_packs_splits_and_weighs_by_the_inverse_noise_variance():
     raw = torch.tensor([1 / 0.04] * 4 + [1 / 0.0025])
     torch.testing.assert_close(layout.weights(), raw / raw.mean())
     torch.testing.assert_close(layout.variances(), torch.tensor([0.04] * 4 + [0.0025]))
+    torch.testing.assert_close(layout.variances({"image": 0.1}), torch.tensor([0.1] * 4 + [0.0025]))
+    with pytest.raises(ValueError, match=r"variances name streams \['camera'\]"):
+        layout.variances({"camera": 0.1})
     assert SensorLayout.from_state_dict(layout.state_dict()) == layout
 
 

@@ -104,7 +104,7 @@ class ClosedLoop(pl.LightningModule):
         cost: the :class:`~ssm_ms.control.cost.SwingUpCost` weights ``w_velocity``, ``w_input``, and its energy
             bound ``max_energy`` (J; e.g. the data's) with its weight ``w_energy``.
         estimator: the UKF's ``process_var``, ``measurement_var`` (``None``: the data's sensor noise, per stream with
-            several sensors), ``init_var`` (``None``: the spread of the SSM's shooting nodes) and ``iterations``
+            several sensors; ``{stream: variance}``: those streams' given, the others' their noise), ``init_var`` (``None``: the spread of the SSM's shooting nodes) and ``iterations``
             (measurement updates per frame: :class:`~ssm_ms.inference.UnscentedKalmanFilter`'s); not used with
             ``encoder_checkpoint``.
         encoder_checkpoint: estimate the state with this CNN-LSTM encoder (the forecasting stage's, trained on
@@ -234,7 +234,14 @@ class ClosedLoop(pl.LightningModule):
             est = self.estimator_settings
             init_var = est["init_var"] if est["init_var"] is not None else nodes.var(0).clamp_min(1e-6).tolist()
             measurement_var = est["measurement_var"]
-            if measurement_var is None:  # the sensors' own noise (several sensors: each stream's)
+            if isinstance(measurement_var, dict):  # several sensors: a variance per stream (the others: their noise)
+                if layout is None:
+                    raise ValueError(
+                        f"estimator measurement_var names streams {sorted(measurement_var)} but the data have one "
+                        "sensor: give one variance"
+                    )
+                measurement_var = layout.variances(measurement_var).tolist()
+            elif measurement_var is None:  # the sensors' own noise (several sensors: each stream's)
                 measurement_var = layout.variances().tolist() if layout is not None else float(dm.noise_std) ** 2
                 if sensors == ["angle"]:
                     measurement_var = float(dm.angle_noise_std) ** 2

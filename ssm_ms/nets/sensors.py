@@ -98,9 +98,14 @@ class SensorLayout:
         w = torch.cat([torch.full((s.size,), 1.0 / s.noise_std**2) for s in self.streams])
         return w / w.mean()
 
-    def variances(self) -> torch.Tensor:
-        """``[P]``: each component's noise variance (a filter's measurement variance)."""
-        return torch.cat([torch.full((s.size,), s.noise_std**2) for s in self.streams])
+    def variances(self, given: Mapping[str, float] | None = None) -> torch.Tensor:
+        """``[P]``: each component's noise variance (a filter's measurement variance), a stream's from ``given``
+        (``{stream name: variance}``) where it names the stream, else its sensor's noise."""
+        given = dict(given or {})
+        unknown = sorted(set(given) - {s.name for s in self.streams})
+        if unknown:
+            raise ValueError(f"variances name streams {unknown}; the streams are {[s.name for s in self.streams]}")
+        return torch.cat([torch.full((s.size,), float(given.get(s.name, s.noise_std**2))) for s in self.streams])
 
     def state_dict(self) -> list[dict]:
         return [{"name": s.name, "shape": list(s.shape), "noise_std": s.noise_std} for s in self.streams]
