@@ -265,15 +265,21 @@ def test_amortised_nodes_on_cascaded_tanks_end_to_end_and_their_score_by_hand(tm
     norm = next(v for v in saved.values() if isinstance(v, dict) and "normalizer" in v)
     y_mean, y_std = norm["normalizer"]["mean"].item(), norm["normalizer"]["std"].item()
     u_mean, u_std = norm["input_normalizer"]["mean"].item(), norm["input_normalizer"]["std"].item()
-    _, test_data = nb.Cascaded_Tanks(dir_placement=str(DATA))
-    y = torch.tensor((test_data.y - y_mean) / y_std, dtype=torch.float32).view(1, -1, 1)
-    u = torch.tensor((test_data.u - u_mean) / u_std, dtype=torch.float32).view(1, -1, 1)
-    with torch.no_grad():
-        x = model.node_encoder(y[:, 30:50], u[:, 30:50])
-        normalised = []
-        for t in range(50, 1024):
-            normalised.append(model.g(x)[0, 0].item())
-            x = model.f(x, u[:, t])
+    train_data, test_data = nb.Cascaded_Tanks(dir_placement=str(DATA))
+
+    def free_run(data) -> list[float]:
+        """The normalised outputs of a recording's free run from the node encoder's state of samples 30-49."""
+        y = torch.tensor((data.y - y_mean) / y_std, dtype=torch.float32).view(1, -1, 1)
+        u = torch.tensor((data.u - u_mean) / u_std, dtype=torch.float32).view(1, -1, 1)
+        with torch.no_grad():
+            x = model.node_encoder(y[:, 30:50], u[:, 30:50])
+            out = []
+            for t in range(50, 1024):
+                out.append(model.g(x)[0, 0].item())
+                x = model.f(x, u[:, t])
+        return out
+
+    normalised = free_run(test_data)
     row = run["tests"]["test"]
     beyond = np.flatnonzero(~(np.abs(normalised) <= 100.0))  # 100 training stds: a run past them diverged
     if len(beyond):  # a model this brief may grow: then the row says where, and gives no score
@@ -284,15 +290,7 @@ def test_amortised_nodes_on_cascaded_tanks_end_to_end_and_their_score_by_hand(tm
 
     # the config validates with val_run_in: all: the kept epoch's score is the free run of the whole training
     # recording from its first 50 samples, the RMSE of its held-out end (the last 205 samples) alone
-    train_data, _ = nb.Cascaded_Tanks(dir_placement=str(DATA))
-    y = torch.tensor((train_data.y - y_mean) / y_std, dtype=torch.float32).view(1, -1, 1)
-    u = torch.tensor((train_data.u - u_mean) / u_std, dtype=torch.float32).view(1, -1, 1)
-    with torch.no_grad():
-        x = model.node_encoder(y[:, 30:50], u[:, 30:50])
-        normalised = []
-        for t in range(50, 1024):
-            normalised.append(model.g(x)[0, 0].item())
-            x = model.f(x, u[:, t])
+    normalised = free_run(train_data)
     held = np.array(normalised[819 - 50 :]) * y_std + y_mean
     validation = run["info"]["validation"]["val_sim_rmse"]
     if np.all(np.abs(normalised) <= 100.0):

@@ -321,8 +321,12 @@ class UnscentedKalmanFilter:
 
     def _sigma_points(self, mean: Tensor, cov: Tensor, setup: _Setup, what: str, step: int) -> tuple[Tensor, Tensor]:
         """Sigma points ``[B, 2d+1, d]`` (mean, then mean +- scale * columns of chol(cov)) and their offsets."""
+        return self._spread(mean, self._cholesky(cov, what, step), setup)
+
+    @staticmethod
+    def _spread(mean: Tensor, chol: Tensor, setup: _Setup) -> tuple[Tensor, Tensor]:
+        """The sigma points and offsets of ``N(mean, chol chol^T)`` (``chol [B, d, d]`` lower, contiguous)."""
         b, d = mean.shape
-        chol = self._cholesky(cov, what, step)  # [B, d, d], contiguous
         # offsets[b] = pattern @ chol[b]^T, as one [B*d, d] @ [d, n] product
         offsets = (chol.reshape(b * d, d) @ setup.pattern_t).view(b, d, -1).transpose(-1, -2)
         return mean.unsqueeze(-2) + offsets, offsets
@@ -393,11 +397,11 @@ class UnscentedKalmanFilter:
         ``(Omega + R)^-1`` is a Woodbury product; nothing ``p x p`` is formed. At ``N(mean, cov)`` equal to the prior
         this is the UKF's own update."""
         b, d = mean.shape
-        sigma, x_dev = self._sigma_points(mean, cov, setup, "iterated posterior", step)
+        chol = self._cholesky(cov, "iterated posterior", step)  # also the sigma points' weighted covariance's
+        sigma, x_dev = self._spread(mean, chol, setup)
         gy = call_model(self.g, sigma.reshape(-1, d), self.autocast).reshape(b, sigma.shape[1], -1)
         y_pred = (gy * setup.wm_col).sum(-2)
         xs, ys = x_dev * setup.sqrt_wc, (gy - y_pred.unsqueeze(-2)) * setup.sqrt_wc  # [B, n, d], [B, n, p]
-        chol = self._cholesky(xs.transpose(-1, -2) @ xs, "iterated posterior", step)  # the sigma points' covariance
         # H^T = P^-1 X_s^T Y_s [B, d, p]; the residual Y_r = Y_s - X_s H^T [B, n, p]
         h_t = torch.cholesky_solve(xs.transpose(-1, -2) @ ys, chol)
         resid = ys - xs @ h_t
