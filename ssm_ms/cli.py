@@ -26,6 +26,9 @@ What the command line adds to Lightning's:
 - **Trainer settings.** An invalid ``trainer`` value that Lightning refuses when it builds the Trainer
   (a ``MisconfigurationException`` or ``ValueError``, e.g. ``--trainer.max_epochs -5``) is a user's
   mistake: one ``error: trainer: ...`` line, status 1.
+- **Checkpoints every epoch.** A ``fit`` whose config names no :class:`ssm_ms.checkpointing.EpochCheckpoint` gets one
+  (``last.ckpt`` at the end of every training epoch, in the run's ``checkpoints/``), so that a crash loses at most the
+  epoch under way; ``trainer.enable_checkpointing: false`` turns it off, a config that names one sets its options.
 - **Ctrl-C, SIGTERM.** An interrupted ``fit`` exits with status 130 and prints the command that resumes it from
   the last completed epoch's ``last.ckpt`` (written every epoch by
   :class:`ssm_ms.checkpointing.EpochCheckpoint`). SIGTERM (``kill <pid>``: what scripts and job schedulers send,
@@ -183,11 +186,20 @@ class SSMCLI(LightningCLI):
             self.model.checkpoint_source = self._checkpoint_source  # its data checks then name the checkpoint first
 
     def instantiate_trainer(self, **kwargs: Any) -> pl.Trainer:
+        """The trainer with the house's callbacks where the config names none of their kind: a fit writes
+        ``last.ckpt`` every epoch (:class:`EpochCheckpoint`, unless ``enable_checkpointing: false``) and the console
+        shows :class:`RunProgressBar` (unless ``enable_progress_bar: false``)."""
         trainer = self._get(self.config_init, "trainer", default={})
-        callbacks = trainer.get("callbacks") or []
-        callbacks = callbacks if isinstance(callbacks, list) else [callbacks]
+        given = trainer.get("callbacks") or []
+        callbacks = list(given if isinstance(given, list) else [given])
+        before, after = [], []
+        checkpointing = trainer.get("enable_checkpointing") is not False
+        if self.subcommand == "fit" and checkpointing and not any(isinstance(c, EpochCheckpoint) for c in callbacks):
+            before.append(EpochCheckpoint())  # first of the checkpoint callbacks: trainer.checkpoint_callback
         if trainer.get("enable_progress_bar") is not False and not any(isinstance(c, ProgressBar) for c in callbacks):
-            kwargs.setdefault("callbacks", [*callbacks, RunProgressBar()])  # in place of Lightning's own bar
+            after.append(RunProgressBar())  # in place of Lightning's own bar
+        if before or after:
+            kwargs.setdefault("callbacks", [*before, *callbacks, *after])
         try:
             return super().instantiate_trainer(**kwargs)
         except (MisconfigurationException, ValueError) as err:  # Lightning refusing a trainer setting

@@ -17,7 +17,7 @@ from pathlib import Path
 import lightning.pytorch as pl
 import pytest
 import torch
-from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 from omegaconf import OmegaConf
 
 from experiments.cli import reports
@@ -408,7 +408,6 @@ trainer:
   callbacks:
     - class_path: ssm_ms.schedule.ShootingSchedule
       init_args: {{alpha: 50.0, alpha_epoch: 2, lr_milestones: [2], lr_factor: 0.1}}
-    - class_path: ssm_ms.checkpointing.EpochCheckpoint
 model:
   class_path: ssm_ms.module.MultipleShootingModule
   init_args:
@@ -475,14 +474,33 @@ def test_checkpoint_every_epoch_with_rare_validation(rotation):
     assert torch.load(last_ckpt(root, "a"), weights_only=True)["epoch"] == 3
 
 
-def test_every_shipped_training_config_checkpoints_every_epoch():
-    trainers = {c: load_config(c)["trainer"] for c in CONFIGS}
-    trained = [c for c, t in trainers.items() if t.get("max_epochs") is not None or t.get("max_time") is not None]
-    assert len(trained) > 40
-    for config in trained:
-        callbacks = trainers[config].get("callbacks") or []
-        assert "ssm_ms.checkpointing.EpochCheckpoint" in [c["class_path"] for c in callbacks], config
-        for c in callbacks:  # Lightning's own only to keep a best epoch (best.ckpt), never a second last.ckpt
+def test_a_fit_checkpoints_every_epoch_unless_told_otherwise(rotation):
+    """The rotation config names no EpochCheckpoint: the CLI adds one to a fit (a crash loses at most the epoch under
+    way; the test above sees it write every epoch); a config's own is kept with its options, not doubled;
+    ``enable_checkpointing: false`` writes none."""
+    from ssm_ms.checkpointing import EpochCheckpoint
+
+    root, fit = rotation
+
+    def savers(version: str, *extra: str) -> list:
+        cli = main([*fit, "--trainer.max_epochs", "1", "--trainer.logger.init_args.version", version, *extra])
+        return [c for c in cli.trainer.callbacks if isinstance(c, ModelCheckpoint)]
+
+    (added,) = savers("added")
+    assert type(added) is EpochCheckpoint and added.every_n_epochs == 1
+    assert torch.load(last_ckpt(root, "added"), weights_only=True)["epoch"] == 0
+    (own,) = savers(
+        "own", "--trainer.callbacks+=ssm_ms.checkpointing.EpochCheckpoint", "--trainer.callbacks.every_n_epochs=3"
+    )
+    assert own.every_n_epochs == 3
+    assert savers("none", "--trainer.enable_checkpointing", "false") == []
+    assert not (root / "runs" / "rot" / "none" / "checkpoints").exists()
+
+
+def test_no_shipped_config_keeps_a_second_last_ckpt():
+    """Lightning's own ModelCheckpoint only keeps a best epoch (best.ckpt) beside the house's last.ckpt."""
+    for config in CONFIGS:
+        for c in load_config(config)["trainer"].get("callbacks") or []:
             if c["class_path"] == "lightning.pytorch.callbacks.ModelCheckpoint":
                 assert c["init_args"].get("monitor") and c["init_args"].get("filename") == "best", config
                 assert not c["init_args"].get("save_last"), config
