@@ -119,7 +119,8 @@ class ClosedLoop(pl.LightningModule):
             the true states and the torques applied, one row per period, and the system's parameters.
         experiment, results_dir, figures_dir, method_name: where the results go and the row's name
             (``{estimator}`` in it names the estimator: ``UKF`` or ``CNN-LSTM encoder``; ``results_dir`` unset: the
-            run's own folder, the trainer's ``log_dir``).
+            run's own folder, the trainer's ``log_dir``; ``figures_dir`` unset: no figures, else a GIF of the first
+            episode and the angle from upright along every episode).
         seed: the episodes' camera noise and the planner's sampling.
     """
 
@@ -142,7 +143,7 @@ class ClosedLoop(pl.LightningModule):
         record: str | None = None,
         experiment: str = "pendulum_control",
         results_dir: str | None = None,
-        figures_dir: str | None = "results/figures",
+        figures_dir: str | None = None,
         method_name: str | None = None,
         seed: int = 0,
     ):
