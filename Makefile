@@ -83,15 +83,19 @@ bench: $(STAMP)
 reproduce: $(STAMP) $(if $(filter oscillator,$(EXP)),data/oscillator.npz)
 	$(PY) -m experiments.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(RESUME),--resume $(RESUME)) $(if $(ARGS),-- $(ARGS))
 
-## The closed-loop table's rows from pretrained/: the torque-driven pendulum's SSM with its UKF, then with its encoder,
-## and the true model (the bound), 100 episodes each (a few minutes on 2 cores), into runs/pretrained/pendulum_control.md.
+## The closed-loop tables' rows from pretrained/: the torque-driven pendulum's SSM with its UKF, then with its encoder,
+## and the true model (the bound), 100 episodes each, for each torque bound (3 N m, then 2 N m: the config's suffix
+## _2nm), into runs/pretrained/pendulum_control{,_2nm}.md (a few minutes on 2 cores).
 CONTROL_OUT = --model.init_args.results_dir runs/pretrained --model.init_args.figures_dir runs/pretrained/figures
-CONTROL_SSM = --config configs/pendulum_torque_control.yaml --model.init_args.ssm_checkpoint pretrained/pendulum_torque.ckpt
+CONTROL_SSM = --model.init_args.ssm_checkpoint pretrained/pendulum_torque.ckpt
+CONTROL_ENCODER = --model.init_args.encoder_checkpoint pretrained/pendulum_torque_encoder.ckpt
 control-pretrained: $(STAMP)
-	$(PY) cli.py test $(CONTROL_SSM) $(CONTROL_OUT) $(ARGS)
-	$(PY) cli.py test $(CONTROL_SSM) --model.init_args.encoder_checkpoint pretrained/pendulum_torque_encoder.ckpt \
-		$(CONTROL_OUT) $(ARGS)
-	$(PY) cli.py test --config configs/pendulum_true_control.yaml $(CONTROL_OUT) $(ARGS)
+	set -e; for bound in "" _2nm; do \
+		$(PY) cli.py test --config configs/pendulum_torque_control$$bound.yaml $(CONTROL_SSM) $(CONTROL_OUT) $(ARGS); \
+		$(PY) cli.py test --config configs/pendulum_torque_control$$bound.yaml $(CONTROL_SSM) $(CONTROL_ENCODER) \
+			$(CONTROL_OUT) $(ARGS); \
+		$(PY) cli.py test --config configs/pendulum_true_control$$bound.yaml $(CONTROL_OUT) $(ARGS); \
+	done
 
 data/oscillator.npz: examples/make_oscillator_data.py
 	$(PY) examples/make_oscillator_data.py --out $@

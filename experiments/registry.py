@@ -15,6 +15,12 @@ from omegaconf import OmegaConf
 ROOT = Path(__file__).resolve().parents[1]
 REGISTRY = ROOT / "configs" / "experiments.yaml"
 SIZE_SUFFIX = {"paper": "", "cpu": "_cpu"}  # results/<experiment><suffix>.json: the results file of each size
+LISTED = ("control", "baselines")  # the stages that name a list of configs (run in order); the others name one
+
+
+def stage_configs(stages: dict[str, Any]) -> list[tuple[str, str]]:
+    """``(stage, config path)`` for every config one experiment's stages name at one size, in the registry's order."""
+    return [(kind, path) for kind, value in stages.items() for path in (value if kind in LISTED else [value])]
 
 
 def read_registry() -> dict:

@@ -65,7 +65,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from experiments.registry import REGISTRY, read_registry
+from experiments.registry import LISTED, REGISTRY, read_registry
 from experiments.results import write_pipeline
 from ssm_ms.runtime.machine import describe
 
@@ -548,10 +548,11 @@ def main(argv: list[str] | None = None) -> None:
         run_benchmark(opts, argv, ROOT / benchmark["fit"], ROOT / benchmark["test"])
         return
     stages = {
-        kind: [ROOT / p for p in paths] if kind == "baselines" else ROOT / paths
+        kind: [ROOT / p for p in paths] if kind in LISTED else ROOT / paths
         for kind, paths in registry.get("experiments", {}).get(opts.experiment, {}).get(opts.size, {}).items()
     }
-    ssm_cfg, enc_cfg, control_cfg, record_cfg = (stages.get(k) for k in ("ssm", "encoder", "control", "record"))
+    ssm_cfg, enc_cfg, record_cfg = (stages.get(k) for k in ("ssm", "encoder", "record"))
+    controls = stages.get("control", [])
     alone = [
         ROOT / path
         for experiment in registry.get("experiments", {}).values()
@@ -563,14 +564,14 @@ def main(argv: list[str] | None = None) -> None:
     elif ssm_cfg is not None:
         baselines = [] if opts.no_baselines else stages.get("baselines", [])
         ssm_stages = True
-    elif control_cfg is not None:  # a controller without a learned model (the true one): its test alone
+    elif controls:  # a controller without a learned model (the true one): its tests alone
         baselines, ssm_stages = [], False
     else:
         raise SystemExit(
             f"no {opts.size}-size experiment {opts.experiment!r} in {REGISTRY.relative_to(ROOT)}: choose among "
             f"{known_experiments(registry, opts.size)}"
         )
-    ssm_tests = [stages[k] for k in ("ukf", "optimise", "control") if k in stages]  # of the SSM, nothing to train
+    ssm_tests = [stages[k] for k in ("ukf", "optimise") if k in stages] + controls  # of the SSM, nothing to train
     if opts.no_encoder and ssm_stages and not ssm_tests:
         parser.error(
             f"--no-encoder: {opts.experiment} has no test of its SSM alone (no ukf, optimise or control stage in "
@@ -582,7 +583,7 @@ def main(argv: list[str] | None = None) -> None:
     if "/" in version or not version.startswith("reproduce-"):
         parser.error(f"--resume takes the version folder's name (reproduce-<date>-<time>), got {version!r}")
     options = _without_option(argv, "--resume")
-    first = ssm_cfg if ssm_stages else baselines[0] if baselines else control_cfg
+    first = ssm_cfg if ssm_stages else baselines[0] if baselines else controls[0]
     # options make does not pass: the module's command
     if opts.no_baselines or opts.no_encoder or opts.encoder_epochs is not None or opts.baseline_epochs is not None:
         command = shlex.join(["python", "-m", "experiments.reproduce", *options])
@@ -625,16 +626,18 @@ def main(argv: list[str] | None = None) -> None:
             pipeline.stage([*enc_test, *named(enc_cfg), *v], again=ssm_ran or enc_ran)
             configs.append(enc_cfg)
         configs += ssm_tests  # the results files listed in the order they always were: encoder first
-        if control_cfg is not None and use_encoder:  # the control again, the encoder estimating the state
+        if use_encoder:
             with_encoder = ["--model.init_args.encoder_checkpoint", str(enc_ckpt)]
-            test = ["test", "--config", str(control_cfg.relative_to(ROOT)), *with_ssm, *with_encoder]
-            pipeline.stage([*test, *named(control_cfg), *v], again=ssm_ran or enc_ran)
-            if record_cfg is not None:  # the learned controller's own episodes: training data of a later experiment
+            for control_cfg in controls:  # the control again, the encoder estimating the state
+                test = ["test", "--config", str(control_cfg.relative_to(ROOT)), *with_ssm, *with_encoder]
+                pipeline.stage([*test, *named(control_cfg), *v], again=ssm_ran or enc_ran)
+            if controls and record_cfg is not None:  # the learned controller's episodes: a later experiment's data
                 record = ["test", "--config", str(record_cfg.relative_to(ROOT)), *with_ssm, *with_encoder]
                 pipeline.stage([*record, *v], again=ssm_ran or enc_ran)
-    elif control_cfg is not None and not baselines:
-        pipeline.stage(["test", "--config", str(control_cfg.relative_to(ROOT)), *named(control_cfg), *v])
-        configs.append(control_cfg)
+    elif controls and not baselines:
+        for control_cfg in controls:
+            pipeline.stage(["test", "--config", str(control_cfg.relative_to(ROOT)), *named(control_cfg), *v])
+        configs += controls
     baseline_budget = [] if opts.baseline_epochs is None else ["--trainer.max_epochs", str(opts.baseline_epochs)]
     for cfg in baselines:
         fit_ran = pipeline.stage(["fit", "--config", str(cfg.relative_to(ROOT)), *baseline_budget, *named(cfg), *v])

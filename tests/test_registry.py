@@ -9,7 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from experiments.registry import REGISTRY, SIZE_SUFFIX, paper_table, read_registry, registered_experiment
+from experiments.registry import (
+    REGISTRY,
+    SIZE_SUFFIX,
+    paper_table,
+    read_registry,
+    registered_experiment,
+    stage_configs,
+)
 from experiments.reproduce import known_experiments
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -20,8 +27,7 @@ def named_paths(registry: dict) -> list[str]:
     paths = []
     for sizes in registry["experiments"].values():
         for stages in sizes.values():
-            for kind, value in stages.items():
-                paths += value if kind == "baselines" else [value]
+            paths += [path for _, path in stage_configs(stages)]
     for benchmark in registry["benchmarks"].values():
         paths += [benchmark["fit"], benchmark["test"]]
     return paths
@@ -115,10 +121,9 @@ def test_the_experiments_of_the_paper_tables_write_the_results_files_the_rendere
     wrong = []
     for name in paper_experiments(registry):
         for size, stages in registry["experiments"][name].items():
-            for kind, value in stages.items():
-                for config in value if kind == "baselines" else [value]:
-                    if kind != "ssm" and experiment_name(ROOT / config) != name + SIZE_SUFFIX[size]:
-                        wrong.append((config, experiment_name(ROOT / config)))
+            for kind, config in stage_configs(stages):
+                if kind != "ssm" and experiment_name(ROOT / config) != name + SIZE_SUFFIX[size]:
+                    wrong.append((config, experiment_name(ROOT / config)))
     assert wrong == []
 
 
@@ -143,7 +148,6 @@ def test_every_scoring_stage_names_its_results_folder():
     configs = [b["test"] for b in registry["benchmarks"].values()]
     for sizes in registry["experiments"].values():
         for stages in sizes.values():
-            for kind, value in stages.items():
-                configs += [] if kind == "ssm" else value if kind == "baselines" else [value]
+            configs += [config for kind, config in stage_configs(stages) if kind != "ssm"]
     unnamed = [c for c in configs if config_value(ROOT / c, "model.init_args.results_dir") is None]
     assert unnamed == []

@@ -130,8 +130,9 @@ def test_no_encoder_runs_the_ssm_and_its_own_tests_only(recorded, capsys):
     assert [(a[0], option(a, "--config")) for a in calls] == [
         ("fit", "configs/pendulum_torque.yaml"),
         ("test", "configs/pendulum_torque_control.yaml"),  # the UKF estimating the state; not again with an encoder
+        ("test", "configs/pendulum_torque_control_2nm.yaml"),  # each control setting
     ]
-    assert "--model.init_args.encoder_checkpoint" not in calls[1]
+    assert "--model.init_args.encoder_checkpoint" not in calls[1] + calls[2]
     calls.clear()
     reproduce.main(["pendulum", "--no-encoder", "--no-baselines"])
     assert [(a[0], option(a, "--config")) for a in calls] == [
@@ -704,10 +705,12 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
     stages = [(a[0], option(a, "--config")) for a in calls]
     assert stages == [
         ("fit", "configs/pendulum_torque.yaml"),
-        ("test", "configs/pendulum_torque_control.yaml"),  # the SSM and the UKF: before the encoder
+        ("test", "configs/pendulum_torque_control.yaml"),  # the SSM and the UKF: before the encoder, each setting
+        ("test", "configs/pendulum_torque_control_2nm.yaml"),
         ("fit", "configs/pendulum_torque_encoder.yaml"),
         ("test", "configs/pendulum_torque_encoder.yaml"),
         ("test", "configs/pendulum_torque_control.yaml"),  # again, the encoder estimating the state
+        ("test", "configs/pendulum_torque_control_2nm.yaml"),
         ("test", "configs/pendulum_torque_record.yaml"),  # its own episodes recorded, with the encoder
         ("fit", "configs/pendulum_torque_dagger.yaml"),  # trained again with them
         ("test", "configs/pendulum_torque_dagger_control.yaml"),
@@ -719,7 +722,8 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         ("fit", "configs/pendulum_torque_single_encoder.yaml"),
         ("test", "configs/pendulum_torque_single_encoder.yaml"),
         ("test", "configs/pendulum_torque_single_control.yaml"),
-        ("test", "configs/pendulum_true_control.yaml"),
+        ("test", "configs/pendulum_true_control.yaml"),  # the true model: its settings one after the other
+        ("test", "configs/pendulum_true_control_2nm.yaml"),
         ("fit", "configs/pendulum_sensors.yaml"),
         ("test", "configs/pendulum_sensors_control.yaml"),
         ("fit", "configs/pendulum_sensors_encoder.yaml"),
@@ -727,30 +731,29 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         ("test", "configs/pendulum_sensors_control.yaml"),
     ]
     version = option(calls[0], "--trainer.logger.init_args.version")
-    assert "--model.init_args.encoder_checkpoint" not in calls[1]
+    ssm = f"runs/pendulum_torque/{version}/checkpoints/last.ckpt"
+    encoder = f"runs/pendulum_torque_encoder/{version}/checkpoints/last.ckpt"
+    for call in calls[1:3]:
+        assert (
+            "--model.init_args.encoder_checkpoint" not in call
+            and option(call, "--model.init_args.ssm_checkpoint") == ssm
+        )
+    for call in calls[5:8]:  # both settings and the recording: the same SSM and encoder
+        assert option(call, "--model.init_args.ssm_checkpoint") == ssm
+        assert option(call, "--model.init_args.encoder_checkpoint") == encoder
+    assert option(calls[12], "--model.init_args.ssm_checkpoint") == (
+        f"runs/pendulum_torque_dagger/{option(calls[8], '--trainer.logger.init_args.version')}/checkpoints/last.ckpt"
+    )
+    single = option(calls[13], "--trainer.logger.init_args.version")
     assert (
-        option(calls[1], "--model.init_args.ssm_checkpoint") == f"runs/pendulum_torque/{version}/checkpoints/last.ckpt"
-    )
-    assert (
-        option(calls[4], "--model.init_args.encoder_checkpoint")
-        == f"runs/pendulum_torque_encoder/{version}/checkpoints/last.ckpt"
-    )
-    assert option(calls[5], "--model.init_args.encoder_checkpoint") == option(
-        calls[4], "--model.init_args.encoder_checkpoint"
-    )
-    assert option(calls[10], "--model.init_args.ssm_checkpoint") == (
-        f"runs/pendulum_torque_dagger/{option(calls[6], '--trainer.logger.init_args.version')}/checkpoints/last.ckpt"
-    )
-    single = option(calls[11], "--trainer.logger.init_args.version")
-    assert (
-        option(calls[12], "--model.init_args.ssm_checkpoint")
+        option(calls[14], "--model.init_args.ssm_checkpoint")
         == f"runs/pendulum_torque_single/{single}/checkpoints/last.ckpt"
     )
     assert (
-        option(calls[15], "--model.init_args.encoder_checkpoint")
+        option(calls[17], "--model.init_args.encoder_checkpoint")
         == f"runs/pendulum_torque_single_encoder/{single}/checkpoints/last.ckpt"
     )
-    assert "--model.init_args.ssm_checkpoint" not in calls[16]
+    assert "--model.init_args.ssm_checkpoint" not in calls[18] + calls[19]
     assert written["experiment"] == "pendulum_control"  # the last results file the suite's last experiment wrote
     with pytest.raises(SystemExit):
         reproduce.main(["pendulum_control", "--resume", "reproduce-1"])
