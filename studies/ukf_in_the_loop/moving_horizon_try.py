@@ -1,0 +1,95 @@
+"""A moving-horizon estimate in place of the UKF in the closed loop: the state `window` frames back fitted through
+f(x, u) and g to the frames since (Adam, warm-started from the last solution moved one step by f), the current state
+f's roll-out from it; the first state the shooting node whose g(node) best matches the first frame. 20 episodes from
+pretrained/pendulum_torque.ckpt (a feasibility check, not a library estimator). Run from the repository root:
+    python studies/ukf_in_the_loop/mhe_try.py '{"window": 8, "steps": 20, "lr": 0.05}'"""
+
+import json
+import sys
+
+import torch
+
+import ssm_ms.control.module as M
+from ssm_ms.cli import main
+
+S = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
+WINDOW, STEPS, LR = S.get("window", 8), S.get("steps", 20), S.get("lr", 0.05)
+
+
+class MovingHorizon:
+    def __init__(self, f, g, nodes, decoded, to_frames):
+        self.f, self.g, self.nodes, self.decoded, self.to_frames = f, g, nodes, decoded, to_frames
+
+    def _roll(self, x):
+        states = [x]
+        for u in self.us:
+            states.append(self.f(states[-1], u))
+        return states
+
+    def _fit(self):
+        x = self.x0.detach().clone().requires_grad_(True)
+        opt = torch.optim.Adam([x], lr=LR)
+        y = torch.stack(self.ys, 1)  # [B, k, P]
+        for _ in range(STEPS):
+            with torch.enable_grad():
+                states = torch.stack(self._roll(x), 1)  # [B, k, d]
+                b, k, d = states.shape
+                pred = self.g(states.reshape(b * k, d)).reshape(b, k, -1)
+                loss = ((pred - y) ** 2).sum()
+                opt.zero_grad()
+                loss.backward()
+            opt.step()
+        self.x0 = x.detach()
+        with torch.no_grad():
+            return self._roll(self.x0)[-1]
+
+    def start(self, y):
+        frames = self.to_frames(y).reshape(len(y), -1)
+        self.ys, self.us = [frames], []
+        self.x0 = self.nodes[torch.cdist(frames, self.decoded).argmin(1)]
+        return self._fit()
+
+    def next(self, u, y):
+        self.ys.append(self.to_frames(y).reshape(len(y), -1))
+        self.us.append(u)
+        if len(self.ys) > WINDOW:
+            with torch.no_grad():
+                self.x0 = self.f(self.x0, self.us[0])
+            self.ys, self.us = self.ys[1:], self.us[1:]
+        return self._fit()
+
+
+orig = M.ClosedLoop.attach
+
+
+def attach(self, dm):
+    orig(self, dm)
+    nodes = self.ssm.training_states()
+    with torch.no_grad():
+        decoded = torch.cat([self.ssm.g(c).reshape(len(c), -1) for c in nodes.split(1000)])
+    self._mhe = (nodes, decoded)
+
+
+M.ClosedLoop.attach = attach
+M.ClosedLoop.estimator = lambda self: MovingHorizon(self.f, self.ssm.g, *self._mhe, self.to_frames)
+main(
+    [
+        "test",
+        "--config",
+        "configs/pendulum_torque_control.yaml",
+        "--model.init_args.ssm_checkpoint",
+        "pretrained/pendulum_torque.ckpt",
+        "--data.init_args.n_test",
+        str(S.get("episodes", 20)),
+        "--model.init_args.results_dir",
+        S.get("out", "runs/mhe_try"),
+        "--model.init_args.figures_dir",
+        S.get("figures", "null"),
+        "--trainer.logger.init_args.version",
+        "mhe",
+        "--trainer.inference_mode",
+        "false",
+        "--model.init_args.method_name",
+        f"moving horizon {S}",
+    ]
+)
