@@ -2,7 +2,9 @@
 f(x, u) and g to the frames since (Adam, warm-started from the last solution moved one step by f), the current state
 f's roll-out from it; the first state the shooting node whose g(node) best matches the first frame. 20 episodes from
 pretrained/pendulum_torque.ckpt (a feasibility check, not a library estimator). Run from the repository root:
-    python studies/ukf_in_the_loop/mhe_try.py '{"window": 8, "steps": 20, "lr": 0.05}'"""
+    python studies/ukf_in_the_loop/moving_horizon_try.py '{"window": 8, "steps": 20, "lr": 0.05}'
+With "diagnose": "<file.md>" it scores the estimates instead (studies/control_diagnosis's table: the angle error of
+the estimate and of f's predictions from it, along the true-model controller's swing-ups)."""
 
 import json
 import sys
@@ -64,6 +66,8 @@ orig = M.ClosedLoop.attach
 
 def attach(self, dm):
     orig(self, dm)
+    if self.ssm is None:  # the true model's controller: no estimator
+        return
     nodes = self.ssm.training_states()
     with torch.no_grad():
         decoded = torch.cat([self.ssm.g(c).reshape(len(c), -1) for c in nodes.split(1000)])
@@ -72,6 +76,16 @@ def attach(self, dm):
 
 M.ClosedLoop.attach = attach
 M.ClosedLoop.estimator = lambda self: MovingHorizon(self.f, self.ssm.g, *self._mhe, self.to_frames)
+if S.get(
+    "diagnose"
+):  # the estimates along the true-model controller's swing-ups, as control_diagnosis scores the UKF's
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "control_diagnosis"))
+    from control_diagnosis import main as diagnose
+
+    diagnose(["--ssm-checkpoint", "pretrained/pendulum_torque.ckpt", "--out", S["diagnose"]])
+    sys.exit()
 main(
     [
         "test",
