@@ -10,9 +10,7 @@ import json
 import sys
 
 import torch
-
-import ssm_ms.control.module as M
-from ssm_ms.cli import main
+from estimator_try import try_estimator
 
 S = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
 WINDOW, STEPS, LR = S.get("window", 8), S.get("steps", 20), S.get("lr", 0.05)
@@ -61,49 +59,14 @@ class MovingHorizon:
         return self._fit()
 
 
-orig = M.ClosedLoop.attach
-
-
-def attach(self, dm):
-    orig(self, dm)
-    if self.ssm is None:  # the true model's controller: no estimator
-        return
-    nodes = self.ssm.training_states()
+def prepare(loop):
+    nodes = loop.ssm.training_states()
     with torch.no_grad():
-        decoded = torch.cat([self.ssm.g(c).reshape(len(c), -1) for c in nodes.split(1000)])
-    self._mhe = (nodes, decoded)
+        decoded = torch.cat([loop.ssm.g(c).reshape(len(c), -1) for c in nodes.split(1000)])
+    loop._mhe = (nodes, decoded)
 
 
-M.ClosedLoop.attach = attach
-M.ClosedLoop.estimator = lambda self: MovingHorizon(self.f, self.ssm.g, *self._mhe, self.to_frames)
-if S.get(
-    "diagnose"
-):  # the estimates along the true-model controller's swing-ups, as control_diagnosis scores the UKF's
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "control_diagnosis"))
-    from control_diagnosis import main as diagnose
-
-    diagnose(["--ssm-checkpoint", "pretrained/pendulum_torque.ckpt", "--out", S["diagnose"]])
-    sys.exit()
-main(
-    [
-        "test",
-        "--config",
-        "configs/pendulum_torque_control.yaml",
-        "--model.init_args.ssm_checkpoint",
-        "pretrained/pendulum_torque.ckpt",
-        "--data.init_args.n_test",
-        str(S.get("episodes", 20)),
-        "--model.init_args.results_dir",
-        S.get("out", "runs/mhe_try"),
-        "--model.init_args.figures_dir",
-        S.get("figures", "null"),
-        "--trainer.logger.init_args.version",
-        "mhe",
-        "--trainer.inference_mode",
-        "false",
-        "--model.init_args.method_name",
-        f"moving horizon {S}",
-    ]
-)
+if __name__ == "__main__":
+    try_estimator(
+        prepare, lambda loop: MovingHorizon(loop.f, loop.ssm.g, *loop._mhe, loop.to_frames), S, "moving_horizon_try"
+    )

@@ -7,9 +7,8 @@ import json
 import sys
 
 import torch
+from estimator_try import try_estimator
 
-import ssm_ms.control.module as M
-from ssm_ms.cli import main
 from ssm_ms.inference.particle import systematic_resample
 
 S = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
@@ -46,32 +45,11 @@ class PFEstimator:
         return self._weigh(y)
 
 
-orig = M.ClosedLoop.attach
+def prepare(loop):
+    loop._nodes = loop.ssm.training_states()
 
 
-def attach(self, dm):
-    orig(self, dm)
-    self._nodes = self.ssm.training_states()
-
-
-M.ClosedLoop.attach = attach
-M.ClosedLoop.estimator = lambda self: PFEstimator(self.f, self.ssm.g, self._nodes, self.to_frames)
-main(
-    [
-        "test",
-        "--config",
-        "configs/pendulum_torque_control.yaml",
-        "--model.init_args.ssm_checkpoint",
-        "pretrained/pendulum_torque.ckpt",
-        "--data.init_args.n_test",
-        str(S.get("episodes", 20)),
-        "--model.init_args.results_dir",
-        S.get("out", "runs/particle_filter_try"),
-        "--model.init_args.figures_dir",
-        S.get("figures", "null"),
-        "--trainer.logger",
-        "false",
-        "--model.init_args.method_name",
-        f"PF {S}",
-    ]
-)
+if __name__ == "__main__":
+    try_estimator(
+        prepare, lambda loop: PFEstimator(loop.f, loop.ssm.g, loop._nodes, loop.to_frames), S, "particle_filter_try"
+    )
