@@ -85,7 +85,7 @@ class PendulumDataModule(TrajectoryDataModule):
         closed_loop_override: in the closed-loop share, the frames whose excitation exceeds this share of the
             torque limit get the excitation alone, the controller off (default ``None``: never): open-loop pushes at
             the states the controller holds, where its own torque is tied to the state and cannot show what a
-            torque does (docs/datasets.md).
+            torque does (studies/torque_authority).
         closed_loop_balance: whether the closed-loop share's controller holds the pendulum upright (default true);
             false: it only pumps energy, and within its catch of upright the excitation alone drives the pendulum,
             which falls and is swung up again (no torque near upright depends on the state).
