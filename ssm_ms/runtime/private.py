@@ -1,7 +1,7 @@
 """Every private API of torch and Lightning that ssm-ms relies on, each behind one function here, where no public
-one does the job (docs/layout.md lists them and why). ``tests/test_private_api.py`` checks each against what it
-should answer, so an upgrade of torch or Lightning that changes one fails there, by name, instead of somewhere
-downstream; the pinned versions (``torch==2.13.*``, ``lightning<2.7``) are the ones checked.
+one does the job (each function's docstring says which API and why). ``tests/test_private_api.py`` checks each
+against what it should answer, so an upgrade of torch or Lightning that changes one fails there, by name, instead of
+somewhere downstream; the pinned versions (``torch==2.13.*``, ``lightning<2.7``) are the ones checked.
 """
 
 from __future__ import annotations
