@@ -237,3 +237,22 @@ def test_fully_connected_transition_with_a_linear_part_and_tanh():
     torch.testing.assert_close(f(x, u), expected)
     with pytest.raises(ValueError, match="activation must be one of"):
         FullyConnectedTransition(3, activation="gelu")
+
+
+def test_mlp_readout_is_linear_plus_a_network_starting_at_zero():
+    """g(x) = W x + b + MLP(x), computed here layer by layer; at initialisation the network adds nothing."""
+    from ssm_ms.nets import MLPReadout
+
+    torch.manual_seed(0)
+    g = MLPReadout(3, out_features=2, hidden=(5, 4), activation="tanh")
+    x = torch.randn(6, 3)
+    torch.testing.assert_close(g(x), x @ g.linear.weight.T + g.linear.bias)
+    for layer in (g.mlp[-1].weight, g.mlp[-1].bias):
+        torch.nn.init.normal_(layer)
+    h = torch.tanh(x @ g.mlp[0].weight.T + g.mlp[0].bias)
+    h = torch.tanh(h @ g.mlp[2].weight.T + g.mlp[2].bias)
+    torch.testing.assert_close(g(x), x @ g.linear.weight.T + g.linear.bias + h @ g.mlp[4].weight.T + g.mlp[4].bias)
+    with pytest.raises(ValueError, match="activation must be one of"):
+        MLPReadout(3, 1, activation="gelu")
+    with pytest.raises(ValueError, match="at least one hidden width"):
+        MLPReadout(3, 1, hidden=())

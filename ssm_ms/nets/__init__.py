@@ -3,7 +3,7 @@
 from ssm_ms.nets.decoder import ConvDecoder
 from ssm_ms.nets.encoder import FrameEncoder, StateEncoder
 from ssm_ms.nets.history import HistoryEncoder
-from ssm_ms.nets.readout import AngleReadout, LinearReadout, Projection
+from ssm_ms.nets.readout import AngleReadout, LinearReadout, MLPReadout, Projection
 from ssm_ms.nets.sensors import SensorHeads
 from ssm_ms.nets.sprites import SpriteDecoder
 from ssm_ms.nets.transition import FullyConnectedTransition, LocallyLinearTransition
@@ -16,6 +16,7 @@ __all__ = [
     "HistoryEncoder",
     "LinearReadout",
     "LocallyLinearTransition",
+    "MLPReadout",
     "Projection",
     "SensorHeads",
     "SpriteDecoder",

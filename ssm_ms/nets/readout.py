@@ -8,6 +8,8 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from ssm_ms.nets.transition import ACTIVATIONS
+
 
 class Projection(nn.Module):
     """``g(x) = x[..., indices]``: the measurement reads components of the state (e.g. Lorenz's x)."""
@@ -112,3 +114,42 @@ class AngleReadout(nn.Module):
         v = self.linear(x).unflatten(-1, (2, self.joints))  # [..., (sin, cos), joints]
         v = v / v.norm(dim=-2, keepdim=True).clamp_min(1e-6)
         return v.flatten(-2)
+
+
+class MLPReadout(nn.Module):
+    """``g(x) = W x + b + MLP(x)``: a linear readout with a network beside it, the form of deepSI SUBNET's output map
+    ``h``. The network's last layer starts at zero, so at initialisation ``g`` is the linear readout ``W x + b``;
+    the network then learns what a linear map of the state cannot read (a sensor's saturation, an output
+    nonlinearity), so the state need not carry it.
+
+    Not an ``nn.Linear``: the Kalman filters evaluate it on sigma points.
+
+    Args:
+        state_dim: input dimension.
+        out_features: number of measured channels.
+        hidden: the network's hidden widths.
+        activation: ``"tanh"`` or ``"relu"``.
+    """
+
+    def __init__(self, state_dim: int, out_features: int, hidden: Sequence[int] = (64, 64), activation: str = "tanh"):
+        super().__init__()
+        if state_dim < 1 or out_features < 1 or not hidden or any(h < 1 for h in hidden):
+            raise ValueError(
+                f"MLPReadout needs state_dim, out_features and at least one hidden width >= 1, got {state_dim}, "
+                f"{out_features}, {list(hidden)}"
+            )
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
+        self.linear = nn.Linear(state_dim, out_features)
+        layers: list[nn.Module] = []
+        width = state_dim
+        for h in hidden:
+            layers += [nn.Linear(width, h), ACTIVATIONS[activation]()]
+            width = h
+        layers.append(nn.Linear(width, out_features))
+        nn.init.zeros_(layers[-1].weight)
+        nn.init.zeros_(layers[-1].bias)
+        self.mlp = nn.Sequential(*layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.linear(x) + self.mlp(x)
