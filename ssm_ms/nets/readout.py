@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from ssm_ms.nets.transition import ACTIVATIONS
+from ssm_ms.nets.transition import mlp
 
 
 class Projection(nn.Module):
@@ -138,18 +138,10 @@ class MLPReadout(nn.Module):
                 f"MLPReadout needs state_dim, out_features and at least one hidden width >= 1, got {state_dim}, "
                 f"{out_features}, {list(hidden)}"
             )
-        if activation not in ACTIVATIONS:
-            raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
         self.linear = nn.Linear(state_dim, out_features)
-        layers: list[nn.Module] = []
-        width = state_dim
-        for h in hidden:
-            layers += [nn.Linear(width, h), ACTIVATIONS[activation]()]
-            width = h
-        layers.append(nn.Linear(width, out_features))
-        nn.init.zeros_(layers[-1].weight)
-        nn.init.zeros_(layers[-1].bias)
-        self.mlp = nn.Sequential(*layers)
+        self.mlp = mlp(state_dim, hidden, out_features, activation)
+        nn.init.zeros_(self.mlp[-1].weight)
+        nn.init.zeros_(self.mlp[-1].bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.linear(x) + self.mlp(x)

@@ -95,6 +95,17 @@ class LocallyLinearTransition(nn.Module):
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh}
 
 
+def mlp(width: int, hidden: Sequence[int], out: int, activation: str) -> nn.Sequential:
+    """``width -> hidden... -> out``: linear layers with ``activation`` between them, none after the last."""
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
+    layers: list[nn.Module] = []
+    for h in hidden:
+        layers += [nn.Linear(width, h), ACTIVATIONS[activation]()]
+        width = h
+    return nn.Sequential(*layers, nn.Linear(width, out))
+
+
 class FullyConnectedTransition(nn.Module):
     """SSM-FC: ``f(x) = x + MLP(x)``, hidden layers of the given widths; with inputs ``f(x, u) = x + MLP([x, u])``.
 
@@ -116,16 +127,8 @@ class FullyConnectedTransition(nn.Module):
                 f"state_dim and hidden widths must be >= 1 and input_dim >= 0, got {state_dim}, "
                 f"{list(hidden)}, {input_dim}"
             )
-        if activation not in ACTIVATIONS:
-            raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
         self.state_dim, self.input_dim = state_dim, input_dim
-        layers: list[nn.Module] = []
-        width = state_dim + input_dim
-        for h in hidden:
-            layers += [nn.Linear(width, h), ACTIVATIONS[activation]()]
-            width = h
-        layers.append(nn.Linear(width, state_dim))
-        self.mlp = nn.Sequential(*layers)
+        self.mlp = mlp(state_dim + input_dim, hidden, state_dim, activation)
         self.linear: nn.Linear | None = None
         if linear:
             self.linear = nn.Linear(state_dim + input_dim, state_dim, bias=False)
