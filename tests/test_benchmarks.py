@@ -115,7 +115,7 @@ def test_cascaded_tanks_end_to_end_and_its_score_by_hand(tmp_path):
     normalised samples, f iterated under the test inputs, the statistics undone by hand, numpy's RMSE)."""
     where = ["--data.init_args.dir_placement", str(DATA), "--trainer.logger.init_args.save_dir", str(tmp_path)]
     small = [
-        "--trainer.max_time", "null", "--trainer.max_epochs", "60", "--trainer.check_val_every_n_epoch", "10", "--model.init_args.lr", "1e-2",
+        "--trainer.max_time", "null", "--trainer.max_epochs", "60", "--trainer.val_check_interval", "40", "--model.init_args.lr", "1e-2",
         "--trainer.enable_progress_bar", "false", "--model.init_args.state_dim", "2",
         "--model.init_args.f.init_args.n_matrices", "2", "--model.init_args.f.init_args.hidden", "8",
         "--data.init_args.window", "100", "--model.init_args.n_nodes", "4",
@@ -246,7 +246,8 @@ def test_amortised_nodes_on_cascaded_tanks_end_to_end_and_their_score_by_hand(tm
     test inputs from sample 50, the statistics undone by hand."""
     where = ["--data.init_args.dir_placement", str(DATA), "--trainer.logger.init_args.save_dir", str(tmp_path)]
     small = [
-        "--trainer.max_time", "null", "--trainer.max_epochs", "10", "--trainer.enable_progress_bar", "false",
+        "--trainer.max_time", "null", "--trainer.max_epochs", "10", "--trainer.val_check_interval", "10",
+        "--trainer.enable_progress_bar", "false",
     ]  # fmt: skip
     cli_main(["fit", "--config", "configs/benchmarks/cascaded_tanks_amortised.yaml", *where, *small])
     best = tmp_path / "cascaded_tanks_amortised" / "version_0" / "checkpoints" / "best.ckpt"
