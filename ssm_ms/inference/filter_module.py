@@ -37,7 +37,7 @@ class FilterForecaster(SSMForecaster):
         init_var: prior variance at time 0 (paper: 0.1).
         init_mean: the prior mean at time 0 of the components no measurement sets (``node_init_map``):
             ``"nodes"`` (the default) the mean of the SSM's shooting nodes, ``"zero"`` zero, as the paper's filter
-            (docs/method.md, "The UKF against the paper's": their measured effect on Lorenz).
+            (their measured effect on Lorenz: studies/ukf_settings/README.md).
         unscented: the UKF's sigma-point parameters, any of ``alpha``, ``beta``, ``kappa`` (default
             ``{alpha: 1, beta: 2, kappa: 0}``; ``{beta: 0}`` is the cubature rule, 2d points instead of 2d+1), and
             ``iterations``, its measurement updates per step (default 1; more: the iterated posterior linearisation,
