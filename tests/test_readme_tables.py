@@ -33,7 +33,7 @@ def test_every_table_has_its_markers_in_exactly_one_document():
 
 
 def test_every_row_is_produced_by_a_command_a_clean_clone_can_run():
-    """A README row's command is a promise (DEVELOPERS.md): none may need a run folder of this machine (``runs/``), as
+    """A README row's command is a promise (docs/tests.md, "The README is a test"): none may need a run folder of this machine (``runs/``), as
     a row tested by hand from a local checkpoint would; such a row is produced through ``make reproduce`` instead."""
     text = "\n".join(d.read_text(encoding="utf-8") for d in readme.DOCUMENTS)
     rows = [line for m in readme.MARKER.finditer(text) for line in m.group("body").splitlines()]
