@@ -51,6 +51,7 @@ from ssm_ms.nets import (
 )
 from ssm_ms.progress import RunProgressBar
 from ssm_ms.runtime.console import quiet_lightning
+from ssm_ms.training import checks
 from ssm_ms.units import Units
 
 __all__ = ["SSM", "Recordings", "fit"]
@@ -143,8 +144,8 @@ class SSM:
         module = MultipleShootingModule(
             f, g, state_dim, num_trajectories=int(data.num_train_trajectories), n_nodes=n_nodes, **options
         )
-        module.check_inputs(input_dim)
-        module.check_data(int(data.seq_len), tuple(data.obs_shape), int(data.num_train_trajectories))
+        checks.check_inputs(module.input_dim, input_dim)
+        checks.check_data(module, int(data.seq_len), tuple(data.obs_shape), int(data.num_train_trajectories))
         data.setup("fit")  # the training split's statistics: the model works in the data's units from the start
         module.data_state = data.state_dict()
         self._attach(module)
@@ -583,8 +584,8 @@ def fit(model: SSM, data: TrajectoryDataModule, epochs: int | None = None, **opt
         )
     if data is None or not isinstance(data, TrajectoryDataModule):
         raise ValueError("fit needs the training data: fit(model, Recordings(y=..., u=...), epochs=...)")
-    model.module.check_inputs(int(data.input_dim))
-    model.module.check_data(int(data.seq_len), tuple(data.obs_shape), int(data.num_train_trajectories))
+    checks.check_inputs(model.module.input_dim, int(data.input_dim))
+    checks.check_data(model.module, int(data.seq_len), tuple(data.obs_shape), int(data.num_train_trajectories))
     model.module.train()
     model.trainer = _train(model.module, data, epochs, **options)
     last = getattr(model.trainer.checkpoint_callback, "last_model_path", "")

@@ -23,13 +23,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from ssm_ms.checkpointing import read_checkpoint, restore_float_weights
-from ssm_ms.nets.history import HistoryEncoder
 from ssm_ms.nets.sensors import SensorLayout
 from ssm_ms.progress import time_budget
 from ssm_ms.runtime.perf import check_precision
 from ssm_ms.runtime.private import built_by_lightning_cli
 from ssm_ms.schedule import ShootingSchedule
-from ssm_ms.training import distributed
+from ssm_ms.training import checks, distributed
 from ssm_ms.training.constraints import Penalty, make_constraint
 from ssm_ms.training.nodes import NODE_UPDATES, DenseNodes
 from ssm_ms.training.shooting import (
@@ -62,23 +61,6 @@ STATE_SAMPLE = 256  # training states an amortised-node model keeps (training_st
 
 class NonFiniteLossError(FloatingPointError):
     """Training produced a NaN or inf loss."""
-
-
-def _state_dim(f: nn.Module, state_dim: int | None) -> int:
-    """The latent dimension: as given, else ``f.state_dim``; the two must agree where both are known."""
-    own = getattr(f, "state_dim", None)
-    if state_dim is None:
-        if not isinstance(own, int):
-            raise ValueError(
-                f"state_dim is not given and f ({type(f).__name__}) has no state_dim attribute: give state_dim"
-            )
-        return own
-    if isinstance(own, int) and own != state_dim:
-        raise ValueError(
-            f"f has state_dim {own} but the model was given state_dim {state_dim}: give it once (leave the model's "
-            "unset, or interpolate f's from it: ${model.init_args.state_dim})"
-        )
-    return int(state_dim)
 
 
 def _structure(value: Any) -> Any:
@@ -177,35 +159,17 @@ class MultipleShootingModule(pl.LightningModule):
         # `load_from_checkpoint` rebuilds them; built in Python, checkpoints carry the networks
         # themselves (see on_save_checkpoint).
         self.save_hyperparameters(ignore=[] if built_by_lightning_cli() else list(NETWORKS))
-        state_dim = _state_dim(f, state_dim)
+        state_dim = checks.state_dim_of(f, state_dim)
         self.hparams["state_dim"] = state_dim
         loss_function(loss)  # unknown loss name: fail now, not at the first step
-        if state_dim < 1 or n_nodes < 1:
-            raise ValueError(
-                f"state_dim and n_nodes must be >= 1, got {state_dim} and {n_nodes}: set model.init_args.state_dim "
-                "to the latent size and n_nodes to a divisor of the trajectory length"
-            )
-        if not lr > 0:
-            raise ValueError(f"the learning rate must be > 0, got {lr}: set model.init_args.lr (the paper: 1e-3)")
-        if not weight_decay >= 0:
-            raise ValueError(
-                f"weight_decay must be >= 0, got {weight_decay}: set model.init_args.weight_decay (0: the paper's Adam)"
-            )
-        if num_trajectories is not None and num_trajectories < 1:
-            raise ValueError(f"num_trajectories must be >= 1, got {num_trajectories}")
-        if val_horizon is not None and (int(val_horizon) != val_horizon or val_horizon < 1):
-            raise ValueError(
-                f"val_horizon must be a number of steps >= 1 (or unset: the whole trajectory), got {val_horizon!r}"
-            )
-        if node_init_map is not None:
-            bad = [k for k in node_init_map if not 0 <= int(k) < state_dim]
-            if bad:
-                raise ValueError(f"node_init_map names state components {bad} outside 0..{state_dim - 1}")
+        checks.check_settings(state_dim, n_nodes, lr, weight_decay, num_trajectories, val_horizon, node_init_map)
         self.f, self.g = f, g
         self.state_dim, self.n_nodes = state_dim, n_nodes
         self.node_encoder = node_encoder
-        self.history = self._check_node_encoder(node_encoder, node_optimizer, node_lr, constraint, node_init_map)
-        # where this model's weights are restored from, when its settings came from a checkpoint (see check_data)
+        self.history = checks.node_encoder_history(
+            node_encoder, self.input_dim, node_optimizer, node_lr, constraint, node_init_map
+        )
+        # where this model's weights are restored from, when its settings came from a checkpoint (checks.check_data)
         self.checkpoint_source: str | None = None
         # the state of the data this model was trained on (DataModule.state_dict(): normalisation, shape, identity)
         self.data_state: dict[str, Any] | None = None
@@ -222,7 +186,7 @@ class MultipleShootingModule(pl.LightningModule):
         self.constraint.attach(self)
         # each step's (index, rows updated outside autograd, residuals kept): the updates before the optimizer step
         self._pending: list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]] = []
-        self._check_transition()
+        checks.check_transition(f, state_dim, self.input_dim)
         self._rollout_fn: CompiledRollout | None = None
         if compile_rollout is not None:
             try:
@@ -241,60 +205,6 @@ class MultipleShootingModule(pl.LightningModule):
     def input_dim(self) -> int:
         """Inputs per step of ``f`` (``f.input_dim``; 0: an autonomous system, ``f(x)``)."""
         return int(getattr(self.f, "input_dim", 0))
-
-    def _check_transition(self) -> None:
-        with torch.no_grad():
-            x = torch.zeros(2, self.state_dim)
-            try:
-                out = self.f(x) if self.input_dim == 0 else self.f(x, torch.zeros(2, self.input_dim))
-            except Exception as e:
-                raise ValueError(
-                    f"f fails on a state batch of shape [2, {self.state_dim}]"
-                    + (f" and inputs [2, {self.input_dim}]" if self.input_dim else "")
-                    + f" ({e}); check that f's state_dim equals model.state_dim={self.state_dim}"
-                ) from e
-        if tuple(out.shape) != (2, self.state_dim):
-            raise ValueError(
-                f"f maps states [2, {self.state_dim}] to shape {tuple(out.shape)}: a transition must return "
-                f"[N, state_dim]; check that f's state_dim equals model.state_dim={self.state_dim}"
-            )
-
-    def _check_node_encoder(
-        self,
-        encoder: nn.Module | None,
-        node_optimizer: str,
-        node_lr: float | None,
-        constraint: str,
-        node_init_map: Any,
-    ) -> int:
-        """The samples an amortised-node model reads before each node (0: free nodes), or one message for a
-        setting that belongs to free nodes."""
-        if encoder is None:
-            return 0
-        history = getattr(encoder, "history", None)
-        if not isinstance(history, int) or history < 1:
-            raise ValueError(
-                f"the node encoder ({type(encoder).__name__}) needs a 'history' attribute, the samples it reads "
-                "before a node (>= 1): use ssm_ms.nets.HistoryEncoder"
-            )
-        given = {
-            "node_optimizer: sparse": node_optimizer != "dense",
-            "node_lr": node_lr is not None,
-            "constraint: augmented_lagrangian": constraint != "penalty",
-            "node_init_map": bool(node_init_map),
-        }
-        bad = [k for k, v in given.items() if v]
-        if bad:
-            raise ValueError(
-                f"{', '.join(bad)} set the free shooting nodes, but this model's nodes come from its node_encoder: "
-                "remove them (or remove node_encoder for free nodes)"
-            )
-        if int(getattr(encoder, "input_dim", 0)) != self.input_dim:
-            raise ValueError(
-                f"the node encoder reads {int(getattr(encoder, 'input_dim', 0))} inputs per sample but f takes "
-                f"{self.input_dim}: give them the same input_dim"
-            )
-        return history
 
     def _make_nodes(self, num_trajectories: int) -> None:
         # in the module's dtype (float64 under ``64-true``: setup converts the module before any checkpoint is
@@ -341,16 +251,16 @@ class MultipleShootingModule(pl.LightningModule):
                 )  # Lightning's seed_everything (a resume: the checkpoint's)
             if stage == "fit" and callable(getattr(dm, "state_dict", None)):
                 self.data_state = dm.state_dict()  # the statistics f and g learn in (a resumed fit: the checkpoint's)
-            self.check_inputs(int(getattr(dm, "input_dim", 0)))
+            checks.check_inputs(self.input_dim, int(getattr(dm, "input_dim", 0)))
             self.adopt_sensors(getattr(dm, "sensor_layout", None))
-            self.adopt_measurement_shape(tuple(dm.obs_shape))
-            self.check_data(dm.seq_len, dm.obs_shape, getattr(dm, "num_train_trajectories", None))
+            checks.adopt_measurement_shape(self.g, self.hparams.get("g"), tuple(dm.obs_shape))
+            checks.check_data(self, dm.seq_len, dm.obs_shape, getattr(dm, "num_train_trajectories", None))
             if stage == "fit" and self.hparams.loss == "bce" and hasattr(dm, "check_range"):
                 dm.check_range(0.0, 1.0, "loss: bce")  # else torch fails mid-training
             if stage == "fit" and self.hparams.get("node_init_map"):
                 self.init_nodes_from_measurements(dm.node_measurements(self.n_nodes))
         if stage == "fit" and distributed.world_size() > 1:  # before DDP compares the ranks' models
-            self._check_replicated_tables()
+            checks.check_replicated_tables(self.nodes.weight)
 
     @property
     def units(self) -> Units:
@@ -390,101 +300,13 @@ class MultipleShootingModule(pl.LightningModule):
             )
         layout = SensorLayout.from_state_dict(layout) if not isinstance(layout, SensorLayout) else layout
         self.register_buffer("measurement_weights", layout.weights().to(self.alpha), persistent=False)
-        shapes = getattr(self.g, "shapes", None)
-        if shapes is not None:
-            expected = {s.name: tuple(s.shape) for s in layout.streams}
-            if list(shapes) != list(expected) or any(tuple(shapes[k]) != expected[k] for k in expected):
-                raise ValueError(
-                    f"g's heads give the streams {dict(shapes)} but the data's sensors are {expected}: give g one head "
-                    "per sensor, in the data's order and shapes"
-                )
+        checks.check_sensor_heads(self.g, {s.name: tuple(s.shape) for s in layout.streams})
 
     def fit_options(self) -> dict[str, Any]:
         """The fit's per-component weights and missing-sample masking (several sensors), or the paper's plain fit."""
         if not getattr(self, "_missing", False):
             return {}
         return {"weights": self.measurement_weights, "missing": True}
-
-    def check_inputs(self, data_inputs: int) -> None:
-        """Fail before training when ``f`` and the data disagree on the inputs per step."""
-        if data_inputs == self.input_dim:
-            return
-        if self.input_dim == 0:
-            fix = f"give f input_dim: {data_inputs} (model.init_args.f.init_args.input_dim) to learn f(x, u)"
-        elif data_inputs == 0:
-            fix = (
-                "give the data its inputs (FileDataModule: the array 'u' [N, T, input_dim] beside 'y'), or set "
-                "f's input_dim to 0 for an autonomous system"
-            )
-        else:
-            fix = f"set f's input_dim to {data_inputs}"
-        raise ValueError(f"f takes {self.input_dim} inputs per step but the data have {data_inputs}: {fix}")
-
-    def adopt_measurement_shape(self, obs_shape: tuple[int, ...]) -> None:
-        """Hand the data's measurement shape to a g that takes its size from the data (e.g.
-        ``LinearReadout(out_features=None)``), and record the size it fixed in g's config."""
-        adopt = getattr(self.g, "adopt_measurement_shape", None)
-        fixed = adopt(obs_shape) if callable(adopt) else {}
-        g = self.hparams.get("g")
-        if fixed and isinstance(g, Mapping) and isinstance(g.get("init_args"), dict):
-            g["init_args"].update(fixed)  # hparams.yaml and checkpoints rebuild g at this size
-
-    def check_data(self, seq_len: int, obs_shape: tuple[int, ...], num_train: int | None = None) -> None:
-        """Fail before training when the data and the model disagree (shapes, T, trajectory count).
-
-        With :attr:`checkpoint_source` set (the CLI sets it under ``--ckpt_path``, having rebuilt this model
-        from the checkpoint's settings), a disagreement means the checkpoint belongs to another model or data:
-        the message says that first, then the detail, and points to the checkpoint's own config."""
-        problem = None
-        shot = seq_len - self.history  # the samples the pieces cover (amortised nodes: after the first's history)
-        if shot < self.n_nodes:
-            problem = (
-                f"trajectory length T={seq_len} leaves no sample to shoot over after the node encoder's history of "
-                f"{self.history}",
-                f"give windows of history + n_nodes * n samples (e.g. window: {self.history + self.n_nodes * 10})",
-            )
-        elif shot % self.n_nodes != 0:
-            divisors = [k for k in range(1, shot + 1) if shot % k == 0]
-            problem = (
-                f"trajectory length T={seq_len}"
-                + (f" less the node encoder's history of {self.history} = {shot}" if self.history else "")
-                + f" is not divisible by model.n_nodes={self.n_nodes}",
-                f"choose n_nodes among {divisors}"
-                + (f", or a window of {self.history} + a multiple of {self.n_nodes}" if self.history else ""),
-            )
-        elif tuple(out := self.obs_shape()) != tuple(obs_shape):
-            problem = (
-                f"the observation model g outputs measurements of shape {out} but the data have shape "
-                f"{tuple(obs_shape)}",
-                "adapt g (e.g. ConvDecoder's image_size to the data's, a linear g's out_features to the "
-                "channel count, or the Projection indices to the measured components)",
-            )
-        elif self.node_encoder is not None and len(obs_shape) != 1 and isinstance(self.node_encoder, HistoryEncoder):
-            problem = (
-                f"the node encoder reads vector measurements, the data have samples of shape {tuple(obs_shape)}",
-                "give amortised nodes vector measurements, or an encoder of your own for these",
-            )
-        elif isinstance(self.node_encoder, HistoryEncoder) and self.node_encoder.obs_dim != obs_shape[0]:
-            problem = (
-                f"the node encoder reads {self.node_encoder.obs_dim} measurement components, the data have "
-                f"{obs_shape[0]}",
-                f"set the node encoder's obs_dim to {obs_shape[0]}",
-            )
-        elif num_train is not None and self.nodes is not None and self.nodes.num_embeddings != num_train:
-            problem = (
-                f"the model holds shooting nodes for {self.nodes.num_embeddings} trajectories but the "
-                f"training set has {num_train}",
-                f"set model.num_trajectories to {num_train} (or leave it unset)",
-            )
-        if problem is None:
-            return
-        if self.checkpoint_source:
-            raise ValueError(
-                f"the checkpoint {self.checkpoint_source} was trained for another model or other data than "
-                f"this command's: {problem[0]}; resume it with the config saved beside it (config.yaml in its run "
-                "folder), or start a fresh run without --ckpt_path"
-            )
-        raise ValueError(f"{problem[0]}: {problem[1]}")
 
     def states_at_measurements(self, y_at: torch.Tensor, base: torch.Tensor | None = None) -> torch.Tensor:
         """``[N, m, d]``: states at the times of the measurements ``y_at [N, m, *obs]``, ``base [d]`` (default zero)
@@ -511,20 +333,9 @@ class MultipleShootingModule(pl.LightningModule):
     def forward(self, x0: torch.Tensor, steps: int, u: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Roll ``f`` out ``steps`` states from ``x0 [B, d]`` (under inputs ``u [B, >= steps - 1, input_dim]`` where
         ``f`` takes them) and decode: ``(states [B, steps, d], y [B, steps, ...])``."""
-        self._need_inputs(u, steps - 1)
+        checks.check_rollout_inputs(self.input_dim, u, steps - 1)
         states = rollout(self.f, x0, steps, u) if self._rollout_fn is None else self._rollout_fn(x0, steps, u)
         return states, decode(self.g, states, self.hparams.decode_chunk)
-
-    def _need_inputs(self, u: torch.Tensor | None, steps: int) -> None:
-        """One message for a rollout of ``steps`` transitions without the inputs ``f`` needs (or with some it
-        does not take)."""
-        if self.input_dim and (u is None or u.shape[-2] < steps):
-            have = "none" if u is None else f"{u.shape[-2]}"
-            raise ValueError(
-                f"f takes inputs: a rollout of {steps} steps needs u [B, >= {steps}, {self.input_dim}], got {have}"
-            )
-        if not self.input_dim and u is not None:
-            raise ValueError("f takes no inputs (input_dim 0): give no u")
 
     def node_states(self, index: torch.Tensor) -> torch.Tensor:
         """Shooting nodes ``[B, m, d]`` of the training trajectories ``index`` (free nodes)."""
@@ -634,7 +445,7 @@ class MultipleShootingModule(pl.LightningModule):
         self.eval()
         try:
             b, _, d = nodes.shape
-            self._need_inputs(None if u is None else u[:, :n], n)
+            checks.check_rollout_inputs(self.input_dim, None if u is None else u[:, :n], n)
             pieces = None if u is None else u.to(nodes).reshape(b * m, n, -1)
             states = rollout(self.f, nodes.reshape(b * m, d), n + 1, pieces)  # [B*m, n+1, d]
             out = decode(self.g, states, self.hparams.decode_chunk)
@@ -663,7 +474,7 @@ class MultipleShootingModule(pl.LightningModule):
         them."""
         index = batch["index"]
         rows = None if self.nodes is None else self.node_update.rows(self.nodes.weight, index)
-        self._need_inputs(batch.get("u"), 1)
+        checks.check_rollout_inputs(self.input_dim, batch.get("u"), 1)
         nodes, y, u = self.batch_nodes(batch, rows)
         if self.node_encoder is not None:
             self._record_states(nodes)
@@ -729,16 +540,6 @@ class MultipleShootingModule(pl.LightningModule):
     def on_fit_start(self) -> None:
         if self.nodes is not None:
             self.node_update.check(self.trainer.optimizers, self.nodes.weight)
-
-    def _check_replicated_tables(self) -> None:
-        """Under DDP every rank must hold the same node table, sized for the same data set."""
-        signatures = distributed.table_signature(self.nodes.weight)
-        if any(not torch.equal(s, signatures[0]) for s in signatures):
-            raise ValueError(
-                f"DDP: the ranks hold different node tables (rows per rank: {[int(s[0]) for s in signatures]}), "
-                "so their training sets differ: every rank must build the same training set (same data config, "
-                "files and seed) with the same model.num_trajectories, and resume from the same checkpoint"
-            )
 
     def on_train_epoch_start(self) -> None:
         self._pending.clear()

@@ -10,6 +10,7 @@ import torch
 from ssm_ms.inference.simulation import initial_state, simulate_recording
 from ssm_ms.module import MultipleShootingModule, holds_ssm
 from ssm_ms.nets import HistoryEncoder, LinearReadout, LocallyLinearTransition
+from ssm_ms.training.checks import check_data
 
 H, M, N, D = 5, 3, 4, 3  # history, nodes, piece length, state
 
@@ -113,13 +114,13 @@ def test_free_node_settings_beside_a_node_encoder_get_one_message(kwargs, match)
 def test_windows_that_do_not_hold_history_and_pieces_get_one_message():
     m = model()
     with pytest.raises(ValueError, match=r"T=18 less the node encoder's history of 5 = 13 is not divisible"):
-        m.check_data(18, (2,))
+        check_data(m, 18, (2,))
     with pytest.raises(ValueError, match="leaves no sample to shoot over"):
-        m.check_data(6, (2,))
+        check_data(m, 6, (2,))
     f = LocallyLinearTransition(D, n_matrices=2, hidden=8, input_dim=1)
     three = MultipleShootingModule(f, LinearReadout(D, 3), n_nodes=M, node_encoder=HistoryEncoder(D, 2, 1, H))
     with pytest.raises(ValueError, match="reads 2 measurement components, the data have 3"):
-        three.check_data(H + M * N, (3,))
+        check_data(three, H + M * N, (3,))
     with pytest.raises(ValueError, match="reads 0 inputs per sample but f takes 1"):
         f = LocallyLinearTransition(D, n_matrices=2, hidden=8, input_dim=1)
         MultipleShootingModule(f, LinearReadout(D, 2), node_encoder=HistoryEncoder(D, 2, history=H))
