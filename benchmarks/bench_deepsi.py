@@ -56,9 +56,10 @@ import torch  # noqa: E402
 
 from benchmarks.report import provenance  # noqa: E402
 from experiments.reproduce import build_datamodule, load_config  # noqa: E402
+from ssm_ms.checkpointing import datamodule_state  # noqa: E402
 from ssm_ms.inference.filter_module import FilterForecaster  # noqa: E402
 from ssm_ms.inference.simulation import free_run, initial_state, model_name  # noqa: E402
-from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
+from ssm_ms.loading import load_ssm  # noqa: E402
 from ssm_ms.runtime.machine import CpuWatch, describe, quiet_note  # noqa: E402
 
 # Per system: ssm-ms's config, the test protocol, the UKF's noise (ssm-ms's training units; or the UKF stage config

@@ -25,7 +25,7 @@ import torch  # noqa: E402
 
 from benchmarks.report import provenance, write  # noqa: E402
 from ssm_ms.inference.simulation import free_run, model_name  # noqa: E402
-from ssm_ms.module import load_ssm  # noqa: E402
+from ssm_ms.loading import load_ssm  # noqa: E402
 
 
 def timed(fn, rounds: int) -> float:

@@ -71,8 +71,7 @@ from lightning.pytorch.trainer.states import TrainerStatus
 from lightning.pytorch.utilities.rank_zero import rank_zero_only
 from omegaconf.errors import InterpolationResolutionError
 
-from ssm_ms.checkpointing import EpochCheckpoint, read_checkpoint
-from ssm_ms.module import holds_ssm
+from ssm_ms.checkpointing import EpochCheckpoint, holds_ssm, read_checkpoint
 from ssm_ms.progress import RunProgressBar
 from ssm_ms.runtime.console import quiet_lightning
 from ssm_ms.runtime.perf import configure_allocator

@@ -169,7 +169,7 @@ def export_checkpoint(checkpoint: str | Path, out_dir: str | Path, formats: Sequ
     measurements as the training files held them, the normalisation built in. ``model.json`` records it
     (``normalization``: ``mean``, ``std`` of the measurements, ``input_normalization`` of the inputs; ``null`` where
     the data were not normalised)."""
-    from ssm_ms.module import load_ssm
+    from ssm_ms.loading import load_ssm
 
     model, _ = load_ssm(checkpoint)  # a missing, truncated or foreign file: ValueError / OSError naming it
     data = model.data_state or {}

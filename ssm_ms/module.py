@@ -10,11 +10,8 @@ like an uninterrupted one (tests/test_module.py).
 
 from __future__ import annotations
 
-import contextvars
-import io
 import os
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import lightning.pytorch as pl
@@ -22,7 +19,17 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ssm_ms.checkpointing import read_checkpoint, restore_float_weights
+from ssm_ms.checkpointing import (
+    NETWORKS,
+    check_configuration,
+    keep_network_config,
+    read_checkpoint,
+    refuse_baseline,
+    restore_float_weights,
+    saved_networks,
+    ssm_extras,
+    write_ssm_extras,
+)
 from ssm_ms.nets.sensors import SensorLayout
 from ssm_ms.progress import time_budget
 from ssm_ms.runtime.perf import check_precision
@@ -40,34 +47,11 @@ from ssm_ms.training.shooting import (
 )
 from ssm_ms.units import ObservationInUnits, TransitionInUnits, Units
 
-# where a checkpoint holds the data state of a model saved without its DataModule, and the last epoch's fit term
-DATA_STATE_KEY = "data_state"
-FIT_MSE_KEY = "fit_mse"
-SEED_KEY = "seed"  # the seed its fit ran with (seed_everything; None: none set)
-# Hyperparameters that fix the shapes of the parameters: a checkpoint must agree on them.
-STRUCTURAL_HPARAMS = (
-    "state_dim",
-    "num_trajectories",
-    "n_nodes",
-    "f",
-    "g",
-    "node_optimizer",
-    "constraint",
-    "node_encoder",
-)
-NETWORKS = ("f", "g", "node_encoder")  # the modules a model built in Python carries in its checkpoints
 STATE_SAMPLE = 256  # training states an amortised-node model keeps (training_states: priors, stability reports)
 
 
 class NonFiniteLossError(FloatingPointError):
     """Training produced a NaN or inf loss."""
-
-
-def _structure(value: Any) -> Any:
-    """What of a hyperparameter must match between a checkpoint and a run (a network: its class)."""
-    if isinstance(value, Mapping):
-        return value.get("class_path", value.get("_class_path", dict(value)))
-    return value
 
 
 class MultipleShootingModule(pl.LightningModule):
@@ -571,16 +555,9 @@ class MultipleShootingModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        if self.fit_mse is not None:
-            checkpoint[FIT_MSE_KEY] = self.fit_mse
-        if self.seed is not None:
-            checkpoint[SEED_KEY] = self.seed
-        if self.data_state is not None and datamodule_state(checkpoint) is None:  # saved without its DataModule
-            checkpoint[DATA_STATE_KEY] = self.data_state
-        if "f" not in self.hparams:  # built in Python: keep the networks so the checkpoint reloads on its own
-            buffer = io.BytesIO()  # as bytes: the checkpoint itself stays loadable with weights_only=True
-            torch.save({name: getattr(self, name) for name in NETWORKS}, buffer)
-            checkpoint["networks"] = buffer.getvalue()
+        # built in Python ("f" not in its config): keep the networks so the checkpoint reloads on its own
+        networks = None if "f" in self.hparams else {name: getattr(self, name) for name in NETWORKS}
+        write_ssm_extras(checkpoint, self.fit_mse, self.seed, self.data_state, networks)
 
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> MultipleShootingModule:
@@ -588,110 +565,26 @@ class MultipleShootingModule(pl.LightningModule):
         pickled in the checkpoint are used unless ``f=`` and ``g=`` are given (trust the file)."""
         checkpoint = read_checkpoint(checkpoint_path)
         if "f" not in kwargs or "g" not in kwargs:
-            if "networks" in checkpoint:
-                networks = torch.load(io.BytesIO(checkpoint["networks"]), map_location="cpu", weights_only=False)
-                for name in NETWORKS:
-                    kwargs.setdefault(name, networks.get(name))
+            for name, network in saved_networks(checkpoint).items():
+                kwargs.setdefault(name, network)
         model = super().load_from_checkpoint(checkpoint_path, *args, **kwargs)
-        # Built by the CLI, f and g are in the saved config: keep it (Lightning rebuilds the module outside
-        # the CLI, where they would be dropped), so that a re-saved checkpoint still describes them.
-        saved = checkpoint.get("hyper_parameters", {})
-        if "f" not in kwargs and "g" not in kwargs and isinstance(saved.get("f"), Mapping) and "f" not in model.hparams:
-            for key in ("_class_path", "_instantiator", *NETWORKS):
-                if key in saved:
-                    model.hparams[key] = saved[key]
+        if "f" not in kwargs and "g" not in kwargs:
+            keep_network_config(model.hparams, checkpoint)
         return model
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Refuse a checkpoint of another configuration with a message that says what differs."""
         restore_float_weights(checkpoint)
-        saved_data = datamodule_state(checkpoint)
-        if saved_data is not None:
-            self.data_state = saved_data[1]
-        if checkpoint.get(FIT_MSE_KEY) is not None:
-            self.fit_mse = float(checkpoint[FIT_MSE_KEY])
-        if checkpoint.get(SEED_KEY) is not None:
-            self.seed = int(checkpoint[SEED_KEY])
-        if checkpoint.get("forecaster"):
-            raise ValueError(
-                f"the checkpoint is a {checkpoint['forecaster']}'s (a baseline), not an SSM's: resume an SSM from "
-                "the last.ckpt of its own run (python cli.py fit --config configs/<experiment>.yaml)"
-            )
+        for name, value in ssm_extras(checkpoint).items():  # data_state, fit_mse, seed: those it holds
+            setattr(self, name, value)
+        refuse_baseline(checkpoint)
         state = checkpoint.get("state_dict", {})
         if self.nodes is None and "nodes.weight" in state:
             self._make_nodes(int(state["nodes.weight"].shape[0]))
-        own = self.state_dict()
-        problems = []
-        saved = checkpoint.get("hyper_parameters", {})
-        for key in STRUCTURAL_HPARAMS:
-            if key in saved and key in self.hparams and _structure(saved[key]) != _structure(self.hparams[key]):
-                problems.append(
-                    f"{key}: checkpoint {_structure(saved[key])!r}, this run {_structure(self.hparams[key])!r}"
-                )
-        for key, value in state.items():
-            if key in own and tuple(own[key].shape) != tuple(value.shape):
-                problems.append(f"{key}: checkpoint shape {tuple(value.shape)}, this model {tuple(own[key].shape)}")
-        missing = sorted(set(own) - set(state))
-        unexpected = sorted(set(state) - set(own))
-        if missing:
-            problems.append(f"missing from the checkpoint: {missing[:8]}")
-        if unexpected:
-            problems.append(f"not in this model: {unexpected[:8]}")
-        if problems:
-            raise ValueError(
-                "the checkpoint was trained with another configuration:\n  - "
-                + "\n  - ".join(problems)
-                + "\nResume with the config saved beside the checkpoint (config.yaml in its run folder), "
-                "or start a fresh run without --ckpt_path."
-            )
+        check_configuration(checkpoint, self.hparams, self.state_dict())
 
 
 def _masked_mse(y_hat: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """MSE over the measured elements (a sensor's missing samples are NaN)."""
     observed = torch.isfinite(y)
     return F.mse_loss(y_hat, y) if bool(observed.all()) else F.mse_loss(y_hat[observed], y[observed])
-
-
-# ---------------------------------------------------------------------------- a trained model from its file
-def load_ssm(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[MultipleShootingModule, dict]:
-    """Load a trained ``MultipleShootingModule`` (and the raw checkpoint, for its data statistics)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"the SSM checkpoint {path} does not exist: train the model first (python cli.py fit --config "
-            "configs/<experiment>.yaml) and set model.init_args.ssm_checkpoint to its checkpoints/last.ckpt"
-        )
-    checkpoint = read_checkpoint(path, "the SSM checkpoint")  # weights_only: a foreign file runs no code
-    if not holds_ssm(checkpoint):
-        kind = checkpoint.get("forecaster") if isinstance(checkpoint, dict) else None
-        what = (
-            f"a checkpoint of the {kind} baseline"
-            if kind
-            else "not a checkpoint of a MultipleShootingModule (no shooting nodes in it)"
-        )
-        raise ValueError(
-            f"{path} is {what}: ssm_checkpoint takes the last.ckpt of an SSM run "
-            "(python cli.py fit --config configs/<experiment>.yaml)"
-        )
-    # LightningCLI hands a module it builds its hyperparameters through a context variable; the SSM loaded
-    # here, during that construction, must not pick them up: load it in an empty context.
-    model = contextvars.Context().run(
-        MultipleShootingModule.load_from_checkpoint, path, map_location=map_location, weights_only=False
-    )
-    model.freeze()
-    return model, checkpoint
-
-
-def holds_ssm(checkpoint: Mapping[str, Any]) -> bool:
-    """Whether a checkpoint holds a ``MultipleShootingModule``: its shooting nodes, free (a table) or amortised (an
-    encoder)."""
-    state = checkpoint.get("state_dict", {}) if isinstance(checkpoint, Mapping) else {}
-    return "nodes.weight" in state or any(k.startswith("node_encoder.") for k in state)
-
-
-def datamodule_state(checkpoint: Mapping[str, Any]) -> tuple[str, dict] | None:
-    """``(key, state)`` of the DataModule saved in a checkpoint (normalisation and data identity)."""
-    for key, value in checkpoint.items():
-        if isinstance(value, dict) and "generator_params" in value and "name" in value:
-            return key, value
-    return None

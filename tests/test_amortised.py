@@ -7,8 +7,9 @@ from __future__ import annotations
 import pytest
 import torch
 
+from ssm_ms.checkpointing import holds_ssm
 from ssm_ms.inference.simulation import initial_state, simulate_recording
-from ssm_ms.module import MultipleShootingModule, holds_ssm
+from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import HistoryEncoder, LinearReadout, LocallyLinearTransition
 from ssm_ms.training.checks import check_data
 

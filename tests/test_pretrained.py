@@ -312,7 +312,7 @@ def test_every_pretrained_ssm_loads_in_the_python_api_and_computes_as_its_config
     into the units of the file's data state by hand; the encoder loaded beside it reads frames into states of the
     SSM's size."""
     from ssm_ms import SSM
-    from ssm_ms.module import datamodule_state
+    from ssm_ms.checkpointing import datamodule_state
 
     model = SSM.load(path)
     cli, saved = model_of_config(config_name(path), tmp_path)

@@ -25,9 +25,8 @@ from torch import nn
 from ssm_ms.baselines.common import SequenceOutput
 from ssm_ms.baselines.lstm import Seq2SeqLSTM
 from ssm_ms.baselines.rkn import RecurrentKalmanNetwork
-from ssm_ms.checkpointing import SSM_DIGEST_KEY
+from ssm_ms.checkpointing import SSM_DIGEST_KEY, holds_ssm
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
-from ssm_ms.module import holds_ssm
 from ssm_ms.runtime.memory import check_lstm_memory
 
 LOSSES = ("mse", "bce", "gaussian_nll")

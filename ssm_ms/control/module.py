@@ -38,7 +38,7 @@ from ssm_ms.control.estimators import EncoderEstimator, UKFEstimator, load_encod
 from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
 from ssm_ms.control.mppi import MPPISettings, RecedingHorizon, checked_offset_gain
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
-from ssm_ms.module import load_ssm
+from ssm_ms.loading import load_ssm
 from ssm_ms.nets.sensors import SensorLayout
 from ssm_ms.runtime.machine import describe
 from ssm_ms.training.shooting import decode, rollout

@@ -34,7 +34,8 @@ from ssm_ms.forecasting.metrics import DIVERGENCE_BOUND, first_divergence
 from ssm_ms.inference.optimise import OptimisationForecaster
 from ssm_ms.inference.ssm_forecaster import INFERENCE_LABELS, MODEL_NAMES
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
-from ssm_ms.module import MultipleShootingModule, load_ssm
+from ssm_ms.loading import load_ssm
+from ssm_ms.module import MultipleShootingModule
 from ssm_ms.runtime.machine import describe
 from ssm_ms.training.shooting import decode, rollout
 

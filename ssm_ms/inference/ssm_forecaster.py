@@ -23,7 +23,8 @@ from torch import nn
 from ssm_ms.checkpointing import SSM_DIGEST_KEY, state_digest
 from ssm_ms.forecasting.analysis_settings import DynamicsSettings, ValidTimeSettings
 from ssm_ms.forecasting.protocol import Forecast, ForecastModule
-from ssm_ms.module import MultipleShootingModule, load_ssm
+from ssm_ms.loading import load_ssm
+from ssm_ms.module import MultipleShootingModule
 from ssm_ms.training.shooting import decode, rollout
 
 _log = logging.getLogger("ssm_ms")

@@ -34,8 +34,9 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.report import provenance, write  # noqa: E402
 from datamodules.lorenz import LorenzDataModule  # noqa: E402
 from experiments.reproduce import build_datamodule, load_config  # noqa: E402
+from ssm_ms.checkpointing import datamodule_state  # noqa: E402
 from ssm_ms.inference.filter_module import FilterForecaster  # noqa: E402
-from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
+from ssm_ms.loading import load_ssm  # noqa: E402
 from studies.lorenz_oracle.lorenz_oracle import oracle_filter, oracle_rollout  # noqa: E402
 
 FILTER_KEYS = ("method", "process_var", "measurement_var", "init_var", "init_mean", "unscented", "autocast")

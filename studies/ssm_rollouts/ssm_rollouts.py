@@ -33,7 +33,7 @@ from benchmarks.report import provenance, write  # noqa: E402
 from experiments.reproduce import build_datamodule  # noqa: E402
 from ssm_ms.drawing import reconstruction_grid  # noqa: E402
 from ssm_ms.forecasting.metrics import ssim_per_sequence  # noqa: E402
-from ssm_ms.module import load_ssm  # noqa: E402
+from ssm_ms.loading import load_ssm  # noqa: E402
 
 
 def rollouts(ssm_path: str, item: dict[str, torch.Tensor]) -> tuple[torch.Tensor, int]:

@@ -20,7 +20,7 @@ def test_ssm_rollouts_score_the_first_node_rolled_out_as_a_naive_loop(tmp_path):
 
     from datamodules.pendulum import PendulumDataModule
     from ssm_ms.forecasting.metrics import ssim_per_sequence
-    from ssm_ms.module import load_ssm
+    from ssm_ms.loading import load_ssm
     from studies.ssm_rollouts import ssm_rollouts
 
     spec = yaml.safe_load((ROOT / "configs/data/pendulum.yaml").read_text())

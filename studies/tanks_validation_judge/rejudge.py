@@ -13,7 +13,7 @@ import torch
 
 from datamodules.benchmarks import BenchmarkDataModule
 from ssm_ms.inference.simulation import held_out_score
-from ssm_ms.module import load_ssm
+from ssm_ms.loading import load_ssm
 
 
 def main(paths: list[str]) -> None:

@@ -32,10 +32,11 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
 from experiments.reproduce import build_datamodule  # noqa: E402
+from ssm_ms.checkpointing import datamodule_state  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.goals import ink_angle_features  # noqa: E402
 from ssm_ms.control.module import TruePendulum  # noqa: E402
-from ssm_ms.module import datamodule_state, load_ssm  # noqa: E402
+from ssm_ms.loading import load_ssm  # noqa: E402
 from ssm_ms.nets.sensors import SensorLayout  # noqa: E402
 from ssm_ms.training.shooting import decode  # noqa: E402
 from studies.control_diagnosis.control_diagnosis import BANDS  # noqa: E402  (the same bands of distance from upright)
