@@ -161,11 +161,8 @@ class MultipleShootingModule(pl.LightningModule):
         self.seed: int | None = None  # the seed its fit ran with (seed_everything), kept in its checkpoints
         self._fit_sums = [0.0, 0]
         self.register_buffer("alpha", torch.tensor(float(alpha)))
-        if node_optimizer not in NODE_UPDATES:
-            raise ValueError(f"unknown node_optimizer {node_optimizer!r}: choose one of {list(NODE_UPDATES)}")
+        checks.check_node_settings(node_optimizer, node_lr)
         self.node_update: DenseNodes = NODE_UPDATES[node_optimizer]()
-        if node_lr is not None and node_lr <= 0:
-            raise ValueError(f"node_lr must be > 0 (or unset to use lr), got {node_lr}")
         self.constraint: Penalty = make_constraint(constraint, n_nodes, constraint_options)
         self.constraint.attach(self)
         # each step's (index, rows updated outside autograd, residuals kept): the updates before the optimizer step
@@ -201,15 +198,7 @@ class MultipleShootingModule(pl.LightningModule):
 
     def obs_shape(self) -> tuple[int, ...]:
         """The shape of one measurement produced by g."""
-        with torch.no_grad():
-            try:
-                out = self.g(torch.zeros(1, self.state_dim, device=self.alpha.device))
-            except Exception as e:
-                raise ValueError(
-                    f"g fails on a state batch of shape [1, {self.state_dim}] ({e}); check that g's state_dim "
-                    f"equals model.state_dim={self.state_dim}"
-                ) from e
-        return tuple(out.shape[1:])
+        return checks.measurement_shape(self.g, self.state_dim, self.alpha.device)
 
     def setup(self, stage: str) -> None:
         dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None

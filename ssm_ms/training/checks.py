@@ -12,6 +12,7 @@ from torch import nn
 
 from ssm_ms.nets.history import HistoryEncoder
 from ssm_ms.training import distributed
+from ssm_ms.training.nodes import NODE_UPDATES
 
 
 def state_dim_of(f: nn.Module, state_dim: int | None) -> int:
@@ -62,6 +63,14 @@ def check_settings(
         bad = [k for k in node_init_map if not 0 <= int(k) < state_dim]
         if bad:
             raise ValueError(f"node_init_map names state components {bad} outside 0..{state_dim - 1}")
+
+
+def check_node_settings(node_optimizer: str, node_lr: float | None) -> None:
+    """The free nodes' update: a known ``node_optimizer``, a positive ``node_lr`` where given."""
+    if node_optimizer not in NODE_UPDATES:
+        raise ValueError(f"unknown node_optimizer {node_optimizer!r}: choose one of {list(NODE_UPDATES)}")
+    if node_lr is not None and node_lr <= 0:
+        raise ValueError(f"node_lr must be > 0 (or unset to use lr), got {node_lr}")
 
 
 def check_transition(f: nn.Module, state_dim: int, input_dim: int) -> None:
@@ -119,6 +128,19 @@ def node_encoder_history(
             f"{input_dim}: give them the same input_dim"
         )
     return history
+
+
+def measurement_shape(g: nn.Module, state_dim: int, device: torch.device) -> tuple[int, ...]:
+    """The shape of one measurement ``g`` gives (a state on ``device``), or one message where g fails on a state."""
+    with torch.no_grad():
+        try:
+            out = g(torch.zeros(1, state_dim, device=device))
+        except Exception as e:
+            raise ValueError(
+                f"g fails on a state batch of shape [1, {state_dim}] ({e}); check that g's state_dim "
+                f"equals model.state_dim={state_dim}"
+            ) from e
+    return tuple(out.shape[1:])
 
 
 def check_rollout_inputs(input_dim: int, u: torch.Tensor | None, steps: int) -> None:
