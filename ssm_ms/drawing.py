@@ -531,7 +531,7 @@ def shooting_figure(y: torch.Tensor, node_predictions: torch.Tensor, n: int, tit
     Args:
         y: ``[T]`` or ``[T, D]`` measurements (one panel per component).
         node_predictions: ``[m, n + 1]`` or ``[m, n + 1, D]``: ``g(f^k(s_i))``, ``k = 0..n`` (see
-            ``MultipleShootingModule.shooting_predictions``). Sub-trajectory ``i`` is drawn at steps
+            ``ssm_ms.viz.shooting_predictions``). Sub-trajectory ``i`` is drawn at steps
             ``i*n .. (i+1)*n`` in its own colour (line ``gid`` ``"node{i}"``), its node as a dot at step ``i*n``
             (``gid`` ``"node{i}-start"``); where the last point of one misses the next node, the gap shows.
         n: steps per sub-trajectory, ``T = m * n``.

@@ -368,64 +368,6 @@ class MultipleShootingModule(pl.LightningModule):
         self.state_sample[at] = flat.to(self.state_sample)
         self.states_seen += len(flat)
 
-    @torch.no_grad()
-    def shooting_predictions(
-        self,
-        index: torch.Tensor,
-        y: torch.Tensor | None = None,
-        seq_len: int | None = None,
-        u: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """``g(f^k(s_i))`` for every shooting node ``s_i`` of the training trajectories ``index``, ``k = 0..n``.
-
-        Args:
-            index: ``LongTensor[B]`` training-trajectory indices.
-            y: measurements ``[B, T, ...]`` (only their length is used), or give ``seq_len`` instead.
-            u: the trajectories' inputs ``[B, T, input_dim]`` where ``f`` takes them.
-
-        Returns:
-            ``[B, m, n + 1, *obs_shape]`` with ``n = T / m`` (entry ``k = n`` is where sub-trajectory ``i``
-            ends up at the time node ``i + 1`` starts). Computed without gradients, in eval mode, on the
-            model's device (what :class:`ssm_ms.viz.ShootingPictureLogger` draws). Amortised nodes read their
-            history from ``y`` (required), and the pieces cover ``y[:, history:]``: ``n = (T - history) / m``.
-        """
-        if (y is None) == (seq_len is None):
-            raise ValueError("give either y [B, T, ...] or seq_len to shooting_predictions")
-        if self.node_encoder is not None:
-            if y is None:
-                raise ValueError("amortised nodes are read from the measurements: give y to shooting_predictions")
-            was_training = self.training
-            self.eval()
-            try:
-                device = self.alpha.device
-                nodes, y_shot, u_shot = self.batch_nodes({"y": y.to(device), "u": None if u is None else u.to(device)})
-            finally:
-                self.train(was_training)
-            return self._piece_predictions(nodes, y_shot.shape[1], u_shot)
-        t = int(y.shape[1]) if y is not None else int(seq_len)
-        m = self.n_nodes
-        if t % m != 0:
-            raise ValueError(f"trajectory length T={t} is not a multiple of model.n_nodes={m}")
-        return self._piece_predictions(self.node_states(index.to(self.nodes.weight.device)), t, u)
-
-    @torch.no_grad()
-    def _piece_predictions(self, nodes: torch.Tensor, t: int, u: torch.Tensor | None) -> torch.Tensor:
-        """``g(f^k(s_i))``, ``k = 0..n``, of nodes ``[B, m, d]`` over pieces of ``n = t / m``
-        (inputs ``u [B, t, m_u]``)."""
-        m = self.n_nodes
-        n = t // m
-        was_training = self.training
-        self.eval()
-        try:
-            b, _, d = nodes.shape
-            checks.check_rollout_inputs(self.input_dim, None if u is None else u[:, :n], n)
-            pieces = None if u is None else u.to(nodes).reshape(b * m, n, -1)
-            states = rollout(self.f, nodes.reshape(b * m, d), n + 1, pieces)  # [B*m, n+1, d]
-            out = decode(self.g, states, self.hparams.decode_chunk)
-        finally:
-            self.train(was_training)
-        return out.reshape(b, m, n + 1, *out.shape[2:])
-
     def shooting_loss(self, batch: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         nodes, y, u = self.batch_nodes(batch)
         return multiple_shooting_loss(

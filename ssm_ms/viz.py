@@ -1,6 +1,7 @@
 """The training-time TensorBoard callbacks: :class:`ReconstructionLogger` (ground truth against the model's
 rollout, every few epochs) and :class:`ShootingPictureLogger` (the multiple-shooting picture before and after
-training), and :func:`tensorboard_writer`, which finds the trainer's TensorBoard writer.
+training), :func:`tensorboard_writer`, which finds the trainer's TensorBoard writer, and
+:func:`shooting_predictions`, the sub-trajectories of a model's shooting nodes that picture draws.
 
 What they draw, and every other picture (mosaics, GIFs, Lorenz and training-curve figures), is in
 :mod:`ssm_ms.drawing`.
@@ -13,7 +14,10 @@ import torch
 from lightning.pytorch.callbacks import Callback
 
 from ssm_ms.drawing import figure_to_image, reconstruction_grid, series_figure, shooting_figure
+from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets.sensors import by_stream
+from ssm_ms.training import checks
+from ssm_ms.training.shooting import decode, rollout
 
 
 def tensorboard_writer(trainer: pl.Trainer):
@@ -129,7 +133,7 @@ class ShootingPictureLogger(Callback):
             return
         k = self.n_trajectories
         index, y = batch["index"][:k], batch["y"][:k]
-        preds = pl_module.shooting_predictions(index, y=y, u=batch["u"][:k] if "u" in batch else None)
+        preds = shooting_predictions(pl_module, index, y=y, u=batch["u"][:k] if "u" in batch else None)
         y = y[:, pl_module.history :]  # amortised nodes: the pieces cover the window after the history
         n = y.shape[1] // pl_module.n_nodes
         images = []
@@ -144,3 +148,65 @@ class ShootingPictureLogger(Callback):
 
     def on_fit_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._log(trainer, pl_module, "after")
+
+
+@torch.no_grad()
+def shooting_predictions(
+    model: MultipleShootingModule,
+    index: torch.Tensor,
+    y: torch.Tensor | None = None,
+    seq_len: int | None = None,
+    u: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``g(f^k(s_i))`` for every shooting node ``s_i`` of the model's training trajectories ``index``, ``k = 0..n``.
+
+    Args:
+        index: ``LongTensor[B]`` training-trajectory indices.
+        y: measurements ``[B, T, ...]`` (only their length is used), or give ``seq_len`` instead.
+        u: the trajectories' inputs ``[B, T, input_dim]`` where ``f`` takes them.
+
+    Returns:
+        ``[B, m, n + 1, *obs_shape]`` with ``n = T / m`` (entry ``k = n`` is where sub-trajectory ``i``
+        ends up at the time node ``i + 1`` starts). Computed without gradients, in eval mode, on the
+        model's device (what :class:`ShootingPictureLogger` draws). Amortised nodes read their
+        history from ``y`` (required), and the pieces cover ``y[:, history:]``: ``n = (T - history) / m``.
+    """
+    if (y is None) == (seq_len is None):
+        raise ValueError("give either y [B, T, ...] or seq_len to shooting_predictions")
+    if model.node_encoder is not None:
+        if y is None:
+            raise ValueError("amortised nodes are read from the measurements: give y to shooting_predictions")
+        was_training = model.training
+        model.eval()
+        try:
+            device = model.alpha.device
+            nodes, y_shot, u_shot = model.batch_nodes({"y": y.to(device), "u": None if u is None else u.to(device)})
+        finally:
+            model.train(was_training)
+        return _piece_predictions(model, nodes, y_shot.shape[1], u_shot)
+    t = int(y.shape[1]) if y is not None else int(seq_len)
+    m = model.n_nodes
+    if t % m != 0:
+        raise ValueError(f"trajectory length T={t} is not a multiple of model.n_nodes={m}")
+    return _piece_predictions(model, model.node_states(index.to(model.nodes.weight.device)), t, u)
+
+
+@torch.no_grad()
+def _piece_predictions(
+    model: MultipleShootingModule, nodes: torch.Tensor, t: int, u: torch.Tensor | None
+) -> torch.Tensor:
+    """``g(f^k(s_i))``, ``k = 0..n``, of nodes ``[B, m, d]`` over pieces of ``n = t / m``
+    (inputs ``u [B, t, m_u]``)."""
+    m = model.n_nodes
+    n = t // m
+    was_training = model.training
+    model.eval()
+    try:
+        b, _, d = nodes.shape
+        checks.check_rollout_inputs(model.input_dim, None if u is None else u[:, :n], n)
+        pieces = None if u is None else u.to(nodes).reshape(b * m, n, -1)
+        states = rollout(model.f, nodes.reshape(b * m, d), n + 1, pieces)  # [B*m, n+1, d]
+        out = decode(model.g, states, model.hparams.decode_chunk)
+    finally:
+        model.train(was_training)
+    return out.reshape(b, m, n + 1, *out.shape[2:])

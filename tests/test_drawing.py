@@ -21,7 +21,7 @@ from ssm_ms.drawing import (
 )
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import LocallyLinearTransition, Projection
-from ssm_ms.viz import ShootingPictureLogger
+from ssm_ms.viz import ShootingPictureLogger, shooting_predictions
 from tests.conftest import RotationDataModule, fast_trainer, rotation_model
 
 
@@ -213,9 +213,9 @@ def test_shooting_predictions_against_loop_and_figure():
         model.nodes.weight.normal_()
     index = torch.tensor([3, 0])
     y = torch.zeros(2, m * n, 2)
-    out = model.shooting_predictions(index, y=y)
+    out = shooting_predictions(model, index, y=y)
     assert out.shape == (2, m, n + 1, 2)
-    assert torch.equal(out, model.shooting_predictions(index, seq_len=m * n))
+    assert torch.equal(out, shooting_predictions(model, index, seq_len=m * n))
     with torch.no_grad():
         for b, j in enumerate(index.tolist()):
             table = model.nodes.weight[j]
@@ -225,7 +225,7 @@ def test_shooting_predictions_against_loop_and_figure():
                     torch.testing.assert_close(out[b, i, k], x[[0, 2]], rtol=1e-12, atol=1e-12)
                     x = f(x.unsqueeze(0)).squeeze(0)
     with pytest.raises(ValueError, match="multiple"):
-        model.shooting_predictions(index, seq_len=13)
+        shooting_predictions(model, index, seq_len=13)
 
     fig = shooting_figure(y[0], out[0], n, title="t")
     assert len(fig.axes) == 2
