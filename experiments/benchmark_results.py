@@ -23,6 +23,7 @@ import numpy as np
 
 from experiments.registry import ROOT
 from ssm_ms.forecasting.results import load, replace_text
+from ssm_ms.runtime.machine import SHARED_CORES
 
 RESULTS_DIR = ROOT / "results" / "benchmarks"  # the benchmarks' test configs' results_dir
 
@@ -148,6 +149,11 @@ def render(data: dict[str, Any], results_dir: Path) -> str:
             when = f" after {kept['seconds']:.0f} s of its fit" if kept.get("seconds") is not None else ""
             at = f" at epoch {kept['epoch']}" if kept.get("epoch") is not None else ""
             lines.append(f"- validation: {_cell(kept['val_sim_rmse'])} {unit}{at}{when}, the epoch kept")
+        if (kept.get("cpu_others") or 0.0) > SHARED_CORES:
+            lines.append(
+                f"- **a shared CPU**: other processes kept {kept['cpu_others']:.2f} cores busy on average during its "
+                "fit, which trained fewer epochs in its time budget than it would alone"
+            )
         if info.get("selection"):
             lines.append(f"- chosen on validation (the held-out end of the training recording): {info['selection']}")
         if stability:

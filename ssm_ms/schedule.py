@@ -27,6 +27,7 @@ from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.utilities import rank_zero_warn
 
 from ssm_ms.progress import duration, time_budget
+from ssm_ms.runtime.machine import SHARED_CORES, CpuWatch
 
 _log = logging.getLogger("ssm_ms")
 
@@ -43,6 +44,12 @@ class ShootingSchedule(Callback):
     are logged (one INFO line of the ``ssm_ms`` logger, and ``schedule/milestone_<m>`` to the trainer's loggers) and
     kept in the checkpoint, so that a resumed run keeps them and the run can be replayed in epochs (the absolute
     milestones those epochs are, without ``of_epochs``).
+
+    Under a time budget the schedule also watches the CPU (:class:`~ssm_ms.runtime.machine.CpuWatch`): where other
+    processes kept more than ``SHARED_CORES`` cores busy on average since the fit started, it warns once (at the first
+    milestone or at the end of training), since such a fit trains fewer epochs in its budget and fires its milestones
+    at earlier epochs than it would alone. The average, as measured at each checkpoint, is kept in the checkpoint
+    (``cpu_others``; a resumed run measures from its own start), and the benchmarks' results files report it.
 
     Args:
         alpha: value alpha is raised to at ``alpha_epoch`` (before it, the model's initial alpha).
@@ -91,6 +98,8 @@ class ShootingSchedule(Callback):
         self.initial_lrs: list[float] | None = None
         self.resets_done: list[int] = []
         self.fired: dict[int, int] = {}  # with of_epochs: milestone -> the epoch it fired at
+        self._watch: CpuWatch | None = None  # under a time budget: other processes' CPU use since the fit started
+        self._warned = False
 
     @classmethod
     def paper(cls, alpha: float = 1e3) -> ShootingSchedule:
@@ -138,6 +147,8 @@ class ShootingSchedule(Callback):
             self.initial_alpha = float(pl_module.alpha)
         if self.initial_lrs is None:
             self.initial_lrs = [float(g["lr"]) for g in trainer.optimizers[0].param_groups]
+        if time_budget(trainer) is not None:
+            self._watch, self._warned = CpuWatch(), False
         if self.of_epochs is not None:
             if not (trainer.max_epochs or 0) > 0 and time_budget(trainer) is None:
                 raise ValueError(
@@ -199,16 +210,39 @@ class ShootingSchedule(Callback):
         else:
             where = f"{by_epoch:.0%} of {max_epochs} epochs"
         _log.info("schedule: %s at epoch %d (%s)", ", ".join(changes), epoch, where)
+        self._warn_if_shared(epoch)
         for logger in trainer.loggers:
             logger.log_metrics({f"schedule/milestone_{m}": float(epoch) for m in now}, step=trainer.global_step)
 
+    def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if trainer.is_global_zero:
+            self._warn_if_shared(trainer.current_epoch)
+
+    def cpu_others(self) -> float | None:
+        """Average number of cores other processes kept busy since this process's fit started, under a time budget
+        (``None``: no budget, or not measurable here)."""
+        return None if self._watch is None else self._watch.others()
+
+    def _warn_if_shared(self, epoch: int) -> None:
+        others = self.cpu_others()
+        if self._warned or others is None or others <= SHARED_CORES:
+            return
+        self._warned = True
+        rank_zero_warn(
+            f"other processes kept {others:.2f} cores busy on average since this fit started (epoch {epoch} now): "
+            "under trainer.max_time it trains fewer epochs than alone and its milestones fire at earlier epochs, so "
+            "its scores do not compare with a fit run alone. Run one training job at a time."
+        )
+
     # ---------------------------------------------------------------- checkpointing
     def state_dict(self) -> dict[str, Any]:
+        others = self.cpu_others()
         return {
             "initial_alpha": self.initial_alpha,
             "initial_lrs": self.initial_lrs,
             "resets_done": list(self.resets_done),
             "fired": dict(self.fired),
+            "cpu_others": None if others is None else round(others, 3),
         }
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:

@@ -211,9 +211,9 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     from experiments.readme import Results, benchmarks
     from ssm_ms.forecasting.benchmark_results import run_key
 
-    def run(method, seed, val, rmse, diverged=None, seconds=None):
+    def run(method, seed, val, rmse, diverged=None, seconds=None, cpu_others=None):
         info = {"method": method, "seed": seed, "unit": "V", "model": "SSM-LL", "experiment": "toy"}
-        info["validation"] = {"val_sim_rmse": val, "epoch": 3, "seconds": seconds}
+        info["validation"] = {"val_sim_rmse": val, "epoch": 3, "seconds": seconds, "cpu_others": cpu_others}
         row = {"samples": 100, "n_init": 10, "seconds": 0.1, "rmse": rmse, "nrmse": None, "fit_index": None}
         row["diverged_at"] = diverged
         return run_key(info), {"info": info, "tests": {"test": row}}
@@ -221,7 +221,7 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     runs = dict(
         [
             run("A", 0, 1.0, 0.30, seconds=100.0),
-            run("A", 1, 1.2, 0.40, seconds=200.0),
+            run("A", 1, 1.2, 0.40, seconds=200.0, cpu_others=1.25),
             run("A", 2, 1.1, 0.20, seconds=600.0),
             run("B", 0, 0.9, 0.50),
             run("B", 1, 0.95, None, diverged=42),
@@ -236,6 +236,9 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     a = f"{statistics.mean([0.3, 0.4, 0.2]):.4g} ± {statistics.stdev([0.3, 0.4, 0.2]):.2g}"
     assert f"| A | 0, 1, 2 | {statistics.mean([1.0, 1.2, 1.1]):.4g} | 300 | {a} |" in md  # kept after 300 s on average
     assert "| B | 0, 1 | 0.925 | — | 0.5 (1 of 2 diverged) |" in md
+    # the one fit that shared its CPU says so under its run, and only it
+    assert md.count("a shared CPU") == 1 and "other processes kept 1.25 cores busy" in md.split("### A, seed 1")[1]
+    assert "a shared CPU" not in md.split("### A, seed 1")[1].split("### A, seed 2")[1]
     (row,) = [line for line in benchmarks(Results(tmp_path), {"kind": "benchmarks"}) if line.startswith("| toy")]
     assert "0.5 (1 of 2 diverged) (B, 2 seeds)" in row
 

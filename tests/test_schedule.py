@@ -322,3 +322,36 @@ def test_relative_milestones_need_an_end_of_the_run(tmp_path, rotation_dm):
         ShootingSchedule(alpha_epoch=0, lr_milestones=[0], of_epochs=0)
     with pytest.raises(ValueError, match="give trainer.max_epochs or trainer.max_time"):
         fast_trainer(tmp_path, max_epochs=-1, callbacks=[relative()]).fit(rotation_model(lr=LR), rotation_dm)
+
+
+def test_a_time_budgeted_fit_beside_a_busy_process_is_warned_about_once(tmp_path, rotation_dm):
+    """A process spinning a core beside a fit under ``trainer.max_time``: other processes kept more than
+    SHARED_CORES cores busy (one here, more where `make test`'s other worker runs), so the schedule warns once and
+    its checkpointed state says how many. Without a time budget nothing is measured."""
+    import subprocess
+    import sys
+    import time
+    import warnings
+
+    from ssm_ms.runtime.machine import SHARED_CORES
+
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.5)  # its interpreter has started
+        sched = relative()
+        with warnings.catch_warnings(record=True) as record:
+            warnings.simplefilter("always")
+            trainer = fast_trainer(tmp_path, max_epochs=6, callbacks=[sched], max_time={"seconds": 600})
+            trainer.fit(rotation_model(lr=LR), rotation_dm)
+        others = sched.state_dict()["cpu_others"]
+    finally:
+        busy.kill()
+        busy.wait()
+    if others is None:
+        pytest.skip("no /proc/stat here")
+    assert others > SHARED_CORES
+    shared = [w for w in record if "cores busy on average since this fit started" in str(w.message)]
+    assert len(shared) == 1 and "Run one training job at a time" in str(shared[0].message)
+    untimed = relative()
+    fast_trainer(tmp_path / "untimed", max_epochs=2, callbacks=[untimed]).fit(rotation_model(lr=LR), rotation_dm)
+    assert untimed.state_dict()["cpu_others"] is None

@@ -335,12 +335,15 @@ class SimulationTest(pl.LightningModule):
         else:
             self.ssm, saved = load_ssm(given)
         # what the fit's validation kept this epoch by, and the epoch (the results file says both)
-        timer = (saved.get("callbacks") or {}).get("Timer", {}).get("time_elapsed", {})
+        callbacks = saved.get("callbacks") or {}
+        timer = callbacks.get("Timer", {}).get("time_elapsed", {})
         self.kept = {
             "val_sim_rmse": kept_score(saved, None if isinstance(given, nn.Module) else given),
             "epoch": saved.get("epoch"),
             # the fit's time until then (training and validation; a time-budgeted fit's Timer)
             "seconds": round(timer.get("train", 0.0) + timer.get("validate", 0.0), 1) if timer else None,
+            # other processes' CPU use during the fit until then (a time-budgeted fit's ShootingSchedule)
+            "cpu_others": callbacks.get("ShootingSchedule", {}).get("cpu_others"),
         }
         method = own_method(self.ssm, method)
         self.ssm_checkpoint = None if isinstance(given, nn.Module) else str(given)
