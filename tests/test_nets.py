@@ -239,6 +239,22 @@ def test_fully_connected_transition_with_a_linear_part_and_tanh():
         FullyConnectedTransition(3, activation="gelu")
 
 
+def test_identity_init_starts_f_as_the_identity_and_still_learns():
+    """identity_init: f(x, u) = x exactly at initialisation (PyTorch's default initialisation does not give that),
+    and the layers before the zeroed one still get gradients once it moves (one step of SGD on a loss)."""
+    torch.manual_seed(0)
+    x, u = torch.randn(6, 3), torch.randn(6, 2)
+    f = FullyConnectedTransition(3, hidden=(8, 8), input_dim=2, identity_init=True)
+    torch.testing.assert_close(f(x, u), x, rtol=0, atol=0)
+    assert not torch.allclose(FullyConnectedTransition(3, hidden=(8, 8), input_dim=2)(x, u), x)
+    opt = torch.optim.SGD(f.parameters(), lr=0.1)
+    for _ in range(2):
+        opt.zero_grad()
+        (f(x, u) - 2 * x).pow(2).mean().backward()
+        opt.step()
+    assert torch.count_nonzero(f.mlp[-1].weight) > 0 and f.mlp[0].weight.grad.abs().sum() > 0
+
+
 def test_mlp_readout_is_linear_plus_a_network_starting_at_zero():
     """g(x) = W x + b + MLP(x), computed here layer by layer; at initialisation the network adds nothing."""
     from ssm_ms.nets import MLPReadout
