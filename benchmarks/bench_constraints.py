@@ -96,7 +96,7 @@ def scores(model, dm, horizon: int) -> dict[str, float]:
     model.eval()
     totals = {"fit": 0.0, "gap": 0.0, "rollout_mse": 0.0}
     count = 0
-    from datamodules.base import collate
+    from datamodules.dataset import collate
 
     for batch in torch.utils.data.DataLoader(dm._train(), batch_size=64, collate_fn=collate, shuffle=False):
         nodes = model.node_states(batch["index"])

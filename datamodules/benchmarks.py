@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from torch.utils.data import DataLoader
 
-from datamodules.base import TrajectoryDataset
+from datamodules.dataset import TrajectoryDataset
 from datamodules.recordings import Recordings
 
 EXTRA = "pip install -e '.[benchmarks]' (or: pip install nonlinear-benchmarks==1.0.1 rarfile progressbar)"

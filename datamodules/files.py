@@ -39,7 +39,8 @@ from datamodules.arrays import (
     stored_dtype,
     stream_headers,
 )
-from datamodules.base import TrajectoryDataModule, TrajectoryDataset
+from datamodules.base import TrajectoryDataModule
+from datamodules.dataset import TrajectoryDataset
 from datamodules.windows import Windows, cut_windows
 
 

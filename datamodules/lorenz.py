@@ -19,7 +19,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from datamodules.base import TrajectoryDataModule, TrajectoryDataset
+from datamodules.base import TrajectoryDataModule
+from datamodules.dataset import TrajectoryDataset
 
 SPLIT_STREAMS = {"train": 0, "test": 1}  # spawn keys: independent random streams per split from one seed
 

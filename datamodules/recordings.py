@@ -19,7 +19,8 @@ import numpy as np
 import torch
 
 from datamodules.arrays import harmonise, stored_dtype
-from datamodules.base import TrajectoryDataModule, TrajectoryDataset
+from datamodules.base import TrajectoryDataModule
+from datamodules.dataset import TrajectoryDataset
 from datamodules.windows import cut_windows
 
 MEASUREMENT_LAYOUTS = (

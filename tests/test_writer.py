@@ -310,7 +310,7 @@ def test_forecasts_that_diverge_are_named_with_their_step():
     with its first such step; one within the bound is not."""
     from types import SimpleNamespace
 
-    from datamodules.base import Normalizer
+    from datamodules.normalizer import Normalizer
     from ssm_ms.forecasting.writer import ForecastWriter
 
     predicted = np.ones((3, 6, 1))
