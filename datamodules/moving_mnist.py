@@ -221,7 +221,7 @@ class MovingMNISTDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         j = self._trajectory_index(i)
-        # uint8 -> [0, 1] as base.to_float does, in numpy: torch's threaded cast is slow on a busy machine
+        # uint8 -> [0, 1] as normalizer.to_float does, in numpy: torch's threaded cast is slow on a busy machine
         y = torch.from_numpy(np.multiply(self.frames(j), _INV_255, dtype=np.float32)).unsqueeze(1)
         return {"index": torch.tensor(j, dtype=torch.long), "y": y}
 
