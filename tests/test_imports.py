@@ -57,6 +57,14 @@ def test_data_modules_import_each_other_without_a_circle():
     assert_no_circle(graph)
 
 
+def test_the_data_set_and_the_normalizer_sit_below_the_datamodule():
+    """base.py's DataModule builds on dataset.py (the array data set) and normalizer.py, never the other way round."""
+    graph = data_graph()
+    assert graph["datamodules.base"] >= {"datamodules.dataset", "datamodules.normalizer"}
+    assert graph["datamodules.dataset"] == {"datamodules.normalizer"}
+    assert graph["datamodules.normalizer"] == set()
+
+
 def test_the_circle_check_finds_a_circle(monkeypatch):
     """The check itself: a graph with base -> files -> base is refused."""
     import pytest
