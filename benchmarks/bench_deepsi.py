@@ -55,7 +55,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from benchmarks.report import provenance  # noqa: E402
-from experiments.reproduce import build_datamodule, load_config  # noqa: E402
+from experiments.configs import build_datamodule, load_config  # noqa: E402
 from ssm_ms.checkpointing import datamodule_state  # noqa: E402
 from ssm_ms.inference.filter_module import FilterForecaster  # noqa: E402
 from ssm_ms.inference.simulation import free_run, initial_state, model_name  # noqa: E402

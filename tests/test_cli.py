@@ -21,8 +21,8 @@ from lightning.pytorch.callbacks import Callback, ModelCheckpoint
 from omegaconf import OmegaConf
 
 from experiments.cli import reports
+from experiments.configs import config_value, load_config
 from experiments.registry import read_registry, stage_configs
-from experiments.reproduce import config_value, load_config
 from ssm_ms.baselines import BaselineForecaster
 from ssm_ms.cli import config_parser, main, show_package_log
 from ssm_ms.control import ClosedLoop

@@ -1,5 +1,5 @@
 """The shipped configs, read as ``cli.py`` reads them (:func:`ssm_ms.cli.config_parser`, which
-:func:`experiments.reproduce.load_config` uses): every one parses and checks, overlays compose as docs/cli.md says, and what
+:func:`experiments.configs.load_config` uses): every one parses and checks, overlays compose as docs/cli.md says, and what
 ``make reproduce`` reads of them (where a stage logs, its experiment, its results folder) is what the parser gives."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from experiments.configs import config_value, experiment_name, load_config, logger_dir
 from experiments.registry import read_registry
-from experiments.reproduce import config_value, experiment_name, load_config, logger_dir
 from ssm_ms.cli import config_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -138,7 +138,7 @@ def test_build_datamodule_takes_a_whole_config_or_a_data_config_with_overrides(c
     """build_datamodule (the benchmarks' data from a config): a whole config's data section (given as a file there) or
     a data config, each argument as the data config's YAML states it, overrides replacing theirs."""
     from datamodules.lorenz import LorenzDataModule
-    from experiments.reproduce import build_datamodule
+    from experiments.configs import build_datamodule
 
     stated = yaml.safe_load((ROOT / "configs/cpu/data/lorenz_T1000.yaml").read_text())["init_args"]
     dm = build_datamodule(ROOT / config, n_test=3, data_dir="elsewhere")
@@ -153,7 +153,7 @@ def test_build_datamodule_takes_a_whole_config_or_a_data_config_with_overrides(c
 
 
 def test_build_datamodule_names_a_config_without_data_and_an_argument_refused(tmp_path):
-    from experiments.reproduce import build_datamodule
+    from experiments.configs import build_datamodule
 
     (tmp_path / "trainer.yaml").write_text("trainer:\n  max_epochs: 3\n")
     (tmp_path / "nowhere.yaml").write_text("class_path: datamodules.nowhere.Nothing\n")

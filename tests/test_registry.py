@@ -115,7 +115,7 @@ def test_a_results_file_finds_its_experiment_and_table():
 def test_the_experiments_of_the_paper_tables_write_the_results_files_the_renderer_reads():
     """A paper table's experiment at a size writes results/<experiment><suffix>.json (SIZE_SUFFIX: the CPU-sized
     twin's ``_cpu``) from every stage that scores: the file its paper rows are looked up by."""
-    from experiments.reproduce import experiment_name
+    from experiments.configs import experiment_name
 
     registry = read_registry()
     wrong = []
@@ -142,7 +142,7 @@ def test_every_scoring_stage_names_its_results_folder():
     """A forecaster or controller without ``results_dir`` writes into its run's own folder: every registered stage
     that scores states where its results go (results/, results/benchmarks/, a run folder), so that make reproduce
     and the README's commands write where the committed results are."""
-    from experiments.reproduce import config_value
+    from experiments.configs import config_value
 
     registry = read_registry()
     configs = [b["test"] for b in registry["benchmarks"].values()]

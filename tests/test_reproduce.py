@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from lightning.pytorch.callbacks import Callback
 
-from experiments import reproduce
+from experiments import configs, pipeline, reproduce
 
 
 @pytest.fixture
@@ -18,19 +18,19 @@ def recorded(monkeypatch, tmp_path):
     calls: list[list[str]] = []
     written = {}
     monkeypatch.setattr(
-        reproduce,
+        pipeline,
         "run_stage",
         lambda args, number, resume_pipeline=None, on_wait=None: (
             calls.append(args) or written.update(resume_pipeline=resume_pipeline) or 0.0
         ),
     )
-    monkeypatch.setattr(reproduce, "_absolute", lambda path: tmp_path / path)
+    monkeypatch.setattr(configs, "absolute", lambda path: tmp_path / path)
     monkeypatch.setattr(
-        reproduce,
+        pipeline,
         "write_pipeline",
         lambda results_dir, experiment, command, pipeline, replaces=None: (
             written.update(experiment=experiment, command=command, pipeline=pipeline, replaces=replaces)
-            or reproduce.ROOT / "README.md"
+            or configs.ROOT / "README.md"
         ),
     )
     return calls, written
@@ -221,7 +221,7 @@ def test_unknown_experiment_lists_the_known_ones(recorded):
 
 # ---------------------------------------------------------------------------- a stage interrupted or failing
 def _stage_in_own_group(tmp_path, args, sigint_ignored: bool = False):
-    """``reproduce.run_stage(args)`` in a new process group, with SIGINT's default disposition (as a terminal runs
+    """``pipeline.run_stage(args)`` in a new process group, with SIGINT's default disposition (as a terminal runs
     ``make reproduce``; the tests themselves may run where SIGINT is ignored, e.g. started in the background by a
     script, and a child inherits that), or with SIGINT ignored (``sigint_ignored``: as ``nohup ... &`` from a
     script starts it)."""
@@ -229,12 +229,12 @@ def _stage_in_own_group(tmp_path, args, sigint_ignored: bool = False):
     import subprocess
     import sys
 
-    script = f"from experiments import reproduce; reproduce.run_stage({args!r}, 1)"
+    script = f"from experiments import pipeline; pipeline.run_stage({args!r}, 1)"
     out = open(tmp_path / "stage.log", "w")
     env = dict(__import__("os").environ, OMP_NUM_THREADS="1")
     return subprocess.Popen(
         [sys.executable, "-c", script],
-        cwd=reproduce.ROOT,
+        cwd=configs.ROOT,
         start_new_session=True,
         stdout=out,
         stderr=subprocess.PIPE,
@@ -453,7 +453,7 @@ def test_a_stage_keeps_the_time_to_its_last_checkpoint_when_copied_to_another_ma
         raise KeyboardInterrupt  # the machine is lost later in the run
 
     with monkeypatch.context() as patch:
-        patch.setattr(reproduce, "run_stage", lost)
+        patch.setattr(pipeline, "run_stage", lost)
         with pytest.raises(KeyboardInterrupt):
             reproduce.main([*base, "--resume", version])
     assert seen and 49.0 <= seen[0] <= 51.0
@@ -467,8 +467,8 @@ def test_a_stage_keeps_the_time_to_its_last_checkpoint_when_copied_to_another_ma
 def test_a_running_stage_calls_on_wait_every_tick_and_once_at_its_end(monkeypatch, capfd):
     """What keeps the record's time current: ``run_stage`` calls ``on_wait`` while the stage runs and after it."""
     ticks = []
-    monkeypatch.setattr(reproduce, "WAIT_TICK", 0.05)
-    reproduce.run_stage(["fit", "--help"], 1, on_wait=lambda: ticks.append(time.monotonic()))
+    monkeypatch.setattr(pipeline, "WAIT_TICK", 0.05)
+    pipeline.run_stage(["fit", "--help"], 1, on_wait=lambda: ticks.append(time.monotonic()))
     assert "--trainer" in capfd.readouterr().out  # the stage ran (its help), for well over a tick
     assert len(ticks) >= 3
 
@@ -516,13 +516,13 @@ def test_a_pipeline_killed_mid_fit_resumes_to_the_same_model_as_an_uninterrupted
 
     record = tmp_path / "reproduce.json"
     script = (
-        f"from pathlib import Path; from experiments import reproduce; "
-        f"reproduce.Pipeline(Path({str(record)!r}), {{}}, 'resume', resume=False).stage({args('cut')!r})"
+        f"from pathlib import Path; from experiments import pipeline; "
+        f"pipeline.Pipeline(Path({str(record)!r}), {{}}, 'resume', resume=False).stage({args('cut')!r})"
     )
     env = dict(os.environ, OMP_NUM_THREADS="1", KILL_AT_EPOCH="3")
     proc = subprocess.Popen(
         [sys.executable, "-c", script],
-        cwd=reproduce.ROOT,
+        cwd=configs.ROOT,
         start_new_session=True,
         env=env,
         stdout=subprocess.DEVNULL,
@@ -532,10 +532,10 @@ def test_a_pipeline_killed_mid_fit_resumes_to_the_same_model_as_an_uninterrupted
     assert torch.load(ckpt("cut"), weights_only=True)["epoch"] == 2  # epochs 0-2 kept, the run stopped in epoch 3
 
     monkeypatch.setenv("EPOCH_LOG", str(tmp_path / "epochs.txt"))
-    pipeline = reproduce.Pipeline(record, {}, "resume", resume=True)
-    pipeline.stage(args("cut"))
+    resumed = pipeline.Pipeline(record, {}, "resume", resume=True)
+    resumed.stage(args("cut"))
     assert (tmp_path / "epochs.txt").read_text().split() == ["3", "4", "5"]  # continued, not started again
-    assert pipeline.stages[0]["runs"] == 2
+    assert resumed.stages[0]["runs"] == 2
     monkeypatch.delenv("EPOCH_LOG")
     cli_main(args("full"))  # in this process: one interpreter start less
     full, resumed = (torch.load(ckpt(v), weights_only=True) for v in ("full", "cut"))
@@ -628,7 +628,7 @@ def test_a_raised_budget_interrupted_and_resumed_again_still_replaces_the_first_
         raise KeyboardInterrupt  # the machine stops during the extended fit
 
     with monkeypatch.context() as patch:
-        patch.setattr(reproduce, "run_stage", stopped)
+        patch.setattr(pipeline, "run_stage", stopped)
         with pytest.raises(KeyboardInterrupt):
             reproduce.main([*base, "--encoder-epochs", "9", "--resume", version])
     written.clear()
@@ -681,9 +681,9 @@ def test_a_fit_extended_on_resume_ends_as_a_fit_given_that_budget_from_the_start
         ]
 
     record = tmp_path / "reproduce.json"
-    reproduce.Pipeline(record, {}, "resume", resume=False).stage(args("cut", 2))  # a process of its own, as reproduce's
+    pipeline.Pipeline(record, {}, "resume", resume=False).stage(args("cut", 2))  # a process of its own, as reproduce's
     monkeypatch.setenv("EPOCH_LOG", str(tmp_path / "epochs.txt"))
-    resumed = reproduce.Pipeline(record, {}, "resume", resume=True)
+    resumed = pipeline.Pipeline(record, {}, "resume", resume=True)
     assert resumed.stage(args("cut", 5)) is True
     assert (tmp_path / "epochs.txt").read_text().split() == ["2", "3", "4"]  # continued, not started again
     assert resumed.stages[0]["runs"] == 2
@@ -779,7 +779,7 @@ def test_an_encoder_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeyp
     """An encoder fit that wrote best.ckpt (a config with a ModelCheckpoint on its validation) hands that file to its
     test and to the control's; one that did not hands its last.ckpt on (the test above)."""
     calls, _ = recorded
-    monkeypatch.setattr(reproduce, "run_stage", fit_writing_best(calls, tmp_path, "pendulum_torque_encoder"))
+    monkeypatch.setattr(pipeline, "run_stage", fit_writing_best(calls, tmp_path, "pendulum_torque_encoder"))
     reproduce.main(["pendulum_torque", "--no-baselines"])
     version = option(calls[0], "--trainer.logger.init_args.version")
     best = f"runs/pendulum_torque_encoder/{version}/checkpoints/best.ckpt"
@@ -793,7 +793,7 @@ def test_an_encoder_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeyp
 def test_a_baseline_that_kept_its_best_epoch_is_tested_from_it(recorded, monkeypatch, tmp_path):
     """The same for a baseline (validate_held_out and a ModelCheckpoint on val/loss): its test gets best.ckpt."""
     calls, _ = recorded
-    monkeypatch.setattr(reproduce, "run_stage", fit_writing_best(calls, tmp_path, "pendulum_lstm"))
+    monkeypatch.setattr(pipeline, "run_stage", fit_writing_best(calls, tmp_path, "pendulum_lstm"))
     reproduce.main(["pendulum_lstm"])
     fit, test = calls
     version = option(fit, "--trainer.logger.init_args.version")
@@ -805,7 +805,7 @@ def test_a_benchmark_fits_then_tests_from_the_epoch_its_validation_chose(recorde
     """``make reproduce EXP=cascaded_tanks``: the fit of configs/benchmarks/cascaded_tanks.yaml, then its protocol
     (cascaded_tanks_test.yaml) on the fit's best.ckpt; ARGS reach both stages."""
     calls, _ = recorded
-    monkeypatch.setattr(reproduce, "run_stage", fit_writing_best(calls, tmp_path, "cascaded_tanks"))
+    monkeypatch.setattr(pipeline, "run_stage", fit_writing_best(calls, tmp_path, "cascaded_tanks"))
     reproduce.main(["cascaded_tanks", "--", "--data.init_args.dir_placement", "here"])
     fit, test = calls
     assert (fit[0], option(fit, "--config")) == ("fit", "configs/benchmarks/cascaded_tanks.yaml")
@@ -837,7 +837,7 @@ def test_a_benchmark_with_orders_tests_the_one_its_validation_chose(recorded, mo
             torch.save({"callbacks": {"ModelCheckpoint{'monitor': 'val/sim_rmse'}": state}}, best / "best.ckpt")
         return 0.0
 
-    monkeypatch.setattr(reproduce, "run_stage", stage)
+    monkeypatch.setattr(pipeline, "run_stage", stage)
     reproduce.main(["silverbox", "--orders", "2", "4", "8"])
     fits, (test,) = calls[:3], calls[3:]
     assert [option(a, "--model.init_args.state_dim") for a in fits] == ["2", "4", "8"]

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
-from experiments.reproduce import load_config  # noqa: E402
+from experiments.configs import load_config  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from studies.control_diagnosis.control_diagnosis import closed_loop, episodes  # noqa: E402
 

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
-from experiments.reproduce import build_datamodule, load_config  # noqa: E402
+from experiments.configs import build_datamodule, load_config  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.module import ClosedLoop  # noqa: E402
 

@@ -38,7 +38,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
-from experiments.reproduce import build_datamodule  # noqa: E402
+from experiments.configs import build_datamodule  # noqa: E402
 from ssm_ms.inference.encoder_module import StateEncoderModule  # noqa: E402
 from ssm_ms.training.shooting import decode, loss_function, rollout  # noqa: E402
 

@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance  # noqa: E402
 from datamodules.pendulum import PendulumDataModule  # noqa: E402
-from experiments.reproduce import load_config  # noqa: E402
+from experiments.configs import load_config  # noqa: E402
 from ssm_ms.checkpointing import datamodule_state  # noqa: E402
 from ssm_ms.loading import load_ssm  # noqa: E402
 from ssm_ms.training.shooting import rollout  # noqa: E402

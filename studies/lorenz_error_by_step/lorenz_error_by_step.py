@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
 from datamodules.lorenz import LorenzDataModule  # noqa: E402
-from experiments.reproduce import build_datamodule, load_config  # noqa: E402
+from experiments.configs import build_datamodule, load_config  # noqa: E402
 from ssm_ms.checkpointing import datamodule_state  # noqa: E402
 from ssm_ms.inference.filter_module import FilterForecaster  # noqa: E402
 from ssm_ms.loading import load_ssm  # noqa: E402

@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
 from datamodules.lorenz import LorenzDataModule  # noqa: E402
-from experiments.reproduce import build_datamodule  # noqa: E402
+from experiments.configs import build_datamodule  # noqa: E402
 from ssm_ms.forecasting.metrics import mse_per_sequence  # noqa: E402
 from ssm_ms.inference.particle import ParticleFilter  # noqa: E402
 from ssm_ms.inference.ukf import UnscentedKalmanFilter  # noqa: E402

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
-from experiments.reproduce import build_datamodule  # noqa: E402
+from experiments.configs import build_datamodule  # noqa: E402
 from ssm_ms.drawing import reconstruction_grid  # noqa: E402
 from ssm_ms.forecasting.metrics import ssim_per_sequence  # noqa: E402
 from ssm_ms.loading import load_ssm  # noqa: E402

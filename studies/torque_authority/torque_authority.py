@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance, write  # noqa: E402
-from experiments.reproduce import build_datamodule  # noqa: E402
+from experiments.configs import build_datamodule  # noqa: E402
 from ssm_ms.checkpointing import datamodule_state  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.goals import ink_angle_features  # noqa: E402

@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT / "studies" / "control_diagnosis"))
 from control_diagnosis import closed_loop, wrap  # noqa: E402
 
 from benchmarks.report import provenance, write  # noqa: E402
-from experiments.reproduce import load_config  # noqa: E402
+from experiments.configs import load_config  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.module import ClosedLoop  # noqa: E402
 

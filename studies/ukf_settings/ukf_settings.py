@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.report import provenance  # noqa: E402
-from experiments.reproduce import load_config  # noqa: E402
+from experiments.configs import load_config  # noqa: E402
 from ssm_ms.runtime.machine import CpuWatch, quiet_note  # noqa: E402
 
 DEFAULT = {"unscented": {"beta": 2.0}, "init_mean": "nodes"}
