@@ -20,25 +20,19 @@ docs/python.md is the guide.
 
 from __future__ import annotations
 
-import math
-import re
 import warnings
-from collections.abc import Mapping, Sequence
-from datetime import timedelta
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import lightning.pytorch as pl
 import numpy as np
 import torch
-from lightning.pytorch.loggers import TensorBoardLogger
-from lightning.pytorch.trainer.states import TrainerStatus
 from torch import nn
 
 from datamodules.base import TrajectoryDataModule
 from datamodules.recordings import Recordings
-from ssm_ms.checkpointing import EpochCheckpoint
-from ssm_ms.cli import show_package_log
+from ssm_ms.arrays import as_output, input_tensor, stream_tensor
 from ssm_ms.inference import StateEncoderModule
 from ssm_ms.inference.simulation import divergence_bound, estimate_states, free_run
 from ssm_ms.module import MultipleShootingModule
@@ -49,8 +43,7 @@ from ssm_ms.nets import (
     LocallyLinearTransition,
     SensorHeads,
 )
-from ssm_ms.progress import RunProgressBar
-from ssm_ms.runtime.console import quiet_lightning
+from ssm_ms.trainer import train
 from ssm_ms.training import checks
 from ssm_ms.units import Units
 
@@ -253,7 +246,7 @@ class SSM:
         u_t = self._inputs(u, y_t.shape[0], y_t.shape[1] - 1, "u", batched)
         with torch.no_grad():
             x, covs = self._infer(y_t, u_t, method, options, want_covs=True)
-        return _out(x, batched, as_numpy), (None if covs is None else _out(covs, batched, as_numpy))
+        return as_output(x, batched, as_numpy), (None if covs is None else as_output(covs, batched, as_numpy))
 
     def _infer(
         self, y: torch.Tensor, u: torch.Tensor | None, method: str, options: Mapping[str, Any], want_covs: bool = False
@@ -305,7 +298,7 @@ class SSM:
         if u is not None:
             if not self.input_dim:
                 raise ValueError("this model is autonomous (its f takes no inputs): give steps, not u")
-            u_t, batched, as_numpy = self._raw_inputs(u, "u")
+            u_t, batched, as_numpy = input_tensor(u, self.input_dim, "u")
             steps = u_t.shape[1]
         elif self.input_dim:
             raise ValueError(
@@ -346,8 +339,8 @@ class SSM:
                 self._free_run(x, steps, None if u_t is None else self.units.u_to_model(u_t), chunk)
             )
         if self.streams is not None:  # several sensors: one array per stream
-            return {name: _out(part, batched, as_numpy) for name, part in self._split(y).items()}
-        return _out(y, batched, as_numpy)
+            return {name: as_output(part, batched, as_numpy) for name, part in self._split(y).items()}
+        return as_output(y, batched, as_numpy)
 
     def _split(self, y: torch.Tensor) -> dict[str, torch.Tensor]:
         """Packed measurements ``[B, T, P]`` -> ``{stream: [B, T, *shape]}``."""
@@ -369,7 +362,7 @@ class SSM:
             return self.simulate(steps=steps, y_init=y, method=method, **options)
         if u is None:
             raise ValueError(f"this model is driven: give u, the inputs of the {k} given and {steps} forecast samples")
-        u_t, batched, _ = self._raw_inputs(u, "u")
+        u_t, batched, _ = input_tensor(u, self.input_dim, "u")
         if u_t.shape[1] < k + steps - 1:
             raise ValueError(
                 f"u holds {u_t.shape[1]} inputs: a forecast of {steps} samples after {k} needs {k + steps - 1}"
@@ -413,7 +406,7 @@ class SSM:
             encoder_options["encoder"] = {"preset": "vector", "hidden": 128}
         encoder = StateEncoderModule(self.module, n_filter=int(data.seq_len), **encoder_options)
         options.setdefault("name", "encoder")
-        _train(encoder, data, epochs=epochs, **options)
+        train(encoder, data, epochs=epochs, **options)
         self.encoder = encoder.eval()
         return self
 
@@ -435,7 +428,7 @@ class SSM:
                     f"{what}: this model reads the sensors {list(streams)}: give a dict of them, got {got}"
                 )
             parts = [
-                self._sequence(y[name], shape, f"{what}['{name}']", missing=i > 0)
+                stream_tensor(y[name], shape, f"{what}['{name}']", missing=i > 0)
                 for i, (name, shape) in enumerate(streams.items())
             ]
             if len({(p[0].shape[0], p[0].shape[1], p[1]) for p in parts}) > 1:
@@ -444,42 +437,8 @@ class SSM:
             return self.units.y_to_model(packed), parts[0][1], parts[0][2]
         if isinstance(y, Mapping):
             raise ValueError(f"{what}: this model reads one sensor: give its array, not a dict")
-        t, batched, as_numpy = self._sequence(y, tuple(self.module.obs_shape()), what)
+        t, batched, as_numpy = stream_tensor(y, tuple(self.module.obs_shape()), what)
         return self.units.y_to_model(t), batched, as_numpy
-
-    @staticmethod
-    def _sequence(y: Any, obs: tuple[int, ...], what: str, missing: bool = False) -> tuple[torch.Tensor, bool, bool]:
-        """One stream's samples of shape ``obs`` -> ``([B, T, *obs]``, batched, was numpy): ``[T, *obs]`` or
-        ``[B, T, *obs]``; one component also ``[T]``, grey images ``(1, H, W)`` also ``[T, H, W]`` / ``[B, T, H, W]``.
-        ``missing``: NaN allowed (a sensor's unsampled times)."""
-        t, as_numpy = _tensor(y, what)
-        if obs == (1,) and t.ndim == 1:
-            t = t.unsqueeze(-1)  # one measured component: [T]
-        grey = len(obs) == 3 and obs[0] == 1 and t.ndim in (3, 4) and tuple(t.shape[-3:]) != obs
-        if grey and tuple(t.shape[-2:]) == obs[1:]:
-            t = t.unsqueeze(-3)  # [T, H, W] or [B, T, H, W]: grey images without their channel
-        if t.ndim not in (len(obs) + 1, len(obs) + 2) or tuple(t.shape[t.ndim - len(obs) :]) != obs:
-            raise ValueError(
-                f"{what} must be [T, {', '.join(map(str, obs))}] (or a batch [B, T, ...]): this model's measurements "
-                f"have shape {obs}, got {list(t.shape)}"
-            )
-        batched = t.ndim == len(obs) + 2
-        t = t if batched else t.unsqueeze(0)
-        _check_finite(torch.nan_to_num(t, nan=0.0) if missing else t, what)
-        return t, batched, as_numpy
-
-    def _raw_inputs(self, u: Any, what: str) -> tuple[torch.Tensor, bool, bool]:
-        """``u`` -> ``([B, T, m]`` in the user's units, batched, was numpy)."""
-        t, as_numpy = _tensor(u, what)
-        m = self.input_dim
-        if m == 1 and t.ndim == 1:
-            t = t.unsqueeze(-1)  # one input: [T]
-        if t.ndim not in (2, 3) or t.shape[-1] != m:
-            raise ValueError(f"{what} must be [T, {m}] (or a batch [B, T, {m}]): got {list(t.shape)}")
-        batched = t.ndim == 3
-        t = t if batched else t.unsqueeze(0)
-        _check_finite(t, what)
-        return t, batched, as_numpy
 
     def _inputs(self, u: Any, batch: int, needed: int, what: str, batched: bool) -> torch.Tensor | None:
         """Inputs beside measurements: ``[B, >= needed, m]`` normalised (``None`` for an autonomous model)."""
@@ -489,34 +448,12 @@ class SSM:
             return None
         if u is None:
             raise ValueError(f"this model is driven by {self.input_dim} inputs per step: give {what}")
-        t, u_batched, _ = self._raw_inputs(u, what)
+        t, u_batched, _ = input_tensor(u, self.input_dim, what)
         if u_batched != batched or t.shape[0] != batch:
             raise ValueError(f"{what} must hold one input sequence per measured sequence ({batch}), got {t.shape[0]}")
         if t.shape[1] < needed:
             raise ValueError(f"{what} holds {t.shape[1]} inputs per sequence, the measurements need {needed}")
         return self.units.u_to_model(t)
-
-
-def _tensor(a: Any, what: str) -> tuple[torch.Tensor, bool]:
-    if isinstance(a, torch.Tensor):
-        return a.detach().to(torch.float32), False
-    try:
-        arr = np.asarray(a, dtype=np.float32)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{what} must be an array of numbers ({err})") from None
-    return torch.from_numpy(arr.copy()), True
-
-
-def _check_finite(t: torch.Tensor, what: str) -> None:
-    bad = ~torch.isfinite(t)
-    if bool(bad.any()):
-        where = bad.nonzero()[0].tolist()
-        raise ValueError(f"{what} holds NaN or inf (first at index {where}): give finite values")
-
-
-def _out(t: torch.Tensor, batched: bool, as_numpy: bool) -> np.ndarray | torch.Tensor:
-    t = t if batched else t[0]
-    return t.detach().cpu().numpy() if as_numpy else t
 
 
 def _encoder_path(path: Path) -> Path:
@@ -533,33 +470,6 @@ def _checkpoint_of(module: pl.LightningModule) -> dict[str, Any]:
     }
     module.on_save_checkpoint(checkpoint)
     return checkpoint
-
-
-# ---------------------------------------------------------------------------- training
-_DURATION = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*(s|sec|min|m|h|d)\s*$")
-_UNIT_SECONDS = {"s": 1, "sec": 1, "m": 60, "min": 60, "h": 3600, "d": 86400}
-
-
-def parse_duration(value: float | str | timedelta) -> timedelta:
-    """A training budget: seconds, a ``timedelta``, ``"90s"``, ``"12min"``, ``"1.5h"`` or Lightning's
-    ``"DD:HH:MM:SS"``."""
-    if isinstance(value, timedelta):
-        seconds = value.total_seconds()
-    elif isinstance(value, (int, float)):
-        seconds = float(value)
-    else:
-        text = str(value)
-        match = _DURATION.match(text)
-        if match:
-            seconds = float(match.group(1)) * _UNIT_SECONDS[match.group(2)]
-        elif re.fullmatch(r"\d+:\d{1,2}:\d{1,2}:\d{1,2}", text.strip()):
-            days, hours, minutes, secs = (int(p) for p in text.strip().split(":"))
-            seconds = ((days * 24 + hours) * 60 + minutes) * 60 + secs
-        else:
-            raise ValueError(f"time must be seconds, '12min', '1.5h', '90s' or 'DD:HH:MM:SS', got {value!r}")
-    if not math.isfinite(seconds) or seconds <= 0:
-        raise ValueError(f"time must be a positive duration, got {value!r}")
-    return timedelta(seconds=seconds)
 
 
 def fit(model: SSM, data: TrajectoryDataModule, epochs: int | None = None, **options: Any) -> SSM:
@@ -587,56 +497,8 @@ def fit(model: SSM, data: TrajectoryDataModule, epochs: int | None = None, **opt
     checks.check_inputs(model.module.input_dim, int(data.input_dim))
     checks.check_data(model.module, int(data.seq_len), tuple(data.obs_shape), int(data.num_train_trajectories))
     model.module.train()
-    model.trainer = _train(model.module, data, epochs, **options)
+    model.trainer = train(model.module, data, epochs, **options)
     last = getattr(model.trainer.checkpoint_callback, "last_model_path", "")
     model.checkpoint_path = Path(last) if last else None
     model.module.eval()
     return model
-
-
-def _train(
-    module: pl.LightningModule,
-    data: TrajectoryDataModule,
-    epochs: int | None = None,
-    *,
-    time: float | str | timedelta | None = None,
-    name: str = "ssm",
-    save_dir: str | Path = "runs",
-    callbacks: Sequence[pl.Callback] = (),
-    ckpt_path: str | Path | None = None,
-    **trainer_options: Any,
-) -> pl.Trainer:
-    """A Lightning fit with this project's console, checkpoints and logger."""
-    if epochs is None and time is None:
-        raise ValueError("give a training budget: epochs=..., time=... (e.g. '12min'), or both")
-    if epochs is not None and (int(epochs) != epochs or epochs < 1):
-        raise ValueError(f"epochs must be a whole number >= 1, got {epochs!r}")
-    budget = None if time is None else parse_duration(time)
-    quiet_lightning()
-    show_package_log()
-    options = {
-        "accelerator": "auto",
-        "devices": 1,
-        "log_every_n_steps": 5,
-        "check_val_every_n_epoch": 10,
-        **trainer_options,
-    }
-    if "logger" not in options:
-        options["logger"] = TensorBoardLogger(save_dir=str(save_dir), name=name)
-    elif options["logger"] is False:
-        options.setdefault("default_root_dir", str(Path(save_dir) / name))
-    callbacks = [EpochCheckpoint(), *callbacks]
-    if options.get("enable_progress_bar", True):
-        callbacks.append(RunProgressBar())
-    trainer = pl.Trainer(
-        max_epochs=-1 if epochs is None else int(epochs), max_time=budget, callbacks=callbacks, **options
-    )
-    try:
-        trainer.fit(module, datamodule=data, ckpt_path=None if ckpt_path is None else str(ckpt_path))
-    except SystemExit:
-        if trainer.state.status == TrainerStatus.INTERRUPTED:  # Lightning's answer to Ctrl-C
-            last = getattr(trainer.checkpoint_callback, "last_model_path", "")
-            resume = f"; resume with fit(..., ckpt_path={str(last)!r})" if last else ""
-            raise KeyboardInterrupt(f"training interrupted at epoch {trainer.current_epoch}{resume}") from None
-        raise
-    return trainer

@@ -126,7 +126,15 @@ def test_the_pipeline_and_the_results_files_start_without_lightning_or_torch():
 # The layers of ssm_ms, lowest first: a module imports only modules of its own layer or lower ones (and never the
 # data sets: the CLI builds data and model from the config's class paths).
 LAYERS = {
-    0: ("ssm_ms.runtime", "ssm_ms.training", "ssm_ms.nets", "ssm_ms.checkpointing", "ssm_ms.drawing", "ssm_ms.units"),
+    0: (
+        "ssm_ms.runtime",
+        "ssm_ms.training",
+        "ssm_ms.nets",
+        "ssm_ms.checkpointing",
+        "ssm_ms.drawing",
+        "ssm_ms.units",
+        "ssm_ms.arrays",
+    ),
     1: (
         "ssm_ms.module",
         "ssm_ms.loading",
@@ -137,7 +145,7 @@ LAYERS = {
         "ssm_ms.export",
     ),
     2: ("ssm_ms.inference", "ssm_ms.forecasting", "ssm_ms.baselines", "ssm_ms.control"),
-    3: ("ssm_ms.cli", "ssm_ms.pretrained", "ssm_ms.api", "ssm_ms.__main__"),
+    3: ("ssm_ms.cli", "ssm_ms.pretrained", "ssm_ms.api", "ssm_ms.trainer", "ssm_ms.__main__"),
 }
 
 
