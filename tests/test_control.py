@@ -16,8 +16,8 @@ from datamodules.pendulum_render import quantize, render_paper
 from datamodules.pendulum_sim import pendulum_model, simulate
 from ssm_ms.control.cost import SwingUpCost, upright_error
 from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
-from ssm_ms.control.module import TruePendulum
 from ssm_ms.control.mppi import MPPISettings, RecedingHorizon, mppi
+from ssm_ms.control.plant import TruePendulum
 
 
 def test_true_pendulum_is_the_simulators_frame():
@@ -366,7 +366,7 @@ def test_success_rates_carry_their_wilson_interval():
     """The interval at 0 and n successes in closed form (z^2 / (n + z^2) and n / (n + z^2)), 92 of 100 as tables give
     it (0.850-0.959), and the results' cell that prints it."""
     from experiments.results import score_cell
-    from ssm_ms.control.module import wilson_interval
+    from ssm_ms.control.scoring import wilson_interval
 
     z2 = 1.959964**2
     assert wilson_interval(0, 20) == pytest.approx((0.0, z2 / (20 + z2)))

@@ -2,6 +2,7 @@
 cost (:mod:`.cost`) on angles read from images (:mod:`.goals`), and the closed loop run by ``cli.py test``
 (:class:`ClosedLoop`)."""
 
-from ssm_ms.control.module import ClosedLoop, TruePendulum
+from ssm_ms.control.module import ClosedLoop
+from ssm_ms.control.plant import TruePendulum
 
 __all__ = ["ClosedLoop", "TruePendulum"]

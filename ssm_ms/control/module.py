@@ -31,12 +31,13 @@ from typing import Any
 import lightning.pytorch as pl
 import numpy as np
 import torch
-from torch import nn
 
-from ssm_ms.control.cost import GRAVITY, SwingUpCost, upright_error
+from ssm_ms.control.cost import SwingUpCost, upright_error
 from ssm_ms.control.estimators import EncoderEstimator, UKFEstimator, load_encoder
 from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
 from ssm_ms.control.mppi import MPPISettings, RecedingHorizon, checked_offset_gain
+from ssm_ms.control.plant import TruePendulum, angle_of_state
+from ssm_ms.control.scoring import episode_stats, first_upright, wilson_interval
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.loading import load_ssm
 from ssm_ms.nets.sensors import SensorLayout
@@ -51,39 +52,6 @@ CONTROL_HEADING = {
     "`episodes/first_upright_s`: when the angle first stays up for a whole window (episodes that never do are "
     "left out); `planning/ms_per_step`: the planner's time per control step of one episode alone.",
 }
-
-
-class TruePendulum(nn.Module):
-    """The simple pendulum's own equations, ``theta'' = -g sin(theta) - damping theta' + u`` (unit mass on a unit
-    massless link: Pinocchio's model of the data), integrated by RK4 over one frame period: the planner's true model.
-    State ``(theta, theta')``, input the joint torque."""
-
-    input_dim, state_dim = 1, 2
-
-    def __init__(self, frame_dt: float, damping: float = 0.0, substeps: int = 5):
-        super().__init__()
-        self.h, self.substeps, self.damping = frame_dt / substeps, int(substeps), float(damping)
-
-    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        theta, omega, tau = x[:, 0], x[:, 1], u[:, 0]
-
-        def acc(th: torch.Tensor, om: torch.Tensor) -> torch.Tensor:
-            return -GRAVITY * torch.sin(th) - self.damping * om + tau
-
-        h = self.h
-        for _ in range(self.substeps):
-            k1t, k1w = omega, acc(theta, omega)
-            k2t, k2w = omega + 0.5 * h * k1w, acc(theta + 0.5 * h * k1t, omega + 0.5 * h * k1w)
-            k3t, k3w = omega + 0.5 * h * k2w, acc(theta + 0.5 * h * k2t, omega + 0.5 * h * k2w)
-            k4t, k4w = omega + h * k3w, acc(theta + h * k3t, omega + h * k3w)
-            theta = theta + h / 6 * (k1t + 2 * k2t + 2 * k3t + k4t)
-            omega = omega + h / 6 * (k1w + 2 * k2w + 2 * k3w + k4w)
-        return torch.stack([theta, omega], dim=1)
-
-
-def angle_of_state(x: torch.Tensor) -> torch.Tensor:
-    """``(sin theta, cos theta)`` of true states ``(theta, theta')``."""
-    return torch.stack([torch.sin(x[:, 0]), torch.cos(x[:, 0])], dim=1)
 
 
 class ClosedLoop(pl.LightningModule):
@@ -390,14 +358,14 @@ class ClosedLoop(pl.LightningModule):
         times = torch.tensor(self.planning_seconds(), dtype=torch.float64) * 1000
         summary = {
             f"{self.method_name}/episodes/success": {
-                **_stats(success),
+                **episode_stats(success),
                 "ci95": list(wilson_interval(int(success.sum()), len(success))),
             },
-            f"{self.method_name}/episodes/upright_error_final": _stats(final.mean(1)),
-            f"{self.method_name}/episodes/first_upright_s": _stats(
-                _first_upright(error, self.tolerance, window) * self.frame_dt
+            f"{self.method_name}/episodes/upright_error_final": episode_stats(final.mean(1)),
+            f"{self.method_name}/episodes/first_upright_s": episode_stats(
+                first_upright(error, self.tolerance, window) * self.frame_dt
             ),
-            f"{self.method_name}/planning/ms_per_step": _stats(times),
+            f"{self.method_name}/planning/ms_per_step": episode_stats(times),
         }
         info = {
             "experiment": self.experiment,
@@ -503,38 +471,3 @@ class ClosedLoop(pl.LightningModule):
         fig.tight_layout()
         drawing.save_figure(fig, Path(self.figures_dir) / f"{name}_angles.png")
         plt.close(fig)
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """The Wilson score interval of a success rate from ``successes`` of ``n`` trials (95% for the default ``z``):
-    inside ``[0, 1]`` also at 0 or ``n`` successes, where the normal approximation's collapses to a point."""
-    if n < 1:
-        return float("nan"), float("nan")
-    p, z2 = successes / n, z * z
-    centre = (p + z2 / (2 * n)) / (1 + z2 / n)
-    half = z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n)) / (1 + z2 / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
-def _stats(values: torch.Tensor) -> dict[str, float]:
-    values = values.double()
-    finite = values[torch.isfinite(values)]
-    return {
-        "mean": float(finite.mean()) if len(finite) else float("nan"),
-        "std": float(finite.std(unbiased=False)) if len(finite) else float("nan"),
-        "n": int(values.numel()),
-        "non_finite": int(values.numel() - finite.numel()),
-    }
-
-
-def _first_upright(error: torch.Tensor, tolerance: float, window: int) -> torch.Tensor:
-    """Per episode, the first step from which the angle stays within ``tolerance`` for ``window`` steps (``nan``:
-    never)."""
-    inside = (error < tolerance).double()
-    out = torch.full((len(error),), float("nan"), dtype=torch.float64)
-    for e in range(len(error)):
-        runs = torch.nn.functional.conv1d(inside[e][None, None], torch.ones(1, 1, window, dtype=torch.float64))[0, 0]
-        hits = torch.nonzero(runs >= window - 0.5)
-        if len(hits):
-            out[e] = float(hits[0, 0])
-    return out

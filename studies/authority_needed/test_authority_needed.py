@@ -16,7 +16,7 @@ def test_authority_needed_scales_the_torque_near_upright_and_elsewhere():
     """authority_needed.py: the true pendulum with its torque scaled by 0.5 within 0.5 rad of upright and by
     2 elsewhere turns as the linearised pendulum under the scaled torque does, 2 s tau (cosh(w t) - 1) / w^2 at upright
     and 2 s tau (1 - cos(w t)) / w^2 hanging (w = sqrt(g), from rest, one frame of 0.1 s)."""
-    from ssm_ms.control.module import TruePendulum
+    from ssm_ms.control.plant import TruePendulum
     from studies.authority_needed.authority_needed import ScaledTorque
     from studies.torque_authority.torque_authority import turns
 

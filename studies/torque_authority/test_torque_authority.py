@@ -15,7 +15,7 @@ def test_torque_authority_turns_match_a_linear_systems_closed_form():
     """torque_authority.py: k steps of +tau against -tau through x+ = A x + B u, read as x[0], end
     2 tau (sum_{j<k} A^j B)[0] apart; a transition that ignores u turns nothing; the pendulum's equations about
     tau t^2 (the torque's push on a unit mass, gravity aside)."""
-    from ssm_ms.control.module import TruePendulum
+    from ssm_ms.control.plant import TruePendulum
     from studies.torque_authority.torque_authority import turns
 
     a = torch.tensor([[0.95, 0.1], [-0.2, 0.9]], dtype=torch.float64)
@@ -34,7 +34,7 @@ def test_torque_authority_turns_match_a_linear_systems_closed_form():
 def test_torque_authority_falls_match_the_linearised_upright_pendulum():
     """Without torque, from d0 rad off upright at rest, the pendulum's distance from upright grows as d0 cosh(sqrt(g)
     t) (d'' = g d, linearised); a transition that keeps the state draws no fall."""
-    from ssm_ms.control.module import TruePendulum
+    from ssm_ms.control.plant import TruePendulum
     from studies.torque_authority.torque_authority import falls
 
     d0 = np.array([0.02, -0.05])

@@ -35,7 +35,7 @@ from experiments.configs import build_datamodule  # noqa: E402
 from ssm_ms.checkpointing import datamodule_state  # noqa: E402
 from ssm_ms.control.cost import upright_error  # noqa: E402
 from ssm_ms.control.goals import ink_angle_features  # noqa: E402
-from ssm_ms.control.module import TruePendulum  # noqa: E402
+from ssm_ms.control.plant import TruePendulum  # noqa: E402
 from ssm_ms.loading import load_ssm  # noqa: E402
 from ssm_ms.nets.sensors import SensorLayout  # noqa: E402
 from ssm_ms.training.shooting import decode  # noqa: E402
