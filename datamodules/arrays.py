@@ -1,7 +1,7 @@
 """Arrays on disk: ``.npy`` / ``.npz`` headers read without loading, checks, memory-mapped loading.
 
 Used by :mod:`datamodules.files` (a user's recorded trajectories) and by
-:meth:`datamodules.base.TrajectoryDataModule.load_predict` (sequences to forecast); it imports nothing of
+:func:`datamodules.predict.read_predict` (sequences to forecast); it imports nothing of
 either, so neither imports the other to read an array. A file holds ``N`` trajectories ``[N, T, ...]`` or, where
 ``one_recording`` is allowed (training files), a single recording ``[T]`` / ``[T, D]``, served as ``[1, T, D]``.
 """

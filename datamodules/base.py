@@ -44,14 +44,10 @@ from torch.utils.data import DataLoader, Dataset, Sampler, default_collate
 
 from datamodules.arrays import (
     check_finite,
-    check_header,
-    concat_shape,
-    load_files,
-    read_header,
-    stream_headers,
 )
 from datamodules.dataset import TrajectoryDataset, collate
 from datamodules.normalizer import Normalizer, to_float
+from datamodules.predict import read_predict
 from datamodules.samplers import EpochSeededSampler, GlobalBatchShardSampler
 
 
@@ -263,77 +259,27 @@ class TrajectoryDataModule(pl.LightningDataModule):
         return self.load("train")
 
     def load_predict(self) -> TrajectoryDataset:
-        """The sequences of ``predict_path`` (checked like a user's training files), whole: the forecaster
-        reads the first ``predict_given`` samples and the rest, if any, is what followed them. For data driven by
-        inputs the files are ``.npz`` holding them beside the measurements (:attr:`predict_input_key`, ``[N, T_u,
-        m]``): those of the given samples, and, to forecast, those of the horizon (``T_u`` may exceed ``T``).
-        Several sensors: ``.npz`` files holding one array per stream, named as the streams (:attr:`sensor_layout`;
-        ``predict_key`` is not read), the streams after the first with NaN where they did not sample."""
+        """The sequences of ``predict_path``, whole (:func:`datamodules.predict.read_predict`): the forecaster reads
+        the first ``predict_given`` samples and the rest, if any, is what followed them."""
         if not self.predict_path:
             raise ValueError(
                 "nothing to predict: give the sequences to forecast with --data.init_args.predict_path FILE "
                 "(.npy or .npz, the layouts of training data)"
             )
-        layout = {s["name"]: tuple(s["shape"]) for s in self.sensor_layout or []}
-        keys = list(layout) or [self.predict_key]
-        heads = [read_header(path, keys[0], "predict_path") for path in self.predict_path]
-        for h in heads:
-            check_header(h, "predict_path")
-            if layout and h.key is None:
-                raise ValueError(
-                    f"predict_path: a model of several sensors reads .npz files holding one array per sensor, named "
-                    f"{keys} (numpy.savez(path, {', '.join(f'{k}=...' for k in keys)})), not {h.path}"
-                )
-        shape = concat_shape(heads, "predict_path")  # served [N, T, *obs]
-        arrays = {"y": load_files(heads)}
-        shapes = {keys[0]: tuple(shape[2:])}
-        for key in keys[1:]:  # further sensors: same N and T, NaN where they did not sample
-            what = f"predict_path (stream '{key}')"
-            streams = stream_headers(heads, key, keys[0], what)
-            shapes[key] = tuple(concat_shape(streams, what)[2:])
-            arrays[f"y_{key}"] = load_files(streams, missing=True)
-        expected = layout or {keys[0]: tuple(self.obs_shape)}
-        for key, got in shapes.items():
-            if got != expected[key]:
-                named = f" '{key}'" if layout else ""
-                raise ValueError(
-                    f"predict_path: the sequences hold measurements{named} of shape {got} but the model was trained "
-                    f"on {expected[key]} (served layout [N, T, *obs]): give recordings of the same sensors"
-                )
-        if self.predict_given is not None and self.predict_given > shape[1]:
-            raise ValueError(
-                f"predict_given={self.predict_given} but the sequences of predict_path have T={shape[1]} samples: "
-                f"give at most {shape[1]} (or leave predict_given unset to use all of them)"
-            )
-        if self.input_dim:
-            arrays["u"] = self._predict_inputs(heads, shape[0])
-        return TrajectoryDataset(arrays, streams=list(layout) or None)
+        return read_predict(
+            self.predict_path,
+            predict_key=self.predict_key,
+            obs_shape=tuple(self.obs_shape),
+            predict_given=self.predict_given,
+            input_dim=self.input_dim,
+            input_key=self.predict_input_key,
+            sensor_layout=self.sensor_layout,
+        )
 
     @property
     def predict_input_key(self) -> str:
         """The inputs' name in predict files: ``"u"`` (the files DataModule: its ``input_key``)."""
         return getattr(self, "input_key", None) or "u"
-
-    def _predict_inputs(self, heads: list, n: int) -> np.ndarray:
-        what = f"predict_path (inputs '{self.predict_input_key}')"
-        inputs = []
-        for h in heads:
-            if h.key is None:
-                raise ValueError(
-                    f"{what}: this model is driven by {self.input_dim} inputs per step; give .npz files "
-                    f"holding them beside the measurements (numpy.savez(path, y=..., u=...)), not {h.path}"
-                )
-            u = read_header(h.path, self.predict_input_key, what)
-            check_header(u, what)
-            if len(u.shape) != 3 or u.shape[2] != self.input_dim or u.shape[0] != h.shape[0]:
-                raise ValueError(
-                    f"{what}: {u.label} must be [N, T_u, {self.input_dim}] with the measurements' N = "
-                    f"{h.shape[0]}, got {u.shape}"
-                )
-            inputs.append(u)
-        if len({u.shape[1] for u in inputs}) > 1:
-            raise ValueError(f"{what}: every file must hold inputs of the same length T_u")
-        return load_files(inputs)
 
     def predict_dataloader(self) -> DataLoader:
         if "predict" not in self.datasets:

@@ -58,9 +58,11 @@ def test_data_modules_import_each_other_without_a_circle():
 
 
 def test_the_data_set_and_the_normalizer_sit_below_the_datamodule():
-    """base.py's DataModule builds on dataset.py (the array data set) and normalizer.py, never the other way round."""
+    """base.py's DataModule builds on dataset.py (the array data set), normalizer.py and predict.py (the files to
+    forecast), never the other way round."""
     graph = data_graph()
-    assert graph["datamodules.base"] >= {"datamodules.dataset", "datamodules.normalizer"}
+    assert graph["datamodules.base"] >= {"datamodules.dataset", "datamodules.normalizer", "datamodules.predict"}
+    assert graph["datamodules.predict"] == {"datamodules.arrays", "datamodules.dataset"}
     assert graph["datamodules.dataset"] == {"datamodules.normalizer"}
     assert graph["datamodules.normalizer"] == set()
 
