@@ -113,7 +113,6 @@ def scores(model, dm, horizon: int) -> dict[str, float]:
 
 def run_variant(experiment: str, name: str, args: argparse.Namespace, workdir: Path) -> dict:
     from ssm_ms.cli import main as cli_main
-    from ssm_ms.schedule import ShootingSchedule
 
     spec = EXPERIMENTS[experiment]
     constraint, node_optimizer, alpha_x, options = VARIANTS[name]
@@ -144,9 +143,10 @@ def run_variant(experiment: str, name: str, args: argparse.Namespace, workdir: P
     max_epochs = cli.trainer.max_epochs
     epochs = args.epochs or max(1, round(args.fraction * max_epochs))
     cli.trainer.fit_loop.max_epochs = epochs
-    cli.trainer.callbacks = [c for c in cli.trainer.callbacks if isinstance(c, ShootingSchedule)]
-    for c in cli.trainer.callbacks:
-        _scale_schedule(c, epochs / max_epochs, alpha_x)
+    cli.trainer.callbacks = []  # the model's schedule only (configure_callbacks)
+    if cli.model.schedule is None:
+        raise SystemExit(f"{spec['config']} names no schedule (model.init_args.schedule): nothing to scale")
+    _scale_schedule(cli.model.schedule, epochs / max_epochs, alpha_x)
     with torch.no_grad():
         cli.model.alpha.mul_(alpha_x)  # the initial alpha too: the whole schedule is scaled
     initial_alpha = float(cli.model.alpha)

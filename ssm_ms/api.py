@@ -475,8 +475,8 @@ def _checkpoint_of(module: pl.LightningModule) -> dict[str, Any]:
 def fit(model: SSM, data: TrajectoryDataModule, epochs: int | None = None, **options: Any) -> SSM:
     """Train ``model`` on ``data`` by multiple shooting, as ``python cli.py fit`` does.
 
-    The paper's schedule runs unless ``callbacks`` hold a :class:`~ssm_ms.schedule.ShootingSchedule` (alpha raised and
-    lr / 10 at 20% of the budget, lr / 10 again at 60%: of ``epochs``, or of ``time``, whichever runs out first). The
+    The paper's schedule runs (alpha raised and lr / 10 at 20% of the budget, lr / 10 again at 60%: of ``epochs``, or
+    of ``time``, whichever runs out first) unless the model has its own (``SSM(..., schedule=ShootingSchedule(...))``). The
     run writes TensorBoard events and ``checkpoints/last.ckpt`` (every epoch) to ``<save_dir>/<name>/version_N/``;
     ``model.checkpoint_path`` names it after the fit, and ``fit(..., ckpt_path=that)`` resumes an interrupted run.
     On a terminal a progress bar, in a log file one line per epoch.

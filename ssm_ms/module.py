@@ -10,6 +10,7 @@ like an uninterrupted one (tests/test_module.py).
 
 from __future__ import annotations
 
+import copy
 import os
 from collections.abc import Mapping
 from typing import Any
@@ -60,10 +61,10 @@ class MultipleShootingModule(pl.LightningModule):
     The loss of a batch is ``fit + alpha * gap`` (see :func:`ssm_ms.training.shooting.multiple_shooting_loss`).
     The shooting nodes of training trajectory ``j`` are row ``j`` of ``self.nodes``, an
     ``nn.Embedding(num_trajectories, n_nodes * state_dim)`` indexed by the batch's ``"index"``.
-    ``alpha`` is a buffer, stepped by :class:`ssm_ms.schedule.ShootingSchedule`: a fit whose trainer has none gets
-    the paper's (:meth:`ShootingSchedule.paper`, its milestones scaled to the run's epochs or time budget), so leaving
-    the schedule out never silently trains at a constant alpha (for that, give a ``ShootingSchedule`` that never
-    raises it).
+    ``alpha`` is a buffer, stepped by the model's ``schedule`` (:class:`ssm_ms.schedule.ShootingSchedule`); a model
+    given none runs the paper's (:meth:`ShootingSchedule.paper`, its milestones scaled to the run's epochs or time
+    budget), so leaving the schedule out never silently trains at a constant alpha (for that:
+    :meth:`ShootingSchedule.constant`).
 
     The model keeps the state of the data it was trained on (:attr:`data_state`: the DataModule's normalisation
     statistics, measurement shape, identity), from the DataModule when a fit starts and from the checkpoint when it
@@ -79,6 +80,12 @@ class MultipleShootingModule(pl.LightningModule):
         n_nodes: shooting nodes per trajectory ``m``; the trajectory length must be a multiple of it.
         loss: ``"mse"`` or ``"bce"`` (then ``g`` must output values in [0, 1]).
         lr: Adam learning rate (the schedule lowers it at its milestones).
+        schedule: alpha and the learning rate over the fit (:class:`~ssm_ms.schedule.ShootingSchedule`: its
+            milestones, optimizer resets and the value alpha is raised to); ``None``: the paper's, scaled to the run
+            (20% and 60% of its epochs or time budget; a run bounded by neither: the paper's epochs 200 and 600).
+            A config states it as ``model.init_args.schedule``, so that an overlay changes one of its settings. Each
+            fit runs a copy of it; its progress (milestones fired) is kept in the fit's checkpoints. A trainer
+            callback ``ShootingSchedule`` does the same for a model given none (Lightning's way); both is an error.
         weight_decay: decoupled weight decay of ``f``, ``g`` and the node encoder (AdamW; the nodes never decay);
             0, the paper's plain Adam, by default. A regulariser for short recordings (docs/benchmarks.md).
         alpha: initial weight of the continuity gap (the schedule raises it).
@@ -137,12 +144,20 @@ class MultipleShootingModule(pl.LightningModule):
         val_horizon: int | None = None,
         node_encoder: nn.Module | None = None,
         weight_decay: float = 0.0,
+        schedule: ShootingSchedule | None = None,
     ):
         super().__init__()
         # Built by LightningCLI, f, g and the node encoder are recorded as their config (class_path + init_args), so
         # `load_from_checkpoint` rebuilds them; built in Python, checkpoints carry the networks
         # themselves (see on_save_checkpoint).
-        self.save_hyperparameters(ignore=[] if built_by_lightning_cli() else list(NETWORKS))
+        # (a schedule built in Python is not recorded: a model loaded from such a checkpoint runs the paper's)
+        self.save_hyperparameters(ignore=[] if built_by_lightning_cli() else [*NETWORKS, "schedule"])
+        if schedule is not None and not isinstance(schedule, ShootingSchedule):
+            raise ValueError(
+                f"schedule must be a ShootingSchedule (ssm_ms.schedule), got {type(schedule).__name__}: "
+                "schedule: {class_path: ssm_ms.schedule.ShootingSchedule, init_args: {...}} in a config"
+            )
+        self.schedule = schedule
         state_dim = checks.state_dim_of(f, state_dim)
         self.hparams["state_dim"] = state_dim
         loss_function(loss)  # unknown loss name: fail now, not at the first step
@@ -248,12 +263,21 @@ class MultipleShootingModule(pl.LightningModule):
         return TransitionInUnits(self.f, units), ObservationInUnits(self.g, units)
 
     def configure_callbacks(self) -> list[pl.Callback]:
-        """A fit whose trainer has no :class:`~ssm_ms.schedule.ShootingSchedule` runs the paper's, scaled to the
-        run (alpha raised and lr / 10 at 20% of its epochs or time budget, lr / 10 again at 60%; a run bounded by
-        neither: at the paper's epochs 200 and 600): the schedule is part of the method."""
+        """A fit runs a copy of the model's ``schedule``, or the trainer's :class:`~ssm_ms.schedule.ShootingSchedule`,
+        or else the paper's, scaled to the run (alpha raised and lr / 10 at 20% of its epochs or time budget, lr / 10
+        again at 60%; a run bounded by neither: at the paper's epochs 200 and 600): the schedule is part of the
+        method."""
         if self._trainer is None or self.trainer.state.fn != "fit":
             return []
-        if any(isinstance(c, ShootingSchedule) for c in self.trainer.callbacks):
+        on_trainer = any(isinstance(c, ShootingSchedule) for c in self.trainer.callbacks)
+        if self.schedule is not None:
+            if on_trainer:
+                raise ValueError(
+                    "the schedule is given twice, as the model's schedule and among the trainer's callbacks: "
+                    "keep one (configs: model.init_args.schedule)"
+                )
+            return [copy.deepcopy(self.schedule)]  # fresh progress per fit; a resumed fit loads its own
+        if on_trainer:
             return []
         bounded = (self.trainer.max_epochs or 0) > 0 or time_budget(self.trainer) is not None
         paper = ShootingSchedule.paper()

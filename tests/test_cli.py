@@ -415,15 +415,15 @@ trainer:
   logger:
     class_path: lightning.pytorch.loggers.TensorBoardLogger
     init_args: {{save_dir: {root}/runs, name: rot}}
-  callbacks:
-    - class_path: ssm_ms.schedule.ShootingSchedule
-      init_args: {{alpha: 50.0, alpha_epoch: 2, lr_milestones: [2], lr_factor: 0.1}}
 model:
   class_path: ssm_ms.module.MultipleShootingModule
   init_args:
     state_dim: 2
     n_nodes: 3
     lr: 0.01
+    schedule:
+      class_path: ssm_ms.schedule.ShootingSchedule
+      init_args: {{alpha: 50.0, alpha_epoch: 2, lr_milestones: [2], lr_factor: 0.1}}
     f:
       class_path: ssm_ms.nets.LocallyLinearTransition
       init_args: {{state_dim: "${{model.init_args.state_dim}}", n_matrices: 4, hidden: 16}}
@@ -514,6 +514,20 @@ def test_no_shipped_config_keeps_a_second_last_ckpt():
             if c["class_path"] == "lightning.pytorch.callbacks.ModelCheckpoint":
                 assert c["init_args"].get("monitor") and c["init_args"].get("filename") == "best", config
                 assert not c["init_args"].get("save_last"), config
+
+
+def test_configs_state_the_schedule_on_the_model_and_twins_change_only_what_differs():
+    """The schedule is the model's argument in every shipped config (none among the trainer's callbacks, where a list
+    would replace the base's whole): the CPU twin of the pendulum states its two milestones and keeps the paper
+    config's alpha and factor."""
+    for config in CONFIGS:
+        for c in load_config(config)["trainer"].get("callbacks") or []:
+            assert c["class_path"] != "ssm_ms.schedule.ShootingSchedule", config
+    paper = load_config(ROOT / "configs/pendulum.yaml")["model"]["init_args"]["schedule"]["init_args"]
+    twin = load_config(ROOT / "configs/cpu/pendulum.yaml")["model"]["init_args"]["schedule"]["init_args"]
+    assert (paper["alpha_epoch"], paper["lr_milestones"]) == (200, [200, 600])
+    assert (twin["alpha_epoch"], twin["lr_milestones"]) == (110, [110, 150])
+    assert twin["alpha"] == paper["alpha"] == 1000.0 and twin["lr_factor"] == paper["lr_factor"] == 0.1
 
 
 def test_nan_stop_names_the_last_good_epoch(rotation, capsys):

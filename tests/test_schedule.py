@@ -5,6 +5,7 @@ import logging
 import math
 from fractions import Fraction
 
+import lightning.pytorch as pl
 import pytest
 import torch
 from lightning.pytorch.callbacks import Callback, ModelCheckpoint, Timer
@@ -16,12 +17,15 @@ LR = 1e-2
 
 
 class Probe(Callback):
-    """Record, at the start of every epoch (after the schedule ran), alpha, lr and Adam's step counts."""
+    """Record, before the first step of every epoch (after the schedule ran, whichever the order of the callbacks: a
+    model's own come after the trainer's), alpha, lr and Adam's step counts."""
 
     def __init__(self):
         self.seen = {}
 
-    def on_train_epoch_start(self, trainer, pl_module):
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if batch_idx:
+            return
         opt = trainer.optimizers[0]
         steps = [float(s["step"]) for s in opt.state.values()]
         self.seen[trainer.current_epoch] = (pl_module.alpha.item(), opt.param_groups[0]["lr"], max(steps, default=0))
@@ -43,6 +47,35 @@ def test_schedule_steps_alpha_lr_and_resets_the_optimizer(tmp_path, rotation_dm)
     assert lr == pytest.approx([LR, LR, LR / 10, LR / 10, LR / 100])
     # Adam counts steps per parameter: cleared at epoch 2 only, then counts again from zero
     assert adam_steps == [0, steps_per_epoch, 0, steps_per_epoch, 2 * steps_per_epoch]
+
+
+def _trainer_without_schedule(tmp_path, max_epochs: int, callbacks) -> pl.Trainer:
+    """fast_trainer's settings, with no schedule of the trainer's own (fast_trainer adds a constant one)."""
+    trainer = fast_trainer(tmp_path, max_epochs, callbacks=callbacks)
+    trainer.callbacks[:] = [c for c in trainer.callbacks if not isinstance(c, ShootingSchedule)]
+    return trainer
+
+
+def test_the_models_schedule_runs_in_each_of_its_fits(tmp_path, rotation_dm):
+    """model.schedule (how configs state it) steps alpha and lr as the trainer callback does, in a first fit and again
+    in a second: each fit runs a fresh copy, the model's own never advances."""
+    model = rotation_model(lr=LR, schedule=schedule())
+    for run in ("first", "second"):
+        probe = Probe()
+        _trainer_without_schedule(tmp_path / run, 5, [probe]).fit(model, rotation_dm)
+        assert [probe.seen[e][0] for e in range(5)] == [1.0, 1.0, 50.0, 50.0, 50.0]
+        assert [probe.seen[e][1] for e in range(5)] == pytest.approx([LR, LR, LR / 10, LR / 10, LR / 100])
+        with torch.no_grad():  # the next fit starts where the paper's would: alpha and lr at their initial values
+            model.alpha.fill_(1.0)
+    assert model.schedule.initial_alpha is None and model.schedule.fired == {}
+
+
+def test_a_schedule_given_twice_is_refused(tmp_path, rotation_dm):
+    trainer = fast_trainer(tmp_path, max_epochs=1, callbacks=[schedule()])
+    with pytest.raises(ValueError, match="given twice.*keep one"):
+        trainer.fit(rotation_model(lr=LR, schedule=schedule()), rotation_dm)
+    with pytest.raises(ValueError, match="must be a ShootingSchedule"):
+        rotation_model(schedule={"alpha": 10.0})
 
 
 def test_optimizer_resets_where_configured(tmp_path, rotation_dm):
