@@ -63,6 +63,7 @@ from pathlib import Path
 from typing import Any, Union, get_args, get_origin
 
 import lightning.pytorch as pl
+import yaml
 from jsonargparse import set_parsing_settings
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import ProgressBar
@@ -103,6 +104,34 @@ class _Parser(LightningArgumentParser):
 
     def error(self, message: str, ex: Exception | None = None):
         raise CommandLineError(message) from ex
+
+    def parse_path(self, cfg_path: Any, *args: Any, **kwargs: Any):
+        problem = section_file_with_dotted_keys(Path(str(getattr(cfg_path, "absolute", cfg_path))))
+        if problem:
+            self.error(problem)
+        return super().parse_path(cfg_path, *args, **kwargs)
+
+
+def section_file_with_dotted_keys(path: Path) -> str | None:
+    """What is wrong with a config file that gives a section as a file (``model: parts/x.yaml``) and changes it with
+    dotted keys (``model.init_args.lr``) in the same file: jsonargparse then drops the file and changes the included
+    config's section. ``None`` where the file has no such pair (or is not a mapping)."""
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return None  # jsonargparse reports what it cannot read
+    if not isinstance(raw, dict):
+        return None
+    for key, value in raw.items():
+        dotted = [k for k in raw if isinstance(k, str) and k.startswith(f"{key}.")]
+        if isinstance(value, str) and value.endswith((".yaml", ".yml")) and dotted:
+            return (
+                f"{path}: '{key}: {value}' and '{dotted[0]}' in one file: the dotted key would drop {value} and "
+                f"change the included config's {key} instead. Move the dotted keys to a config that includes this "
+                f"one (config: {path.name}, as configs/benchmarks/cascaded_tanks_amortised_adam.yaml does), or "
+                f"restate the section in full"
+            )
+    return None
 
 
 class SSMCLI(LightningCLI):

@@ -530,6 +530,28 @@ def test_configs_state_the_schedule_on_the_model_and_twins_change_only_what_diff
     assert twin["alpha"] == paper["alpha"] == 1000.0 and twin["lr_factor"] == paper["lr_factor"] == 0.1
 
 
+def test_a_section_file_changed_by_dotted_keys_in_the_same_file_is_refused(tmp_path, capsys):
+    """jsonargparse would drop ``model: parts/amortised.yaml`` for the base's model with the dotted key applied (an
+    SSM-LL of 8 nodes in place of the amortised model); one message names the fix instead, and the same key one
+    include later composes the part's model."""
+    bench = ROOT / "configs" / "benchmarks"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(
+        f"config: {bench / 'cascaded_tanks.yaml'}\nmodel: {bench / 'parts' / 'amortised.yaml'}\nmodel.init_args.lr: 0.001\n"
+    )
+    with pytest.raises(SystemExit) as stop:
+        main(["fit", "--config", str(bad), "--print_config"])
+    err = capsys.readouterr().err
+    assert stop.value.code != 0 and "Traceback" not in err
+    assert "model.init_args.lr" in err and "config that includes this one" in err
+    with pytest.raises(ValueError, match="in one file"):
+        load_config(bad)
+    good = tmp_path / "good.yaml"
+    good.write_text(f"config: {bench / 'cascaded_tanks_amortised.yaml'}\nmodel.init_args.lr: 0.001\n")
+    model = load_config(good)["model"]["init_args"]
+    assert (model["lr"], model["n_nodes"], model["state_dim"]) == (0.001, 1, 10) and model["node_encoder"]
+
+
 def test_nan_stop_names_the_last_good_epoch(rotation, capsys):
     root, fit = rotation
     with pytest.raises(SystemExit) as stop:
