@@ -47,6 +47,15 @@ def _read_npy_header(fp, where: str) -> tuple[tuple[int, ...], bool, np.dtype]:
     return np.lib.format.read_array_header_2_0(fp)
 
 
+def read_beside(head: ArrayHeader, key: str, what: str, npy_message: str) -> ArrayHeader:
+    """The header of the member ``key`` of the ``.npz`` file ``head`` was read from (an array stored beside the
+    measurements: inputs, noiseless targets). A ``.npy`` file holds one array only: ValueError ``npy_message``, its
+    ``{path}`` filled in."""
+    if head.key is None:
+        raise ValueError(npy_message.replace("{path}", str(head.path)))
+    return read_header(head.path, key, what)
+
+
 def read_header(path: str | Path, key: str, what: str) -> ArrayHeader:
     """Read the header of a ``.npy`` file or of the member ``key`` of an ``.npz`` file.
 

@@ -34,6 +34,7 @@ from datamodules.arrays import (
     check_header,
     load_files,
     open_files,
+    read_beside,
     read_header,
     served_shape,
     stored_dtype,
@@ -212,14 +213,11 @@ class FileDataModule(TrajectoryDataModule):
             clean = [read_header(p, self.clean_key or self.key, what_clean) for p in self.clean_paths[split]]
         elif self.clean_key is not None:
             what_clean = f"clean_key '{self.clean_key}' of {what}"
-            clean = []
-            for h in heads:
-                if h.key is None:
-                    raise ValueError(
-                        f"clean_key applies to .npz files, but {h.path} is a .npy file: pass the noiseless targets "
-                        f"as {split}_clean_path instead"
-                    )
-                clean.append(read_header(h.path, self.clean_key, f"clean_key of {what}"))
+            refusal = (
+                "clean_key applies to .npz files, but {path} is a .npy file: pass the noiseless targets as "
+                f"{split}_clean_path instead"
+            )
+            clean = [read_beside(h, self.clean_key, f"clean_key of {what}", refusal) for h in heads]
         else:
             clean = []
         if clean:
@@ -262,13 +260,12 @@ class FileDataModule(TrajectoryDataModule):
         m]`` beside one recording)."""
         what = f"input_key '{self.input_key}' of {split}_path"
         inputs = []
+        refusal = (
+            f"{what}: inputs are read from .npz files (y and u side by side), but {{path}} is a .npy file: save both "
+            "with numpy.savez(path, y=..., u=...)"
+        )
         for h in heads:
-            if h.key is None:
-                raise ValueError(
-                    f"{what}: inputs are read from .npz files (y and u side by side), but {h.path} is a "
-                    ".npy file: save both with numpy.savez(path, y=..., u=...)"
-                )
-            u = read_header(h.path, self.input_key, what)
+            u = read_beside(h, self.input_key, what, refusal)
             check_header(u, what, one_recording=True)
             layout = "[T, m]" if len(h.shape) <= 2 else "[N, T, m]"
             if len(u.shape) != (2 if len(h.shape) <= 2 else 3) or u.dtype == np.uint8 or u.dtype.kind not in "fi":

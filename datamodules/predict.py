@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from datamodules.arrays import check_header, concat_shape, load_files, read_header, stream_headers
+from datamodules.arrays import check_header, concat_shape, load_files, read_beside, read_header, stream_headers
 from datamodules.dataset import TrajectoryDataset
 
 
@@ -65,14 +65,13 @@ def read_predict(
 
 def _inputs(heads: list, input_dim: int, input_key: str) -> np.ndarray:
     what = f"predict_path (inputs '{input_key}')"
+    refusal = (
+        f"{what}: this model is driven by {input_dim} inputs per step; give .npz files holding them beside the "
+        "measurements (numpy.savez(path, y=..., u=...)), not {path}"
+    )
     inputs = []
     for h in heads:
-        if h.key is None:
-            raise ValueError(
-                f"{what}: this model is driven by {input_dim} inputs per step; give .npz files "
-                f"holding them beside the measurements (numpy.savez(path, y=..., u=...)), not {h.path}"
-            )
-        u = read_header(h.path, input_key, what)
+        u = read_beside(h, input_key, what, refusal)
         check_header(u, what)
         if len(u.shape) != 3 or u.shape[2] != input_dim or u.shape[0] != h.shape[0]:
             raise ValueError(
