@@ -42,13 +42,17 @@ class ReconstructionLogger(Callback):
         every_n_epochs: log at the first validation, then at the first validation after each further
             ``every_n_epochs`` epochs of training (and at the last epoch). Validation runs only every
             ``check_val_every_n_epoch`` epochs (after epochs 9, 19, ... for 10), so the picture follows the
-            validations rather than asking for epochs that have none.
+            validations rather than asking for epochs that have none. ``None`` (default): ``PICTURES`` pictures
+            over the run, every ``trainer.max_epochs // PICTURES`` epochs (at least 1; every 10 where the run
+            has no epoch count, e.g. under a time budget), so that a config and its shorter twin share one list.
         max_trajectories: trajectories drawn.
         max_frames: frames per row for images.
     """
 
-    def __init__(self, every_n_epochs: int = 10, max_trajectories: int = 4, max_frames: int = 10):
-        if every_n_epochs < 1:
+    PICTURES = 20
+
+    def __init__(self, every_n_epochs: int | None = None, max_trajectories: int = 4, max_frames: int = 10):
+        if every_n_epochs is not None and every_n_epochs < 1:
             raise ValueError(f"every_n_epochs must be >= 1, got {every_n_epochs}")
         self.every_n_epochs = every_n_epochs
         self.max_trajectories = max_trajectories
@@ -56,9 +60,12 @@ class ReconstructionLogger(Callback):
         self._drawn_window = -1  # the last window of every_n_epochs trained epochs drawn (after a resume: none)
 
     def _due(self, trainer: pl.Trainer) -> bool:
-        epoch = trainer.current_epoch
-        last = trainer.max_epochs is not None and epoch == trainer.max_epochs - 1
-        window = (epoch + 1) // self.every_n_epochs  # whole windows trained by the end of this epoch
+        epoch, max_epochs = trainer.current_epoch, trainer.max_epochs
+        last = max_epochs is not None and epoch == max_epochs - 1
+        every = self.every_n_epochs
+        if every is None:
+            every = max(1, max_epochs // self.PICTURES) if max_epochs is not None and max_epochs > 0 else 10
+        window = (epoch + 1) // every  # whole windows trained by the end of this epoch
         if window > self._drawn_window or last:
             self._drawn_window = window
             return True

@@ -528,6 +528,15 @@ def test_configs_state_the_schedule_on_the_model_and_twins_change_only_what_diff
     assert (paper["alpha_epoch"], paper["lr_milestones"]) == (200, [200, 600])
     assert (twin["alpha_epoch"], twin["lr_milestones"]) == (110, [110, 150])
     assert twin["alpha"] == paper["alpha"] == 1000.0 and twin["lr_factor"] == paper["lr_factor"] == 0.1
+    # the callbacks too come from the paper config, one list (their cadence follows the run's length)
+    for twin_file in sorted((ROOT / "configs/cpu").glob("*.yaml")):
+        assert "ReconstructionLogger" not in twin_file.read_text(), twin_file
+    assert load_config(ROOT / "configs/cpu/pendulum.yaml")["trainer"]["callbacks"] == [
+        {
+            "class_path": "ssm_ms.viz.ReconstructionLogger",
+            "init_args": {"every_n_epochs": None, "max_trajectories": 4, "max_frames": 10},
+        }
+    ]
 
 
 def test_a_section_file_changed_by_dotted_keys_in_the_same_file_is_refused(tmp_path, capsys):

@@ -252,6 +252,24 @@ def test_reconstructions_are_drawn_at_validations_every_n_epochs_apart(tmp_path,
     assert drawn == [2, 5, 11]
 
 
+def test_reconstructions_by_default_are_twenty_over_the_run_whatever_its_length():
+    """No every_n_epochs: the first validation's picture, then one each max_epochs // 20 epochs (validating every
+    epoch), so a 1000-epoch config and its 180-epoch twin share one callbacks list; every 10 without an epoch count."""
+    from types import SimpleNamespace
+
+    from ssm_ms import viz
+
+    def drawn(max_epochs, epochs):
+        logger = viz.ReconstructionLogger()
+        return [e for e in range(epochs) if logger._due(SimpleNamespace(current_epoch=e, max_epochs=max_epochs))]
+
+    assert drawn(1000, 1000) == [0] + [e for e in range(1000) if (e + 1) % 50 == 0]
+    assert drawn(180, 180) == [0] + [e for e in range(180) if (e + 1) % 9 == 0]
+    assert drawn(10, 10) == list(range(10))  # shorter than 20 epochs: every epoch
+    assert drawn(-1, 35) == [0, 9, 19, 29]  # a time budget: every 10
+    assert drawn(1000, 100)[:3] == [0, 49, 99] and viz.ReconstructionLogger(every_n_epochs=7).every_n_epochs == 7
+
+
 def test_weight_decay_shrinks_the_networks_and_never_the_nodes():
     """With zero gradients an AdamW step is the decay alone: every weight of f and g times (1 - lr * wd),
     the node table unchanged; without weight_decay the optimizer is the paper's plain Adam."""
