@@ -40,6 +40,7 @@ ROWS = [
     ("iterations 4", [P + "iterations", "4"]),
     ("samples 512", [P + "samples", "512"]),
     ("horizon 10", [P + "horizon", "10"]),
+    ("horizon 5", [P + "horizon", "5"]),
     ("temperature 0.05", [P + "temperature", "0.05"]),
     ("noise 1.5 N m", [P + "noise_std", "1.5"]),
     ("smoothing 0.2", [P + "smoothing", "0.2"]),
