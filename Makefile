@@ -83,18 +83,22 @@ bench: $(STAMP)
 reproduce: $(STAMP) $(if $(filter oscillator,$(EXP)),data/oscillator.npz)
 	$(PY) -m experiments.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(RESUME),--resume $(RESUME)) $(if $(ARGS),-- $(ARGS))
 
-## The closed-loop tables' rows from pretrained/: the torque-driven pendulum's SSM with its UKF, then with its encoder,
-## and the true model (the bound), 100 episodes each, for each setting of CONTROL_SETTINGS (control: |u| <= 3 N m;
-## control_2nm: 2 N m), into runs/pretrained/pendulum_control{,_2nm}.md (a few minutes on 2 cores).
+## The closed-loop tables' rows from pretrained/: each model of CONTROL_MODELS (pendulum_<model>.ckpt: torque, the
+## camera; sensors, camera and joint angle) with its UKF, then with its encoder, for each setting of CONTROL_SETTINGS
+## it has a config for (control: |u| <= 3 N m; control_2nm: 2 N m), and the true model (the bound), 100 episodes
+## each, into runs/pretrained/pendulum_control{,_2nm}.md (a few minutes per row on 2 cores).
 CONTROL_SETTINGS ?= control control_2nm
+CONTROL_MODELS ?= torque sensors
 CONTROL_OUT = --model.init_args.results_dir runs/pretrained --model.init_args.figures_dir runs/pretrained/figures
-CONTROL_SSM = --model.init_args.ssm_checkpoint pretrained/pendulum_torque.ckpt
-CONTROL_ENCODER = --model.init_args.encoder_checkpoint pretrained/pendulum_torque_encoder.ckpt
 control-pretrained: $(STAMP)
 	set -e; for setting in $(CONTROL_SETTINGS); do \
-		$(PY) cli.py test --config configs/pendulum_torque_$$setting.yaml $(CONTROL_SSM) $(CONTROL_OUT) $(ARGS); \
-		$(PY) cli.py test --config configs/pendulum_torque_$$setting.yaml $(CONTROL_SSM) $(CONTROL_ENCODER) \
-			$(CONTROL_OUT) $(ARGS); \
+		for model in $(CONTROL_MODELS); do \
+			config=configs/pendulum_$${model}_$$setting.yaml; test -f $$config || continue; \
+			ssm="--model.init_args.ssm_checkpoint pretrained/pendulum_$$model.ckpt"; \
+			$(PY) cli.py test --config $$config $$ssm $(CONTROL_OUT) $(ARGS); \
+			$(PY) cli.py test --config $$config $$ssm \
+				--model.init_args.encoder_checkpoint pretrained/pendulum_$${model}_encoder.ckpt $(CONTROL_OUT) $(ARGS); \
+		done; \
 		$(PY) cli.py test --config configs/pendulum_true_$$setting.yaml $(CONTROL_OUT) $(ARGS); \
 	done
 
