@@ -93,6 +93,8 @@ CONTROL_OUT = --model.init_args.results_dir runs/pretrained --model.init_args.fi
 control-pretrained: $(STAMP)
 	set -e; for setting in $(CONTROL_SETTINGS); do \
 		for model in $(CONTROL_MODELS); do \
+			test -f pretrained/pendulum_$$model.ckpt || \
+				{ echo "error: CONTROL_MODELS: no pretrained/pendulum_$$model.ckpt (shipped: torque sensors)" >&2; exit 2; }; \
 			config=configs/pendulum_$${model}_$$setting.yaml; test -f $$config || continue; \
 			ssm="--model.init_args.ssm_checkpoint pretrained/pendulum_$$model.ckpt"; \
 			$(PY) cli.py test --config $$config $$ssm $(CONTROL_OUT) $(ARGS); \
