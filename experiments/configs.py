@@ -14,6 +14,10 @@ from omegaconf import OmegaConf
 ROOT = Path(__file__).resolve().parents[1]
 
 
+class ConfigError(ValueError):
+    """A config file that cannot be read or composed: a user's mistake, said in one line naming the file."""
+
+
 def load_config(config: Path | str) -> dict:
     """The config file ``config`` as ``python cli.py`` composes it (:func:`ssm_ms.cli.config_parser`: its includes,
     section files, dotted keys and interpolations, the defaults it leaves out filled in), as a dict.
@@ -24,10 +28,12 @@ def load_config(config: Path | str) -> dict:
     path = Path(config)
     raw = OmegaConf.to_container(OmegaConf.load(path), resolve=False) or {}
     if not isinstance(raw, dict):
-        raise ValueError(f"{path} is not a config (a YAML mapping of options)")
+        raise ConfigError(f"{path} is not a config (a YAML mapping of options)")
     if "class_path" in raw:  # a section file of its own (configs/data/*.yaml)
         return raw
-    from ssm_ms.cli import CommandLineError, config_parser
+    from omegaconf.errors import InterpolationResolutionError
+
+    from ssm_ms.cli import CommandLineError, config_parser, interpolation_message
 
     # jsonargparse parses in the config's folder: the working directory's place on sys.path ("" under python -c)
     # must name the folder the process started in, for the classes the config names
@@ -36,7 +42,9 @@ def load_config(config: Path | str) -> dict:
     try:  # jsonargparse's parse without its check of required values (the stage's checkpoint comes with the command)
         parsed = config_parser().parse_args(["--config", str(path)], _skip_validation=True).as_dict()
     except CommandLineError as e:
-        raise ValueError(f"{path}: {e.message}") from None
+        raise ConfigError(f"{path}: {e.message}") from None
+    except InterpolationResolutionError as e:
+        raise ConfigError(f"{path}: {interpolation_message(e)}") from None
     finally:
         sys.path[:] = saved
     return _values(parsed)
@@ -56,22 +64,22 @@ def build_datamodule(config: dict | Path | str, **overrides):
 
     ``config``: a config file or its :func:`load_config` dict; a whole config (its ``data`` section) or a data config
     (``configs/data/*.yaml``: ``class_path`` and ``init_args``). A file that describes no data module, or arguments
-    its class refuses, raise ValueError with one line naming the file."""
+    its class refuses, raise ConfigError with one line naming the file."""
     name = config if isinstance(config, (str, Path)) else "the config"
     spec = load_config(config) if isinstance(config, (str, Path)) else config
     spec = spec.get("data", spec)
     path = spec.get("class_path") if isinstance(spec, dict) else None
     if not isinstance(path, str) or "." not in path:
-        raise ValueError(f"{name} describes no data module (a class_path and init_args, or a data section of them)")
+        raise ConfigError(f"{name} describes no data module (a class_path and init_args, or a data section of them)")
     module, attr = path.rsplit(".", 1)
     try:
         cls = getattr(importlib.import_module(module), attr)
     except (ImportError, AttributeError) as e:
-        raise ValueError(f"{name}: no data module {path} ({e})") from e
+        raise ConfigError(f"{name}: no data module {path} ({e})") from e
     try:
         return cls(**{**(spec.get("init_args") or {}), **overrides})
     except TypeError as e:  # an argument the class does not take
-        raise ValueError(f"{name}: {path} refuses its arguments ({e})") from e
+        raise ConfigError(f"{name}: {path} refuses its arguments ({e})") from e
 
 
 def config_value(config: Path | str, key: str, default=None):
@@ -88,7 +96,7 @@ def logger_dir(config: Path) -> Path:
     """``save_dir/name`` of the TensorBoard logger a config declares."""
     args = config_value(config, "trainer.logger.init_args")
     if not isinstance(args, dict) or "save_dir" not in args or "name" not in args:
-        raise ValueError(f"{config} declares no TensorBoardLogger with save_dir and name: reproduce needs them")
+        raise ConfigError(f"{config} declares no TensorBoardLogger with save_dir and name: reproduce needs them")
     return Path(str(args["save_dir"])) / str(args["name"])
 
 

@@ -72,6 +72,15 @@ def known_experiments(registry: dict, size: str) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """``make reproduce``: the stages of one experiment (see the module docstring); a config that cannot be composed
+    stops it with one line naming the file, before any stage runs."""
+    try:
+        _main(argv)
+    except configs.ConfigError as e:
+        raise SystemExit(f"error: {e}") from None
+
+
+def _main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("experiment", help="e.g. pendulum, quad, lorenz_T1000, or a baseline: pendulum_lstm")
     parser.add_argument("--size", choices=["paper", "cpu"], default="paper")

@@ -344,7 +344,7 @@ def user_error(exc: BaseException) -> tuple[str, int] | None:
         if isinstance(current, USER_ERROR_TYPES) and _raised_by_own_code(current):
             return str(current), 1
         if isinstance(current, InterpolationResolutionError):
-            return _interpolation_message(current), 1
+            return interpolation_message(current), 1
         if isinstance(current, CommandLineError):
             cause = current.__cause__
             while cause is not None:  # a wrapped error of our own code says it best
@@ -356,7 +356,8 @@ def user_error(exc: BaseException) -> tuple[str, int] | None:
     return None
 
 
-def _interpolation_message(exc: InterpolationResolutionError) -> str:
+def interpolation_message(exc: InterpolationResolutionError) -> str:
+    """One line for a config interpolation that does not resolve: where, and how to write it instead."""
     key = getattr(exc, "full_key", None) or ""
     head, _, rest = key.partition(".")
     where = f" (at {rest if head in SUBCOMMANDS else key})" if key else ""

@@ -219,6 +219,21 @@ def test_unknown_experiment_lists_the_known_ones(recorded):
         reproduce.main(["pendulum_torque", "--size", "cpu"])  # a paper-size experiment only
 
 
+def test_a_config_that_does_not_compose_stops_with_one_line_before_any_stage(recorded, monkeypatch, tmp_path):
+    """An interpolation under a dotted key (it resolves relative to the wrong section): one line naming the file and
+    the fix, no stage run, no traceback."""
+    fit = tmp_path / "bad.yaml"
+    fit.write_text(
+        "config: " + str(configs.ROOT / "configs/benchmarks/cascaded_tanks_amortised.yaml") + "\n"
+        'model.init_args.g: {class_path: ssm_ms.nets.MLPReadout, init_args: {state_dim: "${init_args.state_dim}", '
+        "out_features: 1}}\n"
+    )
+    monkeypatch.setattr(reproduce, "read_registry", lambda: {"benchmarks": {"bad": {"fit": fit, "test": fit}}})
+    with pytest.raises(SystemExit, match=r"^error: .*bad\.yaml: a config interpolation cannot be resolved") as stop:
+        reproduce.main(["bad"])
+    assert "\n" not in str(stop.value) and recorded[0] == []
+
+
 # ---------------------------------------------------------------------------- a stage interrupted or failing
 def _stage_in_own_group(tmp_path, args, sigint_ignored: bool = False):
     """``pipeline.run_stage(args)`` in a new process group, with SIGINT's default disposition (as a terminal runs
