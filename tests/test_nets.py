@@ -239,6 +239,20 @@ def test_fully_connected_transition_with_a_linear_part_and_tanh():
         FullyConnectedTransition(3, activation="gelu")
 
 
+def test_transition_without_the_identity_is_subnets_form():
+    """residual=False: f(x, u) = W [x, u] + MLP([x, u]) (no x +), computed here layer by layer, W not at zero; it
+    needs the linear part (else f would be the MLP alone, not SSM-FC)."""
+    torch.manual_seed(0)
+    f = FullyConnectedTransition(3, hidden=(5,), input_dim=2, activation="tanh", linear=True, residual=False)
+    assert torch.count_nonzero(f.linear.weight) == f.linear.weight.numel()
+    x, u = torch.randn(4, 3), torch.randn(4, 2)
+    xu = torch.cat([x, u], 1)
+    hidden = torch.tanh(xu @ f.mlp[0].weight.T + f.mlp[0].bias)
+    torch.testing.assert_close(f(x, u), xu @ f.linear.weight.T + hidden @ f.mlp[2].weight.T + f.mlp[2].bias)
+    with pytest.raises(ValueError, match="needs linear=True"):
+        FullyConnectedTransition(3, residual=False)
+
+
 def test_identity_init_starts_f_as_the_identity_and_still_learns():
     """identity_init: f(x, u) = x exactly at initialisation (PyTorch's default initialisation does not give that),
     and the layers before the zeroed one still get gradients once it moves (one step of SGD on a loss)."""

@@ -454,7 +454,7 @@ def model_name(ssm: MultipleShootingModule) -> str:
     name = type(ssm.f).__name__
     label = MODEL_NAMES.get(name, f"SSM ({name})")
     if getattr(ssm.f, "linear", None) is not None:  # FullyConnectedTransition(linear=True): not the paper's SSM-FC
-        label += " with a linear part"
+        label += " with a linear part" if getattr(ssm.f, "residual", True) else " with a linear part, no identity"
     return f"{label} (d = {ssm.state_dim})"
 
 

@@ -112,7 +112,10 @@ class FullyConnectedTransition(nn.Module):
     ``activation``: ``"relu"`` (the paper's) or ``"tanh"``; ``linear``: add a linear map of ``[x, u]``, ``f = x +
     W [x, u] + MLP([x, u])`` (``W`` starts at zero: the same function at initialisation), the form of deepSI's SUBNET
     transition (a linear part beside the network, there without the identity); ``identity_init``: the MLP's last
-    layer starts at zero, so that ``f`` starts as the identity map (default: PyTorch's initialisation, the paper's).
+    layer starts at zero, so that ``f`` starts as the identity map (default: PyTorch's initialisation, the paper's);
+    ``residual=False`` (with ``linear``): no identity, ``f = W [x, u] + MLP([x, u])`` with ``W`` at PyTorch's
+    initialisation: SUBNET's transition (whose biases start at zero). On Silverbox, with ``MLPReadout`` and Adam at a
+    constant 1e-3, it left the ~1 mV plateau where the identity form stalled (results/benchmarks/silverbox.notes.md).
     On Cascaded Tanks the default initialisation stalled at a training fit of ~1 (the data's variance) in every seed
     run on AMD EPYC, where ``identity_init`` trained (results/benchmarks/cascaded_tanks.notes.md)."""
 
@@ -124,6 +127,7 @@ class FullyConnectedTransition(nn.Module):
         activation: str = "relu",
         linear: bool = False,
         identity_init: bool = False,
+        residual: bool = True,
     ):
         super().__init__()
         if state_dim < 1 or any(h < 1 for h in hidden) or input_dim < 0:
@@ -131,7 +135,9 @@ class FullyConnectedTransition(nn.Module):
                 f"state_dim and hidden widths must be >= 1 and input_dim >= 0, got {state_dim}, "
                 f"{list(hidden)}, {input_dim}"
             )
-        self.state_dim, self.input_dim = state_dim, input_dim
+        if not residual and not linear:
+            raise ValueError("residual=False keeps f = W [x, u] + MLP([x, u]): it needs linear=True")
+        self.state_dim, self.input_dim, self.residual = state_dim, input_dim, residual
         self.mlp = mlp(state_dim + input_dim, hidden, state_dim, activation)
         if identity_init:
             nn.init.zeros_(self.mlp[-1].weight)
@@ -139,10 +145,11 @@ class FullyConnectedTransition(nn.Module):
         self.linear: nn.Linear | None = None
         if linear:
             self.linear = nn.Linear(state_dim + input_dim, state_dim, bias=False)
-            nn.init.zeros_(self.linear.weight)
+            if residual:
+                nn.init.zeros_(self.linear.weight)
 
     def forward(self, x: torch.Tensor, u: torch.Tensor | None = None) -> torch.Tensor:
         _check_input(self, u, x)
         xu = x if u is None else torch.cat([x, u], dim=-1)
-        out = x + self.mlp(xu)
+        out = x + self.mlp(xu) if self.residual else self.mlp(xu)
         return out if self.linear is None else out + self.linear(xu)
