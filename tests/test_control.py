@@ -164,6 +164,48 @@ def test_distilled_features_fit_a_known_map():
     torch.testing.assert_close(net(states[:5]), target(states[:5]), atol=0.15, rtol=0)
 
 
+def test_the_planner_reads_the_angle_head_of_a_camera_and_angle_decoder():
+    """With camera and joint angle, the planner's angle readout (ClosedLoop._distill) learns what g's angle head
+    draws, not the ink of the frame it draws: a known decoder whose angle head shows the angle x[0] and whose frame
+    always shows the chain pointing right (ink angle pi / 2); with a camera alone it reads that ink."""
+    from types import SimpleNamespace
+
+    from ssm_ms.control.module import ClosedLoop
+
+    frame = torch.zeros(24, 24)
+    frame[11:13, 13:24] = 1.0  # a bar from the centre to the right edge: the ink's angle pi / 2
+
+    def g(x):  # [N, 2] -> [N, 576 + 2]: the frame, then (sin, cos) of x[0]
+        image = frame.flatten().expand(len(x), -1)
+        return torch.cat([image, torch.sin(x[:, :1]), torch.cos(x[:, :1])], 1)
+
+    def loop(streams):
+        return SimpleNamespace(
+            distill_settings={"rollout_steps": 3, "steps": 1500, "pivot": None},
+            seed=0,
+            settings=SimpleNamespace(u_min=-3.0, u_max=3.0),
+            frame_dt=0.1,
+            f=lambda x, u: x + 0.1 * torch.cat([x[:, 1:], u], 1),  # x = (angle, velocity)
+            ssm=SimpleNamespace(g=g),
+            from_frames=lambda y: y,
+            streams=streams,
+            ink_angle=lambda frames: ClosedLoop.ink_angle(loop_ns, frames),
+        )
+
+    both = lambda y: {"image": y[:, :576].reshape(-1, 1, 24, 24), "angle": y[:, 576:]}  # noqa: E731
+    camera = lambda y: {"image": y[:, :576].reshape(-1, 1, 24, 24)}  # noqa: E731
+    loop_ns = loop(both)
+    torch.manual_seed(0)
+    nodes = torch.stack([torch.rand(400) * 6 - 3, torch.randn(400)], 1)
+    test = torch.stack([torch.linspace(-2.5, 2.5, 11), torch.zeros(11)], 1)
+    features, error = ClosedLoop._distill(loop_ns, nodes)
+    assert error < 5e-3
+    torch.testing.assert_close(features(test), torch.stack([test[:, 0].sin(), test[:, 0].cos()], 1), atol=0.1, rtol=0)
+    loop_ns = loop(camera)
+    features, _ = ClosedLoop._distill(loop_ns, nodes)
+    torch.testing.assert_close(features(test), torch.tensor([[1.0, 0.0]]).expand(11, 2), atol=0.05, rtol=0)
+
+
 def true_control(tmp_path: Path, *args: str) -> None:
     """``cli.py test`` of configs/pendulum_true_control.yaml with its data, results and logs under ``tmp_path`` (3
     timing steps, no progress bar), then ``args``."""

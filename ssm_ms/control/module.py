@@ -8,8 +8,9 @@ Each test batch is a batch of episodes: the DataModule's test trajectories give 
    frame and torque (``encoder_checkpoint``); the true model instead reads the simulator's state: the upper bound;
 2. the plan: MPPI (:mod:`ssm_ms.control.mppi`) rolls sampled torque sequences out through ``f`` from the estimate
    and scores them with the swing-up cost (:mod:`ssm_ms.control.cost`) on the angle each predicted state shows:
-   for a learned model, the angle of the ink of the frame its decoder draws (:mod:`ssm_ms.control.goals`, distilled
-   into a small network once, at setup); for the true model, its angle; with ``offset_gain``, on ``f`` corrected
+   for a learned model, the angle its decoder draws (:mod:`ssm_ms.control.goals`, distilled into a small network
+   once, at setup): its joint-angle head's where ``g`` has one (camera and angle), else the angle of the ink of the
+   frame it draws; for the true model, its angle; with ``offset_gain``, on ``f`` corrected
    by its one-step error along the episode so far (offset-free planning);
 3. the first torque of the plan is applied for one period.
 
@@ -232,8 +233,9 @@ class ClosedLoop(pl.LightningModule):
         return UKFEstimator(self.ukf, self.prior, self.to_frames)
 
     def _distill(self, nodes: torch.Tensor) -> tuple[DistilledFeatures, float]:
-        """The angle the decoder draws, learned as a function of the state from the model's own states: every shooting
-        node rolled out ``rollout_steps`` steps under random torques (the data's kind of excitation)."""
+        """The angle the decoder draws (its angle head's where it has one: a direct reading, where the ink's centroid
+        in a 24x24 frame is a coarse one), learned as a function of the state from the model's own states: every
+        shooting node rolled out ``rollout_steps`` steps under random torques (the data's kind of excitation)."""
         s = self.distill_settings
         generator = torch.Generator().manual_seed(self.seed)
         steps, limit = int(s["rollout_steps"]), max(abs(self.settings.u_min), abs(self.settings.u_max))
@@ -249,10 +251,10 @@ class ClosedLoop(pl.LightningModule):
 
         def target(x: torch.Tensor) -> torch.Tensor:
             parts = self.streams(self.from_frames(decode(self.ssm.g, x, 4096)))
-            if "image" in parts:  # the angle of the ink the model draws
-                return self.ink_angle(parts["image"])
-            reading = parts["angle"][:, :: parts["angle"].shape[1] // 2]  # the (sin, cos) of the joint's angle
-            return reading / reading.norm(dim=1, keepdim=True).clamp_min(1e-6)
+            if "angle" in parts:  # the (sin, cos) of the joint's angle, as g's angle head draws it
+                reading = parts["angle"][:, :: parts["angle"].shape[1] // 2]
+                return reading / reading.norm(dim=1, keepdim=True).clamp_min(1e-6)
+            return self.ink_angle(parts["image"])  # the angle of the ink of the frame g draws
 
         return DistilledFeatures.fit(states, target, steps=int(s["steps"]), seed=self.seed)
 
