@@ -21,7 +21,7 @@ BENCHMARK_DATA = ROOT.parent / "shared" / "data" / "nonlinear_benchmarks"
 
 
 def config_name(path: Path) -> str:
-    """``pretrained/benchmarks/silverbox_subnet_form.ckpt`` -> ``benchmarks/silverbox_subnet_form``: the file's config
+    """``pretrained/benchmarks/silverbox_no_identity.ckpt`` -> ``benchmarks/silverbox_no_identity``: the file's config
     under configs/."""
     return path.relative_to(ROOT / "pretrained").with_suffix("").as_posix()
 

@@ -80,7 +80,7 @@ STEPS: dict[str, Step] = {
     "make reproduce EXP=pendulum_control": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=3600),
     # an identification benchmark's pretrained model by the benchmark's protocol (seconds)
     "python cli.py test --config configs/benchmarks/silverbox_test.yaml --model.init_args.ssm_checkpoint "
-    "pretrained/benchmarks/silverbox_subnet_form.ckpt --data.init_args.dir_placement ../shared/data/nonlinear_benchmarks "
+    "pretrained/benchmarks/silverbox_no_identity.ckpt --data.init_args.dir_placement ../shared/data/nonlinear_benchmarks "
     "--model.init_args.results_dir runs/pretrained --model.init_args.figures_dir null": Step(),
     # the closed-loop rows from the pretrained torque-driven pendulum: make test runs two episodes of 1 s per row, of the
     # harder setting only (the loop is the same for both; each CLI start costs ~6 s of imports on the slowest CPUs)
