@@ -189,20 +189,18 @@ def test_the_planner_reads_the_angle_head_of_a_camera_and_angle_decoder():
             ssm=SimpleNamespace(g=g),
             from_frames=lambda y: y,
             streams=streams,
-            ink_angle=lambda frames: ClosedLoop.ink_angle(loop_ns, frames),
+            ink_angle=lambda frames: ink_angle_features(frames, (12.0, 12.0)),  # about the frame's centre
         )
 
     both = lambda y: {"image": y[:, :576].reshape(-1, 1, 24, 24), "angle": y[:, 576:]}  # noqa: E731
     camera = lambda y: {"image": y[:, :576].reshape(-1, 1, 24, 24)}  # noqa: E731
-    loop_ns = loop(both)
     torch.manual_seed(0)
     nodes = torch.stack([torch.rand(400) * 6 - 3, torch.randn(400)], 1)
     test = torch.stack([torch.linspace(-2.5, 2.5, 11), torch.zeros(11)], 1)
-    features, error = ClosedLoop._distill(loop_ns, nodes)
+    features, error = ClosedLoop._distill(loop(both), nodes)
     assert error < 5e-3
     torch.testing.assert_close(features(test), torch.stack([test[:, 0].sin(), test[:, 0].cos()], 1), atol=0.1, rtol=0)
-    loop_ns = loop(camera)
-    features, _ = ClosedLoop._distill(loop_ns, nodes)
+    features, _ = ClosedLoop._distill(loop(camera), nodes)
     torch.testing.assert_close(features(test), torch.tensor([[1.0, 0.0]]).expand(11, 2), atol=0.05, rtol=0)
 
 
