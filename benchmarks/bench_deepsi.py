@@ -353,7 +353,9 @@ def run_benchmark(name: str, args, deepSI, work: Path) -> None:
     if args.seed is not None:
         torch.manual_seed(args.seed)
         np.random.seed(args.seed)  # deepSI draws its batches with numpy
+    watch = CpuWatch()
     last, best, iterations, seconds, curve = train_deepsi(deepSI, as_io, val_io, budget, system, args.val_freq, log)
+    cpu_others = watch.others()  # what other processes ran during the fit: a shared CPU trains fewer iterations
     for label, model in (("last", last), ("best", best)):  # for benchmarks/bench_simulation.py --deepsi
         torch.save(model, work / f"{name}{seeded}-subnet-{label}.pt")
     results_dir = (
@@ -397,6 +399,7 @@ def run_benchmark(name: str, args, deepSI, work: Path) -> None:
                 "seconds": [c for c in curve if c[2] == min(n for *_, n in curve)][-1][1]
                 if label == "best on validation"
                 else round(seconds, 1),
+                "cpu_others": None if cpu_others is None else round(cpu_others, 3),
             },
             "ssm_checkpoint": None,
             "inference": {"method": f"SUBNET's encoder of the last {k} of the first {n_init} samples"},

@@ -69,5 +69,7 @@ def test_subnet_runs_a_benchmark_by_its_protocol(tmp_path):
     runs = json.loads((tmp_path / "cascaded_tanks.json").read_text())["runs"]
     assert sorted(runs) == ["deepSI SUBNET, best on validation", "deepSI SUBNET, last model"]
     assert all(run["tests"]["test"]["n_init"] == 50 for run in runs.values())
+    # what other processes ran during its fit, as ssm-ms's rows record it: a fraction of the 2 cores, not missing
+    assert all(0.0 <= run["info"]["validation"]["cpu_others"] < 4.0 for run in runs.values())
     assert (tmp_path / "cascaded_tanks.md").read_text().startswith("# cascaded_tanks")  # rendered by experiments/
     assert (tmp_path / "cascaded_tanks-subnet-best.pt").is_file()
