@@ -288,7 +288,8 @@ def lorenz_sweep(results: Results, spec: dict[str, Any]) -> list[str]:
 def benchmarks(results: Results, spec: dict[str, Any]) -> list[str]:
     """The identification benchmarks (``results/benchmarks/*.json``), one row per test recording: ssm-ms's method that
     validated best (the lowest mean validation RMSE over its seeds: the choice the test data do not make), deepSI's
-    SUBNET (its model best on its own validation, and its last), the best published row; machine and date of ours."""
+    SUBNET (its model best on its own validation, and its last), the best published row; machine and date of the chosen
+    method's last run."""
     from experiments.benchmark_results import methods, over_seeds, published, summary_cell, validation_over_seeds
 
     folder = results.dir / "benchmarks"
@@ -323,7 +324,7 @@ def benchmarks(results: Results, spec: dict[str, Any]) -> list[str]:
             values = {name: v[test] for name, v in pub.items() if test in v}
             best = min(values, key=values.get) if values else None
             theirs = f"{sig(values[best], 3)} ({best})" if best else ""
-            info = (ours or list(runs.values()))[-1]["info"]
+            info = (groups[chosen] if chosen else ours or list(runs.values()))[-1]["info"]  # where the row shown ran
             when = f"{info.get('machine', '')}, {str(info.get('date', ''))[:10]}" if i == 0 else ""
             name = f"{data['experiment']} ({unit})" if i == 0 else ""
             lines.append(f"| {name} | {test} | {mine} | {peer} | {theirs} | {when} |")
