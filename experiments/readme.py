@@ -289,7 +289,7 @@ def benchmarks(results: Results, spec: dict[str, Any]) -> list[str]:
     """The identification benchmarks (``results/benchmarks/*.json``), one row per test recording: ssm-ms's method that
     validated best (the lowest mean validation RMSE over its seeds: the choice the test data do not make), deepSI's
     SUBNET (its model best on its own validation, and its last), the best published row; machine and date of the chosen
-    method's last run."""
+    method's last run, and SUBNET's where they differ (then the two columns are not one run's)."""
     from experiments.benchmark_results import methods, over_seeds, published, summary_cell, validation_over_seeds
 
     folder = results.dir / "benchmarks"
@@ -326,6 +326,9 @@ def benchmarks(results: Results, spec: dict[str, Any]) -> list[str]:
             theirs = f"{sig(values[best], 3)} ({best})" if best else ""
             info = (groups[chosen] if chosen else ours or list(runs.values()))[-1]["info"]  # where the row shown ran
             when = f"{info.get('machine', '')}, {str(info.get('date', ''))[:10]}" if i == 0 else ""
+            peers = [r["info"] for r in runs.values() if r["info"].get("model") == "SUBNET"]
+            if i == 0 and peers and peers[-1].get("machine") != info.get("machine"):  # not one run's comparison
+                when += f"; SUBNET: {peers[-1].get('machine', '')}, {str(peers[-1].get('date', ''))[:10]}"
             name = f"{data['experiment']} ({unit})" if i == 0 else ""
             lines.append(f"| {name} | {test} | {mine} | {peer} | {theirs} | {when} |")
     return lines

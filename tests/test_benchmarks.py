@@ -244,6 +244,12 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
     (row,) = [line for line in benchmarks(Results(tmp_path), {"kind": "benchmarks"}) if line.startswith("| toy")]
     assert "0.5 (1 of 2 diverged) (B, 2 seeds)" in row
     assert row.endswith("| machine of B, 2026-12-02 |")  # where the chosen method's last run ran, not the file's last
+    # a SUBNET run on another machine is named beside it: the row's two columns are then not one run's
+    key, subnet = run("deepSI SUBNET, best on validation", 0, 0.8, 0.45)
+    subnet["info"] |= {"model": "SUBNET", "machine": "another machine"}
+    (folder / "toy.json").write_text(json.dumps({"experiment": "toy", "runs": {**runs, key: subnet}}))
+    (row,) = [line for line in benchmarks(Results(tmp_path), {"kind": "benchmarks"}) if line.startswith("| toy")]
+    assert row.endswith("| machine of B, 2026-12-02; SUBNET: another machine, 2026-12-01 |")
 
 
 def test_amortised_nodes_on_cascaded_tanks_end_to_end_and_their_score_by_hand(tmp_path):
