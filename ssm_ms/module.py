@@ -119,6 +119,9 @@ class MultipleShootingModule(pl.LightningModule):
             holds ``history`` samples before its first node: ``T = history + n_nodes * n``. No node table, so
             windows may start at every sample (``stride: 1``); the state of a new recording is the encoder's
             reading of its last ``history`` samples (docs/method.md, "Amortised nodes").
+        stream_weights: several sensors only: ``{stream name: factor}`` multiplying a stream's inverse noise
+            variance in the fit before the weights are scaled to average 1 (``None``: every factor 1, the
+            maximum-likelihood weighting; :meth:`ssm_ms.nets.sensors.SensorLayout.weights`).
     """
 
     # validation rolls out from the shooting nodes, which only training trajectories have
@@ -145,6 +148,7 @@ class MultipleShootingModule(pl.LightningModule):
         node_encoder: nn.Module | None = None,
         weight_decay: float = 0.0,
         schedule: ShootingSchedule | None = None,
+        stream_weights: dict[str, float] | None = None,
     ):
         super().__init__()
         # Built by LightningCLI, f, g and the node encoder are recorded as their config (class_path + init_args), so
@@ -285,10 +289,17 @@ class MultipleShootingModule(pl.LightningModule):
 
     def adopt_sensors(self, layout: Any) -> None:
         """Several sensors (:mod:`ssm_ms.nets.sensors`): weigh each measurement component by the inverse of its
-        stream's noise variance in the fit (scaled to average 1) and leave missing samples (NaN) out; a ``g`` with
-        one head per stream must name the streams of the data, in their order and shapes."""
+        stream's noise variance in the fit (times its factor in ``stream_weights``, scaled to average 1) and leave
+        missing samples (NaN) out; a ``g`` with one head per stream must name the streams of the data, in their order
+        and shapes."""
         self._missing = bool(layout)
+        weights = self.hparams.get("stream_weights")
         if not layout:
+            if weights:
+                raise ValueError(
+                    f"stream_weights {dict(weights)} weigh the streams of several sensors, and these data have one: "
+                    "remove model.init_args.stream_weights"
+                )
             return
         if self.node_encoder is not None:
             raise ValueError(
@@ -296,7 +307,7 @@ class MultipleShootingModule(pl.LightningModule):
                 "sensor, or several sensors with free nodes (remove node_encoder)"
             )
         layout = SensorLayout.from_state_dict(layout) if not isinstance(layout, SensorLayout) else layout
-        self.register_buffer("measurement_weights", layout.weights().to(self.alpha), persistent=False)
+        self.register_buffer("measurement_weights", layout.weights(weights).to(self.alpha), persistent=False)
         checks.check_sensor_heads(self.g, {s.name: tuple(s.shape) for s in layout.streams})
 
     def fit_options(self) -> dict[str, Any]:

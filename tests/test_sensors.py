@@ -37,6 +37,25 @@ def test_layout_packs_splits_and_weighs_by_the_inverse_noise_variance():
     assert SensorLayout.from_state_dict(layout.state_dict()) == layout
 
 
+def test_stream_weights_scale_a_streams_inverse_variance_before_the_average():
+    layout = SensorLayout([Stream("image", (1, 2, 2), 0.2), Stream("angle", (1,), 0.05)])
+    # by hand: image 1 / 0.04 = 25 per pixel, angle 0.1 / 0.0025 = 40; their mean over 5 components (4 * 25 + 40) / 5
+    torch.testing.assert_close(layout.weights({"angle": 0.1}), torch.tensor([25.0] * 4 + [40.0]) / 28.0)
+    with pytest.raises(ValueError, match=r"stream_weights name streams \['joint'\]; the streams are"):
+        layout.weights({"joint": 0.1})
+    with pytest.raises(ValueError, match="stream_weights must be > 0"):
+        layout.weights({"angle": 0.0})
+    g = SensorHeads(4, {"image": ConvDecoder(4, preset="pendulum"), "angle": LinearReadout(4, 2)})
+    model = MultipleShootingModule(
+        LocallyLinearTransition(4, 2, 8, input_dim=1), g, state_dim=4, stream_weights={"angle": 0.1}
+    )
+    model.adopt_sensors(SensorLayout([Stream("image", (1, 24, 24), 0.2), Stream("angle", (2,), 0.05)]))
+    raw = torch.tensor([25.0] * 576 + [40.0] * 2)
+    torch.testing.assert_close(model.measurement_weights, raw / raw.mean())
+    with pytest.raises(ValueError, match="these data have one: remove model.init_args.stream_weights"):
+        model.adopt_sensors(None)
+
+
 def test_weighted_fit_with_missing_samples_against_a_naive_loop():
     torch.manual_seed(0)
     y_hat, y = torch.rand(2, 3, 4), torch.rand(2, 3, 4)

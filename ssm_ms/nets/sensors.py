@@ -9,7 +9,8 @@ scores).
 
 - **Weights**: the fit weighs each component by the inverse of its stream's noise variance (the maximum-likelihood
   weighting of independent Gaussian sensors), scaled so that the weights average 1 (the fit keeps the scale the gap
-  weight ``alpha`` was chosen for): :meth:`SensorLayout.weights`.
+  weight ``alpha`` was chosen for): :meth:`SensorLayout.weights`. A model's ``stream_weights`` multiply a stream's
+  weight by a factor of its own before that scaling (a sensor trusted less, or more, than its noise says).
 - **Missing samples**: a stream sampled at a lower rate holds NaN where it was not sampled; the fit and the filters
   leave those components out (masked, not refused).
 - **g**: :class:`SensorHeads`, one head per stream (e.g. a :class:`~ssm_ms.nets.ConvDecoder` for the image, a
@@ -21,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -93,18 +95,27 @@ class SensorLayout:
             raise ValueError(f"streams {missing} missing: a packed measurement holds {self.names}")
         return torch.cat([parts[s.name].flatten(lead_dims) for s in self.streams], dim=-1)
 
-    def weights(self) -> torch.Tensor:
-        """``[P]``: each component's ``1 / noise_std^2``, scaled to average 1 over the components."""
-        w = torch.cat([torch.full((s.size,), 1.0 / s.noise_std**2) for s in self.streams])
+    def weights(self, scale: Mapping[str, float] | None = None) -> torch.Tensor:
+        """``[P]``: each component's ``1 / noise_std^2``, times its stream's factor in ``scale`` (``{stream name:
+        factor}``, default 1), scaled to average 1 over the components."""
+        scale = dict(scale or {})
+        self._check_names(scale, "stream_weights")
+        bad = {k: v for k, v in scale.items() if not float(v) > 0}
+        if bad:
+            raise ValueError(f"stream_weights must be > 0, got {bad} (leave a stream out to keep its noise's weight)")
+        w = torch.cat([torch.full((s.size,), float(scale.get(s.name, 1.0)) / s.noise_std**2) for s in self.streams])
         return w / w.mean()
+
+    def _check_names(self, given: Mapping[str, Any], what: str) -> None:
+        unknown = sorted(set(given) - set(self.names))
+        if unknown:
+            raise ValueError(f"{what} name streams {unknown}; the streams are {self.names}")
 
     def variances(self, given: Mapping[str, float] | None = None) -> torch.Tensor:
         """``[P]``: each component's noise variance (a filter's measurement variance), a stream's from ``given``
         (``{stream name: variance}``) where it names the stream, else its sensor's noise."""
         given = dict(given or {})
-        unknown = sorted(set(given) - {s.name for s in self.streams})
-        if unknown:
-            raise ValueError(f"variances name streams {unknown}; the streams are {[s.name for s in self.streams]}")
+        self._check_names(given, "variances")
         return torch.cat([torch.full((s.size,), float(given.get(s.name, s.noise_std**2))) for s in self.streams])
 
     def state_dict(self) -> list[dict]:
