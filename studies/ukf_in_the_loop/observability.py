@@ -66,7 +66,9 @@ def main(argv: list[str] | None = None) -> None:
     opts = parser.parse_args(argv)
     for path in (opts.ssm_checkpoint, opts.encoder_checkpoint):
         if not Path(path).is_file():
-            sys.exit(f"no checkpoint at {path}: the shipped ones are in pretrained/ (git lfs pull if they are pointers)")
+            sys.exit(
+                f"no checkpoint at {path}: the shipped ones are in pretrained/ (git lfs pull if they are pointers)"
+            )
     config = load_config(opts.config)
     torch.manual_seed(0)
     enc_loop, dm = closed_loop(config, ssm_checkpoint=opts.ssm_checkpoint, encoder_checkpoint=opts.encoder_checkpoint)
@@ -132,14 +134,14 @@ def main(argv: list[str] | None = None) -> None:
         x0 = states[b_idx, t0].float()
         us = torch.stack([inputs[b_idx, t0 + j] for j in range(k - 1 + AHEAD)], 1)  # [N, k-1+AHEAD, 1]
 
-        def window_frames(x: torch.Tensor) -> torch.Tensor:
+        def window_frames(x: torch.Tensor, k: int = k, us: torch.Tensor = us) -> torch.Tensor:
             out = [g(x).reshape(len(x), -1)]
             for j in range(k - 1):
                 x = f(x, us[:, j])
                 out.append(g(x).reshape(len(x), -1))
             return torch.cat(out, 1)
 
-        def angles(x: torch.Tensor) -> torch.Tensor:
+        def angles(x: torch.Tensor, k: int = k, us: torch.Tensor = us) -> torch.Tensor:
             for j in range(k - 1):
                 x = f(x, us[:, j])
             now = angle(x)
