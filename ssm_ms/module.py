@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ssm_ms.averaging import WeightAverage
 from ssm_ms.checkpointing import (
     NETWORKS,
     check_configuration,
@@ -122,6 +123,9 @@ class MultipleShootingModule(pl.LightningModule):
         stream_weights: several sensors only: ``{stream name: factor}`` multiplying a stream's inverse noise
             variance in the fit before the weights are scaled to average 1 (``None``: every factor 1, the
             maximum-likelihood weighting; :meth:`ssm_ms.nets.sensors.SensorLayout.weights`).
+        weight_average: ``None`` (the paper) or the decay of an exponential moving average of the parameters over
+            the training steps (e.g. 0.999: about the last 1,000 steps), which validation scores, the checkpoints hold
+            and the fit ends with (:class:`ssm_ms.averaging.WeightAverage`; docs/method.md, "Weight averaging").
     """
 
     # validation rolls out from the shooting nodes, which only training trajectories have
@@ -149,6 +153,7 @@ class MultipleShootingModule(pl.LightningModule):
         weight_decay: float = 0.0,
         schedule: ShootingSchedule | None = None,
         stream_weights: dict[str, float] | None = None,
+        weight_average: float | None = None,
     ):
         super().__init__()
         # Built by LightningCLI, f, g and the node encoder are recorded as their config (class_path + init_args), so
@@ -162,6 +167,7 @@ class MultipleShootingModule(pl.LightningModule):
                 "schedule: {class_path: ssm_ms.schedule.ShootingSchedule, init_args: {...}} in a config"
             )
         self.schedule = schedule
+        self._averaging = None if weight_average is None else WeightAverage(weight_average)
         state_dim = checks.state_dim_of(f, state_dim)
         self.hparams["state_dim"] = state_dim
         loss_function(loss)  # unknown loss name: fail now, not at the first step
@@ -270,9 +276,13 @@ class MultipleShootingModule(pl.LightningModule):
         """A fit runs a copy of the model's ``schedule``, or the trainer's :class:`~ssm_ms.schedule.ShootingSchedule`,
         or else the paper's, scaled to the run (alpha raised and lr / 10 at 20% of its epochs or time budget, lr / 10
         again at 60%; a run bounded by neither: at the paper's epochs 200 and 600): the schedule is part of the
-        method."""
+        method. With ``weight_average``, also a fresh :class:`~ssm_ms.averaging.WeightAverage` (after the schedule)."""
         if self._trainer is None or self.trainer.state.fn != "fit":
             return []
+        averaging = [] if self._averaging is None else [copy.deepcopy(self._averaging)]
+        return self._schedule_callbacks() + averaging
+
+    def _schedule_callbacks(self) -> list[pl.Callback]:
         on_trainer = any(isinstance(c, ShootingSchedule) for c in self.trainer.callbacks)
         if self.schedule is not None:
             if on_trainer:

@@ -141,6 +141,7 @@ LAYERS = {
         "ssm_ms.module",
         "ssm_ms.loading",
         "ssm_ms.schedule",
+        "ssm_ms.averaging",
         "ssm_ms.progress",
         "ssm_ms.viz",
         "ssm_ms.analysis",
