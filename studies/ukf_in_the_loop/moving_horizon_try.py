@@ -3,6 +3,8 @@ f(x, u) and g to the frames since (Adam, warm-started from the last solution mov
 f's roll-out from it; the first state the shooting node whose g(node) best matches the first frame. 20 episodes from
 pretrained/pendulum_torque.ckpt (a feasibility check, not a library estimator). Run from the repository root:
     python studies/ukf_in_the_loop/moving_horizon_try.py '{"window": 8, "steps": 20, "lr": 0.05}'
+With "solver": "lm" the window is fitted by Levenberg-Marquardt (Gauss-Newton steps on the frames' residuals, the
+Jacobian by forward differences, "steps" iterations) in place of Adam.
 With "diagnose": "<file.md>" it scores the estimates instead (studies/control_diagnosis's table: the angle error of
 the estimate and of f's predictions from it, along the true-model controller's swing-ups)."""
 
@@ -14,6 +16,9 @@ from estimator_try import try_estimator
 
 S = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
 WINDOW, STEPS, LR = S.get("window", 8), S.get("steps", 20), S.get("lr", 0.05)
+SOLVER, EPS, DAMPING = S.get("solver", "adam"), S.get("eps", 1e-3), S.get("damping", 1e-2)
+ACCEPTED = [0, 0]  # lm: steps accepted, steps tried (over every episode and period)
+PRIOR = S.get("prior", 0.0)  # lm: weight of the arrival cost |x - x_prior|^2 (x_prior: the last solution moved by f)
 
 
 class MovingHorizon:
@@ -26,7 +31,40 @@ class MovingHorizon:
             states.append(self.f(states[-1], u))
         return states
 
+    def _residuals(self, x, y):
+        states = torch.stack(self._roll(x), 1)  # [B, k, d]
+        b, k, d = states.shape
+        r = self.g(states.reshape(b * k, d)).reshape(b, -1) - y
+        return torch.cat([r, PRIOR**0.5 * (x - self.x0)], 1) if PRIOR else r
+
+    @torch.no_grad()
+    def _fit_lm(self):
+        y = torch.stack(self.ys, 1).reshape(len(self.x0), -1)  # [B, k P]
+        x = self.x0.clone()
+        r = self._residuals(x, y)
+        cost, damping = (r**2).sum(1), torch.full((len(x),), DAMPING)
+        eye = torch.eye(x.shape[1])
+        for _ in range(STEPS):
+            jac = torch.stack([(self._residuals(x + EPS * e, y) - r) / EPS for e in eye], 2)  # [B, k P, d]
+            a = jac.transpose(1, 2) @ jac
+            grad = jac.transpose(1, 2) @ r.unsqueeze(-1)
+            scaled = torch.diag_embed(torch.diagonal(a, dim1=1, dim2=2) + 1e-9)
+            step = torch.linalg.solve(a + damping[:, None, None] * scaled, -grad).squeeze(-1)
+            r_new = self._residuals(x + step, y)
+            cost_new = (r_new**2).sum(1)
+            better = cost_new < cost
+            ACCEPTED[0] += int(better.sum())
+            ACCEPTED[1] += len(better)
+            x = torch.where(better[:, None], x + step, x)
+            r = torch.where(better[:, None], r_new, r)
+            cost = torch.where(better, cost_new, cost)
+            damping = torch.where(better, damping / 3, damping * 5).clamp(1e-6, 1e6)
+        self.x0 = x
+        return self._roll(self.x0)[-1]
+
     def _fit(self):
+        if SOLVER == "lm":
+            return self._fit_lm()
         x = self.x0.detach().clone().requires_grad_(True)
         opt = torch.optim.Adam([x], lr=LR)
         y = torch.stack(self.ys, 1)  # [B, k, P]
@@ -70,3 +108,5 @@ if __name__ == "__main__":
     try_estimator(
         prepare, lambda loop: MovingHorizon(loop.f, loop.ssm.g, *loop._mhe, loop.to_frames), S, "moving_horizon_try"
     )
+    if SOLVER == "lm":
+        print(f"lm steps accepted: {ACCEPTED[0]} of {ACCEPTED[1]}")
