@@ -4,7 +4,9 @@ f's roll-out from it; the first state the shooting node whose g(node) best match
 pretrained/pendulum_torque.ckpt (a feasibility check, not a library estimator). Run from the repository root:
     python studies/ukf_in_the_loop/moving_horizon_try.py '{"window": 8, "steps": 20, "lr": 0.05}'
 With "solver": "lm" the window is fitted by Levenberg-Marquardt (Gauss-Newton steps on the frames' residuals, the
-Jacobian by forward differences, "steps" iterations) in place of Adam.
+Jacobian by forward differences, "steps" iterations) in place of Adam; with "solver": "ms" every state of the window is
+free (multiple shooting inside the estimator: the frames' squared error plus "gap" times |x[k+1] - f(x[k], u[k])|^2,
+by "steps" Adam steps at "lr", warm-started from the last window's states), the current state the window's last.
 With "diagnose": "<file.md>" it scores the estimates instead (studies/control_diagnosis's table: the angle error of
 the estimate and of f's predictions from it, along the true-model controller's swing-ups)."""
 
@@ -18,6 +20,7 @@ S = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
 WINDOW, STEPS, LR = S.get("window", 8), S.get("steps", 20), S.get("lr", 0.05)
 SOLVER, EPS, DAMPING = S.get("solver", "adam"), S.get("eps", 1e-3), S.get("damping", 1e-2)
 ACCEPTED = [0, 0]  # lm: steps accepted, steps tried (over every episode and period)
+GAP = S.get("gap", 100.0)  # ms: the weight of f's gaps against the frames' error (pixel variance / process variance)
 PRIOR = S.get("prior", 0.0)  # lm: weight of the arrival cost |x - x_prior|^2 (x_prior: the last solution moved by f)
 
 
@@ -62,9 +65,29 @@ class MovingHorizon:
         self.x0 = x
         return self._roll(self.x0)[-1]
 
+    def _fit_ms(self):
+        y = torch.stack(self.ys, 1)  # [B, k, P]
+        x = self.X.detach().clone().requires_grad_(True)  # [B, k, d]
+        opt = torch.optim.Adam([x], lr=LR)
+        b, k, d = x.shape
+        u = torch.stack(self.us, 1).flatten(0, 1) if self.us else None  # [B (k - 1), ...]
+        for _ in range(STEPS):
+            with torch.enable_grad():
+                loss = ((self.g(x.reshape(b * k, d)).reshape(b, k, -1) - y) ** 2).sum()
+                if k > 1:
+                    ahead = self.f(x[:, :-1].reshape(b * (k - 1), d), u).reshape(b, k - 1, d)
+                    loss = loss + GAP * ((x[:, 1:] - ahead) ** 2).sum()
+                opt.zero_grad()
+                loss.backward()
+            opt.step()
+        self.X = x.detach()
+        return self.X[:, -1]
+
     def _fit(self):
         if SOLVER == "lm":
             return self._fit_lm()
+        if SOLVER == "ms":
+            return self._fit_ms()
         x = self.x0.detach().clone().requires_grad_(True)
         opt = torch.optim.Adam([x], lr=LR)
         y = torch.stack(self.ys, 1)  # [B, k, P]
@@ -85,15 +108,18 @@ class MovingHorizon:
         frames = self.to_frames(y).reshape(len(y), -1)
         self.ys, self.us = [frames], []
         self.x0 = self.nodes[torch.cdist(frames, self.decoded).argmin(1)]
+        self.X = self.x0[:, None]
         return self._fit()
 
     def next(self, u, y):
         self.ys.append(self.to_frames(y).reshape(len(y), -1))
         self.us.append(u)
+        with torch.no_grad():
+            self.X = torch.cat([self.X, self.f(self.X[:, -1], u)[:, None]], 1)
         if len(self.ys) > WINDOW:
             with torch.no_grad():
                 self.x0 = self.f(self.x0, self.us[0])
-            self.ys, self.us = self.ys[1:], self.us[1:]
+            self.ys, self.us, self.X = self.ys[1:], self.us[1:], self.X[:, 1:]
         return self._fit()
 
 
