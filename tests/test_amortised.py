@@ -10,7 +10,7 @@ import torch
 from ssm_ms.checkpointing import holds_ssm
 from ssm_ms.inference.simulation import initial_state, simulate_recording
 from ssm_ms.module import MultipleShootingModule
-from ssm_ms.nets import HistoryEncoder, LinearReadout, LocallyLinearTransition
+from ssm_ms.nets import ConvDecoder, HistoryEncoder, LinearReadout, LocallyLinearTransition
 from ssm_ms.training.checks import check_data
 
 H, M, N, D = 5, 3, 4, 3  # history, nodes, piece length, state
@@ -38,6 +38,27 @@ def test_history_encoder_is_a_linear_map_plus_an_mlp_of_the_flat_history():
     lin, mlp = enc.linear, enc.mlp
     expected = flat @ lin.weight.T + lin.bias + mlp[2](torch.tanh(mlp[0](flat)))
     torch.testing.assert_close(enc(y, u), expected)
+
+
+def test_images_are_read_frame_by_frame_by_the_cnn_then_as_a_flat_history():
+    torch.manual_seed(0)
+    enc = HistoryEncoder(D, obs_dim=[1, 24, 24], input_dim=1, history=H, hidden=[6], frames="pendulum")
+    y, u = torch.rand(4, H, 1, 24, 24), torch.randn(4, H, 1)
+    features = torch.stack([enc.frames.cnn(y[:, k]).flatten(1) for k in range(H)], 1)  # each frame on its own
+    flat = torch.cat([features.reshape(4, -1), u.reshape(4, -1)], 1)
+    lin, mlp = enc.linear, enc.mlp
+    expected = flat @ lin.weight.T + lin.bias + mlp[2](torch.tanh(mlp[0](flat)))
+    torch.testing.assert_close(enc(y, u), expected)
+    f = LocallyLinearTransition(D, n_matrices=2, hidden=8, input_dim=1)
+    m = MultipleShootingModule(f, ConvDecoder(D, preset="pendulum", image_size=24), n_nodes=M, node_encoder=enc)
+    check_data(m, H + M * N, (1, 24, 24))  # accepted
+    m = MultipleShootingModule(f, ConvDecoder(D, preset="pendulum", image_size=28), n_nodes=M, node_encoder=enc)
+    with pytest.raises(ValueError, match=r"reads measurements of shape \(1, 24, 24\), the data have \(1, 28, 28\)"):
+        check_data(m, H + M * N, (1, 28, 28))
+    with pytest.raises(ValueError, match="need the per-frame CNN: set frames"):
+        HistoryEncoder(D, obs_dim=[1, 24, 24], history=H)
+    with pytest.raises(ValueError, match="take no per-frame CNN: remove frames"):
+        HistoryEncoder(D, obs_dim=2, history=H, frames="pendulum")
 
 
 def test_nodes_read_the_history_before_each_node_and_the_loss_is_the_naive_loop():
@@ -120,7 +141,7 @@ def test_windows_that_do_not_hold_history_and_pieces_get_one_message():
         check_data(m, 6, (2,))
     f = LocallyLinearTransition(D, n_matrices=2, hidden=8, input_dim=1)
     three = MultipleShootingModule(f, LinearReadout(D, 3), n_nodes=M, node_encoder=HistoryEncoder(D, 2, 1, H))
-    with pytest.raises(ValueError, match="reads 2 measurement components, the data have 3"):
+    with pytest.raises(ValueError, match=r"reads measurements of shape \(2,\), the data have \(3,\)"):
         check_data(three, H + M * N, (3,))
     with pytest.raises(ValueError, match="reads 0 inputs per sample but f takes 1"):
         f = LocallyLinearTransition(D, n_matrices=2, hidden=8, input_dim=1)

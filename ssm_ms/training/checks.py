@@ -234,15 +234,12 @@ def check_data(model: ShootingModel, seq_len: int, obs_shape: tuple[int, ...], n
             "adapt g (e.g. ConvDecoder's image_size to the data's, a linear g's out_features to the "
             "channel count, or the Projection indices to the measured components)",
         )
-    elif model.node_encoder is not None and len(obs_shape) != 1 and isinstance(model.node_encoder, HistoryEncoder):
+    elif isinstance(model.node_encoder, HistoryEncoder) and model.node_encoder.obs_shape != tuple(obs_shape):
+        shape = tuple(obs_shape)
         problem = (
-            f"the node encoder reads vector measurements, the data have samples of shape {tuple(obs_shape)}",
-            "give amortised nodes vector measurements, or an encoder of your own for these",
-        )
-    elif isinstance(model.node_encoder, HistoryEncoder) and model.node_encoder.obs_dim != obs_shape[0]:
-        problem = (
-            f"the node encoder reads {model.node_encoder.obs_dim} measurement components, the data have {obs_shape[0]}",
-            f"set the node encoder's obs_dim to {obs_shape[0]}",
+            f"the node encoder reads measurements of shape {model.node_encoder.obs_shape}, the data have {shape}",
+            f"set the node encoder's obs_dim to {shape[0] if len(shape) == 1 else list(shape)}"
+            + (" (and frames, its per-frame CNN's preset)" if len(shape) == 3 else ""),
         )
     elif num_train is not None and model.nodes is not None and model.nodes.num_embeddings != num_train:
         problem = (
