@@ -1,6 +1,7 @@
-"""What the two feasibility scripts share: put another estimator in the closed loop's UKF's place, then run the control
-test's first episodes from pretrained/pendulum_torque.ckpt, or, with ``"diagnose": "<file.md>"`` in the settings,
-score its estimates along the true-model controller's swing-ups (studies/control_diagnosis's table)."""
+"""What the feasibility scripts share: put another estimator in the closed loop's UKF's place, then run the control
+test's first episodes from pretrained/pendulum_torque.ckpt (another SSM: ``"ssm": "<file.ckpt>"`` in the settings),
+or, with ``"diagnose": "<file.md>"`` in the settings, score its estimates along the true-model controller's swing-ups
+(studies/control_diagnosis's table)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import ssm_ms.control.module as M
 from ssm_ms.cli import main
 
 SSM = "pretrained/pendulum_torque.ckpt"
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # a study's own networks (studies.ukf_in_the_loop....)
 
 
 def try_estimator(
@@ -26,13 +28,14 @@ def try_estimator(
         if self.ssm is not None:  # the true model's controller has no estimator
             prepare(self)
 
+    ssm = settings.get("ssm", SSM)
     M.ClosedLoop.attach = attach_and_prepare
     M.ClosedLoop.estimator = make
     if settings.get("diagnose"):
         sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "control_diagnosis"))
         from control_diagnosis import main as diagnose
 
-        diagnose(["--ssm-checkpoint", SSM, "--out", settings["diagnose"]])
+        diagnose(["--ssm-checkpoint", ssm, "--out", settings["diagnose"]])
         return
     main(
         [
@@ -40,7 +43,7 @@ def try_estimator(
             "--config",
             "configs/pendulum_torque_control.yaml",
             "--model.init_args.ssm_checkpoint",
-            SSM,
+            ssm,
             "--data.init_args.n_test",
             str(settings.get("episodes", 20)),
             "--model.init_args.results_dir",
