@@ -57,6 +57,8 @@ def test_images_are_read_frame_by_frame_by_the_cnn_then_as_a_flat_history():
         check_data(m, H + M * N, (1, 28, 28))
     with pytest.raises(ValueError, match="need the per-frame CNN: set frames"):
         HistoryEncoder(D, obs_dim=[1, 24, 24], history=H)
+    with pytest.raises(ValueError, match=r"an int \(vector components\) or \[C, H, W\] \(images\), got \[4, 5\]"):
+        HistoryEncoder(D, obs_dim=[4, 5], history=H)
     with pytest.raises(ValueError, match="take no per-frame CNN: remove frames"):
         HistoryEncoder(D, obs_dim=2, history=H, frames="pendulum")
 

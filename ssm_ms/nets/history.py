@@ -49,6 +49,8 @@ class HistoryEncoder(nn.Module):
                 f"state_dim, obs_dim, history and the hidden widths must be >= 1 and input_dim >= 0, got {state_dim}, "
                 f"{obs_dim}, {history}, {list(hidden)}, {input_dim}"
             )
+        if len(shape) not in (1, 3):
+            raise ValueError(f"obs_dim is an int (vector components) or [C, H, W] (images), got {list(shape)}")
         if len(shape) == 3 and frames is None:
             raise ValueError(f"images {list(shape)} need the per-frame CNN: set frames, e.g. frames: pendulum")
         if len(shape) == 1 and frames is not None:
