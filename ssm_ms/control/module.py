@@ -55,6 +55,23 @@ CONTROL_HEADING = {
 }
 
 
+@torch.no_grad()
+def excited_states(
+    f, nodes: torch.Tensor, steps: int, limit: float, frame_dt: float, generator: torch.Generator
+) -> torch.Tensor:
+    """``[N (steps + 1), d]``: a learned model's states from ``nodes [N, d]`` rolled out ``steps`` steps through
+    ``f(x, u)`` under random torques, the data's kind of excitation (correlated over 0.5 s, at half the torque limit's
+    scale, clipped to ``limit``): where the planner's angle readout is distilled."""
+    white = torch.randn(len(nodes), steps, 1, generator=generator)
+    torques = torch.empty_like(white)
+    torques[:, 0] = white[:, 0]
+    a = math.exp(-frame_dt / 0.5)
+    for t in range(1, steps):
+        torques[:, t] = a * torques[:, t - 1] + math.sqrt(1 - a * a) * white[:, t]
+    torques = (0.5 * limit * torques).clamp(-limit, limit)
+    return rollout(f, nodes, steps + 1, torques).reshape(-1, nodes.shape[1])
+
+
 class ClosedLoop(pl.LightningModule):
     """Swing up and balance a pendulum from its camera frames with a learned SSM, or with the true model (the upper
     bound); see the module doc.
@@ -237,17 +254,9 @@ class ClosedLoop(pl.LightningModule):
         in a 24x24 frame is a coarse one), learned as a function of the state from the model's own states: every
         shooting node rolled out ``rollout_steps`` steps under random torques (the data's kind of excitation)."""
         s = self.distill_settings
+        limit = max(abs(self.settings.u_min), abs(self.settings.u_max))
         generator = torch.Generator().manual_seed(self.seed)
-        steps, limit = int(s["rollout_steps"]), max(abs(self.settings.u_min), abs(self.settings.u_max))
-        white = torch.randn(len(nodes), steps, 1, generator=generator)
-        torques = torch.empty_like(white)
-        torques[:, 0] = white[:, 0]
-        a = math.exp(-self.frame_dt / 0.5)
-        for t in range(1, steps):
-            torques[:, t] = a * torques[:, t - 1] + math.sqrt(1 - a * a) * white[:, t]
-        torques = (0.5 * limit * torques).clamp(-limit, limit)
-        with torch.no_grad():
-            states = rollout(self.f, nodes, steps + 1, torques).reshape(-1, nodes.shape[1])
+        states = excited_states(self.f, nodes, int(s["rollout_steps"]), limit, self.frame_dt, generator)
 
         def target(x: torch.Tensor) -> torch.Tensor:
             parts = self.streams(self.from_frames(decode(self.ssm.g, x, 4096)))

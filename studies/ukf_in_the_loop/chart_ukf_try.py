@@ -11,15 +11,14 @@ k: the code's size; q: the process variance in the code's standardised units; va
 UKF's 0.1); steps, rollout: the autoencoder's Adam steps and the rollout length of its training states."""
 
 import json
-import math
 import sys
 
 import torch
 from estimator_try import try_estimator
 
 from ssm_ms.control.estimators import UKFEstimator
+from ssm_ms.control.module import excited_states
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
-from ssm_ms.training.shooting import rollout
 
 S = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
 K, Q, VAR = int(S.get("k", 3)), float(S.get("q", 1e-3)), float(S.get("var", 0.1))
@@ -89,23 +88,15 @@ def prepare(loop):
     nodes = loop.ssm.training_states()
     gen = torch.Generator().manual_seed(1)
     limit = max(abs(loop.settings.u_min), abs(loop.settings.u_max))
-    white = torch.randn(len(nodes), ROLLOUT, 1, generator=gen)
-    torques = torch.empty_like(white)
-    torques[:, 0] = white[:, 0]
-    a = math.exp(-loop.frame_dt / 0.5)
-    for t in range(1, ROLLOUT):
-        torques[:, t] = a * torques[:, t - 1] + math.sqrt(1 - a * a) * white[:, t]
-    torques = (0.5 * limit * torques).clamp(-limit, limit)
-    with torch.no_grad():
-        states = rollout(loop.f, nodes, ROLLOUT + 1, torques).reshape(-1, nodes.shape[1])
+    states = excited_states(loop.f, nodes, ROLLOUT, limit, loop.frame_dt, gen)
     chart = Chart(states)
     with torch.no_grad():  # what the chart costs the planner: its angle readout on D(E(x)) against on x
         sample = states[torch.randperm(len(states), generator=gen)[:4096]]
         back = chart.D(chart.E(sample))
         gap = (loop.features(back) - loop.features(sample)).pow(2).mean().sqrt()
-        push = torques.reshape(-1, 1)[torch.randint(torques.numel(), (len(sample),), generator=gen)]
-        step = (loop.f(back, push) - loop.f(sample, push)).norm(dim=1).mean()
-    print(f"chart: the planner's readout moves by {float(gap):.4f} (RMS), f's step by {float(step):.4f}", flush=True)
+        still = torch.zeros(len(sample), 1)
+        step = (loop.f(back, still) - loop.f(sample, still)).norm(dim=1).mean()
+    print(f"chart: the planner's readout moves by {float(gap):.4f} (RMS), f's unforced step by {step:.4f}", flush=True)
     if S.get("chart_only"):  # the chart's quality alone
         ev = torch.linalg.eigvalsh(torch.cov(((states - chart.mu) / chart.sd).T)).flip(0)
         print("chart: the states' principal variances", [round(float(v), 4) for v in ev / ev.sum()], flush=True)

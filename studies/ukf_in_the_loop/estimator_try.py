@@ -13,7 +13,6 @@ import ssm_ms.control.module as M
 from ssm_ms.cli import main
 
 SSM = "pretrained/pendulum_torque.ckpt"
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # a study's own networks (studies.ukf_in_the_loop....)
 
 
 def try_estimator(
