@@ -27,11 +27,12 @@ demo: $(STAMP)
 
 ## Lint and format checks (ruff, configured in pyproject.toml), then the unit and integration tests (< 10 minutes on
 ## 2 CPU cores): two pytest workers of one torch thread each, since most tests keep one core busy (imports, small
-## steps, subprocesses) and the suite ran single-core before.
+## steps, subprocesses) and the suite ran single-core before. The 15 slowest tests are listed at the end: where the
+## time goes when the suite nears its limit.
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
-	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n 2
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n 2 --durations=15
 
 ## Format the code and fix what ruff can (make test checks both).
 format: $(STAMP)
