@@ -180,7 +180,7 @@ def test_the_planner_reads_the_angle_head_of_a_camera_and_angle_decoder():
         return torch.cat([image, torch.sin(x[:, :1]), torch.cos(x[:, :1])], 1)
 
     def loop(streams):
-        return SimpleNamespace(
+        fake = SimpleNamespace(
             distill_settings={"rollout_steps": 3, "steps": 1500, "pivot": None},
             seed=0,
             settings=SimpleNamespace(u_min=-3.0, u_max=3.0),
@@ -191,6 +191,8 @@ def test_the_planner_reads_the_angle_head_of_a_camera_and_angle_decoder():
             streams=streams,
             ink_angle=lambda frames: ink_angle_features(frames, (12.0, 12.0)),  # about the frame's centre
         )
+        fake.drawn_angle = lambda x: ClosedLoop.drawn_angle(fake, x)
+        return fake
 
     both = lambda y: {"image": y[:, :576].reshape(-1, 1, 24, 24), "angle": y[:, 576:]}  # noqa: E731
     camera = lambda y: {"image": y[:, :576].reshape(-1, 1, 24, 24)}  # noqa: E731

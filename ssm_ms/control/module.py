@@ -257,15 +257,17 @@ class ClosedLoop(pl.LightningModule):
         limit = max(abs(self.settings.u_min), abs(self.settings.u_max))
         generator = torch.Generator().manual_seed(self.seed)
         states = excited_states(self.f, nodes, int(s["rollout_steps"]), limit, self.frame_dt, generator)
+        return DistilledFeatures.fit(states, self.drawn_angle, steps=int(s["steps"]), seed=self.seed)
 
-        def target(x: torch.Tensor) -> torch.Tensor:
-            parts = self.streams(self.from_frames(decode(self.ssm.g, x, 4096)))
-            if "angle" in parts:  # the (sin, cos) of the joint's angle, as g's angle head draws it
-                reading = parts["angle"][:, :: parts["angle"].shape[1] // 2]
-                return reading / reading.norm(dim=1, keepdim=True).clamp_min(1e-6)
-            return self.ink_angle(parts["image"])  # the angle of the ink of the frame g draws
-
-        return DistilledFeatures.fit(states, target, steps=int(s["steps"]), seed=self.seed)
+    @torch.no_grad()
+    def drawn_angle(self, x: torch.Tensor) -> torch.Tensor:
+        """``(sin, cos)`` ``[N, 2]`` of the angle ``g`` draws from states ``x [N, d]``: its angle head's reading where it
+        has one, else the angle of the ink of the frame it draws (what the readout is distilled from)."""
+        parts = self.streams(self.from_frames(decode(self.ssm.g, x, 4096)))
+        if "angle" in parts:  # the (sin, cos) of the joint's angle, as g's angle head draws it
+            reading = parts["angle"][:, :: parts["angle"].shape[1] // 2]
+            return reading / reading.norm(dim=1, keepdim=True).clamp_min(1e-6)
+        return self.ink_angle(parts["image"])
 
     def ink_angle(self, frames: torch.Tensor) -> torch.Tensor:
         """``(sin, cos)`` ``[N, 2]`` of the angle of the ink of frames ``[N, 1, H, W]`` about the pivot (``distill``'s

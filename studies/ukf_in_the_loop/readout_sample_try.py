@@ -17,7 +17,6 @@ from control_diagnosis import closed_loop  # noqa: E402
 from experiments.configs import build_datamodule, load_config  # noqa: E402
 from ssm_ms.control.goals import DistilledFeatures  # noqa: E402
 from ssm_ms.control.module import excited_states  # noqa: E402
-from ssm_ms.training.shooting import decode  # noqa: E402
 
 MAX_STATES = 200_000  # states the readout is fitted on at most (a random subset beyond)
 
@@ -32,9 +31,7 @@ def main(checkpoint: str) -> None:
             [loop.ssm.encode_nodes(b["y"], b.get("u")).reshape(-1, loop.ssm.state_dim) for b in dm.train_dataloader()]
         )
     limit = max(abs(loop.settings.u_min), abs(loop.settings.u_max))
-
-    def target(x: torch.Tensor) -> torch.Tensor:  # as ClosedLoop._distill reads a camera-only model
-        return loop.ink_angle(loop.streams(loop.from_frames(decode(loop.ssm.g, x, 4096)))["image"])
+    target = loop.drawn_angle
 
     draw = torch.Generator().manual_seed(123)
     held = excited_states(
