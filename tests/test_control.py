@@ -199,10 +199,11 @@ def test_the_planner_reads_the_angle_head_of_a_camera_and_angle_decoder():
     torch.manual_seed(0)
     nodes = torch.stack([torch.rand(400) * 6 - 3, torch.randn(400)], 1)
     test = torch.stack([torch.linspace(-2.5, 2.5, 11), torch.zeros(11)], 1)
-    features, error = ClosedLoop._distill(loop(both), nodes)
+    both_loop, camera_loop = loop(both), loop(camera)
+    features, error = ClosedLoop._distill(both_loop, ClosedLoop.visited_states(both_loop, nodes))
     assert error < 5e-3
     torch.testing.assert_close(features(test), torch.stack([test[:, 0].sin(), test[:, 0].cos()], 1), atol=0.1, rtol=0)
-    features, _ = ClosedLoop._distill(loop(camera), nodes)
+    features, _ = ClosedLoop._distill(camera_loop, ClosedLoop.visited_states(camera_loop, nodes))
     torch.testing.assert_close(features(test), torch.tensor([[1.0, 0.0]]).expand(11, 2), atol=0.05, rtol=0)
 
 

@@ -4,6 +4,8 @@ Both are recursive (one update per control period) and run on a batch of episode
 
 - :class:`UKFEstimator`: the unscented Kalman filter over the SSM's own ``f(x, u)`` and ``g`` (no training beyond
   the SSM), started at the mean shooting node.
+- :class:`ChartUKFEstimator`: the same filter over the code of a chart of the model's states
+  (:class:`~ssm_ms.inference.chart.StateChart`), so that its estimate stays among the states training produced.
 - :class:`EncoderEstimator`: the CNN-LSTM encoder trained on the SSM's latent trajectories (the forecasting stage,
   ``configs/<experiment>_encoder.yaml``), stepped one measurement at a time
   (:meth:`~ssm_ms.nets.encoder.StateEncoder.step`).
@@ -42,6 +44,21 @@ class UKFEstimator:
         mean, cov = self.ukf.predict(self.mean, self.cov, u)
         self.mean, self.cov = self.ukf.update(mean, cov, self.to_frames(y))
         return self.mean
+
+
+class ChartUKFEstimator(UKFEstimator):
+    """The UKF over a :class:`~ssm_ms.inference.chart.StateChart`'s codes (``ukf`` built on ``E(f(D(z), u))`` and
+    ``g(D(z))``), from code 0 (the mean code of the chart's states); returns the decoded states ``D(z)``."""
+
+    def __init__(self, ukf: UnscentedKalmanFilter, chart, to_frames: Transform):
+        super().__init__(ukf, torch.zeros(chart.dims), to_frames)
+        self.chart = chart
+
+    def start(self, y: torch.Tensor) -> torch.Tensor:
+        return self.chart.decode(super().start(y))
+
+    def next(self, u: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        return self.chart.decode(super().next(u, y))
 
 
 class EncoderEstimator:

@@ -34,11 +34,12 @@ import numpy as np
 import torch
 
 from ssm_ms.control.cost import SwingUpCost, upright_error
-from ssm_ms.control.estimators import EncoderEstimator, UKFEstimator, load_encoder
+from ssm_ms.control.estimators import ChartUKFEstimator, EncoderEstimator, UKFEstimator, load_encoder
 from ssm_ms.control.goals import DistilledFeatures, ink_angle_features
 from ssm_ms.control.mppi import MPPISettings, RecedingHorizon, checked_offset_gain
 from ssm_ms.control.plant import TruePendulum, angle_of_state
 from ssm_ms.control.scoring import episode_stats, first_upright, wilson_interval
+from ssm_ms.inference.chart import ChartSettings, StateChart
 from ssm_ms.inference.ukf import UnscentedKalmanFilter
 from ssm_ms.loading import load_ssm
 from ssm_ms.nets.sensors import SensorLayout
@@ -91,8 +92,11 @@ class ClosedLoop(pl.LightningModule):
             bound ``max_energy`` (J; e.g. the data's) with its weight ``w_energy``.
         estimator: the UKF's ``process_var``, ``measurement_var`` (``None``: the data's sensor noise, per stream with
             several sensors; ``{stream: variance}``: those streams' given, the others' their noise), ``init_var`` (``None``: the spread of the SSM's shooting nodes) and ``iterations``
-            (measurement updates per frame: :class:`~ssm_ms.inference.UnscentedKalmanFilter`'s); not used with
-            ``encoder_checkpoint``.
+            (measurement updates per frame: :class:`~ssm_ms.inference.UnscentedKalmanFilter`'s), and ``chart``
+            (``None``: the UKF over the whole state; ``{dims: k, ...}``, :class:`~ssm_ms.inference.chart.ChartSettings`:
+            over the code of a ``k``-dimensional chart of the model's states, fitted at set-up on the states the angle
+            readout is distilled on, so that the estimate stays among them; ``process_var`` and ``init_var`` are
+            then in the code's standardised units); not used with ``encoder_checkpoint``.
         encoder_checkpoint: estimate the state with this CNN-LSTM encoder (the forecasting stage's, trained on
             ``ssm_checkpoint``'s latent trajectories) instead of the UKF.
         distill: settings of the distilled angle readout: ``rollout_steps`` (states per node under random torques),
@@ -137,12 +141,13 @@ class ClosedLoop(pl.LightningModule):
         self.settings = MPPISettings(**(planner or {}))
         self.cost_weights = dict(cost or {})
         self.estimator_settings = {
-            "process_var": 1e-4, "measurement_var": None, "init_var": None, "iterations": 1, **(estimator or {})
+            "process_var": 1e-4, "measurement_var": None, "init_var": None, "iterations": 1, "chart": None,
+            **(estimator or {}),
         }  # fmt: skip
-        unknown = set(self.estimator_settings) - {"process_var", "measurement_var", "init_var", "iterations"}
+        unknown = set(self.estimator_settings) - {"process_var", "measurement_var", "init_var", "iterations", "chart"}
         if unknown:
             raise ValueError(
-                f"estimator takes process_var, measurement_var, init_var and iterations, got {sorted(unknown)}"
+                f"estimator takes process_var, measurement_var, init_var, iterations and chart, got {sorted(unknown)}"
             )
         self.distill_settings = {"rollout_steps": 25, "steps": 2000, "pivot": None, **(distill or {})}
         if not (seconds > 0 and 0 < success_seconds <= seconds and tolerance > 0 and timing_steps >= 1):
@@ -177,7 +182,13 @@ class ClosedLoop(pl.LightningModule):
         self.encoder = (
             None if encoder_checkpoint is None else load_encoder(encoder_checkpoint, ssm_checkpoint, self.ssm)
         )
+        chart = self.estimator_settings["chart"]
+        self.chart_settings = None
+        if chart is not None and self.ssm is not None and self.encoder is None:
+            self.chart_settings = ChartSettings.parse(chart, self.ssm.state_dim)
         self.estimator_name = "CNN-LSTM encoder" if self.encoder is not None else "UKF"
+        if self.chart_settings is not None:
+            self.estimator_name += f" on a {self.chart_settings.dims}-dimensional chart"
         name = method_name or ("true model, true state" if self.ssm is None else "SSM + {estimator}")
         self.method_name = name.replace("{estimator}", self.estimator_name)
         self._episodes: list[dict[str, torch.Tensor]] = []
@@ -217,8 +228,14 @@ class ClosedLoop(pl.LightningModule):
         self.f = lambda x, u: ssm_f(x, to_inputs(u))  # the planner and the filter think in N m
         nodes = self.ssm.training_states()
         self.prior = nodes.mean(0)
+        states = self.visited_states(nodes)
         if self.encoder is None:  # the UKF's settings: only where it estimates
             est = self.estimator_settings
+            f, g, state_dim = self.f, self.ssm.g, self.ssm.state_dim
+            if self.chart_settings is not None:  # the filter over the chart's code
+                self.chart = chart = StateChart.fit(states, self.chart_settings, seed=self.seed)
+                (f, g), state_dim = chart.pulled_back(f, g), chart.dims
+                nodes = chart.encode(nodes)
             init_var = est["init_var"] if est["init_var"] is not None else nodes.var(0).clamp_min(1e-6).tolist()
             measurement_var = est["measurement_var"]
             if isinstance(measurement_var, dict):  # several sensors: a variance per stream (the others: their noise)
@@ -233,31 +250,37 @@ class ClosedLoop(pl.LightningModule):
                 if sensors == ["angle"]:
                     measurement_var = float(dm.angle_noise_std) ** 2
             self.ukf = UnscentedKalmanFilter(
-                self.f,
-                self.ssm.g,
+                f,
+                g,
                 process_var=est["process_var"],
                 measurement_var=measurement_var,
                 init_var=init_var,
                 iterations=est["iterations"],
-                state_dim=self.ssm.state_dim,
+                state_dim=state_dim,
             )
-        self.features, self.distill_error = self._distill(nodes)
+        self.features, self.distill_error = self._distill(states)
 
     def estimator(self) -> UKFEstimator | EncoderEstimator:
         """A fresh estimator of the learned SSM's state (:mod:`ssm_ms.control.estimators`) for a batch of episodes."""
         if self.encoder is not None:
             return EncoderEstimator(self.encoder, self.to_frames, self.to_inputs)
+        if self.chart_settings is not None:
+            return ChartUKFEstimator(self.ukf, self.chart, self.to_frames)
         return UKFEstimator(self.ukf, self.prior, self.to_frames)
 
-    def _distill(self, nodes: torch.Tensor) -> tuple[DistilledFeatures, float]:
-        """The angle the decoder draws (its angle head's where it has one: a direct reading, where the ink's centroid
-        in a 24x24 frame is a coarse one), learned as a function of the state from the model's own states: every
-        shooting node rolled out ``rollout_steps`` steps under random torques (the data's kind of excitation)."""
-        s = self.distill_settings
+    def visited_states(self, nodes: torch.Tensor) -> torch.Tensor:
+        """The learned model's own states: every shooting node rolled out ``distill.rollout_steps`` steps under random
+        torques (the data's kind of excitation), where the angle readout is distilled and the UKF's chart fitted."""
         limit = max(abs(self.settings.u_min), abs(self.settings.u_max))
         generator = torch.Generator().manual_seed(self.seed)
-        states = excited_states(self.f, nodes, int(s["rollout_steps"]), limit, self.frame_dt, generator)
-        return DistilledFeatures.fit(states, self.drawn_angle, steps=int(s["steps"]), seed=self.seed)
+        steps = int(self.distill_settings["rollout_steps"])
+        return excited_states(self.f, nodes, steps, limit, self.frame_dt, generator)
+
+    def _distill(self, states: torch.Tensor) -> tuple[DistilledFeatures, float]:
+        """The angle the decoder draws (its angle head's where it has one: a direct reading, where the ink's centroid
+        in a 24x24 frame is a coarse one), learned as a function of the state on ``states`` (:meth:`visited_states`)."""
+        steps = int(self.distill_settings["steps"])
+        return DistilledFeatures.fit(states, self.drawn_angle, steps=steps, seed=self.seed)
 
     @torch.no_grad()
     def drawn_angle(self, x: torch.Tensor) -> torch.Tensor:
@@ -447,6 +470,8 @@ class ClosedLoop(pl.LightningModule):
             estimator = (
                 f"UKF {self.estimator_settings}" if self.encoder is None else f"encoder {self.encoder_checkpoint}"
             )
+            if self.chart_settings is not None:
+                estimator += f" (the chart's held-out reconstruction MSE {self.chart.held_error:.2g}, standardised)"
             line += f"; {estimator}; angle readout distilled from g (held-out MSE {self.distill_error:.2g})"
 
         return line
