@@ -744,6 +744,8 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         ("fit", "configs/pendulum_sensors_encoder.yaml"),
         ("test", "configs/pendulum_sensors_encoder.yaml"),
         ("test", "configs/pendulum_sensors_control.yaml"),
+        ("fit", "configs/pendulum_torque_amortised.yaml"),  # no encoder stage: its control test once
+        ("test", "configs/pendulum_torque_amortised_control.yaml"),
     ]
     version = option(calls[0], "--trainer.logger.init_args.version")
     ssm = f"runs/pendulum_torque/{version}/checkpoints/last.ckpt"
