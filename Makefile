@@ -85,20 +85,22 @@ reproduce: $(STAMP) $(if $(filter oscillator,$(EXP)),data/oscillator.npz)
 	$(PY) -m experiments.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(RESUME),--resume $(RESUME)) $(if $(ARGS),-- $(ARGS))
 
 ## The closed-loop tables' rows from pretrained/: each model of CONTROL_MODELS (pendulum_<model>.ckpt: torque, the
-## camera; sensors, camera and joint angle) with its UKF, then with its encoder, for each setting of CONTROL_SETTINGS
+## camera; sensors, camera and joint angle; torque_amortised, the camera, nodes read from frames, its UKF on a chart of
+## its states) with its UKF, then with its encoder where it has one, for each setting of CONTROL_SETTINGS
 ## it has a config for (control: |u| <= 3 N m; control_2nm: 2 N m), and the true model (the bound), 100 episodes
 ## each, into runs/pretrained/pendulum_control{,_2nm}.md (a few minutes per row on 2 cores).
 CONTROL_SETTINGS ?= control control_2nm
-CONTROL_MODELS ?= torque sensors
+CONTROL_MODELS ?= torque sensors torque_amortised
 CONTROL_OUT = --model.init_args.results_dir runs/pretrained --model.init_args.figures_dir runs/pretrained/figures
 control-pretrained: $(STAMP)
 	set -e; for setting in $(CONTROL_SETTINGS); do \
 		for model in $(CONTROL_MODELS); do \
 			test -f pretrained/pendulum_$$model.ckpt || \
-				{ echo "error: CONTROL_MODELS: no pretrained/pendulum_$$model.ckpt (shipped: torque sensors)" >&2; exit 2; }; \
+				{ echo "error: CONTROL_MODELS: no pretrained/pendulum_$$model.ckpt (shipped: torque sensors torque_amortised)" >&2; exit 2; }; \
 			config=configs/pendulum_$${model}_$$setting.yaml; test -f $$config || continue; \
 			ssm="--model.init_args.ssm_checkpoint pretrained/pendulum_$$model.ckpt"; \
 			$(PY) cli.py test --config $$config $$ssm $(CONTROL_OUT) $(ARGS); \
+			test -f pretrained/pendulum_$${model}_encoder.ckpt || continue; \
 			$(PY) cli.py test --config $$config $$ssm \
 				--model.init_args.encoder_checkpoint pretrained/pendulum_$${model}_encoder.ckpt $(CONTROL_OUT) $(ARGS); \
 		done; \
