@@ -82,9 +82,10 @@ def build_datamodule(config: dict | Path | str, **overrides):
         raise ConfigError(f"{name}: {path} refuses its arguments ({e})") from e
 
 
-def config_value(config: Path | str, key: str, default=None):
-    """The dotted ``key`` (``trainer.logger.init_args.name``) of the composed ``config``, else ``default``."""
-    value = load_config(config)
+def config_value(config: Path | str | dict, key: str, default=None):
+    """The dotted ``key`` (``trainer.logger.init_args.name``) of the composed ``config`` (a file, or its
+    :func:`load_config` dict: read once where several values are wanted), else ``default``."""
+    value = load_config(config) if isinstance(config, (str, Path)) else config
     for part in key.split("."):
         if not isinstance(value, dict) or part not in value:
             return default
@@ -92,11 +93,12 @@ def config_value(config: Path | str, key: str, default=None):
     return value
 
 
-def logger_dir(config: Path) -> Path:
-    """``save_dir/name`` of the TensorBoard logger a config declares."""
+def logger_dir(config: Path | dict) -> Path:
+    """``save_dir/name`` of the TensorBoard logger a config (a file, or its :func:`load_config` dict) declares."""
     args = config_value(config, "trainer.logger.init_args")
     if not isinstance(args, dict) or "save_dir" not in args or "name" not in args:
-        raise ConfigError(f"{config} declares no TensorBoardLogger with save_dir and name: reproduce needs them")
+        name = config if isinstance(config, (str, Path)) else "the config"
+        raise ConfigError(f"{name} declares no TensorBoardLogger with save_dir and name: reproduce needs them")
     return Path(str(args["save_dir"])) / str(args["name"])
 
 
@@ -107,8 +109,10 @@ def results_dir(config: Path, version: str) -> Path:
     return absolute(Path(str(value)) if value is not None else logger_dir(config) / version)
 
 
-def experiment_name(config: Path) -> str:
-    return str(config_value(config, "model.init_args.experiment", default=config.stem))
+def experiment_name(config: Path, loaded: dict | None = None) -> str:
+    """The experiment a config's results go under: its model's ``experiment``, else the file's name (``loaded``: the
+    file's :func:`load_config` dict, where the caller has read it)."""
+    return str(config_value(config if loaded is None else loaded, "model.init_args.experiment", default=config.stem))
 
 
 def absolute(path: Path) -> Path:
