@@ -3,8 +3,10 @@ as written in a clean copy of the repository, with an empty HOME and no ``runs/`
 other tests.
 
 Every shell command of those blocks must be listed in :data:`STEPS` with how the test runs it: a command that is not
-is a failing test. A Python block runs whole, as a script (those that train do so on a budget of their own: a minute at most). Commands that train for long get tiny overrides appended (stated beside them: one epoch of two
-batches, fewer test sequences); ``make test`` runs the quick ones (``quick`` set), ``make test-slow`` every one.
+is a failing test. A Python block runs whole, as a script (those that train do so on a budget of their own: a minute at
+most; ``make test`` shortens it, :data:`PYTHON_QUICK`). Commands that train for long get tiny overrides appended
+(stated beside them: one epoch of two batches, fewer test sequences); ``make test`` runs the quick ones (``quick``
+set), ``make test-slow`` every one.
 ``make test-slow`` runs each document in its own copy, its commands in the order written (later ones use what
 earlier ones wrote); ``make test`` runs the documents one after the other in one copy, a command that an earlier
 document already ran as written not run again (the docs repeat the README's steps).
@@ -31,7 +33,16 @@ DOCS = ("README.md", "docs/your-data.md", "docs/forecasting.md", "docs/python.md
 
 TINY = "--trainer.max_epochs 1 --trainer.limit_train_batches 2 --trainer.limit_val_batches 1"  # a training smoke test
 FEW_TESTS = "--data.init_args.n_test 50"  # a test on the first 50 test sequences (generating only those)
+# the pendulum's analysis at a tiny size (make test only): every part computed, over a few short runs (the configs'
+# Lyapunov spectrum and free runs are ~10 s of the command)
+SMALL_ANALYSIS = (
+    "--model.init_args.analysis '{valid_time: {}, dynamics: {runs: 2, lyapunov_steps: 100, transient: 20, align: 20, "
+    "free_steps: 100}}'"
+)
 FEW_TRAIN = "--data.init_args.n_train 100"  # the pendulum's first 100 training sequences (make test only)
+# make test's changes to the Python blocks, as written -> as run (make test-slow runs them as written): a training budget
+# of 10 seconds, not the block's minute (the suite's 10 minutes on the slowest CPUs)
+PYTHON_QUICK = {'time="1min"': 'time="10s"'}
 
 
 @dataclass(frozen=True)
@@ -58,7 +69,7 @@ STEPS: dict[str, Step] = {
     "runs/pendulum/version_0/checkpoints/last.ckpt": Step(f"{TINY} {FEW_TRAIN}", slow_extra=TINY),
     "python cli.py test --config configs/pendulum_encoder.yaml --model.init_args.ssm_checkpoint "
     "runs/pendulum/version_0/checkpoints/last.ckpt --ckpt_path runs/pendulum_encoder/version_0/checkpoints/last.ckpt": Step(
-        FEW_TESTS, slow_extra=""
+        f"{FEW_TESTS} {SMALL_ANALYSIS}", slow_extra=""
     ),
     "python examples/make_oscillator_data.py": Step(),
     "python cli.py fit --config configs/oscillator.yaml": Step(TINY),
@@ -83,19 +94,20 @@ STEPS: dict[str, Step] = {
     "pretrained/benchmarks/silverbox_no_identity.ckpt --data.init_args.dir_placement ../shared/data/nonlinear_benchmarks "
     "--model.init_args.results_dir runs/pretrained --model.init_args.figures_dir null": Step(),
     # the closed-loop rows from the pretrained torque-driven pendulum: make test runs two episodes of 1 s per row, of the
-    # harder setting only (the loop is the same for both; each CLI start costs ~6 s of imports on the slowest CPUs)
+    # harder setting only (the loop is the same for both; each CLI start costs ~8 s of imports on the slowest CPUs),
+    # the angle readout distilled in 50 steps on the nodes' first 2 states (decoding the 25 of each is ~15 s a row)
     "make control-pretrained": Step(
         'CONTROL_SETTINGS=control_2nm ARGS="--data.init_args.n_test 2 --data.init_args.eval_batch_size 2 '
         "--model.init_args.seconds 1 "
         "--model.init_args.success_seconds 1 --model.init_args.timing_steps 2 --model.init_args.distill "
-        "'{steps: 50}'\"",
+        "'{steps: 50, rollout_steps: 2}'\"",
         slow_extra='ARGS="--data.init_args.n_test 20"',
     ),
     "make reproduce EXP=pendulum RESUME=reproduce-<date>-<time>": Step(quick=False, extra=f'ARGS="{TINY} {FEW_TESTS}"'),
     "make reproduce EXP=oscillator": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
     # the pretrained model, tested as shipped (make test: on 50 test sequences; make test-slow: all 1000)
     "python cli.py test --config configs/pendulum_encoder.yaml --ckpt_path pretrained/pendulum_encoder.ckpt": Step(
-        FEW_TESTS, slow_extra=""
+        f"{FEW_TESTS} {SMALL_ANALYSIS}", slow_extra=""
     ),
 }
 
@@ -182,7 +194,10 @@ def run_doc(doc: str, repo: Path, env: dict[str, str], slow: bool, done: set[str
         extra = step.extra if not slow or step.slow_extra is None else step.slow_extra
         if is_python(command):
             script = repo.parent / "snippet.py"
-            script.write_text(command)
+            text = command
+            for written, quick in PYTHON_QUICK.items() if not slow else ():
+                text = text.replace(written, quick)
+            script.write_text(text)
             line = f"python {script}"
         else:
             line = command
@@ -211,9 +226,11 @@ def test_every_command_is_run_by_a_test(doc):
 
 
 def test_every_listed_command_is_in_a_document():
-    """A command left in STEPS after it left the documents is dead weight: fails here."""
+    """A command left in STEPS (or a change in PYTHON_QUICK) after it left the documents is dead weight: fails here."""
     written = {c for doc in DOCS for c in doc_commands(doc)}
     assert sorted(set(STEPS) - written) == []
+    python = [c for c in written if is_python(c)]
+    assert [w for w in PYTHON_QUICK if not any(w in c for c in python)] == []
 
 
 def test_commands_are_parsed_as_written():
@@ -222,6 +239,7 @@ def test_commands_are_parsed_as_written():
     assert commands("yaml", "a: 1\n") == [] and commands("python", "import x\n") == ["import x\n"]
 
 
+@pytest.mark.longest
 def test_quick_commands_run_as_written(tmp_path):
     repo, env = clean_copy(tmp_path)
     done: set[str] = set()
