@@ -38,6 +38,10 @@ def test_chart_settings_name_what_is_wrong():
         ChartSettings.parse({"dim": 3})
     with pytest.raises(ValueError, match=r"dims <= the state's size \(the state has 10\)"):
         ChartSettings.parse({"dims": 12}, state_dim=10)
+    with pytest.raises(ValueError, match="a chart's dims is a whole number, got 'six'"):
+        ChartSettings.parse({"dims": "six"})
+    with pytest.raises(ValueError, match="a chart's lr is a number > 0, got 0"):
+        ChartSettings.parse({"dims": 2, "lr": 0})
     assert ChartSettings.parse({"dims": 4, "steps": 10}, state_dim=10) == ChartSettings(dims=4, steps=10)
 
 

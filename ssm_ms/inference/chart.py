@@ -36,6 +36,11 @@ class ChartSettings:
         names = [f.name for f in fields(cls)]
         if not isinstance(given, dict) or set(given) - set(names) or "dims" not in given:
             raise ValueError(f"a chart takes {', '.join(names)} (dims required), got {given!r}")
+        for name, value in given.items():
+            whole = name != "lr"
+            kinds = (int,) if whole else (int, float)
+            if isinstance(value, bool) or not isinstance(value, kinds) or (not whole and value <= 0):
+                raise ValueError(f"a chart's {name} is {'a whole number' if whole else 'a number > 0'}, got {value!r}")
         settings = cls(**given)
         top = state_dim if state_dim is not None else settings.dims
         if not (1 <= settings.dims <= top and settings.steps >= 1 and settings.batch >= 1 and settings.width >= 1):
