@@ -59,6 +59,11 @@ CHEAP_ANALYSIS = [
     '"dynamics": {"runs": 2, "lyapunov_steps": 50, "transient": 10, "align": 10, "free_steps": 200}, '
     f"{CHEAP_TRUE_SYSTEM}}}",
 ]
+# the pendulum's (its configs' Lyapunov spectrum and free runs are ~5 s a test stage)
+CHEAP_PENDULUM_ANALYSIS = [
+    "--model.init_args.analysis",
+    '{"valid_time": {}, "dynamics": {"runs": 2, "lyapunov_steps": 50, "transient": 10, "align": 10, "free_steps": 100}}',
+]
 # a baseline has no f to study: the valid time, in Lyapunov times of the true system
 CHEAP_BASELINE_ANALYSIS = [
     "--model.init_args.analysis",
@@ -149,6 +154,7 @@ def test_encoder_stage_and_test_protocol_from_the_cli(pendulum_ssm):
         "--model.init_args.figures_dir",
         str(tmp / "figures"),
         *TINY["pendulum"],
+        *CHEAP_PENDULUM_ANALYSIS,
     ]
     run(
         tmp,
