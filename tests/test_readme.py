@@ -105,7 +105,8 @@ STEPS: dict[str, Step] = {
     ),
     "make reproduce EXP=pendulum RESUME=reproduce-<date>-<time>": Step(quick=False, extra=f'ARGS="{TINY} {FEW_TESTS}"'),
     "make reproduce EXP=oscillator": Step(quick=False, extra=f'ARGS="{TINY}"', timeout=1800),
-    # the pretrained model, tested as shipped (make test: on 50 test sequences; make test-slow: all 1000)
+    # the pretrained model, tested as shipped (make test: on 50 test sequences, the analysis tiny; make test-slow: all
+    # 1000, as written)
     "python cli.py test --config configs/pendulum_encoder.yaml --ckpt_path pretrained/pendulum_encoder.ckpt": Step(
         f"{FEW_TESTS} {SMALL_ANALYSIS}", slow_extra=""
     ),
