@@ -380,14 +380,15 @@ def test_strip_keeps_the_kept_epoch_s_score_and_time_alone():
 # Table 1 and 2 pipelines ran on version 1, Table 2's 1000-epoch SSM-LL (quad, encoder_ssm1000) on version 2; the data
 # are drawn with today's version, so the version 1 files score a little worse than their tables (docs/export.md)
 TRAINED_ON = {"pendulum": 1, "pendulum_fc": 1, "pendulum_sensors": 2, "pendulum_torque": 2, "quad": 2, "quad_fc": 1}
-TRAINED_ON["pendulum_torque_amortised"] = 2  # no encoder: its loop runs the UKF on a chart of its states
+TRAINED_ON["pendulum_torque_amortised"] = 2
+NO_ENCODER = {"pendulum_torque_amortised"}  # its loop runs the UKF on a chart of its states
 
 
 @pytest.mark.parametrize("name", sorted(TRAINED_ON))
 def test_each_pretrained_pendulum_says_which_rendering_it_was_trained_on(name):
     from datamodules.pendulum import GENERATOR_VERSION
 
-    encoder = [] if name == "pendulum_torque_amortised" else [ROOT / "pretrained" / f"{name}_encoder.ckpt"]
+    encoder = [] if name in NO_ENCODER else [ROOT / "pretrained" / f"{name}_encoder.ckpt"]
     for path in (ROOT / "pretrained" / f"{name}.ckpt", *encoder):
         params = read_checkpoint(path)["PendulumDataModule"]["generator_params"]
         assert (params["rendering"], params["version"]) == ("paper", TRAINED_ON[name]), path.name

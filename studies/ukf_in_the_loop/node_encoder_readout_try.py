@@ -1,13 +1,14 @@
 """Point 16: an amortised-node model's own node encoder as the closed loop's estimator, and how far the planner's angle
 readout of its states is from the true angle along the episodes (and how far the pendulum turns). The state at frame
-t+1 is the encoder's reading of the frames t-H+1..t and torques t-H+1..t (a node read from the samples before it, as
-in training); before H frames exist the first frame is repeated with no torque. Run from the repository root:
+t+1 is the encoder's reading of the frames t-H+1..t and torques t-H+1..t (node_encoder_try.py's estimator: a node read
+from the samples before it, as in training; before H frames exist the first frame is repeated with no torque). Run from the repository root:
     python studies/ukf_in_the_loop/node_encoder_readout_try.py pretrained/pendulum_torque_amortised.ckpt 20
 (the tuning starts: data and loop seed 10; further arguments go to the command line of the control config)."""
 
 import sys
 
 import torch
+from node_encoder_try import NodeEncoderEstimator
 
 from ssm_ms.cli import main
 
@@ -18,24 +19,20 @@ cli = main([*args, "--data.init_args.n_test", str(n), *sys.argv[3:]], run=False)
 loop, dm = cli.model, cli.datamodule
 dm.setup("test")
 loop.attach(dm)
-encoder = loop.ssm.node_encoder.eval()
 estimates = []
 
 
-class NodeEncoder:
+class Recorded(NodeEncoderEstimator):  # node_encoder_try.py's estimator, each estimate kept
     def start(self, y):
-        self.y, self.u = [loop.to_frames(y)] * encoder.history, [torch.zeros(len(y), 1)] * encoder.history
-        estimates.append(encoder(torch.stack(self.y, 1), torch.stack(self.u, 1)))
+        estimates.append(super().start(y))
         return estimates[-1]
 
     def next(self, u, y):
-        self.u = self.u[1:] + [loop.to_inputs(u.float())]
-        estimates.append(encoder(torch.stack(self.y, 1), torch.stack(self.u, 1)))
-        self.y = self.y[1:] + [loop.to_frames(y)]
+        estimates.append(super().next(u, y))
         return estimates[-1]
 
 
-loop.estimator = NodeEncoder
+loop.estimator = lambda: Recorded(loop.ssm.node_encoder.eval(), loop.to_frames, loop.to_inputs)
 starts = torch.cat([b["state"][:, 0] for b in dm.test_dataloader()]).double().numpy()
 with torch.no_grad():
     run = loop.episodes(starts)

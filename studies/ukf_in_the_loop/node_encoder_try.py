@@ -10,8 +10,6 @@ import sys
 import torch
 from estimator_try import try_estimator
 
-S = json.loads(sys.argv[1]) if len(sys.argv) > 1 else {}
-
 
 class NodeEncoderEstimator:
     def __init__(self, encoder, to_frames, to_inputs):
@@ -38,6 +36,6 @@ if __name__ == "__main__":
     try_estimator(
         lambda loop: None,
         lambda loop: NodeEncoderEstimator(loop.ssm.node_encoder, loop.to_frames, loop.to_inputs),
-        S,
+        json.loads(sys.argv[1]) if len(sys.argv) > 1 else {},
         "node_encoder_try",
     )
