@@ -10,6 +10,7 @@ import json
 import logging
 import math
 import os
+import re
 import signal
 import sys
 from pathlib import Path
@@ -513,6 +514,29 @@ def test_a_fit_checkpoints_every_epoch_unless_told_otherwise(rotation):
     assert own.every_n_epochs == 3
     assert savers("none", "--trainer.enable_checkpointing", "false") == []
     assert not (root / "runs" / "rot" / "none" / "checkpoints").exists()
+
+
+def test_a_second_model_checkpoint_keeps_its_epochs_beside_the_house_one(rotation):
+    """A ModelCheckpoint keeping every epoch beside the house's EpochCheckpoint (whose top-1 file is replaced every
+    epoch) loses none of them, under Lightning's default name too (where the names meet, the second writer's file
+    gets Lightning's ``-v1``), and under a name of its own they are told apart at a glance (docs/cli.md)."""
+    root, fit = rotation
+    keep = [
+        "--trainer.callbacks+=lightning.pytorch.callbacks.ModelCheckpoint",
+        "--trainer.callbacks.save_top_k=-1",
+        "--trainer.callbacks.save_on_train_epoch_end=true",  # this config validates every 10 epochs
+    ]
+    for version, name in (("default", []), ("own", ["--trainer.callbacks.filename=keep-{epoch}"])):
+        main([*fit, "--trainer.max_epochs", "3", "--trainer.logger.init_args.version", version, *keep, *name])
+        files = sorted(p.name for p in (root / "runs" / "rot" / version / "checkpoints").iterdir())
+        epochs = sorted(int(re.match(r"(?:keep-)?epoch=(\d+)", f)[1]) for f in files if f != "last.ckpt")
+        assert epochs == [0, 1, 2, 2], files  # the kept three and the house's last epoch
+        assert "last.ckpt" in files
+    assert [f for f in files if f.startswith("keep-")] == [
+        "keep-epoch=0.ckpt",
+        "keep-epoch=1.ckpt",
+        "keep-epoch=2.ckpt",
+    ]
 
 
 def test_configs_state_the_schedule_on_the_model_and_twins_change_only_what_differs():
