@@ -162,6 +162,12 @@ def test_distilled_features_fit_a_known_map():
     net, error = DistilledFeatures.fit(states, target, steps=1500)
     assert error < 5e-3
     torch.testing.assert_close(net(states[:5]), target(states[:5]), atol=0.15, rtol=0)
+    # the same map on states 1000x smaller and off the origin (a model's states have the scale training gave them):
+    # fitted as well
+    small = 0.7 + states / 1000
+    net, error = DistilledFeatures.fit(small, lambda x: target((x - 0.7) * 1000), steps=1500)
+    assert error < 5e-3
+    torch.testing.assert_close(net(small[:5]), target(states[:5]), atol=0.15, rtol=0)
 
 
 def test_the_planner_reads_the_angle_head_of_a_camera_and_angle_decoder():

@@ -35,10 +35,17 @@ def ink_angle_features(frames: torch.Tensor, pivot: tuple[float, float], floor: 
 
 
 class DistilledFeatures(nn.Module):
-    """A small MLP ``x [N, d] -> features [N, k]`` fitted to ``features(g(x))`` on states a model produces."""
+    """A small MLP ``x [N, d] -> features [N, k]`` fitted to ``features(g(x))`` on states a model produces.
+
+    It reads the states standardised by their mean and spread on the fitting states (buffers, set by :meth:`fit`):
+    a model's states have whatever scale training gave them (the amortised pendulum's shrink to a spread of ~0.003
+    per coordinate once the gap term's weight is raised), and a fixed-scale network on raw states then resolves them
+    coarsely or not at all."""
 
     def __init__(self, state_dim: int, out_features: int = 2, hidden: int = 128):
         super().__init__()
+        self.register_buffer("mean", torch.zeros(state_dim))
+        self.register_buffer("scale", torch.ones(state_dim))
         self.net = nn.Sequential(
             nn.Linear(state_dim, hidden),
             nn.Tanh(),
@@ -48,7 +55,7 @@ class DistilledFeatures(nn.Module):
         )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out = self.net(x)
+        out = self.net((x - self.mean) / self.scale)
         return out / out.norm(dim=-1, keepdim=True).clamp_min(1e-6)  # a point on the circle: (sin, cos)
 
     @classmethod
@@ -61,14 +68,17 @@ class DistilledFeatures(nn.Module):
         lr: float = 3e-3,
         seed: int = 0,
     ) -> tuple[DistilledFeatures, float]:
-        """Fit to ``target(states)`` (e.g. ``ink_angle_features(g(states))``), computed once; returns the network
-        and its mean squared error on the states (held out: every fifth state)."""
+        """Fit to ``target(states)`` (e.g. ``ink_angle_features(g(states))``), computed once, on the states
+        standardised by their own mean and spread; returns the network and its mean squared error on the states (held
+        out: every fifth state)."""
         generator = torch.Generator().manual_seed(seed)
         with torch.no_grad():
             y = torch.cat([target(part) for part in states.split(4096)])
         held = torch.arange(len(states)) % 5 == 0
         torch.manual_seed(seed)
         net = cls(states.shape[1], y.shape[1])
+        net.mean.copy_(states.mean(0))
+        net.scale.copy_(states.std(0).clamp_min(1e-12))
         optimizer = torch.optim.Adam(net.parameters(), lr=lr)
         x_train, y_train = states[~held], y[~held]
         for step in range(steps):
