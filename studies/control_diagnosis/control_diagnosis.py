@@ -89,7 +89,8 @@ def diagnose(loop: ClosedLoop, frames: list, inputs: torch.Tensor) -> tuple[np.n
 
 
 def table(truth: np.ndarray, columns: dict[str, np.ndarray]) -> list[str]:
-    """Mean absolute angle error of each column (angles ``[B, T+1]``, NaN: none) against ``truth``, by band."""
+    """Mean absolute angle error of each column (angles ``[B, T+1]``, NaN: none) against ``truth``, by band and
+    over all frames."""
     from_up = upright_error(torch.from_numpy(truth)).numpy()
     rows = [
         "| true angle from upright (rad) | share of frames | " + " | ".join(columns) + " |",
@@ -100,6 +101,8 @@ def table(truth: np.ndarray, columns: dict[str, np.ndarray]) -> list[str]:
         cells = [f"{np.nanmean(wrap(angles - truth)[band]):.3f}" for angles in columns.values()]
         name = f"{lo:g} to {hi:.1f}" if hi < np.pi else f"{lo:g} and above"
         rows.append(f"| {name} | {band.mean():.2f} | " + " | ".join(cells) + " |")
+    cells = [f"{np.nanmean(wrap(angles - truth)):.3f}" for angles in columns.values()]
+    rows.append("| all frames | 1.00 | " + " | ".join(cells) + " |")
     return rows
 
 

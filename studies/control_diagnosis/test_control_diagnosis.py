@@ -63,3 +63,4 @@ def test_control_diagnosis_reads_the_filter_and_its_k_step_predictions_as_a_naiv
     assert rows[0] == "| true angle from upright (rad) | share of frames | a | b | c |"
     assert rows[2] == "| 0 to 0.5 | 0.50 | 0.100 | 0.200 | 0.300 |"
     assert rows[3].startswith("| 0.5 to 1.5 | 0.25 |") and rows[5].startswith("| 2.5 and above | 0.25 |")
+    assert rows[6] == "| all frames | 1.00 | 0.100 | 0.200 | 0.300 |"  # every frame's error, the frames it has
