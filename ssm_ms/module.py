@@ -126,6 +126,10 @@ class MultipleShootingModule(pl.LightningModule):
         weight_average: ``None`` (the paper) or the decay of an exponential moving average of the parameters over
             the training steps (e.g. 0.999: about the last 1,000 steps), which validation scores, the checkpoints hold
             and the fit ends with (:class:`ssm_ms.averaging.WeightAverage`; docs/method.md, "Weight averaging").
+        gap_scale: ``"absolute"`` (the paper: ``mean(c^2)``) or, with a ``node_encoder``, ``"node_variance"``: each
+            state coordinate's gaps divided by its variance over the batch's nodes, so that states shrinking toward a
+            point cannot lower the gap term (:func:`ssm_ms.training.shooting.gap_term`; docs/method.md, "Amortised
+            nodes").
     """
 
     # validation rolls out from the shooting nodes, which only training trajectories have
@@ -154,6 +158,7 @@ class MultipleShootingModule(pl.LightningModule):
         schedule: ShootingSchedule | None = None,
         stream_weights: dict[str, float] | None = None,
         weight_average: float | None = None,
+        gap_scale: str = "absolute",
     ):
         super().__init__()
         # Built by LightningCLI, f, g and the node encoder are recorded as their config (class_path + init_args), so
@@ -188,7 +193,8 @@ class MultipleShootingModule(pl.LightningModule):
         self.register_buffer("alpha", torch.tensor(float(alpha)))
         checks.check_node_settings(node_optimizer, node_lr)
         self.node_update: DenseNodes = NODE_UPDATES[node_optimizer]()
-        self.constraint: Penalty = make_constraint(constraint, n_nodes, constraint_options)
+        checks.check_gap_scale(gap_scale, node_encoder is not None)
+        self.constraint: Penalty = make_constraint(constraint, n_nodes, constraint_options, gap_scale)
         self.constraint.attach(self)
         # each step's (index, rows updated outside autograd, residuals kept): the updates before the optimizer step
         self._pending: list[tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]] = []
@@ -425,6 +431,7 @@ class MultipleShootingModule(pl.LightningModule):
             self._rollout_fn,
             u,
             **self.fit_options(),
+            gap_scale=self.constraint.gap_scale,
         )
 
     # ------------------------------------------------------------------ training

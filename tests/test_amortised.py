@@ -12,6 +12,7 @@ from ssm_ms.inference.simulation import initial_state, simulate_recording
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import ConvDecoder, HistoryEncoder, LinearReadout, LocallyLinearTransition
 from ssm_ms.training.checks import check_data
+from ssm_ms.training.shooting import multiple_shooting_loss
 
 H, M, N, D = 5, 3, 4, 3  # history, nodes, piece length, state
 
@@ -174,3 +175,49 @@ def test_a_model_built_in_python_saves_and_loads_its_node_encoder(tmp_path):
     with torch.no_grad():
         torch.testing.assert_close(loaded.batch_nodes(b)[0], m.eval().batch_nodes(b)[0])
     torch.testing.assert_close(loaded.training_states(), m.training_states())
+
+
+def test_a_gap_scaled_by_the_node_variance_is_the_naive_ratio_and_shrinking_states_cannot_lower_it():
+    m, b = model(gap_scale="node_variance"), batch(b=3)
+    nodes = m.batch_nodes(b)[0]
+    fit, gap = m.shooting_loss(b)
+    # naive: every gap element over its coordinate's population variance over the batch's 3 x M nodes
+    with torch.no_grad():
+        flat = nodes.reshape(-1, D)
+        var = [sum((float(v) - float(flat[:, j].mean())) ** 2 for v in flat[:, j]) / len(flat) for j in range(D)]
+        terms = []
+        for k in range(3):
+            for i in range(M - 1):
+                x = nodes[k : k + 1, i]
+                for j in range(N):
+                    x = m.f(x, b["u"][k : k + 1, H + i * N + j])
+                terms += [float(nodes[k, i + 1, c] - x[0, c]) ** 2 / var[c] for c in range(D)]
+    assert gap.item() == pytest.approx(sum(terms) / len(terms), rel=1e-5)
+    # states mapped by x -> c x + e (f and g conjugated, so fits and gaps are those of the same model): the absolute
+    # gap scales by c^2, the scaled one is unchanged
+    c, e = 1e-2, torch.tensor([0.3, -0.2, 0.1])
+    y, u = m.batch_nodes(b)[1:]
+    small = nodes.detach() * c + e
+
+    def f_small(x, uu):
+        return m.f((x - e) / c, uu) * c + e
+
+    def g_small(x):
+        return m.g((x - e) / c)
+
+    fit_s, gap_s = multiple_shooting_loss(f_small, g_small, small, y, u=u, gap_scale="node_variance")
+    _, gap_abs_s = multiple_shooting_loss(f_small, g_small, small, y, u=u)
+    _, gap_abs = model().shooting_loss(b)
+    torch.testing.assert_close(fit_s, fit)
+    assert gap_s.item() == pytest.approx(gap.item(), rel=1e-4)
+    assert gap_abs_s.item() == pytest.approx(c**2 * gap_abs.item(), rel=1e-4)
+
+
+def test_a_gap_scaled_by_the_node_variance_needs_amortised_nodes():
+    f = LocallyLinearTransition(D, n_matrices=2, hidden=8)
+    with pytest.raises(ValueError, match="free nodes all start at zero"):
+        MultipleShootingModule(f, LinearReadout(D, 2), n_nodes=M, num_trajectories=4, gap_scale="node_variance")
+    with pytest.raises(
+        ValueError, match=r"unknown gap_scale 'relative': choose one of \['absolute', 'node_variance'\]"
+    ):
+        model(gap_scale="relative")

@@ -73,6 +73,15 @@ def check_node_settings(node_optimizer: str, node_lr: float | None) -> None:
         raise ValueError(f"node_lr must be > 0 (or unset to use lr), got {node_lr}")
 
 
+def check_gap_scale(gap_scale: str, amortised: bool) -> None:
+    """A gap measured relative to the nodes' variance needs amortised nodes (free nodes all start at zero)."""
+    if gap_scale == "node_variance" and not amortised:
+        raise ValueError(
+            "gap_scale: node_variance divides the gaps by the nodes' variance over a batch, but free nodes all start "
+            "at zero (no variance): use it with amortised nodes (model.init_args.node_encoder), or gap_scale: absolute"
+        )
+
+
 def check_transition(f: nn.Module, state_dim: int, input_dim: int) -> None:
     """``f`` maps a batch of states (and inputs, where it takes them) to a batch of states."""
     with torch.no_grad():

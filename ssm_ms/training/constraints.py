@@ -31,7 +31,7 @@ from typing import Any
 
 import torch
 
-from ssm_ms.training.shooting import multiple_shooting_loss, shooting_residuals
+from ssm_ms.training.shooting import GAP_SCALES, multiple_shooting_loss, shooting_residuals
 
 CONSTRAINTS = ("penalty", "augmented_lagrangian")
 
@@ -106,7 +106,11 @@ def raised_factor(factor: float, gap_rms: float, previous_rms: float, options: A
 # (``alpha``; the augmented Lagrangian's ``alpha_factor``, ``last_gap_rms`` and ``multipliers``), so checkpoints and
 # DDP see them as before; the objects hold the options and an epoch's running sums only.
 class Penalty:
-    """The paper's objective, ``fit + alpha * mean(c^2)``: nothing kept between steps."""
+    """The paper's objective, ``fit + alpha * mean(c^2)`` (or its gap measured as ``gap_scale`` says:
+    :func:`~ssm_ms.training.shooting.gap_term`): nothing kept between steps."""
+
+    def __init__(self, gap_scale: str = "absolute"):
+        self.gap_scale = gap_scale
 
     def attach(self, model: torch.nn.Module) -> None:
         """Register the buffers this constraint keeps on ``model`` (none)."""
@@ -122,7 +126,7 @@ class Penalty:
         self, model: torch.nn.Module, args: tuple, options: Mapping[str, Any], index: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """``(loss, fit, mean gap^2, residuals to keep)`` of a batch (``args`` as :func:`multiple_shooting_loss`'s)."""
-        fit, gap = multiple_shooting_loss(*args, **options)
+        fit, gap = multiple_shooting_loss(*args, **options, gap_scale=self.gap_scale)
         return fit + self.weight(model) * gap, fit, gap, None
 
     def start_epoch(self) -> None:
@@ -141,6 +145,7 @@ class AugmentedLagrangian(Penalty):
     raised when the gaps stop shrinking."""
 
     def __init__(self, options: AugmentedLagrangianOptions):
+        super().__init__()
         self.options = options
         self._sums = [0.0, 0]  # an update epoch's sum of squared residuals, and their count
 
@@ -187,12 +192,16 @@ class AugmentedLagrangian(Penalty):
             model.last_gap_rms.fill_(rms)
 
 
-def make_constraint(constraint: str, n_nodes: int, options: Mapping[str, Any] | None) -> Penalty:
+def make_constraint(
+    constraint: str, n_nodes: int, options: Mapping[str, Any] | None, gap_scale: str = "absolute"
+) -> Penalty:
     """The strategy of ``model.constraint`` (checked: :func:`check_constraint`; options for the augmented Lagrangian
-    only)."""
+    only; a ``gap_scale`` other than ``"absolute"`` for the penalty only)."""
     check_constraint(constraint, n_nodes)
-    if constraint == "augmented_lagrangian":
+    if gap_scale not in GAP_SCALES:
+        raise ValueError(f"unknown gap_scale {gap_scale!r}: choose one of {list(GAP_SCALES)}")
+    if constraint == "augmented_lagrangian":  # free nodes only, whose gap is absolute (checks.check_gap_scale)
         return AugmentedLagrangian(AugmentedLagrangianOptions.from_mapping(options))
     if options:
         raise ValueError("constraint_options apply to constraint: augmented_lagrangian only: remove them")
-    return Penalty()
+    return Penalty(gap_scale)

@@ -186,6 +186,27 @@ def shooting_residuals(
     return fit, nodes[:, 1:] - end[:, :-1]
 
 
+GAP_SCALES = ("absolute", "node_variance")  # how the gap term is measured (model.gap_scale)
+
+
+def gap_term(residual: torch.Tensor, nodes: torch.Tensor, scale: str = "absolute") -> torch.Tensor:
+    """The gap term of the objective from the gaps ``residual [B, m-1, d]`` of the nodes ``nodes [B, m, d]``.
+
+    ``"absolute"`` (the paper): ``mean(c^2)``. ``"node_variance"``: each state coordinate's squared gaps divided by
+    that coordinate's variance over the batch's nodes, ``mean_{b,i,j}(c[b,i,j]^2 / var_j(s))``, the variance kept in
+    the graph: the term is unchanged when the states are mapped by ``x -> D x + e`` (``D`` diagonal), so states that
+    shrink toward a point, with ``g`` scaled up to read them, no longer lower it. Exactly zero without gaps.
+    """
+    if residual.numel() == 0:
+        return residual.new_zeros(())
+    if scale == "absolute":
+        return residual.pow(2).mean()
+    if scale != "node_variance":
+        raise ValueError(f"unknown gap_scale {scale!r}: choose one of {list(GAP_SCALES)}")
+    var = nodes.reshape(-1, nodes.shape[-1]).var(0, unbiased=False)
+    return (residual.pow(2) / (var + torch.finfo(var.dtype).tiny)).mean()
+
+
 def multiple_shooting_loss(
     f: Callable[[torch.Tensor], torch.Tensor],
     g: Callable[[torch.Tensor], torch.Tensor],
@@ -197,6 +218,7 @@ def multiple_shooting_loss(
     u: torch.Tensor | None = None,
     weights: torch.Tensor | None = None,
     missing: bool = False,
+    gap_scale: str = "absolute",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The two terms of the multiple-shooting objective.
 
@@ -213,12 +235,13 @@ def multiple_shooting_loss(
             ``i`` rolls out under ``u[:, i n : (i + 1) n]``.
         weights, missing: several sensors (:mod:`ssm_ms.nets.sensors`): the fit weighs measurement component ``c``
             by ``weights[c]`` and, with ``missing``, leaves out the NaN elements of ``y`` (:func:`weighted_fit`).
+        gap_scale: how the gap is measured (:func:`gap_term`): ``"absolute"`` (the paper) or ``"node_variance"``.
 
     Returns:
         ``(fit, gap)``: ``fit`` is the mean over all elements of ``loss(g(f^k(s_i)), y[(i-1)n + k])``;
-        ``gap`` is the mean over all elements of ``(s_{i+1} - f^n(s_i))^2``, ``i = 1..m-1``, and exactly
+        ``gap`` is the mean over all elements of ``(s_{i+1} - f^n(s_i))^2``, ``i = 1..m-1`` (with
+        ``"node_variance"``, each divided by its coordinate's variance over the nodes), and exactly
         zero when ``m = 1`` (the initial value problem).
     """
     fit, residual = shooting_residuals(f, g, nodes, y, loss, decode_chunk, rollout_fn, u, weights, missing)
-    gap = fit.new_zeros(()) if residual.numel() == 0 else residual.pow(2).mean()
-    return fit, gap
+    return fit, gap_term(residual, nodes, gap_scale)
