@@ -109,6 +109,19 @@ def test_local_stability_is_the_spectral_radius_of_df_dx():
     assert stats["share_above_1"] == float(radius > 1) and stats["states"] == 6
 
 
+def test_a_row_name_may_carry_the_latent_dimension():
+    """``{d}`` in ``method_name`` is the checkpoint's latent dimension (one test config for every order ``--orders``
+    fits); any other field in braces is refused in one message."""
+    from ssm_ms.inference.simulation import SimulationTest
+
+    for d in (2, 5):
+        model = MultipleShootingModule(LocallyLinearTransition(d, n_matrices=1, hidden=4), LinearReadout(d, 1), num_trajectories=1)
+        named = SimulationTest(model, method_name="SSM-LL, averaged (d = {d}) + UKF")
+        assert named.method_name == f"SSM-LL, averaged (d = {d}) + UKF"
+    with pytest.raises(ValueError, match=r"braces may hold only \{d\}"):
+        SimulationTest(model, method_name="SSM-LL (n = {n})")
+
+
 def test_cascaded_tanks_end_to_end_and_its_score_by_hand(tmp_path):
     """A tiny SSM fitted on Cascaded Tanks (the benchmark's config, shrunk), the validation keeping its best epoch,
     then ``cli.py test``: the results file's RMSE equals the protocol computed here (the UKF on the first 50

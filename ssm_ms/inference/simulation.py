@@ -305,7 +305,8 @@ class SimulationTest(pl.LightningModule):
         method, options: the state estimate (:func:`initial_state`; ``None``: the SSM's node encoder where it has
             amortised nodes, else the UKF).
         chunk: steps rolled out per call.
-        experiment: the results files' name (default: the data's name); ``method_name``: this row's key.
+        experiment: the results files' name (default: the data's name); ``method_name``: this row's key, ``{d}`` in
+            it the SSM's latent dimension (one name for every order ``make reproduce ... --orders`` fits).
         results_dir, figures_dir: where they go (``results_dir`` ``None``: the run's own folder, the trainer's
             ``log_dir``; ``figures_dir`` ``None``: no figures).
         selection: how the model was chosen, recorded with the results (``make reproduce ... --orders``: each
@@ -349,6 +350,13 @@ class SimulationTest(pl.LightningModule):
         self.ssm_checkpoint = None if isinstance(given, nn.Module) else str(given)
         self.save_hyperparameters(ignore=["ssm_checkpoint"])
         self.method, self.options, self.chunk = method, dict(options or {}), int(chunk)
+        if method_name is not None:
+            try:
+                method_name = method_name.format(d=self.ssm.state_dim)
+            except (KeyError, IndexError, ValueError):
+                raise ValueError(
+                    f"model.init_args.method_name {method_name!r}: braces may hold only {{d}}, the latent dimension"
+                ) from None
         self.experiment, self.method_name = experiment, method_name
         self.results_dir, self.figures_dir, self.selection = results_dir, figures_dir, selection
         self.rows: dict[str, dict[str, Any]] = {}
