@@ -115,7 +115,9 @@ def test_a_row_name_may_carry_the_latent_dimension():
     from ssm_ms.inference.simulation import SimulationTest
 
     for d in (2, 5):
-        model = MultipleShootingModule(LocallyLinearTransition(d, n_matrices=1, hidden=4), LinearReadout(d, 1), num_trajectories=1)
+        model = MultipleShootingModule(
+            LocallyLinearTransition(d, n_matrices=1, hidden=4), LinearReadout(d, 1), num_trajectories=1
+        )
         named = SimulationTest(model, method_name="SSM-LL, averaged (d = {d}) + UKF")
         assert named.method_name == f"SSM-LL, averaged (d = {d}) + UKF"
     with pytest.raises(ValueError, match=r"braces may hold only \{d\}"):
