@@ -89,12 +89,26 @@ SYSTEMS = {
 VAL_SEQUENCES = 16  # deepSI's validation: simulations of as many training sequences over the test's horizon
 
 
+def seed_tag(seed: int | None, sep: str) -> str:
+    """What a seeded run adds to its files' names (``sep`` + ``seed<N>``); nothing for an unseeded one."""
+    return "" if seed is None else f"{sep}seed{seed}"
+
+
+def seed_deepsi(seed: int | None) -> None:
+    if seed is not None:
+        torch.manual_seed(seed)
+        np.random.seed(seed)  # deepSI draws its batches with numpy
+
+
 def cli_overrides(overrides: dict) -> list[str]:
     return [f"--data.init_args.{k}={v if isinstance(v, str) else json.dumps(v)}" for k, v in overrides.items()]
 
 
-def train_ssm_ms(config: str, data_overrides: dict, epochs: int | None, save_dir: Path, version: str, log: Path):
-    """``cli.py fit`` of an ssm-ms config; returns (checkpoint, wall seconds, epochs)."""
+def train_ssm_ms(
+    config: str, data_overrides: dict, epochs: int | None, save_dir: Path, version: str, log: Path, seed: int | None
+):
+    """``cli.py fit`` of an ssm-ms config (``seed``: its ``seed_everything``, else the config's); returns
+    (checkpoint, wall seconds, epochs)."""
     cmd = [
         sys.executable,
         "cli.py",
@@ -108,6 +122,8 @@ def train_ssm_ms(config: str, data_overrides: dict, epochs: int | None, save_dir
     ]
     if epochs is not None:
         cmd.append(f"--trainer.max_epochs={epochs}")
+    if seed is not None:
+        cmd.append(f"--seed_everything={seed}")
     print("ssm-ms:", shlex.join(cmd), f"(log {log})", flush=True)
     start = time.perf_counter()
     with open(log, "w") as out:
@@ -218,7 +234,7 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
     dm.prepare_data()  # generated once, before any clock starts
     train, test = dm.load_arrays("train"), dm.load_arrays("test")
     k, p = system["n_filter"], system["n_predict"]
-    version = f"{name}-{datetime.datetime.now(datetime.timezone.utc):%Y%m%d-%H%M%S}"
+    version = f"{name}{seed_tag(args.seed, '-')}-{datetime.datetime.now(datetime.timezone.utc):%Y%m%d-%H%M%S}"
     truth = np.asarray(test["y_clean"])[:, k : k + p]
     u_test = np.asarray(test["u"]) if "u" in test else None
     configs = [system["config"], *(args.ssm_configs or [])]
@@ -236,6 +252,7 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
             work,
             run,
             work / f"{run}-ssm_ms.log",
+            args.seed,
         )
         print(f"ssm-ms ({config_path}): {epochs} epochs in {ssm_seconds:.0f} s", flush=True)
         ssm = load_ssm(ckpt)[0]
@@ -258,6 +275,7 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
     val_u = None if u_train is None else u_train[:VAL_SEQUENCES, :horizon]
     val_seqs = io_data(deepSI, val_y, val_u, dt)
     budget = args.deepsi_seconds or max(row["seconds"] for row in ours)  # the longest of ssm-ms's fits
+    seed_deepsi(args.seed)
     last, best, iterations, deepsi_seconds, curve = train_deepsi(
         deepSI, train_seqs, val_seqs, budget, system, args.val_freq, work / f"{version}-deepsi.log"
     )
@@ -278,6 +296,7 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
     ]
     return {
         "system": name,
+        "seed": args.seed,
         "title": system["title"],
         "units": system["units"],
         "n_filter": k,
@@ -293,12 +312,14 @@ def run_system(name: str, args, deepSI, work: Path) -> dict:
 
 
 def write(r: dict, args, watch_note: str, out: Path) -> None:
-    """One system's results file (and its .json beside it)."""
+    """One system's results file (and its .json beside it, with the run's provenance lines)."""
     ref = r["rows"][0]["mse"]
+    r["provenance"] = provenance("benchmarks/bench_deepsi.py", args.argv)
+    seeded = "" if r["seed"] is None else f", seed {r['seed']}"
     lines = [
-        f"# ssm-ms beside deepSI's SUBNET: {r['title']} (same data, same time budget, same test sequences)",
+        f"# ssm-ms beside deepSI's SUBNET: {r['title']} (same data, same time budget, same test sequences{seeded})",
         "",
-        *provenance("benchmarks/bench_deepsi.py", args.argv),
+        *r["provenance"],
         f"- Others' CPU use: {watch_note}",
         f"- deepSI {args.deepsi_version}; set-up and protocol: the docstring of `benchmarks/bench_deepsi.py`.",
         "- Score: MSE of the forecast against the noiseless measurement, mean over test sequences and predicted "
@@ -320,6 +341,40 @@ def write(r: dict, args, watch_note: str, out: Path) -> None:
     out.write_text("\n".join(lines))
     out.with_suffix(".json").write_text(json.dumps(r, indent=1) + "\n")
     print(f"wrote {out} and {out.with_suffix('.json')}")
+
+
+def write_seeds(runs: list[dict], out: Path) -> None:
+    """The spread over seeds: ``runs`` (the .json of ``write``, one per seed, the same system) summarised per method,
+    mean and sample standard deviation of the MSE, each seed's figure, and each run's provenance."""
+    runs = sorted(runs, key=lambda r: r["seed"])
+    methods = [row["method"] for row in runs[0]["rows"]]
+    by_method = {
+        m: [next((row["mse"] for row in r["rows"] if row["method"] == m), None) for r in runs] for m in methods
+    }
+    ref = float(np.mean(by_method[methods[0]]))
+    r0 = runs[0]
+    lines = [
+        f"# ssm-ms beside deepSI's SUBNET over seeds: {r0['title']}",
+        "",
+        f"Generated by `benchmarks/bench_deepsi.py --seed N` from the runs' .json beside this file (one per seed; "
+        f"each seed's own file has its table and deepSI's curve). Score: MSE of a {r0['n_predict']}-step forecast "
+        f"after {r0['n_filter']} given steps, against the noiseless measurement ({r0['units']}); mean +- sample "
+        "standard deviation over the seeds; `/ ssm-ms`: the ratio of the means to the first row's.",
+        "",
+        "| Method | seeds | MSE mean +- std | / ssm-ms | " + " | ".join(f"seed {r['seed']}" for r in runs) + " |",
+        "|---|---:|---:|---:|" + "---:|" * len(runs),
+    ]
+    for m in methods:
+        values = [v for v in by_method[m] if v is not None]
+        spread = f"{np.mean(values):.4g}" + (f" +- {np.std(values, ddof=1):.2g}" if len(values) > 1 else "")
+        cells = " | ".join("-" if v is None else f"{v:.4g}" for v in by_method[m])
+        lines.append(f"| {m} | {len(values)} | {spread} | {np.mean(values) / ref:.2f} | {cells} |")
+    lines += ["", "Runs:", ""]
+    for r in runs:
+        date, machine, command = (line.split(": ", 1)[1] for line in r["provenance"])
+        lines.append(f"- seed {r['seed']}: {date}; {machine}; {command}")
+    out.write_text("\n".join(lines) + "\n")
+    print(f"wrote {out}")
 
 
 # ---------------------------------------------------------------------------- the identification benchmarks
@@ -348,11 +403,9 @@ def run_benchmark(name: str, args, deepSI, work: Path) -> None:
     settings = {"na": min(20, dm.n_init), "nb": min(20, dm.n_init)}
     system = {"deepsi": settings}
     budget = BENCHMARK_BUDGET if args.tiny is False and args.deepsi_seconds is None else args.deepsi_seconds or 30.0
-    seeded = "" if args.seed is None else f"-seed{args.seed}"
+    seeded = seed_tag(args.seed, "-")
     log = work / f"{name}{seeded}-deepsi.log"
-    if args.seed is not None:
-        torch.manual_seed(args.seed)
-        np.random.seed(args.seed)  # deepSI draws its batches with numpy
+    seed_deepsi(args.seed)
     watch = CpuWatch()
     last, best, iterations, seconds, curve = train_deepsi(deepSI, as_io, val_io, budget, system, args.val_freq, log)
     cpu_others = watch.others()  # what other processes ran during the fit: a shared CPU trains fewer iterations
@@ -445,7 +498,11 @@ def main(argv: list[str] | None = None) -> None:
         help="the systems: more ssm-ms configs trained and scored beside the system's own (e.g. amortised nodes)",
     )
     parser.add_argument(
-        "--seed", type=int, default=None, help="the benchmarks: torch's and numpy's seed (rows keyed by it)"
+        "--seed",
+        type=int,
+        default=None,
+        help="torch's and numpy's seed, and ssm-ms's seed_everything; the benchmarks' rows are keyed by it, a "
+        "system's run goes to deepsi_<system>_seed<N>.md and the spread over seeds to deepsi_<system>_seeds.md",
     )
     parser.add_argument(
         "--out-dir", default=None, help="where deepsi_<system>.md go (default benchmarks/results; --tiny: --work)"
@@ -468,7 +525,11 @@ def main(argv: list[str] | None = None) -> None:
     for name in systems:  # each system's file as soon as it is done, with the CPU use of its own run
         watch = CpuWatch()
         result = run_system(name, args, deepSI, work)
-        write(result, args, quiet_note(watch.others()), out_dir / f"deepsi_{name}{'_tiny' * args.tiny}.md")
+        stem = f"deepsi_{name}{'_tiny' * args.tiny}"
+        write(result, args, quiet_note(watch.others()), out_dir / f"{stem}{seed_tag(args.seed, '_')}.md")
+        if args.seed is not None:
+            seeds = [json.loads(p.read_text()) for p in sorted(out_dir.glob(f"{stem}_seed*.json"))]
+            write_seeds(seeds, out_dir / f"{stem}_seeds.md")
     for name in args.benchmarks:
         run_benchmark(name, args, deepSI, work)
 

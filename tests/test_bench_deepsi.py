@@ -73,3 +73,26 @@ def test_subnet_runs_a_benchmark_by_its_protocol(tmp_path):
     assert all(0.0 <= run["info"]["validation"]["cpu_others"] < 4.0 for run in runs.values())
     assert (tmp_path / "cascaded_tanks.md").read_text().startswith("# cascaded_tanks")  # rendered by experiments/
     assert (tmp_path / "cascaded_tanks-subnet-best.pt").is_file()
+
+
+def test_the_spread_over_seeds_is_each_methods_mean_and_sample_deviation(tmp_path):
+    """write_seeds, on two hand-made runs: MSEs 1 and 3 give 2 +- 1.4 (sample std sqrt(2)), 4 and 8 give 6 +- 2.8 and
+    the ratio 3.00 to the first row; a method missing from a seed is counted once, no spread, its cell a dash."""
+    sys.path.insert(0, str(ROOT))
+    from benchmarks.bench_deepsi import write_seeds
+
+    def run(seed, ours, theirs, extra=None):
+        rows = [{"method": "ours", "mse": ours}, {"method": "theirs", "mse": theirs}]
+        if extra is not None:
+            rows.append({"method": "extra", "mse": extra})
+        provenance = [f"- Date: day {seed}", "- Machine: box", f"- Command: `run --seed {seed}`"]
+        return {"seed": seed, "title": "t", "n_predict": 5, "n_filter": 3, "units": "u", "rows": rows,
+                "provenance": provenance}  # fmt: skip
+
+    out = tmp_path / "seeds.md"
+    write_seeds([run(1, 3.0, 8.0), run(0, 1.0, 4.0, extra=0.5)], out)
+    text = out.read_text()
+    assert "| ours | 2 | 2 +- 1.4 | 1.00 | 1 | 3 |" in text
+    assert "| theirs | 2 | 6 +- 2.8 | 3.00 | 4 | 8 |" in text
+    assert "| extra | 1 | 0.5 | 0.25 | 0.5 | - |" in text
+    assert "- seed 0: day 0; box; `run --seed 0`" in text.splitlines()[-2]
