@@ -31,7 +31,7 @@ from typing import Any
 
 import torch
 
-from ssm_ms.training.shooting import GAP_SCALES, multiple_shooting_loss, shooting_residuals
+from ssm_ms.training.shooting import multiple_shooting_loss, shooting_residuals
 
 CONSTRAINTS = ("penalty", "augmented_lagrangian")
 
@@ -198,8 +198,6 @@ def make_constraint(
     """The strategy of ``model.constraint`` (checked: :func:`check_constraint`; options for the augmented Lagrangian
     only; a ``gap_scale`` other than ``"absolute"`` for the penalty only)."""
     check_constraint(constraint, n_nodes)
-    if gap_scale not in GAP_SCALES:
-        raise ValueError(f"unknown gap_scale {gap_scale!r}: choose one of {list(GAP_SCALES)}")
     if constraint == "augmented_lagrangian":  # free nodes only, whose gap is absolute (checks.check_gap_scale)
         return AugmentedLagrangian(AugmentedLagrangianOptions.from_mapping(options))
     if options:

@@ -186,7 +186,7 @@ def shooting_residuals(
     return fit, nodes[:, 1:] - end[:, :-1]
 
 
-GAP_SCALES = ("absolute", "node_variance")  # how the gap term is measured (model.gap_scale)
+GAP_SCALES = ("absolute", "node_variance")  # how the gap term is measured (model.gap_scale; checks.check_gap_scale)
 
 
 def gap_term(residual: torch.Tensor, nodes: torch.Tensor, scale: str = "absolute") -> torch.Tensor:
@@ -201,8 +201,7 @@ def gap_term(residual: torch.Tensor, nodes: torch.Tensor, scale: str = "absolute
         return residual.new_zeros(())
     if scale == "absolute":
         return residual.pow(2).mean()
-    if scale != "node_variance":
-        raise ValueError(f"unknown gap_scale {scale!r}: choose one of {list(GAP_SCALES)}")
+    assert scale == "node_variance", scale  # a model's gap_scale is checked at its construction
     var = nodes.reshape(-1, nodes.shape[-1]).var(0, unbiased=False)
     return (residual.pow(2) / (var + torch.finfo(var.dtype).tiny)).mean()
 
