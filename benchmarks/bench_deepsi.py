@@ -351,7 +351,7 @@ def write_seeds(runs: list[dict], out: Path) -> None:
     by_method = {
         m: [next((row["mse"] for row in r["rows"] if row["method"] == m), None) for r in runs] for m in methods
     }
-    ref = float(np.mean(by_method[methods[0]]))
+    ref = float(np.mean([v for v in by_method[methods[0]] if v is not None]))
     r0 = runs[0]
     lines = [
         f"# ssm-ms beside deepSI's SUBNET over seeds: {r0['title']}",
