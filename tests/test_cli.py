@@ -750,35 +750,35 @@ def test_a_fit_shows_the_epochs_and_time_to_go(tmp_path):
     assert cli.trainer.progress_bar_callback is None
 
 
-def test_a_batch_limit_given_as_an_int_counts_batches(tmp_path):
+def test_a_batch_limit_given_as_an_int_counts_batches(tmp_path, monkeypatch):
     """``--trainer.limit_train_batches 1`` trains one batch an epoch and ``1.0`` all of them (Lightning: an int counts,
     a float is a fraction). The parser of ``python cli.py`` once read the int 1 as 1.0 (a union's order, set by what
-    the process imported first: in this test process it came out right, so the command runs as a user runs it): one
-    batch meant all. Steps read from each run's checkpoint; the epoch's batches from the data loader itself: 4
-    trajectories of 10,000 steps in pieces of 100, 40 a batch."""
+    the process imported first: in this test process it came out right, so the int runs as a user runs it, in a
+    process of its own; the float in this one). Steps read from the int's checkpoint and the float's trainer; the
+    epoch's batches from the data loader itself: 4 trajectories of 10,000 steps in pieces of 100, 40 a batch."""
     import subprocess
 
     config = CPU / "lorenz_T100.yaml"
     common = [*TINY["lorenz"], "--data.init_args.batch_size", "40", "--data.init_args.data_dir", str(tmp_path / "data")]
+    common += [
+        "--trainer.enable_progress_bar",
+        "false",
+        "--trainer.max_epochs",
+        "1",
+        "--trainer.limit_val_batches",
+        "0",
+    ]
     steps = {}
-    for limit in ("1", "1.0"):
-        runs = tmp_path / limit
-        command = [sys.executable, str(ROOT / "cli.py"), "fit", "--config", str(config), *common]
-        command += ["--trainer.logger.init_args.save_dir", str(runs), "--trainer.enable_progress_bar", "false"]
-        command += [
-            "--trainer.max_epochs",
-            "1",
-            "--trainer.limit_train_batches",
-            limit,
-            "--trainer.limit_val_batches",
-            "0",
-        ]
-        proc = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr[-3000:]
-        (ckpt,) = runs.glob("*/*/checkpoints/last.ckpt")
-        steps[limit] = torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"]
-    cli = main(["--config", str(config), *common, "--trainer.logger", "false"], run=False)
-    cli.datamodule.setup("fit")
+    command = [sys.executable, str(ROOT / "cli.py"), "fit", "--config", str(config), *common]
+    command += ["--trainer.logger.init_args.save_dir", str(tmp_path / "1"), "--trainer.limit_train_batches", "1"]
+    proc = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (ckpt,) = (tmp_path / "1").glob("*/*/checkpoints/last.ckpt")
+    steps["1"] = torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"]
+    monkeypatch.chdir(tmp_path)  # the fit's config.yaml is written where it runs
+    cli = main(["fit", "--config", str(config), *common, "--trainer.logger", "false", "--trainer.limit_train_batches",
+                "1.0", "--trainer.enable_checkpointing", "false"])  # fmt: skip
+    steps["1.0"] = cli.trainer.global_step
     whole = len(cli.datamodule.train_dataloader())
     assert whole > 1
     assert steps == {"1": 1, "1.0": whole}
