@@ -94,6 +94,36 @@ def seed_tag(seed: int | None, sep: str) -> str:
     return "" if seed is None else f"{sep}seed{seed}"
 
 
+# where the files go, which runs are made, and the seed: not what a run of one system computes
+NOT_SETTINGS = ("seed", "work", "out_dir", "results_dir", "dir_placement", "systems", "benchmarks")
+
+
+def setting(argv: list[str]) -> dict:
+    """What a run with the arguments ``argv`` computes for a system, less its seed: what the seeds summarised
+    together must share (defaults filled in, so that ``--val-freq 250`` and nothing are one setting; an argument this
+    version of the script does not know, from an older run's command, is left out)."""
+    parsed = vars(build_parser().parse_known_args(argv)[0])
+    return {k: v for k, v in parsed.items() if k not in NOT_SETTINGS}
+
+
+def check_seed_folder(out_dir: Path, stem: str, args) -> None:
+    """Refuse, before training, a seeded run whose folder holds another seed's run of another setting (another
+    ``--deepsi-seconds`` or ``--ssm-configs``, say): the summary over seeds would mix the two."""
+    mine = setting(args.argv)
+    for path in sorted(out_dir.glob(f"{stem}_seed*.json")):
+        run = json.loads(path.read_text())
+        if run.get("seed") == args.seed:
+            continue  # this run replaces it
+        command = run["provenance"][-1].split(": ", 1)[1].strip("`")
+        theirs = setting(shlex.split(command)[2:])
+        differ = ", ".join(f"{k} {theirs[k]} there, {mine[k]} here" for k in mine if theirs[k] != mine[k])
+        if differ:
+            sys.exit(
+                f"error: {path} is a run of another setting ({differ}), and {stem}_seeds.md would average the two: "
+                "give this setting its own --out-dir"
+            )
+
+
 def seed_deepsi(seed: int | None) -> None:
     if seed is not None:
         torch.manual_seed(seed)
@@ -475,7 +505,7 @@ def run_benchmark(name: str, args, deepSI, work: Path) -> None:
     print(f"deepSI on {name}: {iterations} iterations in {seconds:.0f} s; results in {results_dir}", flush=True)
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--systems", nargs="*", choices=sorted(SYSTEMS), default=None)
     parser.add_argument(
@@ -507,7 +537,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--out-dir", default=None, help="where deepsi_<system>.md go (default benchmarks/results; --tiny: --work)"
     )
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     try:
         import deepSI
@@ -522,10 +556,14 @@ def main(argv: list[str] | None = None) -> None:
     out_dir = Path(args.out_dir) if args.out_dir else (work if args.tiny else ROOT / "benchmarks/results")
     out_dir.mkdir(parents=True, exist_ok=True)
     systems = args.systems if args.systems is not None else ([] if args.benchmarks else ["pendulum", "lorenz"])
+    stems = {name: f"deepsi_{name}{'_tiny' * args.tiny}" for name in systems}
+    if args.seed is not None:
+        for stem in stems.values():
+            check_seed_folder(out_dir, stem, args)
     for name in systems:  # each system's file as soon as it is done, with the CPU use of its own run
         watch = CpuWatch()
         result = run_system(name, args, deepSI, work)
-        stem = f"deepsi_{name}{'_tiny' * args.tiny}"
+        stem = stems[name]
         write(result, args, quiet_note(watch.others()), out_dir / f"{stem}{seed_tag(args.seed, '_')}.md")
         if args.seed is not None:
             seeds = [json.loads(p.read_text()) for p in sorted(out_dir.glob(f"{stem}_seed*.json"))]

@@ -96,3 +96,43 @@ def test_the_spread_over_seeds_is_each_methods_mean_and_sample_deviation(tmp_pat
     assert "| theirs | 2 | 6 +- 2.8 | 3.00 | 4 | 8 |" in text
     assert "| extra | 1 | 0.5 | 0.25 | 0.5 | - |" in text
     assert "- seed 0: day 0; box; `run --seed 0`" in text.splitlines()[-2]
+
+
+def test_a_seed_of_another_setting_is_refused_before_training_and_the_committed_folders_pass(tmp_path):
+    """check_seed_folder: a folder with seed 0 run at ``--deepsi-seconds 250`` refuses seed 1 at the default budget
+    (one message naming the difference and the fix), takes seed 1 at 250 s (the order of the arguments, where files
+    go, which other systems run and defaults given explicitly do not count), and takes seed 0 at any setting (that
+    run replaces it). The committed folders pass for the commands that wrote them."""
+    sys.path.insert(0, str(ROOT))
+    from types import SimpleNamespace
+
+    from benchmarks.bench_deepsi import check_seed_folder
+
+    def save(folder, seed, argv):
+        folder.mkdir(exist_ok=True)
+        command = "python benchmarks/bench_deepsi.py " + " ".join(argv)
+        run = {"seed": seed, "provenance": ["- Date: d", "- Machine: m", f"- Command: `{command}`"]}
+        (folder / f"deepsi_pendulum_seed{seed}.json").write_text(json.dumps(run))
+
+    base = ["--systems", "pendulum", "--ssm-configs", "c.yaml"]
+    save(tmp_path, 0, [*base, "--deepsi-seconds", "250", "--seed", "0"])
+    with pytest.raises(SystemExit) as refused:
+        check_seed_folder(tmp_path, "deepsi_pendulum", SimpleNamespace(seed=1, argv=[*base, "--seed", "1"]))
+    message = str(refused.value)
+    assert message.startswith("error: ") and "\n" not in message
+    assert "deepsi_seconds 250.0 there, None here" in message and "give this setting its own --out-dir" in message
+    at_250 = "--ssm-configs c.yaml --systems pendulum lorenz --work elsewhere --deepsi-seconds 250 --seed=1"
+    at_250 = [*at_250.split(), "--val-freq", "250"]
+    check_seed_folder(tmp_path, "deepsi_pendulum", SimpleNamespace(seed=1, argv=at_250))
+    check_seed_folder(tmp_path, "deepsi_pendulum", SimpleNamespace(seed=0, argv=[*base, "--seed", "0"]))
+
+    results = ROOT / "benchmarks" / "results"
+    pendulum = ["--systems", "pendulum", "--ssm-configs", "benchmarks/configs/deepsi_pendulum_amortised_fc.yaml"]
+    committed = {
+        results: [*pendulum, "--seed", "3"],
+        results / "deepsi_pendulum_250s": [
+            *pendulum, "--deepsi-seconds", "250", "--seed", "3", "--out-dir", "benchmarks/results/deepsi_pendulum_250s"
+        ],
+    }  # fmt: skip
+    for folder, argv in committed.items():
+        check_seed_folder(folder, "deepsi_pendulum", SimpleNamespace(seed=3, argv=argv))
