@@ -6,7 +6,9 @@ Each benchmark is a training recording and one or more test recordings of a phys
 served only to ``test``); the end of the training recording (``val_fraction``) is held out as the validation recording,
 which chooses the epoch kept and the model order; the rest is cut into training windows (:mod:`datamodules.windows`),
 normalised with their statistics (saved in checkpoints). Splits: ``train`` (windows), ``val`` (the held-out end, one
-whole sequence), ``test`` (each test recording whole, one data loader each, in the loader's order).
+whole sequence), ``test`` (each test recording whole, one data loader each, in the loader's order). ``val_at`` holds out
+another segment of the same length instead (the windows cut from the samples before and after it): one fit per
+segment is a cross-validation over time, for choices one held-out end is too short to make.
 
 The benchmark's protocol (:mod:`ssm_ms.inference.simulation`): the state from a test recording's first ``n_init``
 samples, then a free-run simulation of the rest from its inputs alone, scored by the loader's own
@@ -24,6 +26,7 @@ from torch.utils.data import DataLoader
 
 from datamodules.dataset import TrajectoryDataset
 from datamodules.recordings import Recordings
+from datamodules.windows import default_window
 
 EXTRA = "pip install -e '.[benchmarks]' (or: pip install nonlinear-benchmarks==1.0.1 rarfile progressbar)"
 
@@ -81,10 +84,15 @@ class BenchmarkDataModule(Recordings):
         dir_placement: the folder of the benchmark files in the loader's layout (``None``: the loader's own cache,
             downloading them where the internet is reachable; the tests use ``../shared/data/nonlinear_benchmarks``).
         val_fraction: the end of the training recording held out for validation (default 0.2: a fifth).
-        val_run_in: samples of the training recording before its held-out end that each validation simulation runs
-            through first, the state estimated from their first ``n_init``, scored on the held-out end only (0, the
-            default: the held-out end alone, its first ``n_init`` samples given; ``"all"``: the whole training part,
-            so that the validation simulates as many steps as a test recording of the training recording's length).
+        val_at: where the held-out segment (``val_fraction`` of the recording) starts, as a fraction of the training
+            recording (default ``None``: ``1 - val_fraction``, its end). With ``val_fraction`` 0.2, the fits at
+            ``val_at`` 0, 0.2, 0.4, 0.6 and 0.8 hold out each fifth once (a cross-validation over time); the training
+            windows are cut from the samples before the segment and after it, at the window the end's fit uses.
+        val_run_in: samples of the training recording before its held-out segment that each validation simulation runs
+            through first, the state estimated from their first ``n_init``, scored on the held-out segment only (0,
+            the default: the segment alone, its first ``n_init`` samples given; ``"all"``: every sample before it,
+            so that the validation of the end simulates as many steps as a test recording of the training
+            recording's length).
         window, stride: the training windows cut from the rest (:class:`~datamodules.recordings.Recordings`).
         n_init: samples of each recording given to estimate its initial state (default: the loader's
             ``state_initialization_window_length`` of the test recordings).
@@ -99,6 +107,7 @@ class BenchmarkDataModule(Recordings):
         benchmark: str,
         dir_placement: str | None = None,
         val_fraction: float = 0.2,
+        val_at: float | None = None,
         val_run_in: int | str = 0,
         window: int | None = None,
         stride: int | None = None,
@@ -114,26 +123,36 @@ class BenchmarkDataModule(Recordings):
             )
         if not unit_scale > 0:
             raise ValueError(f"unit_scale must be > 0 (the files' units to the reported one), got {unit_scale}")
+        last = 1.0 - val_fraction
+        if val_at is not None and not 0.0 <= val_at <= last + 1e-9:
+            raise ValueError(
+                f"val_at must be in [0, {last:g}] (1 - val_fraction: the held-out segment inside the training "
+                f"recording), got {val_at}"
+            )
         train, tests = load_benchmark(benchmark, dir_placement)
-        cut = int(round(len(train.y) * (1.0 - val_fraction)))
+        y_all, u_all = np.asarray(train.y), np.asarray(train.u)
+        length = len(y_all) - int(round(len(y_all) * last))  # the held-out segment's samples
+        cut = len(y_all) - length if val_at is None else min(int(round(len(y_all) * val_at)), len(y_all) - length)
+        end = cut + length
         if val_run_in == "all":
             val_run_in = cut
         if not isinstance(val_run_in, int) or not 0 <= val_run_in <= cut:
             raise ValueError(
                 f"val_run_in must be 'all' or a number of samples in [0, {cut}] (the training part before the "
-                f"held-out end), got {val_run_in!r}"
+                f"held-out segment), got {val_run_in!r}"
             )
+        pieces = [(a, b) for a, b in ((0, cut), (end, len(y_all))) if b > a]  # the training part, around the segment
         dt = getattr(train, "sampling_time", None)
         super().__init__(
-            y=np.asarray(train.y)[:cut],
-            u=np.asarray(train.u)[:cut],
+            y=[y_all[a:b] for a, b in pieces],
+            u=[u_all[a:b] for a, b in pieces],
             dt=float(dt) if dt else None,
-            window=window,
+            window=window if window is not None else default_window([len(y_all) - length]),
             stride=stride,
             **kwargs,
         )
         self.benchmark, self.dir_placement, self.val_fraction = benchmark, dir_placement, float(val_fraction)
-        self.val_run_in = val_run_in
+        self.val_at, self.val_run_in = val_at, val_run_in
         self.name = benchmark.lower()
         self.unit, self.unit_scale = unit, float(unit_scale)
         given = {int(t.state_initialization_window_length) for t in tests if t.state_initialization_window_length}
@@ -144,8 +163,8 @@ class BenchmarkDataModule(Recordings):
                 "give n_init, the samples to estimate the state from"
             )
         self._sequences = {
-            "train": [_sequence(np.asarray(train.y)[:cut], np.asarray(train.u)[:cut])],
-            "val": [_sequence(np.asarray(train.y)[cut - val_run_in :], np.asarray(train.u)[cut - val_run_in :])],
+            "train": [_sequence(y_all[a:b], u_all[a:b]) for a, b in pieces],
+            "val": [_sequence(y_all[cut - val_run_in : end], u_all[cut - val_run_in : end])],
             "test": [_sequence(t.y, t.u) for t in tests],
         }
         if val_run_in + self.val_length <= self.val_scored_from:
@@ -168,6 +187,7 @@ class BenchmarkDataModule(Recordings):
         return {
             "benchmark": self.benchmark,
             "val_fraction": self.val_fraction,
+            "val_at": self.val_at,
             "val_run_in": self.val_run_in,
             **super().generator_params(),
         }
@@ -181,9 +201,9 @@ class BenchmarkDataModule(Recordings):
         raise ValueError(f"the benchmark's test recordings are served one loader each: test_dataloader(), not {split}")
 
     def sequences(self, split: str) -> list[TrajectoryDataset]:
-        """The whole recordings of ``split`` (``"val"``: the held-out end after its ``val_run_in``; ``"test"``: the test recordings; ``"train"``:
-        the part the windows are cut from), each a data set of one sequence, normalised with the training
-        statistics."""
+        """The whole recordings of ``split`` (``"val"``: the held-out segment after its ``val_run_in``; ``"test"``: the
+        test recordings; ``"train"``: the parts the windows are cut from, before and after the segment), each a data
+        set of one sequence, normalised with the training statistics."""
         out = [TrajectoryDataset(arrays) for arrays in self._sequences[split]]
         for ds in out:
             self._set_normalizer(ds)
@@ -191,8 +211,8 @@ class BenchmarkDataModule(Recordings):
 
     def raw_recordings(self, split: str) -> list[tuple[np.ndarray, np.ndarray]]:
         """``[(y [T, p], u [T, m]), ...]`` of ``split`` in the files' units, whole (``"train"``: the training
-        recording less its held-out end, the part the windows are cut from; ``"val"``: the held-out end, without
-        ``val_run_in``): for a peer trained on the same data."""
+        recording less its held-out segment, the parts the windows are cut from; ``"val"``: the held-out segment,
+        without ``val_run_in``): for a peer trained on the same data."""
         start = self.val_run_in if split == "val" else 0
         return [(arrays["y"][0, start:], arrays["u"][0, start:]) for arrays in self._sequences[split]]
 
@@ -206,12 +226,12 @@ class BenchmarkDataModule(Recordings):
 
     @property
     def val_length(self) -> int:
-        """Samples held out at the end of the training recording (``val_run_in`` not counted)."""
+        """Samples held out of the training recording (``val_run_in`` not counted)."""
         return int(self._sequences["val"][0]["y"].shape[1]) - self.val_run_in
 
     @property
     def val_scored_from(self) -> int:
-        """The first sample of the validation simulation that is scored: the held-out end's first after the run-in,
+        """The first sample of the validation simulation that is scored: the held-out segment's first after the run-in,
         and never one of the ``n_init`` given to estimate the state."""
         return max(self.n_init, self.val_run_in)
 

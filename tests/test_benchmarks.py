@@ -327,6 +327,41 @@ def test_amortised_nodes_on_cascaded_tanks_end_to_end_and_their_score_by_hand(tm
         assert validation == math.inf
 
 
+def test_a_segment_held_out_inside_the_recording_trains_on_both_sides_of_it():
+    """``val_at``: the held-out segment (a fifth, 205 samples) starts at that fraction of the training recording; the
+    windows are cut from the samples before it and after it (none overlaps it), normalised with their statistics, the
+    validation recording is the segment behind its run-in; ``val_at`` 0.8 is the default's end, and one past it is
+    refused. Against slices of the loader's arrays."""
+    train, _ = nb.Cascaded_Tanks(dir_placement=str(DATA))
+    y = np.asarray(train.y, dtype=np.float64)
+    for val_at, start, run_in in ((0.4, 410, "all"), (0.0, 0, "all"), (0.4, 410, 0)):
+        dm = tanks(window=100, batch_size=4, val_at=val_at, val_run_in=run_in)
+        dm.setup("fit")
+        end = start + 205
+        pieces = [(a, b) for a, b in ((0, start), (end, 1024)) if b > a]  # the training part, around the segment
+        for (y_piece, _), (a, b) in zip(dm.raw_recordings("train"), pieces, strict=True):
+            np.testing.assert_array_equal(y_piece[:, 0], y[a:b].astype(np.float32))
+        offsets = [a for a, _ in pieces]
+        windows = dm.datasets["train"].arrays["y"][:, :, 0]
+        at = [offsets[r] + s for r, s in dm.window_origins.tolist()]
+        for w, a in zip(windows, at):
+            np.testing.assert_array_equal(w, y[a : a + 100].astype(np.float32))
+            assert a + 100 <= start or a >= end  # no window sees the held-out segment
+        assert start == 0 or (min(at) < start and max(at) >= end)  # windows on both sides
+        seen = np.concatenate([y[a : a + 100] for a in at])
+        np.testing.assert_allclose(dm.normalizer.mean.item(), seen.mean(), rtol=1e-5)
+        first = start if run_in == 0 else 0
+        val = next(iter(dm.split_dataloader("val")))["y"][0, :, 0].numpy()
+        np.testing.assert_allclose(val, (y[first:end] - seen.mean()) / seen.std(), rtol=1e-4, atol=1e-5)
+        assert dm.val_length == 205 and dm.val_scored_from == max(50, start - first)
+        np.testing.assert_array_equal(dm.raw_recordings("val")[0][0][:, 0], y[start:end].astype(np.float32))
+    end_default, end_given = tanks(window=100), tanks(window=100, val_at=0.8)
+    np.testing.assert_array_equal(end_default.window_origins, end_given.window_origins)
+    np.testing.assert_array_equal(end_default.raw_recordings("val")[0][0], end_given.raw_recordings("val")[0][0])
+    with pytest.raises(ValueError, match="val_at must be in \\[0, 0.8\\]"):
+        tanks(val_at=0.9)
+
+
 def test_the_validation_may_run_in_through_the_training_recording():
     """``val_run_in``: the validation recording is the held-out end behind that many training samples, scored from
     the first held-out sample; ``raw_recordings("val")`` (a peer's validation) stays the held-out end."""
