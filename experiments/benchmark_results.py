@@ -73,6 +73,26 @@ def validation_over_seeds(runs: list[dict[str, Any]]) -> float | None:
     return _mean_of_validation(runs, "val_sim_rmse")
 
 
+CROSS_VALIDATED = "cross-validated (mean over the folds)"  # the key experiments.reproduce's --folds records
+
+
+def cross_validated(run: dict[str, Any]) -> float | None:
+    """A run's cross-validated score (``make reproduce ... --folds K``: the mean validation score of its K fits, of the
+    order it tested), ``None`` where it was not cross-validated."""
+    selection = run["info"].get("selection") or {}
+    means = selection.get(CROSS_VALIDATED)
+    if not means:
+        return None
+    chosen = selection.get("chosen")
+    return means.get("" if chosen is None else str(chosen))
+
+
+def cross_validated_over_seeds(runs: list[dict[str, Any]]) -> float | None:
+    """The mean over a method's runs of their cross-validated scores (``None`` unless every run has one)."""
+    values = [cross_validated(run) for run in runs]
+    return float(np.mean(values)) if values and all(v is not None for v in values) else None
+
+
 def seconds_to_kept(runs: list[dict[str, Any]]) -> float | None:
     """The mean over a method's runs of the training seconds until the model it kept (``None``: not recorded)."""
     return _mean_of_validation(runs, "seconds")
@@ -109,28 +129,42 @@ def render(data: dict[str, Any], results_dir: Path) -> str:
     tests = list(dict.fromkeys(t for run in runs.values() for t in run["tests"]))
     unit = next((run["info"].get("unit") for run in runs.values() if run["info"].get("unit")), "")
     lines = [f"# {data['experiment']}: free-run simulation RMSE ({unit or 'data units'})", ""]
+    folded = any(cross_validated(run) is not None for run in runs.values())  # a column only where a run has it
     lines += [
-        "| method | seeds | validation | kept after (s) | " + " | ".join(tests) + " |",
-        "|---|---|---|---|" + "---|" * len(tests),
+        "| method | seeds | validation | "
+        + "cross-validated | " * folded
+        + "kept after (s) | "
+        + " | ".join(tests)
+        + " |",
+        "|---|---|---|" + "---|" * folded + "---|" + "---|" * len(tests),
     ]
     for method, group in methods(data).items():
         seeds = ", ".join(str(run["info"].get("seed", "—")) for run in group)
         cells = [summary_cell(over_seeds(group, t)) for t in tests]
         seconds = seconds_to_kept(group)
+        cv = f"{_cell(cross_validated_over_seeds(group))} | " if folded else ""
         lines.append(
-            f"| {method} | {seeds} | {_cell(validation_over_seeds(group))} | "
+            f"| {method} | {seeds} | {_cell(validation_over_seeds(group))} | {cv}"
             f"{'—' if seconds is None else f'{seconds:.0f}'} | " + " | ".join(cells) + " |"
         )
     pub = published(results_dir, data["experiment"])
     if pub is not None:
         for method, values in pub["rows"].items():
-            lines.append(f"| {method} (published) | | | | " + " | ".join(_cell(values.get(t)) for t in tests) + " |")
+            empty = "| | | | " + "| " * folded
+            lines.append(f"| {method} (published) {empty}" + " | ".join(_cell(values.get(t)) for t in tests) + " |")
         lines += ["", f"Published rows: {pub['source']}."]
     lines += [
         "",
         "Over several seeds: mean ± sample standard deviation. Validation: the free-run RMSE of the held-out end of the "
         "training recording at the epoch it kept (mean over the seeds; what a choice between methods may use); kept "
-        "after: the training seconds until that model (mean over the seeds).",
+        "after: the training seconds until that model (mean over the seeds)."
+        + (
+            " Cross-validated: the mean validation score of fits that each held out another part of the training "
+            "recording (`make reproduce ... --folds K`; the end's fit is the one tested), mean over the seeds; where "
+            "every method has one, the choice between methods uses it."
+            if folded
+            else ""
+        ),
     ]
     lines += ["", "## Runs", ""]
     for method, run in runs.items():
@@ -155,7 +189,9 @@ def render(data: dict[str, Any], results_dir: Path) -> str:
                 "fit, which trained fewer epochs in its time budget than it would alone"
             )
         if info.get("selection"):
-            lines.append(f"- chosen on validation (the held-out end of the training recording): {info['selection']}")
+            held = "each held-out part of the training recording in turn" if "folds" in info["selection"] else None
+            held = held or "the held-out end of the training recording"
+            lines.append(f"- chosen on validation ({held}): {info['selection']}")
         if stability:
             lines.append(
                 f"- f's local stability (spectral radius of df/dx at {stability['states']} training states): median "

@@ -126,6 +126,15 @@ def _main(argv: list[str] | None = None) -> None:
         "on the held-out end of the training recording (val/sim_rmse) is lowest is tested",
     )
     parser.add_argument(
+        "--folds",
+        type=int,
+        default=None,
+        metavar="K",
+        help="a benchmark: cross-validation over time, K fits (per order) each holding out another 1/K of the "
+        "training recording (val_fraction 1/K, val_at k/K); the fit that holds out the end is the one tested, the "
+        "order chosen by the mean of the K validation scores, and the scores go to the results file",
+    )
+    parser.add_argument(
         "--resume",
         default=None,
         metavar="VERSION",
@@ -146,6 +155,10 @@ def _main(argv: list[str] | None = None) -> None:
     registry = read_registry()
     if opts.orders is not None and opts.experiment not in registry.get("benchmarks", {}):
         parser.error("--orders chooses a benchmark's latent dimension (configs/benchmarks/): not for this experiment")
+    if opts.folds is not None and opts.experiment not in registry.get("benchmarks", {}):
+        parser.error("--folds cross-validates a benchmark's fit (configs/benchmarks/): not for this experiment")
+    if opts.folds is not None and opts.folds < 2:
+        parser.error(f"--folds must be >= 2 (the held-out end and at least one other segment), got {opts.folds}")
     if opts.no_encoder and opts.encoder_epochs is not None:
         parser.error("--encoder-epochs budgets the encoder stage that --no-encoder leaves out: give one of the two")
     suite = registry.get("suites", {}).get(opts.experiment)
@@ -289,6 +302,21 @@ def validation_score(checkpoint: Path) -> float:
     return math.inf if score is None else score
 
 
+def selection(scores: dict, judged: dict, chosen: int | None, folds: int) -> dict:
+    """How a benchmark's tested model was chosen, for its results file: each order's validation score (with
+    ``folds``: each fold's, the held-out end first, and their mean, the cross-validated score) and the order
+    chosen (``None``: one order, nothing chosen)."""
+    key = lambda d: "" if d is None else str(d)  # noqa: E731  (JSON keys)
+    if folds == 1:
+        return {"state_dim, by val/sim_rmse": {key(d): v for d, v in judged.items()}, "chosen": chosen}
+    out = {
+        "folds": folds,
+        "val/sim_rmse by fold (the held-out end first)": {key(d): v for d, v in scores.items()},
+        "cross-validated (mean over the folds)": {key(d): v for d, v in judged.items()},
+    }
+    return out if chosen is None else {**out, "chosen": chosen}
+
+
 def open_pipeline(opts: argparse.Namespace, options: list[str], first: Path, version: str, command: str) -> Pipeline:
     """The record of this run (in the first stage's run folder), saying how to finish it if it stops."""
     pipeline = Pipeline(
@@ -316,25 +344,30 @@ def run_benchmark(opts: argparse.Namespace, argv: list[str], config: Path, test_
     command += f" ARGS={shlex.quote(shlex.join(opts.stage_args))}" if opts.stage_args else ""
     pipeline = open_pipeline(opts, options, config, version, command)
     seed = ["--seed_everything", str(opts.seed)] if seeded else []
-    fits = {}  # the run folder of each fit: one, or one per order
+    folds = opts.folds or 1
+    fits = {}  # the run folders of each order's fits: the one holding out the end first, then the other folds
     for d in opts.orders or [None]:
         run = version if d is None else f"{version}-d{d}"
         order = [] if d is None else ["--model.init_args.state_dim", str(d)]
-        v = ["--trainer.logger.init_args.version", run, *seed, *order, *opts.stage_args]
-        fits[d] = (pipeline.stage(["fit", "--config", str(config.relative_to(ROOT)), *v]), run)
-    chosen, scores = None, {}
-    if opts.orders:  # the order whose kept epoch validated best
-        kept = {d: tested_checkpoint(logger_dir(config) / run / "checkpoints") for d, (_, run) in fits.items()}
-        scores = {d: validation_score(path) for d, path in kept.items()}
-        chosen = min(scores, key=lambda d: scores[d])
-    ran, run = fits[chosen]
-    ssm = tested_checkpoint(logger_dir(config) / run / "checkpoints")
+        fits[d] = []
+        for k in [folds - 1, *range(folds - 1)]:
+            name = run if k == folds - 1 else f"{run}-fold{k}"
+            fold = [] if folds == 1 else ["--data.init_args.val_fraction", repr(1 / folds)]
+            fold += [] if k == folds - 1 else ["--data.init_args.val_at", repr(k / folds)]
+            v = ["--trainer.logger.init_args.version", name, *seed, *order, *fold, *opts.stage_args]
+            fits[d].append((pipeline.stage(["fit", "--config", str(config.relative_to(ROOT)), *v]), name))
+    scores = {  # each fit's kept validation score, the held-out end's first
+        d: [validation_score(tested_checkpoint(logger_dir(config) / name / "checkpoints")) for _, name in runs]
+        for d, runs in fits.items()
+    } if opts.orders or folds > 1 else {}  # fmt: skip
+    judged = {d: float(sum(v) / len(v)) for d, v in scores.items()}  # the mean over the folds (one: the end's)
+    chosen = min(judged, key=lambda d: judged[d]) if opts.orders else None
+    ssm = tested_checkpoint(logger_dir(config) / fits[chosen][0][1] / "checkpoints")
     named = []  # the results file keys the row by method and the seed the fit recorded
-    if opts.orders:
-        chosen_by = {"state_dim, by val/sim_rmse": {str(d): scores[d] for d in scores}, "chosen": chosen}
-        named += ["--model.init_args.selection", json.dumps(chosen_by)]
+    if opts.orders or folds > 1:
+        named += ["--model.init_args.selection", json.dumps(selection(scores, judged, chosen, folds))]
     test = ["test", "--config", str(test_cfg.relative_to(ROOT)), "--model.init_args.ssm_checkpoint", str(ssm)]
-    pipeline.stage([*test, *named, *opts.stage_args], again=any(r for r, _ in fits.values()))
+    pipeline.stage([*test, *named, *opts.stage_args], again=any(r for runs in fits.values() for r, _ in runs))
     md = results_dir(test_cfg, version) / f"{experiment_name(test_cfg)}.md"
     if md.is_file():
         print(f"\nresults: {md.relative_to(ROOT)}\n\n{md.read_text()}")

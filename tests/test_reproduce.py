@@ -865,3 +865,53 @@ def test_a_benchmark_with_orders_tests_the_one_its_validation_chose(recorded, mo
     assert selection["chosen"] == 4 and selection["state_dim, by val/sim_rmse"] == pytest.approx(val)
     with pytest.raises(SystemExit):
         reproduce.main(["pendulum", "--orders", "2"])
+
+
+def test_a_benchmark_cross_validated_over_time_tests_the_end_s_fit_and_chooses_by_the_mean(recorded, monkeypatch, tmp_path):  # fmt: skip
+    """``--folds 3``: per order, the fit holding out the end (val_fraction 1/3, its own run folder, the one tested)
+    and the fits holding out the first and the second third (val_at 0 and 1/3); the order whose three validation
+    scores have the lowest mean is chosen, here d = 4 (mean 1.0) although d = 2's end validated better (0.5 against
+    0.9; d = 2's mean 1.5). The results file gets every fold's score and the means."""
+    import json
+
+    import torch
+
+    calls, _ = recorded
+    val = {("2", None): 0.5, ("2", "0.0"): 2.0, ("2", "0.3333333333333333"): 2.0}
+    val |= {("4", None): 0.9, ("4", "0.0"): 1.0, ("4", "0.3333333333333333"): 1.1}
+
+    def stage(args, number, resume_pipeline=None, on_wait=None):
+        calls.append(args)
+        if args[0] == "fit":
+            at = option(args, "--data.init_args.val_at") if "--data.init_args.val_at" in args else None
+            score = val[option(args, "--model.init_args.state_dim"), at]
+            best = tmp_path / "runs" / "silverbox" / option(args, "--trainer.logger.init_args.version") / "checkpoints"
+            best.mkdir(parents=True)
+            state = {"monitor": "val/sim_rmse", "best_model_score": torch.tensor(score)}
+            torch.save({"callbacks": {"ModelCheckpoint{'monitor': 'val/sim_rmse'}": state}}, best / "best.ckpt")
+        return 0.0
+
+    monkeypatch.setattr(pipeline, "run_stage", stage)
+    reproduce.main(["silverbox", "--orders", "2", "4", "--folds", "3"])
+    fits, (test,) = calls[:6], calls[6:]
+    assert {option(a, "--data.init_args.val_fraction") for a in fits} == {"0.3333333333333333"}
+    held = [option(a, "--data.init_args.val_at") if "--data.init_args.val_at" in a else "end" for a in fits]
+    assert held == ["end", "0.0", "0.3333333333333333"] * 2
+    versions = [option(a, "--trainer.logger.init_args.version") for a in fits]
+    assert len(set(versions)) == 6 and versions[3].endswith("-d4") and versions[4] == versions[3] + "-fold0"
+    assert option(test, "--model.init_args.ssm_checkpoint") == f"runs/silverbox/{versions[3]}/checkpoints/best.ckpt"
+    selection = json.loads(option(test, "--model.init_args.selection"))
+    assert selection["chosen"] == 4 and selection["folds"] == 3
+    by_fold = selection["val/sim_rmse by fold (the held-out end first)"]
+    assert by_fold["2"] == pytest.approx([0.5, 2.0, 2.0]) and by_fold["4"] == pytest.approx([0.9, 1.0, 1.1])
+    assert selection["cross-validated (mean over the folds)"] == pytest.approx({"2": 1.5, "4": 1.0})
+
+    calls.clear()  # one order: its folds scored, nothing chosen, the end's fit tested
+    reproduce.main(["silverbox", "--folds", "2", "--", "--model.init_args.state_dim", "2"])
+    (end, first), (test,) = calls[:2], calls[2:]
+    assert "--data.init_args.val_at" not in end and option(first, "--data.init_args.val_at") == "0.0"
+    assert option(test, "--model.init_args.ssm_checkpoint").endswith(option(end, "--trainer.logger.init_args.version") + "/checkpoints/best.ckpt")  # fmt: skip
+    assert "chosen" not in json.loads(option(test, "--model.init_args.selection"))
+    for wrong in (["pendulum", "--folds", "3"], ["silverbox", "--folds", "1"]):
+        with pytest.raises(SystemExit):
+            reproduce.main(wrong)
