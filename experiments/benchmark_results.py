@@ -88,9 +88,10 @@ def cross_validated(run: dict[str, Any]) -> float | None:
 
 
 def cross_validated_over_seeds(runs: list[dict[str, Any]]) -> float | None:
-    """The mean over a method's runs of their cross-validated scores (``None`` unless every run has one)."""
-    values = [cross_validated(run) for run in runs]
-    return float(np.mean(values)) if values and all(v is not None for v in values) else None
+    """The mean of a method's cross-validated scores over its runs that have one (``None``: none has): K fits per
+    seed make one cross-validated seed a judge worth its cost."""
+    values = [v for v in (cross_validated(run) for run in runs) if v is not None]
+    return float(np.mean(values)) if values else None
 
 
 def seconds_to_kept(runs: list[dict[str, Any]]) -> float | None:
@@ -160,8 +161,8 @@ def render(data: dict[str, Any], results_dir: Path) -> str:
         "after: the training seconds until that model (mean over the seeds)."
         + (
             " Cross-validated: the mean validation score of fits that each held out another part of the training "
-            "recording (`make reproduce ... --folds K`; the end's fit is the one tested), mean over the seeds; where "
-            "every method has one, the choice between methods uses it."
+            "recording (`make reproduce ... --folds K`; the end's fit is the one tested), mean over the seeds that "
+            "have one; where every method has one, the choice between methods uses it."
             if folded
             else ""
         ),

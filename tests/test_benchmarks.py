@@ -269,9 +269,9 @@ def test_seeds_are_summarised_and_the_readme_takes_the_method_that_validated_bes
 
 def test_where_every_method_is_cross_validated_the_readme_chooses_by_those_scores(tmp_path):
     """Runs of ``make reproduce ... --folds K`` record each fold's score and their mean: the results file gets a
-    cross-validated column (mean over seeds of the chosen order's mean), and the README's ssm-ms column the method of
-    the lowest one, here A (cross-validated 1.0 against 1.4) although B's held-out end validated better (0.5 against
-    0.9); while one method lacks it, the held-out end's judge stays (B)."""
+    cross-validated column (the chosen order's mean, averaged over the seeds that have one), and the README's ssm-ms
+    column the method of the lowest one, here A (cross-validated 1.0 against 1.4) although B's held-out end validated
+    better (0.5 against 0.9); while one method lacks it, the held-out end's judge stays (B)."""
     from experiments.benchmark_results import render
     from experiments.readme import Results, benchmarks
     from ssm_ms.forecasting.benchmark_results import run_key
@@ -300,12 +300,14 @@ def test_where_every_method_is_cross_validated_the_readme_chooses_by_those_score
         (row,) = [line for line in benchmarks(Results(tmp_path), {"kind": "benchmarks"}) if line.startswith("| toy")]
         return data, row
 
-    a = [run("A", 0, 0.9, 0.8, 0.3, order=4), run("A", 1, 0.9, 1.2, 0.3, order=4)]
+    a = [run("A", 0, 0.9, 0.8, 0.3, order=4), run("A", 1, 0.9, 1.2, 0.3, order=4), run("A", 2, 0.9, None, 0.3)]
     data, row = readme_row([*a, run("B", 0, 0.5, 1.4, 0.6)])
-    assert "(A, 2 seeds)" in row
+    assert "(A, 3 seeds)" in row
     md = render(data, folder)
     assert "| method | seeds | validation | cross-validated | kept after (s) | test |" in md
-    assert "| A | 0, 1 | 0.9 | 1 | — | 0.3 ± 0 |" in md and "| B | 0 | 0.5 | 1.4 | — | 0.6 |" in md
+    assert (
+        "| A | 0, 1, 2 | 0.9 | 1 | — | 0.3 ± 0 |" in md
+    )  # the mean of the two seeds cross-validated and "| B | 0 | 0.5 | 1.4 | — | 0.6 |" in md
     assert "each held-out part of the training recording in turn" in md
     _, row = readme_row([*a, run("B", 0, 0.5, None, 0.6)])
     assert "(B, 1 seed)" in row
