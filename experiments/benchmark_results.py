@@ -190,8 +190,8 @@ def render(data: dict[str, Any], results_dir: Path) -> str:
                 "fit, which trained fewer epochs in its time budget than it would alone"
             )
         if info.get("selection"):
-            held = "each held-out part of the training recording in turn" if "folds" in info["selection"] else None
-            held = held or "the held-out end of the training recording"
+            held = "the held-out end of the training recording"
+            held = "each held-out part of the training recording in turn" if "folds" in info["selection"] else held
             lines.append(f"- chosen on validation ({held}): {info['selection']}")
         if stability:
             lines.append(
