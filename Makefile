@@ -80,9 +80,9 @@ bench: $(STAMP)
 ## make reproduce EXP=pendulum [SIZE=cpu] [SEED=N] [RESUME=reproduce-...] [ARGS="options for every stage"];
 ## EXP among pendulum pendulum_fc quad quad_fc mnist lorenz_T10 ... oscillator, and the identification benchmarks
 ## silverbox wiener_hammerstein emps cascaded_tanks (configs/benchmarks/; offline: ARGS="--data.init_args.dir_placement
-## ../shared/data/nonlinear_benchmarks")
+## ../shared/data/nonlinear_benchmarks"; FOLDS=K: a benchmark's fit cross-validated over time, docs/benchmarks.md)
 reproduce: $(STAMP) $(if $(filter oscillator,$(EXP)),data/oscillator.npz)
-	$(PY) -m experiments.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(RESUME),--resume $(RESUME)) $(if $(ARGS),-- $(ARGS))
+	$(PY) -m experiments.reproduce $(EXP) --size $(SIZE) $(if $(SEED),--seed $(SEED)) $(if $(FOLDS),--folds $(FOLDS)) $(if $(RESUME),--resume $(RESUME)) $(if $(ARGS),-- $(ARGS))
 
 ## The closed-loop tables' rows from pretrained/: each model of CONTROL_MODELS (pendulum_<model>.ckpt: torque, the
 ## camera; sensors, camera and joint angle; torque_amortised, the camera, nodes read from frames, its UKF on a chart of
