@@ -341,6 +341,7 @@ def run_benchmark(opts: argparse.Namespace, argv: list[str], config: Path, test_
     version = opts.resume or "reproduce-" + (seeded + "-" if seeded else "") + datetime.now().strftime("%Y%m%d-%H%M%S")
     options = without_option(argv, "--resume")
     command = f"make reproduce EXP={opts.experiment}" + (f" SEED={opts.seed}" if seeded else "")
+    command += f" FOLDS={opts.folds}" if opts.folds else ""
     command += f" ARGS={shlex.quote(shlex.join(opts.stage_args))}" if opts.stage_args else ""
     pipeline = open_pipeline(opts, options, config, version, command)
     seed = ["--seed_everything", str(opts.seed)] if seeded else []

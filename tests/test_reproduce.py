@@ -906,12 +906,15 @@ def test_a_benchmark_cross_validated_over_time_tests_the_end_s_fit_and_chooses_b
     assert by_fold["2"] == pytest.approx([0.5, 2.0, 2.0]) and by_fold["4"] == pytest.approx([0.9, 1.0, 1.1])
     assert selection["cross-validated (mean over the folds)"] == pytest.approx({"2": 1.5, "4": 1.0})
 
-    calls.clear()  # one order: its folds scored, nothing chosen, the end's fit tested
+    calls.clear()  # one order: its folds scored, nothing chosen, the end's fit tested; the record names the folds
     reproduce.main(["silverbox", "--folds", "2", "--", "--model.init_args.state_dim", "2"])
     (end, first), (test,) = calls[:2], calls[2:]
     assert "--data.init_args.val_at" not in end and option(first, "--data.init_args.val_at") == "0.0"
     assert option(test, "--model.init_args.ssm_checkpoint").endswith(option(end, "--trainer.logger.init_args.version") + "/checkpoints/best.ckpt")  # fmt: skip
     assert "chosen" not in json.loads(option(test, "--model.init_args.selection"))
+    version = option(end, "--trainer.logger.init_args.version")
+    record = json.loads((tmp_path / "runs" / "silverbox" / version / "reproduce.json").read_text())
+    assert record["command"].startswith("make reproduce EXP=silverbox FOLDS=2 ARGS=")
     for wrong in (["pendulum", "--folds", "3"], ["silverbox", "--folds", "1"]):
         with pytest.raises(SystemExit):
             reproduce.main(wrong)
