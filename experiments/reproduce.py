@@ -318,11 +318,13 @@ def selection(scores: dict, judged: dict, chosen: int | None, folds: int) -> dic
 
 
 def open_pipeline(opts: argparse.Namespace, options: list[str], first: Path, version: str, command: str) -> Pipeline:
-    """The record of this run (in the first stage's run folder), saying how to finish it if it stops."""
+    """The record of this run (in the first stage's run folder), saying how to finish it if it stops (``--resume``
+    among reproduce's own options, before the ``--`` of the stages')."""
+    own = options[: options.index("--")] if "--" in options else options
     pipeline = Pipeline(
         configs.absolute(logger_dir(first)) / version / "reproduce.json",
         {k: v for k, v in vars(opts).items() if k != "resume"},
-        shlex.join(["python", "-m", "experiments.reproduce", *options, "--resume", version]),
+        shlex.join(["python", "-m", "experiments.reproduce", *own, "--resume", version, *options[len(own) :]]),
         resume=opts.resume is not None,
         command=command,
     )

@@ -880,8 +880,11 @@ def test_a_benchmark_cross_validated_over_time_tests_the_end_s_fit_and_chooses_b
     val = {("2", None): 0.5, ("2", "0.0"): 2.0, ("2", "0.3333333333333333"): 2.0}
     val |= {("4", None): 0.9, ("4", "0.0"): 1.0, ("4", "0.3333333333333333"): 1.1}
 
+    resumes = []
+
     def stage(args, number, resume_pipeline=None, on_wait=None):
         calls.append(args)
+        resumes.append(resume_pipeline)
         if args[0] == "fit":
             at = option(args, "--data.init_args.val_at") if "--data.init_args.val_at" in args else None
             score = val[option(args, "--model.init_args.state_dim"), at]
@@ -915,6 +918,9 @@ def test_a_benchmark_cross_validated_over_time_tests_the_end_s_fit_and_chooses_b
     version = option(end, "--trainer.logger.init_args.version")
     record = json.loads((tmp_path / "runs" / "silverbox" / version / "reproduce.json").read_text())
     assert record["command"].startswith("make reproduce EXP=silverbox FOLDS=2 ARGS=")
+    # the command that finishes it gives --resume to reproduce, not to the stages after the --
+    resume = resumes[-1]
+    assert resume.endswith(f"--folds 2 --resume {version} -- --model.init_args.state_dim 2"), resume
     for wrong in (["pendulum", "--folds", "3"], ["silverbox", "--folds", "1"]):
         with pytest.raises(SystemExit):
             reproduce.main(wrong)
