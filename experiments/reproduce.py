@@ -58,6 +58,7 @@ from datetime import datetime
 from pathlib import Path
 
 from experiments import configs
+from experiments.benchmark_results import CROSS_VALIDATED
 from experiments.configs import ROOT, experiment_name, logger_dir, results_dir
 from experiments.pipeline import Pipeline, tested_checkpoint, without_option
 from experiments.registry import LISTED, REGISTRY, read_registry
@@ -312,7 +313,7 @@ def selection(scores: dict, judged: dict, chosen: int | None, folds: int) -> dic
     out = {
         "folds": folds,
         "val/sim_rmse by fold (the held-out end first)": {key(d): v for d, v in scores.items()},
-        "cross-validated (mean over the folds)": {key(d): v for d, v in judged.items()},
+        CROSS_VALIDATED: {key(d): v for d, v in judged.items()},
     }
     return out if chosen is None else {**out, "chosen": chosen}
 
@@ -359,10 +360,10 @@ def run_benchmark(opts: argparse.Namespace, argv: list[str], config: Path, test_
             fold += [] if k == folds - 1 else ["--data.init_args.val_at", repr(k / folds)]
             v = ["--trainer.logger.init_args.version", name, *seed, *order, *fold, *opts.stage_args]
             fits[d].append((pipeline.stage(["fit", "--config", str(config.relative_to(ROOT)), *v]), name))
-    scores = {  # each fit's kept validation score, the held-out end's first
-        d: [validation_score(tested_checkpoint(logger_dir(config) / name / "checkpoints")) for _, name in runs]
-        for d, runs in fits.items()
-    } if opts.orders or folds > 1 else {}  # fmt: skip
+    scores = {}  # each fit's kept validation score, the held-out end's first: where there is a choice to record
+    if opts.orders or folds > 1:
+        kept = lambda name: tested_checkpoint(logger_dir(config) / name / "checkpoints")  # noqa: E731
+        scores = {d: [validation_score(kept(name)) for _, name in runs] for d, runs in fits.items()}
     judged = {d: float(sum(v) / len(v)) for d, v in scores.items()}  # the mean over the folds (one: the end's)
     chosen = min(judged, key=lambda d: judged[d]) if opts.orders else None
     ssm = tested_checkpoint(logger_dir(config) / fits[chosen][0][1] / "checkpoints")
