@@ -12,7 +12,7 @@ from ssm_ms.inference.simulation import initial_state, simulate_recording
 from ssm_ms.module import MultipleShootingModule
 from ssm_ms.nets import ConvDecoder, HistoryEncoder, LinearReadout, LocallyLinearTransition
 from ssm_ms.training.checks import check_data
-from ssm_ms.training.shooting import multiple_shooting_loss
+from ssm_ms.training.shooting import gap_term, multiple_shooting_loss
 
 H, M, N, D = 5, 3, 4, 3  # history, nodes, piece length, state
 
@@ -221,3 +221,7 @@ def test_a_gap_scaled_by_the_node_variance_needs_amortised_nodes():
         ValueError, match=r"unknown gap_scale 'relative': choose one of \['absolute', 'node_variance'\]"
     ):
         model(gap_scale="relative")
+    # the objective itself refuses an unknown scale (a Python API caller, also under python -O)
+    residual, nodes = torch.ones(1, M - 1, D), torch.randn(1, M, D)
+    with pytest.raises(ValueError, match="unknown gap_scale 'relative'"):
+        gap_term(residual, nodes, "relative")

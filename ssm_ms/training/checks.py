@@ -13,7 +13,7 @@ from torch import nn
 from ssm_ms.nets.history import HistoryEncoder
 from ssm_ms.training import distributed
 from ssm_ms.training.nodes import NODE_UPDATES
-from ssm_ms.training.shooting import GAP_SCALES
+from ssm_ms.training.shooting import check_scale
 
 
 def state_dim_of(f: nn.Module, state_dim: int | None) -> int:
@@ -77,8 +77,7 @@ def check_node_settings(node_optimizer: str, node_lr: float | None) -> None:
 def check_gap_scale(gap_scale: str, amortised: bool) -> None:
     """``gap_scale`` is one of :data:`~ssm_ms.training.shooting.GAP_SCALES`; a gap measured relative to the nodes'
     variance needs amortised nodes (free nodes all start at zero)."""
-    if gap_scale not in GAP_SCALES:
-        raise ValueError(f"unknown gap_scale {gap_scale!r}: choose one of {list(GAP_SCALES)}")
+    check_scale(gap_scale)
     if gap_scale == "node_variance" and not amortised:
         raise ValueError(
             "gap_scale: node_variance divides the gaps by the nodes' variance over a batch, but free nodes all start "

@@ -189,6 +189,12 @@ def shooting_residuals(
 GAP_SCALES = ("absolute", "node_variance")  # how the gap term is measured (model.gap_scale; checks.check_gap_scale)
 
 
+def check_scale(scale: str) -> None:
+    """``scale`` is one of :data:`GAP_SCALES` (a ValueError naming them, also under ``python -O``)."""
+    if scale not in GAP_SCALES:
+        raise ValueError(f"unknown gap_scale {scale!r}: choose one of {list(GAP_SCALES)}")
+
+
 def gap_term(residual: torch.Tensor, nodes: torch.Tensor, scale: str = "absolute") -> torch.Tensor:
     """The gap term of the objective from the gaps ``residual [B, m-1, d]`` of the nodes ``nodes [B, m, d]``.
 
@@ -197,11 +203,11 @@ def gap_term(residual: torch.Tensor, nodes: torch.Tensor, scale: str = "absolute
     the graph: the term is unchanged when the states are mapped by ``x -> D x + e`` (``D`` diagonal), so states that
     shrink toward a point, with ``g`` scaled up to read them, no longer lower it. Exactly zero without gaps.
     """
+    check_scale(scale)
     if residual.numel() == 0:
         return residual.new_zeros(())
     if scale == "absolute":
         return residual.pow(2).mean()
-    assert scale == "node_variance", scale  # a model's gap_scale is checked at its construction
     var = nodes.reshape(-1, nodes.shape[-1]).var(0, unbiased=False)
     return (residual.pow(2) / (var + torch.finfo(var.dtype).tiny)).mean()
 
