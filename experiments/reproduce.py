@@ -360,13 +360,16 @@ def run_benchmark(opts: argparse.Namespace, argv: list[str], config: Path, test_
             fold += [] if k == folds - 1 else ["--data.init_args.val_at", repr(k / folds)]
             v = ["--trainer.logger.init_args.version", name, *seed, *order, *fold, *opts.stage_args]
             fits[d].append((pipeline.stage(["fit", "--config", str(config.relative_to(ROOT)), *v]), name))
+
+    def kept(name: str) -> Path:  # the checkpoint a fit keeps (its validation's epoch, else its last)
+        return tested_checkpoint(logger_dir(config) / name / "checkpoints")
+
     scores = {}  # each fit's kept validation score, the held-out end's first: where there is a choice to record
     if opts.orders or folds > 1:
-        kept = lambda name: tested_checkpoint(logger_dir(config) / name / "checkpoints")  # noqa: E731
         scores = {d: [validation_score(kept(name)) for _, name in runs] for d, runs in fits.items()}
     judged = {d: float(sum(v) / len(v)) for d, v in scores.items()}  # the mean over the folds (one: the end's)
     chosen = min(judged, key=lambda d: judged[d]) if opts.orders else None
-    ssm = tested_checkpoint(logger_dir(config) / fits[chosen][0][1] / "checkpoints")
+    ssm = kept(fits[chosen][0][1])
     named = []  # the results file keys the row by method and the seed the fit recorded
     if opts.orders or folds > 1:
         named += ["--model.init_args.selection", json.dumps(selection(scores, judged, chosen, folds))]
