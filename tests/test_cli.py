@@ -35,6 +35,16 @@ CPU = ROOT / "configs" / "cpu"
 MNIST_ROOT = ROOT.parent / "shared" / "data"
 FILES = "datamodules.files.FileDataModule"  # a user's files: no data_dir to redirect
 SSM_CONFIGS = sorted(p for p in CPU.glob("*.yaml") if not p.stem.endswith(("_encoder", "_ukf", "_optimise")))
+# make test fits one config of each data set and model; the variants that differ from one of those only in their data's
+# length (the Lorenz T-sweep beside lorenz_T1000), and the baselines on a data set whose SSM configs are fitted already,
+# run in make test-slow (~5 s each of make test's 10 minutes on the slowest CPUs)
+SLOW_CPU_CONFIGS = {"lorenz_T10", "lorenz_T100", "lorenz_T10000", "quad_lstm", "quad_rkn"}
+
+
+def cpu_params(configs: list[Path]) -> list:
+    """``configs`` as test parameters named by their stems, those of :data:`SLOW_CPU_CONFIGS` marked slow."""
+    return [pytest.param(p, id=p.stem, marks=[pytest.mark.slow] * (p.stem in SLOW_CPU_CONFIGS)) for p in configs]
+
 
 TINY = {  # data overrides that make each data set a handful of short trajectories
     "pendulum": ["--data.init_args.n_train", "8", "--data.init_args.n_test", "4", "--data.init_args.workers", "1"],
@@ -119,7 +129,7 @@ def outputs(tmp: Path, config: Path) -> Path:
     return tmp / "runs" / name / "t"
 
 
-@pytest.mark.parametrize("config", SSM_CONFIGS, ids=[p.stem for p in SSM_CONFIGS])
+@pytest.mark.parametrize("config", cpu_params(SSM_CONFIGS))
 def test_cpu_config_fits_and_writes_checkpoint_and_events(tmp_path, config):
     if family(config.stem) == "mnist" and not MNIST_ROOT.is_dir():
         pytest.skip(f"real MNIST files not found at {MNIST_ROOT}")
@@ -255,7 +265,7 @@ def baseline_lorenz_data(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("lorenz_data")
 
 
-@pytest.mark.parametrize("config", BASELINE_CONFIGS, ids=[p.stem for p in BASELINE_CONFIGS])
+@pytest.mark.parametrize("config", cpu_params(BASELINE_CONFIGS))
 def test_cpu_baseline_config_fits_and_tests(tmp_path, config, baseline_lorenz_data):
     """Each CPU-sized baseline trains a few batches, then the test protocol writes its row beside the paper's."""
     extra = [

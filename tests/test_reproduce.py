@@ -283,7 +283,9 @@ def _long_stage_past_its_first_checkpoint(tmp_path, sigint_ignored: bool = False
     return proc, args, ckpt
 
 
-@pytest.mark.parametrize("how", ["ctrl-c", "sigterm", "sigint-background"])
+# SIGTERM takes the forwarding path of SIGINT to reproduce alone (sigint-background): make test-slow runs it (~25 s on the
+# slowest CPUs)
+@pytest.mark.parametrize("how", ["ctrl-c", pytest.param("sigterm", marks=pytest.mark.slow), "sigint-background"])
 def test_ctrl_c_or_sigterm_during_a_stage_names_it_and_the_command_that_resumes_it(tmp_path, how):
     """Ctrl-C reaches the stage and reproduce together (SIGINT to the process group); SIGTERM or SIGINT to reproduce
     alone (``kill <pid>``, ``kill -INT <pid>``) is forwarded to the stage, SIGINT even where reproduce was started
@@ -482,9 +484,11 @@ def test_a_stage_keeps_the_time_to_its_last_checkpoint_when_copied_to_another_ma
 def test_a_running_stage_calls_on_wait_every_tick_and_once_at_its_end(monkeypatch, capfd):
     """What keeps the record's time current: ``run_stage`` calls ``on_wait`` while the stage runs and after it."""
     ticks = []
-    monkeypatch.setattr(pipeline, "WAIT_TICK", 0.05)
-    pipeline.run_stage(["fit", "--help"], 1, on_wait=lambda: ticks.append(time.monotonic()))
-    assert "--trainer" in capfd.readouterr().out  # the stage ran (its help), for well over a tick
+    monkeypatch.setattr(pipeline, "WAIT_TICK", 0.002)
+    # a stage refused before Lightning's import (a missing config: ~0.1 s, not the ~10 s of a real start)
+    with pytest.raises(SystemExit):
+        pipeline.run_stage(["fit", "--config", "missing.yaml"], 1, on_wait=lambda: ticks.append(time.monotonic()))
+    assert "missing.yaml" in capfd.readouterr().err  # the stage ran, for well over a tick
     assert len(ticks) >= 3
 
 
@@ -674,12 +678,20 @@ def test_a_baseline_budget_raised_on_resume_continues_the_fit_and_tests_again(re
 
 def test_a_fit_extended_on_resume_ends_as_a_fit_given_that_budget_from_the_start(tmp_path, monkeypatch):
     """Real fits: 2 epochs, then the pipeline resumed with 5: epochs 2-4 run (not 0-4 again) and the parameters
-    equal those of a 5-epoch run (the schedule's milestone at epoch 2 falls in the extension)."""
+    equal those of a 5-epoch run (the schedule's milestone at epoch 2 falls in the extension). The stages run in this
+    process (a command-line start is ~10 s of imports on the slowest CPUs); a fit resumed in a process of its own is
+    test_a_pipeline_killed_mid_fit_resumes_to_the_same_model_as_an_uninterrupted_run."""
     import torch
 
     from ssm_ms.cli import main as cli_main
     from tests.test_cli import ROTATION
 
+    def in_process(args, number, resume_pipeline=None, on_wait=None):  # run_stage's python cli.py *args, here
+        start = time.time()
+        cli_main(args)
+        return time.time() - start
+
+    monkeypatch.setattr(pipeline, "run_stage", in_process)
     config = tmp_path / "rot.yaml"
     config.write_text(ROTATION.format(root=tmp_path))
 
@@ -696,7 +708,7 @@ def test_a_fit_extended_on_resume_ends_as_a_fit_given_that_budget_from_the_start
         ]
 
     record = tmp_path / "reproduce.json"
-    pipeline.Pipeline(record, {}, "resume", resume=False).stage(args("cut", 2))  # a process of its own, as reproduce's
+    pipeline.Pipeline(record, {}, "resume", resume=False).stage(args("cut", 2))
     monkeypatch.setenv("EPOCH_LOG", str(tmp_path / "epochs.txt"))
     resumed = pipeline.Pipeline(record, {}, "resume", resume=True)
     assert resumed.stage(args("cut", 5)) is True

@@ -20,6 +20,7 @@ NATIVE_BF16 = perf.bf16_support("cpu")[0]
 BF16_RTOL = 1e-2  # the README's stated tolerance of bf16-mixed against float32 (measured: ~2e-4)
 
 
+@pytest.mark.slow  # inductor's C++ build is ~40 s of make test's 10 minutes on the slowest CPUs; make test-slow runs it
 @pytest.mark.skipif(compile_unavailable_reason("default") is not None, reason="torch.compile unavailable here")
 def test_compiled_rollout_matches_a_plain_loop_with_gradients():
     torch.manual_seed(0)
