@@ -2,8 +2,9 @@
 
 ``python -m tests.test_ddp OUT`` is the 2-process run (Lightning's ``ddp`` strategy starts the second
 process by running the same command); each rank writes its final f, g, nodes, multipliers and alpha
-to ``OUT/<config>-rank<r>.pt``. The test runs it in a subprocess and the 1-device reference in its
-own process, in float64, and compares every tensor of every rank to the reference.
+to ``OUT/<config>-rank<r>.pt``; last, the ranks build different training sets and each writes its
+refusal to ``OUT/refused-rank<r>.txt``. One test runs it in a subprocess and the 1-device reference
+in its own process, in float64, and compares every tensor of every rank to the reference.
 """
 
 from __future__ import annotations
@@ -56,19 +57,11 @@ def _fit(name: str, out: Path, devices: int, data_dir: Path, resume: bool = Fals
     return result
 
 
-def main(out: str, bad: bool = False) -> None:
+def main(out: str) -> None:
+    from tests.conftest import RotationDataModule, fast_trainer, rotation_model
+
     torch.set_num_threads(1)
     out_dir = Path(out)
-    if bad:  # each rank builds another training set: 11 and 12 trajectories
-        from tests.conftest import RotationDataModule, fast_trainer, rotation_model
-
-        rank = int(os.environ.get("LOCAL_RANK", 0))
-        dm = RotationDataModule(
-            data_dir=str(out_dir / f"data{rank}"), n_train=11 + rank, batch_size=4, val_trajectories=0
-        )
-        dm.prepare_data()  # the Trainer prepares data on local rank 0 only
-        fast_trainer(out_dir, max_epochs=1, strategy="ddp", devices=2).fit(rotation_model(), dm)
-        return
     rank = int(os.environ.get("LOCAL_RANK", 0))
     for name in CONFIGS:
         torch.save(_fit(name, out_dir / name, 2, out_dir / "data"), out_dir / f"{name}-rank{rank}.pt")
@@ -76,37 +69,25 @@ def main(out: str, bad: bool = False) -> None:
             _fit(name, out_dir / f"{name}-resumed", 2, out_dir / "data", resume=True),
             out_dir / f"{name}-resumed-rank{rank}.pt",
         )
+    # last, in the same processes (a start of two ranks is ~20 s of imports on the slowest CPUs): each rank builds
+    # another training set, 11 and 12 trajectories, and each rank's refusal is written to OUT/refused-rank<r>.txt
+    dm = RotationDataModule(data_dir=str(out_dir / f"data{rank}"), n_train=11 + rank, batch_size=4, val_trajectories=0)
+    dm.prepare_data()  # the Trainer prepares data on local rank 0 only
+    try:
+        fast_trainer(out_dir / "refused", max_epochs=1, strategy="ddp", devices=2).fit(rotation_model(), dm)
+    except ValueError as error:
+        (out_dir / f"refused-rank{rank}.txt").write_text(str(error))
 
 
-@pytest.fixture(scope="module")
-def ddp_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("ddp")
-    # the data set exists before the two ranks start (each would otherwise generate it)
-    from tests.conftest import RotationDataModule
-
-    RotationDataModule(data_dir=str(out / "data"), n_train=11, batch_size=4, val_trajectories=0).prepare_data()
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
-    proc = subprocess.run(
-        [sys.executable, "-m", "tests.test_ddp", str(out)],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return out
-
-
-@pytest.mark.parametrize("name", list(CONFIGS))
-def test_two_processes_match_one_on_the_same_global_batches(ddp_run, name):
-    """f, g, nodes, multipliers and alpha after 3 epochs (9 steps, schedule milestones inside), run through
-    or resumed from a checkpoint after epoch 2, agree with the 1-process run to 1e-9 on both ranks (float64: the only difference is the order in which
-    the gradient of f and g is summed), and the ranks hold identical tables."""
-    reference = _fit(name, ddp_run / f"{name}-single", 1, ddp_run / "data")
+def _matches_one_process(out: Path, name: str) -> None:
+    """f, g, nodes, multipliers and alpha of config ``name`` after 3 epochs (9 steps, schedule milestones inside),
+    run through or resumed from a checkpoint after epoch 2, agree with the 1-process run to 1e-9 on both ranks
+    (float64: the only difference is the order in which the gradient of f and g is summed), and the ranks hold
+    identical tables."""
+    reference = _fit(name, out / f"{name}-single", 1, out / "data")
     assert int(reference["steps"]) == 9
     for run in (name, f"{name}-resumed"):  # uninterrupted, and resumed from a checkpoint after epoch 2
-        ranks = [torch.load(ddp_run / f"{run}-rank{r}.pt") for r in range(2)]
+        ranks = [torch.load(out / f"{run}-rank{r}.pt") for r in range(2)]
         for result in ranks:
             assert result.keys() == reference.keys()
             for key, value in reference.items():
@@ -115,6 +96,32 @@ def test_two_processes_match_one_on_the_same_global_batches(ddp_run, name):
             assert torch.equal(ranks[0][key], ranks[1][key]), key
     if name == "sparse-al":
         assert reference["alpha_factor"] > 1 and (reference["multipliers"] != 0).all()
+
+
+def test_two_processes_match_one_and_ranks_with_different_training_sets_are_refused(tmp_path):
+    """One 2-rank run serves every DDP check (a start of two ranks is ~20 s of imports on the slowest CPUs): each of
+    :data:`CONFIGS` matches one process (:func:`_matches_one_process`), then ranks that built different training
+    sets stop with one message on each rank, before training."""
+    # the data set exists before the two ranks start (each would otherwise generate it)
+    from tests.conftest import RotationDataModule
+
+    RotationDataModule(data_dir=str(tmp_path / "data"), n_train=11, batch_size=4, val_trajectories=0).prepare_data()
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+    proc = subprocess.run(
+        [sys.executable, "-m", "tests.test_ddp", str(tmp_path)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for name in CONFIGS:
+        _matches_one_process(tmp_path, name)
+    for rank in range(2):
+        refused = tmp_path / f"refused-rank{rank}.txt"
+        assert refused.is_file(), f"rank {rank} was not refused"
+        assert "DDP: the ranks hold different node tables (rows per rank: [11, 12])" in refused.read_text()
 
 
 def test_global_batches_are_sharded_without_repeats():
@@ -141,21 +148,5 @@ def test_global_batches_are_sharded_without_repeats():
         GlobalBatchShardSampler(9, 4, 2, 0)
 
 
-def test_ranks_with_different_training_sets_are_refused(tmp_path):
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
-    proc = subprocess.run(
-        [sys.executable, "-m", "tests.test_ddp", str(tmp_path), "bad"],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode != 0
-    assert "ValueError: DDP: the ranks hold different node tables (rows per rank: [11, 12])" in proc.stderr, (
-        proc.stderr[-3000:]
-    )
-
-
 if __name__ == "__main__":
-    main(sys.argv[1], bad=sys.argv[2:] == ["bad"])
+    main(sys.argv[1])
