@@ -101,7 +101,7 @@ def _matches_one_process(out: Path, name: str) -> None:
 def test_two_processes_match_one_and_ranks_with_different_training_sets_are_refused(tmp_path):
     """One 2-rank run serves every DDP check (a start of two ranks is ~20 s of imports on the slowest CPUs): each of
     :data:`CONFIGS` matches one process (:func:`_matches_one_process`), then ranks that built different training
-    sets stop with one message on each rank, before training."""
+    sets stop with one message on each rank."""
     # the data set exists before the two ranks start (each would otherwise generate it)
     from tests.conftest import RotationDataModule
 

@@ -4,7 +4,8 @@
 # closed loop with the chart UKF (configs/pendulum_torque_amortised_control.yaml) on the 20 *tuning* starts (data and
 # planner seed 10, not the table's) at epochs 300 and 420: the seed and epoch whose loop balances most is chosen there,
 # and only that one is then scored on the table's 100 episodes. Resumable: run it again after a stop (the fit goes on
-# from its last.ckpt). ~85-100 min a seed on 2 CPU cores (~14 s an epoch), ~2 min a loop. From the repository root:
+# from its last.ckpt). ~85-100 min a seed on 2 CPU cores (~14 s an epoch; ~25 s on the slowest CPU
+# seen), ~2 min a loop. From the repository root:
 #   bash studies/ukf_in_the_loop/seed_screen.sh SEED
 # -> runs/seed_screen/seed<S>.log (the fit), runs/seed_screen/loop_seed<S>_e<E>/ (each loop's results), and one line
 #    per loop in runs/seed_screen/scores.txt (successes over the 20, final error; copy them into the study's notes).
