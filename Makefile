@@ -33,12 +33,13 @@ demo: $(STAMP)
 
 ## Lint and format checks (ruff, configured in pyproject.toml), then the unit and integration tests (< 10 minutes on
 ## 2 CPU cores): two pytest workers of one torch thread each, since most tests keep one core busy (imports, small
-## steps, subprocesses) and the suite ran single-core before. The 15 slowest tests are listed at the end: where the
-## time goes when the suite nears its limit.
+## steps, subprocesses) and the suite ran single-core before. Work stealing: a worker that runs out of tests takes
+## pending ones from the other, so both end together (xdist's default, load, left one idle for ~10% of the suite's
+## time). The 15 slowest tests are listed at the end: where the time goes when the suite nears its limit.
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
-	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n 2 --durations=15
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n 2 --dist worksteal --durations=15
 
 ## Format the code and fix what ruff can (make test checks both).
 format: $(STAMP)
