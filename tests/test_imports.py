@@ -125,6 +125,25 @@ def test_the_pipeline_and_the_results_files_start_without_lightning_or_torch():
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
 
 
+def test_a_filter_imports_without_lightning():
+    """``ssm_ms.inference`` names its classes lazily: the UKF and the particle filter (what the control loop's
+    estimators and ``benchmarks/bench_ukf.py`` load) come without Lightning; the package's names still resolve."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, ssm_ms.inference.ukf, ssm_ms.inference.particle\n"
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'lightning', 'torchmetrics'}))\n"
+        "from ssm_ms.inference import FilterForecaster, UnscentedKalmanFilter, fit_nodes\n"
+        "print(UnscentedKalmanFilter is ssm_ms.inference.ukf.UnscentedKalmanFilter, FilterForecaster.__module__)\n"
+        "print([getattr(ssm_ms.inference, name).__name__ for name in ssm_ms.inference.__all__])"
+    )
+    out = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, check=True)
+    lines = out.stdout.splitlines()
+    assert lines[:2] == ["[]", "True ssm_ms.inference.filter_module"], out.stdout + out.stderr
+    assert "'fit_nodes'" in lines[2] and "'StateEncoderModule'" in lines[2], lines[2]
+
+
 # The layers of ssm_ms, lowest first: a module imports only modules of its own layer or lower ones (and never the
 # data sets: the CLI builds data and model from the config's class paths).
 LAYERS = {
