@@ -34,8 +34,8 @@ demo: $(STAMP)
 ## Lint and format checks (ruff, configured in pyproject.toml), then the unit and integration tests (< 10 minutes on
 ## 2 CPU cores): two pytest workers of one torch thread each, since most tests keep one core busy (imports, small
 ## steps, subprocesses) and the suite ran single-core before. Work stealing: a worker that runs out of tests takes
-## pending ones from the other, so both end together (xdist's default, load, left one idle for ~10% of the suite's
-## time). The 15 slowest tests are listed at the end: where the time goes when the suite nears its limit.
+## pending ones from the other, so both end together (xdist's default, load, left one idle at the end, measured in
+## docs/tests.md). The 15 slowest tests are listed at the end: where the time goes when the suite nears its limit.
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
