@@ -95,9 +95,12 @@ STEPS: dict[str, Step] = {
     "--model.init_args.results_dir runs/pretrained --model.init_args.figures_dir null": Step(),
     # the closed-loop rows from the pretrained torque-driven pendulum: make test runs two episodes of 1 s per row, of the
     # harder setting only (the loop is the same for both; each CLI start costs ~8 s of imports on the slowest CPUs),
-    # the angle readout distilled in 50 steps on the nodes' first 2 states (decoding the 25 of each is ~15 s a row)
+    # the angle readout distilled in 50 steps on the nodes' first 2 states (decoding the 25 of each is ~15 s a row);
+    # the torque model's rows and the bound (the amortised model's chart fits an autoencoder at set-up, over 100 s:
+    # make test-slow runs every model)
     "make control-pretrained": Step(
-        'CONTROL_SETTINGS=control_2nm ARGS="--data.init_args.n_test 2 --data.init_args.eval_batch_size 2 '
+        'CONTROL_SETTINGS=control_2nm CONTROL_MODELS=torque ARGS="--data.init_args.n_test 2 '
+        "--data.init_args.eval_batch_size 2 "
         "--model.init_args.seconds 1 "
         "--model.init_args.success_seconds 1 --model.init_args.timing_steps 2 --model.init_args.distill "
         "'{steps: 50, rollout_steps: 2}'\"",

@@ -762,6 +762,7 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         ("test", "configs/pendulum_sensors_control.yaml"),
         ("fit", "configs/pendulum_torque_amortised.yaml"),  # no encoder stage: its control test once
         ("test", "configs/pendulum_torque_amortised_control.yaml"),
+        ("test", "configs/pendulum_torque_amortised_control_2nm.yaml"),
     ]
     version = option(calls[0], "--trainer.logger.init_args.version")
     ssm = f"runs/pendulum_torque/{version}/checkpoints/last.ckpt"
@@ -787,7 +788,7 @@ def test_control_stages_and_a_suite_of_experiments(recorded):
         == f"runs/pendulum_torque_single_encoder/{single}/checkpoints/last.ckpt"
     )
     assert "--model.init_args.ssm_checkpoint" not in calls[18] + calls[19]
-    assert written["experiment"] == "pendulum_control"  # the last results file the suite's last experiment wrote
+    assert written["experiment"] == "pendulum_control_2nm"  # the last results file the suite's last stage wrote
     with pytest.raises(SystemExit):
         reproduce.main(["pendulum_control", "--resume", "reproduce-1"])
 
