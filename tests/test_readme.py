@@ -96,8 +96,8 @@ STEPS: dict[str, Step] = {
     # the closed-loop rows from the pretrained torque-driven pendulum: make test runs two episodes of 1 s per row, of the
     # harder setting only (the loop is the same for both; each CLI start costs ~8 s of imports on the slowest CPUs),
     # the angle readout distilled in 50 steps on the nodes' first 2 states (decoding the 25 of each is ~15 s a row);
-    # the torque model's rows and the bound (the amortised model's chart fits an autoencoder at set-up, over 100 s:
-    # make test-slow runs every model)
+    # the torque model's rows and the bound (the amortised model's chart fits a 4000-step autoencoder at set-up, tens
+    # of seconds: make test-slow runs every model)
     "make control-pretrained": Step(
         'CONTROL_SETTINGS=control_2nm CONTROL_MODELS=torque ARGS="--data.init_args.n_test 2 '
         "--data.init_args.eval_batch_size 2 "
